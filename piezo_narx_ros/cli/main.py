@@ -1,0 +1,63 @@
+"""`piezo-narx` entry point: dispatches to one module per subcommand.
+
+Each subcommand module defines
+    add_parser(subparsers) -> argparse.ArgumentParser   (must import nothing heavy)
+    run(args) -> int                                     (exit code; heavy imports go here)
+so that `piezo-narx evaluate` never pays for torch or rclpy.
+"""
+import argparse
+import importlib
+import sys
+
+from piezo_narx_ros.errors import PiezoNarxError
+
+# name -> module under piezo_narx_ros.cli; order is the order shown in --help.
+SUBCOMMANDS = {
+    'simulate': 'simulate',
+    'fit': 'fit',
+    'evaluate': 'evaluate',
+    'bag': 'bag',
+    'bringup': 'bringup',
+    'demo': 'demo',
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Parser with every subcommand whose module exists."""
+    parser = argparse.ArgumentParser(
+        prog='piezo-narx',
+        description='NARX identification of piezo hysteresis and ROS 2 free-run estimation.')
+    sub = parser.add_subparsers(dest='command', metavar='COMMAND')
+    sub.required = True
+    for name, module in SUBCOMMANDS.items():
+        try:
+            mod = importlib.import_module(f'piezo_narx_ros.cli.{module}')
+        except ModuleNotFoundError as exc:
+            if exc.name == f'piezo_narx_ros.cli.{module}':
+                continue  # subcommand not built yet
+            raise
+        sub_parser = mod.add_parser(sub)
+        sub_parser.set_defaults(_run=mod.run)
+    return parser
+
+
+def main(argv=None) -> int:
+    """Run the command line; returns (and exits with) the process exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        code = args._run(args)
+    except PiezoNarxError as exc:
+        print(f'piezo-narx: error: {exc}', file=sys.stderr)
+        code = 2
+    except FileNotFoundError as exc:
+        print(f'piezo-narx: error: file not found: {exc.filename or exc}', file=sys.stderr)
+        code = 2
+    except KeyboardInterrupt:
+        print('piezo-narx: interrupted', file=sys.stderr)
+        code = 130
+    sys.exit(code or 0)
+
+
+if __name__ == '__main__':
+    main()
