@@ -1,0 +1,304 @@
+"""ROS-free logic of driver_node: limits, watchdog ramp, datagrams out, replies matched back.
+
+RigDriver is driven by three calls, each given the monotonic time `now` (s) so tests control time:
+  command(volts, stamp_ns, now)  a command sample arrived: limit it and send it to the target;
+  receive(data, now)             a datagram arrived from the target: the Sample to publish, or None;
+  tick(now)                      periodic: expire unanswered commands, run the watchdog ramp.
+Outgoing datagrams go through the `send(bytes)` callable (a UDP socket in the node, a list in tests).
+The three calls may come from different threads (the node receives on its own thread), so each one
+holds a lock.
+"""
+from __future__ import annotations
+
+import math
+import threading
+from collections import OrderedDict, deque
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from piezo_narx_ros.errors import ConfigError, DataError
+from piezo_narx_ros.rig import protocol
+from piezo_narx_ros.rig.limits import SlewLimiter, Watchdog
+
+DIAG_OK, DIAG_WARN, DIAG_ERROR = 0, 1, 2  # diagnostic_msgs/DiagnosticStatus levels
+
+STATE_IDLE = 'idle'            # no command yet; output at rest (0 V), nothing sent
+STATE_STREAMING = 'streaming'  # commands arriving
+STATE_RAMPING = 'ramping'      # watchdog tripped: output slewing to 0 V
+STATE_PARKED = 'parked'        # watchdog ramp finished: output held at 0 V
+
+
+@dataclass(frozen=True)
+class DriverConfig:
+    """Driver limits and timing; every field in SI units."""
+    n_axes: int = 1
+    v_min: float = -200.0          # V, lowest voltage ever sent
+    v_max: float = 200.0           # V, highest voltage ever sent
+    max_slew_rate: float = 2.0e5   # V/s, largest rate of change ever sent
+    sample_rate: float = 2000.0    # Hz, nominal command rate: one command may move max_slew_rate/sample_rate V
+    watchdog_timeout: float = 0.1  # s without a command before the ramp to 0 V starts
+    ramp_rate: float = 1000.0      # Hz, datagrams per second while ramping
+    reply_timeout: float = 0.01    # s after which an unanswered command counts as a reply timeout
+
+    def validate(self) -> None:
+        """Raise ConfigError naming the first bad field."""
+        if not 1 <= self.n_axes <= protocol.MAX_AXES:
+            raise ConfigError(f'n_axes must be 1..{protocol.MAX_AXES}, got {self.n_axes}')
+        for name in ('max_slew_rate', 'sample_rate', 'watchdog_timeout', 'ramp_rate', 'reply_timeout'):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f'{name} must be a positive finite number, got {value}')
+        # SlewLimiter checks the voltage window.
+        SlewLimiter(self.v_min, self.v_max, self.max_slew_rate, self.n_axes)
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One measured sample to publish on deflection: the stamp of the command it answers."""
+    seq: int
+    stamp_ns: int
+    position_m: tuple[float, ...]
+    applied_volts: tuple[float, ...]
+    late: bool
+    target_fault: bool
+
+
+@dataclass
+class _Pending:
+    sent_at: float   # monotonic s
+    publish: bool    # False for watchdog ramp datagrams (no command stamp to answer)
+
+
+class _BoundedSeqSet:
+    """The last `size` sequence numbers seen (old ones forgotten), for duplicate/late detection."""
+
+    def __init__(self, size: int = 4096):
+        self._items: OrderedDict[int, None] = OrderedDict()
+        self._size = size
+
+    def add(self, seq: int) -> None:
+        self._items[seq] = None
+        self._items.move_to_end(seq)
+        while len(self._items) > self._size:
+            self._items.popitem(last=False)
+
+    def discard(self, seq: int) -> None:
+        self._items.pop(seq, None)
+
+    def __contains__(self, seq: int) -> bool:
+        return seq in self._items
+
+
+COUNTERS = (
+    'commands',            # valid commands received
+    'commands_rejected',   # commands refused (wrong axis count, NaN/inf)
+    'commands_clamped',    # commands changed by the voltage window
+    'commands_slewed',     # commands changed by the slew limit
+    'datagrams_sent',
+    'send_errors',         # the socket refused a datagram (target unreachable, ...)
+    'replies',             # replies matched to a command within reply_timeout
+    'replies_late',        # replies that arrived after reply_timeout
+    'replies_duplicate',   # a second reply to the same command
+    'replies_unknown',     # a reply to a command never sent (or long forgotten)
+    'replies_malformed',   # datagrams that failed validation (bad magic, size, ...)
+    'reply_timeouts',      # commands unanswered after reply_timeout
+    'target_faults',       # replies carrying the target's fault flag
+    'watchdog_trips',
+)
+
+
+class RigDriver:
+    """Enforces limits, runs the watchdog and matches replies to commands by sequence number."""
+
+    def __init__(self, config: DriverConfig, send: Callable[[bytes], object], seq0: int = 1):
+        config.validate()
+        self.config = config
+        self._send_bytes = send
+        self.limiter = SlewLimiter(config.v_min, config.v_max, config.max_slew_rate, config.n_axes)
+        self.watchdog = Watchdog(config.watchdog_timeout)
+        self.state = STATE_IDLE
+        self.counts = dict.fromkeys(COUNTERS, 0)
+        self._seq = seq0 % protocol.SEQ_MODULO
+        self._pending: OrderedDict[int, _Pending] = OrderedDict()
+        self._answered = _BoundedSeqSet()
+        self._expired = _BoundedSeqSet()
+        self._last_send: float | None = None
+        self._last_reply: float | None = None
+        self._latencies: deque[float] = deque(maxlen=2000)
+        self._last_position: tuple[float, ...] = (math.nan,) * config.n_axes
+        self._report_counts = dict(self.counts)
+        self._lock = threading.Lock()
+
+    # ----------------------------------------------------------------------------- commands
+    def command(self, volts, stamp_ns: int, now: float) -> np.ndarray:
+        """Limit one command sample (V per axis) and send it; returns the volts sent.
+
+        Raises DataError (and counts it) for a wrong axis count or a non-finite value; the caller
+        logs it and carries on.
+        """
+        v = np.asarray(volts, dtype=float).ravel()
+        with self._lock:
+            if v.size != self.config.n_axes:
+                self.counts['commands_rejected'] += 1
+                raise DataError(f'command has {v.size} values, the driver drives {self.config.n_axes} axes')
+            if not np.all(np.isfinite(v)):
+                self.counts['commands_rejected'] += 1
+                raise DataError(f'command volts {v.tolist()} are not finite')
+            out, clamped, slewed = self.limiter.apply(v, 1.0 / self.config.sample_rate)
+            self.counts['commands'] += 1
+            self.counts['commands_clamped'] += clamped
+            self.counts['commands_slewed'] += slewed
+            self.watchdog.feed(now)
+            self.state = STATE_STREAMING
+            self._send(out, int(stamp_ns), now, flags=0, publish=True)
+            return out
+
+    def tick(self, now: float, stamp_ns: int = 0) -> None:
+        """Expire unanswered commands; when the watchdog has tripped, send the next ramp step.
+
+        stamp_ns is put in ramp datagrams (there is no command stamp to copy).
+        """
+        with self._lock:
+            self._expire(now)
+            if not self.watchdog.expired(now):
+                return
+            self.counts['watchdog_trips'] = self.watchdog.trips
+            if self.state == STATE_PARKED:
+                return
+            period = 1.0 / self.config.ramp_rate
+            if self.state != STATE_RAMPING:
+                self.state = STATE_RAMPING
+                elapsed = period
+            elif self._last_send is not None and now - self._last_send < period:
+                return  # ramp at ramp_rate datagrams/s at most
+            else:
+                elapsed = now - self._last_send if self._last_send is not None else period
+            # Never more than one period's worth of slew per datagram, even after a late tick.
+            out = self.limiter.toward(0.0, min(elapsed, period))
+            self._send(out, int(stamp_ns), now, flags=protocol.FLAG_RAMP, publish=False)
+            if not np.any(out):
+                self.state = STATE_PARKED
+
+    def _send(self, volts: np.ndarray, stamp_ns: int, now: float, flags: int, publish: bool) -> None:
+        seq = self._seq
+        self._seq = (self._seq + 1) % protocol.SEQ_MODULO
+        data = protocol.pack_command(protocol.Command(seq, stamp_ns, tuple(volts.tolist()), flags))
+        self._last_send = now
+        self._answered.discard(seq)  # after a wrap-around the number is new again
+        self._expired.discard(seq)
+        try:
+            self._send_bytes(data)
+        except OSError:
+            self.counts['send_errors'] += 1
+            return
+        self.counts['datagrams_sent'] += 1
+        self._pending[seq] = _Pending(now, publish)
+
+    # ------------------------------------------------------------------------------ replies
+    def receive(self, data: bytes, now: float) -> Sample | None:
+        """Account for one datagram from the target; the Sample to publish, or None.
+
+        Replies to commands are published even when late (the measurement and its stamp are still
+        right); duplicates, unknown sequence numbers, ramp replies and malformed datagrams are not.
+        """
+        with self._lock:
+            try:
+                reply = protocol.unpack_reply(data, self.config.n_axes)
+            except protocol.DatagramError:
+                self.counts['replies_malformed'] += 1
+                return None
+            seq = reply.seq
+            pending = self._pending.pop(seq, None)
+            if pending is not None:
+                late = now - pending.sent_at > self.config.reply_timeout
+                if late:
+                    # Not expired by tick() yet, but late all the same.
+                    self.counts['reply_timeouts'] += 1
+                    self.counts['replies_late'] += 1
+                else:
+                    self.counts['replies'] += 1
+                    self._latencies.append(now - pending.sent_at)
+                publish = pending.publish
+            elif seq in self._expired:
+                self._expired.discard(seq)
+                late, publish = True, True
+                self.counts['replies_late'] += 1
+            elif seq in self._answered:
+                self.counts['replies_duplicate'] += 1
+                return None
+            else:
+                self.counts['replies_unknown'] += 1
+                return None
+            self._answered.add(seq)
+            self._last_reply = now
+            self._last_position = tuple(reply.position_m)
+            fault = bool(reply.flags & protocol.FLAG_TARGET_FAULT)
+            self.counts['target_faults'] += fault
+            if not publish:
+                return None
+            return Sample(seq, reply.stamp_ns, tuple(reply.position_m), tuple(reply.applied_volts),
+                          late, fault)
+
+    def _expire(self, now: float) -> None:
+        limit = now - self.config.reply_timeout
+        # Pending is in send order, so the oldest are first.
+        while self._pending:
+            seq, pending = next(iter(self._pending.items()))
+            if pending.sent_at >= limit:
+                break
+            del self._pending[seq]
+            self._expired.add(seq)
+            self.counts['reply_timeouts'] += 1
+
+    # -------------------------------------------------------------------------- diagnostics
+    def report(self, now: float) -> tuple[int, str, dict]:
+        """(level, one-line message, {key: value}) for /diagnostics; compares with the last call."""
+        with self._lock:
+            self._expire(now)
+            c = self.counts
+            delta = {k: c[k] - self._report_counts[k] for k in c}
+            self._report_counts = dict(c)
+            values = dict(c)
+            values.update(state=self.state, output_volts=self._fmt_axes(self.limiter.output),
+                          last_position_m=self._fmt_axes(self._last_position),
+                          pending_replies=len(self._pending))
+            if self._latencies:
+                lat = np.asarray(self._latencies)
+                values.update(reply_latency_p50_s=float(np.median(lat)),
+                              reply_latency_max_s=float(lat.max()))
+            problems = []
+            level = DIAG_OK
+            if delta['reply_timeouts']:
+                answered = delta['replies'] + delta['replies_late']
+                if answered == 0:
+                    level = DIAG_ERROR
+                    problems.append(f"target not replying: {delta['reply_timeouts']} reply timeouts "
+                                    f"(> {self.config.reply_timeout:g} s)")
+                else:
+                    level = max(level, DIAG_WARN)
+                    problems.append(f"reply timeout: {delta['reply_timeouts']} replies later than "
+                                    f"{self.config.reply_timeout:g} s or lost")
+            if delta['send_errors']:
+                level = DIAG_ERROR
+                problems.append(f"{delta['send_errors']} datagrams could not be sent")
+            if delta['target_faults']:
+                level = DIAG_ERROR
+                problems.append(f"target reports a fault in {delta['target_faults']} replies")
+            if self.state == STATE_RAMPING:
+                level = max(level, DIAG_WARN)
+                problems.append('watchdog: no command, ramping output to 0 V')
+            for key, what in (('replies_malformed', 'malformed datagrams'),
+                              ('replies_duplicate', 'duplicate replies'),
+                              ('replies_unknown', 'replies to unknown commands'),
+                              ('commands_rejected', 'commands rejected')):
+                if delta[key]:
+                    level = max(level, DIAG_WARN)
+                    problems.append(f'{delta[key]} {what}')
+            message = '; '.join(problems) if problems else f'{self.state}'
+            return level, message, values
+
+    @staticmethod
+    def _fmt_axes(values) -> str:
+        return ' '.join(f'{float(v):.6g}' for v in values)
