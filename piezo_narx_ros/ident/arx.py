@@ -1,0 +1,81 @@
+"""Linear ARX baseline fitted by least squares.
+
+    y(k) + a1 y(k-1) + ... + a_na y(k-na) = b0 u(k) + b1 u(k-1) + ... + b_nb u(k-nb) + c
+
+``nu = nb`` and ``ny = na`` so the model shares the regressors (eq. (1)) and the
+predict/simulate/stepper API of NARXNetwork.
+"""
+import numpy as np
+
+from ..errors import DataError
+from .kernels import ARXStepper, arx_simulate
+from .regressors import LaggedModel, as_signal, check_orders, lagged_regressors
+
+
+class ARXModel(LaggedModel):
+    """ARX(na, nb) model; after fit, ``a`` (na,), ``b`` (nb+1,) and intercept ``c`` (m) are set.
+
+    fit_intercept : estimate the constant c (absorbs sensor/voltage offsets); False forces c = 0.
+    """
+
+    kind = 'arx'
+
+    def __init__(self, na=2, nb=2, fit_intercept=True):
+        self.nu, self.ny = check_orders(nb, na)
+        self.na, self.nb = self.ny, self.nu
+        self.fit_intercept = bool(fit_intercept)
+        self.a = None
+        self.b = None
+        self.c = 0.0
+
+    @property
+    def n_params(self):
+        """Number of estimated coefficients."""
+        return self.na + self.nb + 1 + int(self.fit_intercept)
+
+    def _is_fitted(self):
+        return self.a is not None
+
+    def fit(self, u, y, u_val=None, y_val=None, fs=None):
+        """Least-squares fit on estimation data u (V), y (m). u_val/y_val are not used (no tuning)."""
+        u = as_signal(u, 'u', min_len=self.n0 + self.n_params)
+        y = as_signal(y, 'y', n=u.size)
+        X, t = lagged_regressors(u, y, self.nu, self.ny)
+        if self.fit_intercept:
+            X = np.hstack([X, np.ones((X.shape[0], 1))])
+        # Columns in V and m differ by orders of magnitude; scaling them keeps lstsq well conditioned.
+        scale = np.sqrt(np.mean(X * X, axis=0))
+        scale[scale == 0] = 1.0
+        theta, *_ = np.linalg.lstsq(X / scale, t, rcond=None)
+        theta = theta / scale
+        if not np.all(np.isfinite(theta)):
+            raise DataError('ARX least squares gave non-finite coefficients (degenerate data)')
+        self.set_coefficients(a=-theta[self.nu + 1:self.nu + 1 + self.ny], b=theta[:self.nu + 1],
+                              c=theta[-1] if self.fit_intercept else 0.0)
+        self._record_ranges(u, y, fs)
+        return self
+
+    def set_coefficients(self, a, b, c=0.0):
+        """Set the polynomial coefficients a (na,), b (nb+1,) and intercept c (m) directly."""
+        a = np.array(a, dtype=np.float64).ravel()
+        b = np.array(b, dtype=np.float64).ravel()
+        if a.size != self.na or b.size != self.nb + 1:
+            raise DataError(f'ARX({self.na},{self.nb}) needs a of size {self.na} and b of size '
+                            f'{self.nb + 1}, got {a.size} and {b.size}')
+        self.a, self.b, self.c = a, b, float(c)
+        # Kernel layout: time order, u[k-nu .. k] and y[k-ny .. k-1].
+        self._bu = np.ascontiguousarray(b[::-1])
+        self._ay = np.ascontiguousarray(-a[::-1])
+        return self
+
+    def _predict_rows(self, X):
+        return X[:, :self.nu + 1] @ self.b - X[:, self.nu + 1:] @ self.a + self.c
+
+    def _simulate_inplace(self, u, y, start):
+        arx_simulate(u, y, start, self._bu, self._ay, self.c)
+
+    def _make_stepper(self, u_past, y_past):
+        return ARXStepper((self._bu, self._ay, self.c), self.nu, self.ny, u_past, y_past)
+
+    def __repr__(self):
+        return f'ARXModel(na={self.na}, nb={self.nb})'

@@ -1,0 +1,168 @@
+"""NARX network: one hidden layer of logistic (sigmoid) units and a linear output.
+
+    y(k) = f(u(k), ..., u(k-nu), y(k-1), ..., y(k-ny))
+    f(x) = ym + ys * (w2 . sigmoid(W1 xn + b1) + b2),   xn = (x - mean) / std   per signal (u or y)
+
+The normalisation (u_mean, u_std, y_mean, y_std) is fitted on the estimation data only. Training
+(torch, imported only inside fit) lives in training.py; inference uses the numba kernels.
+"""
+import time
+
+import numpy as np
+
+from ..errors import DataError
+from .kernels import NARXStepper, narx_simulate
+from .regressors import LaggedModel, as_signal, check_orders
+
+#: Training options and their defaults (fast enough for a 16-network grid on 50k samples).
+TRAINING_DEFAULTS = {
+    'restarts': 3,           # seeded random initialisations of the one-step LM stage
+    'max_iter': 60,          # LM iterations of the one-step stage (the best restart continues)
+    'restart_iter': 15,      # LM iterations each restart gets before the best one is kept
+    'restart_samples': 6000,  # one-step rows used while screening restarts
+    'val_fraction': 0.15,    # tail of the estimation data held out for early stopping / selection
+    'max_fail': 6,           # early stopping: iterations without held-out improvement
+    'refine_iter': 15,       # simulation-error LM iterations (0 disables the refinement)
+    'segment_length': 100,   # samples per free-run segment in the refinement
+    'n_segments': 120,       # segments per refinement batch
+    'threads': 1,            # torch threads inside fit
+}
+
+
+def _sigmoid(z):
+    return 1.0 / (1.0 + np.exp(-z))
+
+
+class NARXNetwork(LaggedModel):
+    """Single-hidden-layer sigmoid NARX model (scikit-learn style fit/predict/simulate).
+
+    nu, ny : input/output lags; hidden : number of sigmoid units H; seed : training RNG seed.
+    training_options : see TRAINING_DEFAULTS. After fit: ``training_info_`` (dict of losses, times,
+    stages).
+    """
+
+    kind = 'narx'
+    activation = 'logistic'
+
+    def __init__(self, nu=4, ny=4, hidden=10, seed=0, **training_options):
+        self.nu, self.ny = check_orders(nu, ny)
+        try:
+            self.hidden = int(hidden)
+        except (TypeError, ValueError):
+            raise DataError(f'hidden must be a positive integer, got {hidden!r}') from None
+        if self.hidden != hidden or self.hidden < 1:
+            raise DataError(f'hidden must be a positive integer, got {hidden!r}')
+        self.seed = int(seed)
+        unknown = set(training_options) - set(TRAINING_DEFAULTS)
+        if unknown:
+            raise DataError(f'unknown training option(s): {", ".join(sorted(unknown))}; '
+                            f'known: {", ".join(TRAINING_DEFAULTS)}')
+        self.training_options = {**TRAINING_DEFAULTS, **training_options}
+        self.W1 = None
+        self.training_info_ = {}
+
+    @property
+    def n_inputs(self):
+        """Regressor size nu + 1 + ny."""
+        return self.nu + 1 + self.ny
+
+    @property
+    def n_params(self):
+        """Number of trainable weights H (d + 1) + H + 1."""
+        return self.hidden * (self.n_inputs + 2) + 1
+
+    def _is_fitted(self):
+        return self.W1 is not None
+
+    # ---------------------------------------------------------------- weights
+    def set_weights(self, W1, b1, w2, b2, normalisation):
+        """Set the weights in normalised units.
+
+        W1 : (H, nu+1+ny) input weights, columns in regressor order [u(k)..u(k-nu), y(k-1)..y(k-ny)];
+        b1 : (H,); w2 : (H,); b2 : scalar; normalisation : (u_mean V, u_std V, y_mean m, y_std m).
+        """
+        H, d = self.hidden, self.n_inputs
+        W1 = np.array(W1, dtype=np.float64)
+        b1 = np.array(b1, dtype=np.float64).ravel()
+        w2 = np.array(w2, dtype=np.float64).ravel()
+        b2 = float(np.asarray(b2, dtype=np.float64).reshape(-1)[0]) if np.size(b2) == 1 else None
+        norm = np.array(normalisation, dtype=np.float64).ravel()
+        if W1.shape != (H, d) or b1.shape != (H,) or w2.shape != (H,) or b2 is None:
+            raise DataError(f'NARX weights must be W1 {(H, d)}, b1 ({H},), w2 ({H},), b2 scalar; got '
+                            f'W1 {W1.shape}, b1 {b1.shape}, w2 {w2.shape}, b2 size {np.size(b2)}')
+        if norm.shape != (4,) or norm[1] <= 0 or norm[3] <= 0:
+            raise DataError('normalisation must be (u_mean, u_std > 0, y_mean, y_std > 0)')
+        for name, a in (('W1', W1), ('b1', b1), ('w2', w2), ('normalisation', norm)):
+            if not np.all(np.isfinite(a)):
+                raise DataError(f'NARX weight {name} contains NaN or infinite values')
+        self.W1, self.b1, self.w2, self.b2, self.normalisation = W1, b1, w2, b2, norm
+        self._fold()
+        return self
+
+    def _fold(self):
+        """Fold the normalisation into raw-unit, time-ordered kernel weights."""
+        um, us, ym, ys = self.normalisation
+        n_u = self.nu + 1
+        mean = np.r_[np.full(n_u, um), np.full(self.ny, ym)]
+        std = np.r_[np.full(n_u, us), np.full(self.ny, ys)]
+        Wr = self.W1 / std
+        self._Wx = Wr                                    # regressor order, for predict
+        self._b1r = self.b1 - Wr @ mean
+        self._Wu = np.ascontiguousarray(Wr[:, :n_u][:, ::-1])
+        self._Wy = np.ascontiguousarray(Wr[:, n_u:][:, ::-1])
+        self._w2r = self.w2 * ys
+        self._b2r = float(ym + ys * self.b2)
+
+    # ---------------------------------------------------------------- training
+    def fit(self, u, y, u_val=None, y_val=None, fs=None):
+        """Train on estimation data u (V), y (m); returns self.
+
+        Stage 1: Levenberg-Marquardt on the one-step error (seeded restarts, early stopping on a
+        held-out tail). Stage 2: simulation-error LM on free-run segments, kept only if the held-out
+        free-run error improves. u_val/y_val (if given) are only scored into ``training_info_``, never
+        used for a choice, so they stay an honest validation set.
+        """
+        from . import training  # torch lives there; inference never imports it
+
+        opts = self.training_options
+        u = as_signal(u, 'u', min_len=self.n0 + 20)
+        y = as_signal(y, 'y', n=u.size)
+        us, ys = float(u.std()), float(y.std())
+        if us == 0 or ys == 0:
+            raise DataError('estimation data is constant (zero variance in u or y); cannot fit')
+        norm = np.array([u.mean(), us, y.mean(), ys])
+        t0 = time.perf_counter()
+        W1, b1, w2, b2, info = training.train_narx(
+            (u - norm[0]) / norm[1], (y - norm[2]) / norm[3], self.nu, self.ny, self.hidden,
+            self.seed, **opts)
+        self.set_weights(W1, b1, w2, b2, norm)
+        self._record_ranges(u, y, fs)
+        info['fit_seconds'] = time.perf_counter() - t0
+        if u_val is not None and y_val is not None:
+            u_val = as_signal(u_val, 'u_val', min_len=self.n0 + 1)
+            y_val = as_signal(y_val, 'y_val', n=u_val.size)
+            info['val_r2_predict'] = _r2(y_val[self.n0:], self.predict(u_val, y_val)[self.n0:])
+            info['val_r2_simulate'] = _r2(y_val[self.n0:],
+                                          self.simulate(u_val, y_val[:self.n0])[self.n0:])
+        self.training_info_ = info
+        return self
+
+    # ---------------------------------------------------------------- inference
+    def _predict_rows(self, X):
+        return _sigmoid(X @ self._Wx.T + self._b1r) @ self._w2r + self._b2r
+
+    def _simulate_inplace(self, u, y, start):
+        narx_simulate(u, y, start, self._Wu, self._Wy, self._b1r, self._w2r, self._b2r)
+
+    def _make_stepper(self, u_past, y_past):
+        return NARXStepper((self._Wu, self._Wy, self._b1r, self._w2r, self._b2r),
+                           self.nu, self.ny, u_past, y_past)
+
+    def __repr__(self):
+        return f'NARXNetwork(nu={self.nu}, ny={self.ny}, hidden={self.hidden}, seed={self.seed})'
+
+
+def _r2(y, yhat):
+    """Coefficient of determination 1 - SSE/SST (for training_info_ only)."""
+    d = y - y.mean()
+    return float(1.0 - np.sum((y - yhat) ** 2) / np.sum(d * d))

@@ -1,0 +1,137 @@
+"""Lagged regressors of the NARX/ARX models (the paper's eq. (1)).
+
+    y(k) = f(u(k), u(k-1), ..., u(k-nu), y(k-1), ..., y(k-ny))
+
+A regressor row holds ``nu + 1 + ny`` entries in exactly that order; ``n0 = max(nu, ny)`` leading
+samples have no full row and are skipped.
+"""
+import numpy as np
+
+from ..errors import DataError
+
+
+def check_orders(nu, ny):
+    """Validate input/output lag orders; returns ``(nu, ny)`` as ints (nu >= 0, ny >= 1)."""
+    try:
+        nu_i, ny_i = int(nu), int(ny)
+    except (TypeError, ValueError):
+        raise DataError(f'lag orders must be integers, got nu={nu!r}, ny={ny!r}') from None
+    if nu_i != nu or ny_i != ny or nu_i < 0 or ny_i < 1:
+        raise DataError(f'lag orders must be integers with nu >= 0 and ny >= 1, got nu={nu!r}, ny={ny!r}')
+    return nu_i, ny_i
+
+
+def as_signal(x, name, n=None, min_len=1):
+    """Return ``x`` as a contiguous 1-D float64 array, raising DataError on bad shape or values."""
+    try:
+        a = np.ascontiguousarray(x, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DataError(f'{name} must be a 1-D array of numbers') from None
+    if a.ndim != 1:
+        raise DataError(f'{name} must be 1-D, got shape {a.shape}')
+    if n is not None and a.size != n:
+        raise DataError(f'{name} has {a.size} samples, expected {n}')
+    if a.size < min_len:
+        raise DataError(f'{name} has {a.size} samples, need at least {min_len}')
+    if not np.all(np.isfinite(a)):
+        raise DataError(f'{name} contains NaN or infinite values')
+    return a
+
+
+def lagged_regressors(u, y, nu, ny):
+    """Build the regressor matrix and target of eq. (1).
+
+    Parameters
+    ----------
+    u : (N,) input (V), y : (N,) output (m), nu, ny : input and output lag orders.
+
+    Returns
+    -------
+    X : (N - n0, nu + 1 + ny) rows ``[u(k), ..., u(k-nu), y(k-1), ..., y(k-ny)]`` for k = n0..N-1
+    target : (N - n0,) ``y(k)`` for the same k, with ``n0 = max(nu, ny)``.
+    """
+    nu, ny = check_orders(nu, ny)
+    n0 = max(nu, ny)
+    u = as_signal(u, 'u', min_len=n0 + 1)
+    y = as_signal(y, 'y', n=u.size)
+    n = u.size
+    m = n - n0
+    X = np.empty((m, nu + 1 + ny))
+    for i in range(nu + 1):
+        X[:, i] = u[n0 - i:n - i]
+    for j in range(1, ny + 1):
+        X[:, nu + j] = y[n0 - j:n - j]
+    return X, y[n0:].copy()
+
+
+class LaggedModel:
+    """Shared predict/simulate/stepper plumbing of ARXModel and NARXNetwork.
+
+    Subclasses set ``nu``, ``ny`` and implement ``_predict_rows(X)``, ``_simulate_inplace(u, y,
+    start)`` and ``_make_stepper(u_past, y_past)``; ``_is_fitted()`` tells whether weights exist.
+    """
+
+    fs = None
+    input_range = None    # (min, max) of the estimation input, V
+    output_range = None   # (min, max) of the estimation output, m
+
+    @property
+    def n0(self):
+        """Number of leading samples without a full regressor row, max(nu, ny)."""
+        return max(self.nu, self.ny)
+
+    def _require_fitted(self):
+        if not self._is_fitted():
+            raise DataError(f'{type(self).__name__} has no weights yet: call fit() or load a model file')
+
+    def _record_ranges(self, u, y, fs):
+        self.input_range = (float(u.min()), float(u.max()))
+        self.output_range = (float(y.min()), float(y.max()))
+        if fs is not None:
+            fs = float(fs)
+            if not np.isfinite(fs) or fs <= 0:
+                raise DataError(f'sample rate fs must be a positive number of Hz, got {fs!r}')
+            self.fs = fs
+
+    def predict(self, u, y):
+        """One-step-ahead prediction from measured past outputs.
+
+        u : (N,) input, V; y : (N,) measured output, m. Returns (N,) m with ``[:n0] = y[:n0]``.
+        """
+        self._require_fitted()
+        u = as_signal(u, 'u', min_len=self.n0 + 1)
+        y = as_signal(y, 'y', n=u.size)
+        X, _ = lagged_regressors(u, y, self.nu, self.ny)
+        out = y.copy()
+        out[self.n0:] = self._predict_rows(X)
+        return out
+
+    def simulate(self, u, y0=None):
+        """Free-run simulation from the input alone.
+
+        u : (N,) input, V. y0 : None to start from rest (every u, y before k = 0 is 0; all N samples
+        simulated), or the first n0 measured outputs (m), copied to the output for k < n0.
+        Returns (N,) simulated output, m.
+        """
+        self._require_fitted()
+        n0 = self.n0
+        if y0 is None:
+            u = as_signal(u, 'u')
+            u_pad = np.concatenate([np.zeros(n0), u])
+            y_pad = np.zeros(u_pad.size)
+            self._simulate_inplace(u_pad, y_pad, n0)
+            return y_pad[n0:]
+        u = as_signal(u, 'u', min_len=n0)
+        y0 = as_signal(y0, 'y0', n=n0, min_len=0)
+        y = np.empty(u.size)
+        y[:n0] = y0
+        self._simulate_inplace(u, y, n0)
+        return y
+
+    def stepper(self, u_past=None, y_past=None):
+        """A Stepper (free-run one sample at a time) started from the given histories.
+
+        u_past : [u(k-nu) ... u(k-1)] (V), y_past : [y(k-ny) ... y(k-1)] (m), None = rest.
+        """
+        self._require_fitted()
+        return self._make_stepper(u_past, y_past)
