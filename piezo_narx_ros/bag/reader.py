@@ -1,0 +1,287 @@
+"""Read rosbag2 bags (MCAP or sqlite3 storage, a bag directory or a lone .mcap/.db3 file).
+
+Reading never executes code from the bag: messages are decoded only with the `rosbags` built-in
+type store (ROS 2 Kilted definitions shipped with the library), never with definitions taken from
+the bag, because turning a bag's definition into a decoder generates and runs Python code.
+"""
+from __future__ import annotations
+
+import struct
+import warnings
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from piezo_narx_ros.bag.pairing import (PairingReport, StreamCheck, clean_stream, pair_by_stamp,
+                                        sample_clock)
+from piezo_narx_ros.bag.writer import (COMMAND_TOPIC, DEFLECTION_TOPIC, JOINT_STATE,
+                                       absolute_topic, typestore)
+from piezo_narx_ros.errors import BagError
+
+_FILE_SUFFIXES = ('.mcap', '.db3')
+
+
+class BagWarning(UserWarning):
+    """A non-fatal problem in a bag's data (gap, duplicate, reordering, irregular rate)."""
+
+
+# ------------------------------------------------------------------------------------ opening
+def _storage_file(directory: Path) -> Path | None:
+    files = sorted(p for p in directory.iterdir() if p.suffix in _FILE_SUFFIXES)
+    return files[0] if len(files) == 1 else None
+
+
+@contextmanager
+def open_bag(path: str | Path):
+    """Open a bag for reading with rosbags' `Reader` (a directory with metadata.yaml, or one
+    .mcap/.db3 file; a directory whose metadata.yaml is missing is read through its single
+    storage file). Every failure is a one-line BagError naming the bag."""
+    from rosbags.rosbag2 import Reader, ReaderError
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f'bag not found: {path}')
+    target = path
+    if path.is_dir() and not (path / 'metadata.yaml').is_file():
+        target = _storage_file(path)
+        if target is None:
+            raise BagError(f'{path} is not a rosbag2 bag: no metadata.yaml and not exactly one '
+                           '.mcap/.db3 file in it')
+    elif path.is_file() and path.suffix not in _FILE_SUFFIXES:
+        raise BagError(f'{path}: not a bag (expected a bag directory, .mcap or .db3 file)')
+    hint = ''
+    if target.suffix == '.mcap':
+        hint = f' (interrupted recording? try: piezo-narx bag repair {path})'
+    try:
+        reader = Reader(target)
+        reader.open()
+    except (ReaderError, OSError, ValueError, KeyError, TypeError, struct.error,
+            EOFError) as exc:
+        raise BagError(f'cannot read bag {path}: {_one_line(exc)}{hint}') from None
+    try:
+        yield reader
+    finally:
+        reader.close()
+
+
+def _one_line(exc: BaseException) -> str:
+    text = ' '.join(str(exc).split()) or type(exc).__name__
+    return text.rstrip('.')
+
+
+def _messages(reader, connections, path) -> Iterator[tuple[object, int, bytes]]:
+    """rosbags' message iterator with storage errors turned into one-line BagErrors."""
+    from rosbags.rosbag2 import ReaderError
+    try:
+        yield from reader.messages(connections=connections)
+    except (ReaderError, OSError, ValueError, KeyError, struct.error, EOFError) as exc:
+        raise BagError(f'bag {path} is damaged while reading messages: {_one_line(exc)} '
+                       f'(try: piezo-narx bag repair {path})') from None
+
+
+def find_topic(reader, topic: str, msgtype: str | None = None, path='bag') -> list:
+    """The connections of `topic` (with or without leading '/'); BagError naming the available
+    topics when it is absent, or when its type is not `msgtype`."""
+    name = absolute_topic(topic)
+    conns = [c for c in reader.connections if absolute_topic(c.topic) == name]
+    if not conns:
+        have = ', '.join(sorted({absolute_topic(c.topic) for c in reader.connections})) or 'none'
+        raise BagError(f'topic {name} not in bag {path} (topics: {have})')
+    if msgtype is not None:
+        wrong = sorted({c.msgtype for c in conns if c.msgtype != msgtype})
+        if wrong:
+            raise BagError(f'topic {name} in bag {path} has type {wrong[0]}, expected {msgtype}')
+        expected_hash = typestore().hash_rihs01(msgtype)
+        for c in conns:
+            # Bags from before ROS 2 Iron carry no hash; a different one is a foreign definition.
+            if c.digest and c.digest.startswith('RIHS01_') and c.digest != expected_hash:
+                raise BagError(f'topic {name} in bag {path}: {msgtype} definition differs from '
+                               f'the standard one (type hash {c.digest[:19]}...)')
+    return conns
+
+
+# ------------------------------------------------------------------------------- JointState data
+@dataclass
+class JointSeries:
+    """One JointState topic's values in arrival order: header stamps (ns), receive times (ns),
+    the chosen field of the chosen axis, and how many messages lacked it."""
+    topic: str
+    stamps_ns: np.ndarray      # (n,) int64
+    log_ns: np.ndarray         # (n,) int64, rosbag2 receive timestamps
+    values: np.ndarray         # (n,) float64, SI (m for position, V for effort)
+    malformed: int = 0
+
+
+def read_joint_series(path: str | Path, fields: dict[str, str], axis: int = 0
+                      ) -> dict[str, JointSeries]:
+    """Read JointState topics of a bag in one pass.
+
+    fields: {topic: 'position' | 'effort'}; axis: index into that array. Returns {topic (as given):
+    JointSeries}. Messages lacking field[axis] are counted in `malformed`, not raised.
+    """
+    store = typestore()
+    with open_bag(path) as reader:
+        by_conn = {}
+        for topic, fld in fields.items():
+            if fld not in ('position', 'effort', 'velocity'):
+                raise BagError(f'unknown JointState field {fld!r}')
+            for c in find_topic(reader, topic, JOINT_STATE, path):
+                by_conn[c.id] = topic
+        acc = {t: ([], [], []) for t in fields}
+        bad = dict.fromkeys(fields, 0)
+        conns = [c for c in reader.connections if c.id in by_conn]
+        for conn, log_ns, raw in _messages(reader, conns, path):
+            topic = by_conn[conn.id]
+            try:
+                msg = store.deserialize_cdr(raw, JOINT_STATE)
+            except Exception as exc:  # noqa: BLE001 - any decode failure is a damaged message
+                raise BagError(f'bag {path}: cannot decode a {JOINT_STATE} message on '
+                               f'{absolute_topic(topic)} at log time {log_ns} ns: '
+                               f'{_one_line(exc)}') from None
+            arr = getattr(msg, fields[topic])
+            if axis >= len(arr):
+                bad[topic] += 1
+                continue
+            stamps, logs, values = acc[topic]
+            stamps.append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
+            logs.append(log_ns)
+            values.append(float(arr[axis]))
+    return {t: JointSeries(absolute_topic(t), np.asarray(s, dtype=np.int64),
+                           np.asarray(lg, dtype=np.int64), np.asarray(v, dtype=np.float64),
+                           bad[t])
+            for t, (s, lg, v) in acc.items()}
+
+
+def read_uy_report(path: str | Path, command_topic: str = COMMAND_TOPIC,
+                   deflection_topic: str = DEFLECTION_TOPIC, axis: int = 0):
+    """Like `read_uy`, but returns (Record, PairingReport) and issues no warning."""
+    from piezo_narx_ros.ident.data import Record
+    if absolute_topic(command_topic) == absolute_topic(deflection_topic):
+        raise BagError('command and deflection topics must differ')
+    series = read_joint_series(path, {command_topic: 'effort', deflection_topic: 'position'},
+                               axis)
+    su, sy = series[command_topic], series[deflection_topic]
+    for s, kind in ((su, 'command'), (sy, 'deflection')):
+        if s.values.size == 0:
+            extra = (f' ({s.malformed} message(s) without {"effort" if kind == "command" else "position"}'
+                     f'[{axis}])' if s.malformed else '')
+            raise BagError(f'bag {path}: no {kind} samples on {s.topic}{extra}')
+    t_ns, u, y, report = pair_by_stamp(su.stamps_ns, su.values, sy.stamps_ns, sy.values)
+    report.command.malformed, report.deflection.malformed = su.malformed, sy.malformed
+    for name, arr in (('command', u), ('deflection', y)):
+        if not np.all(np.isfinite(arr)):
+            raise BagError(f'bag {path}: {np.count_nonzero(~np.isfinite(arr))} non-finite '
+                           f'{name} value(s)')
+    record = Record(u=u, y=y, fs=report.fs, source=str(path),
+                    t=(t_ns - t_ns[0]).astype(np.float64) * 1e-9, y_true=None)
+    return record, report
+
+
+def read_uy(path: str | Path, command_topic: str = COMMAND_TOPIC,
+            deflection_topic: str = DEFLECTION_TOPIC, axis: int = 0):
+    """Identification record (u in V, y in m) from a bag, samples paired by header.stamp.
+
+    u is effort[axis] of the command topic, y is position[axis] of the deflection topic; topic
+    names may have a leading '/'. fs (Hz) is inferred from the stamps; `Record.t` is seconds since
+    the first paired sample. Non-fatal findings (gaps, duplicates, reordering, irregular rate) are
+    issued as `BagWarning`s; a missing/mistyped topic or an unreadable bag raises BagError.
+    """
+    record, report = read_uy_report(path, command_topic, deflection_topic, axis)
+    for line in report.issues():
+        warnings.warn(f'{path}: {line}', BagWarning, stacklevel=2)
+    return record
+
+
+# ------------------------------------------------------------------------------------- summary
+@dataclass
+class TopicInfo:
+    """One topic of a bag. Stamp figures come from header.stamp for JointState topics and from
+    the receive time otherwise."""
+    name: str
+    msgtype: str
+    count: int
+    first_ns: int = 0
+    last_ns: int = 0
+    rate_hz: float = 0.0
+    gaps: int = 0
+    missing: int = 0
+    jitter: float = 0.0
+    check: StreamCheck | None = None
+
+    @property
+    def duration_s(self) -> float:
+        """Span from the first to the last stamp, s."""
+        return (self.last_ns - self.first_ns) * 1e-9
+
+
+@dataclass
+class BagInfo:
+    """What `bag_info` reports about a bag."""
+    path: str
+    storage: str
+    message_count: int
+    start_ns: int
+    end_ns: int
+    topics: list[TopicInfo] = field(default_factory=list)
+
+    @property
+    def duration_s(self) -> float:
+        """Receive-time span of the whole bag, s."""
+        return max(0, self.end_ns - self.start_ns) * 1e-9
+
+
+def bag_info(path: str | Path) -> BagInfo:
+    """Topics, counts, duration, per-topic rate, gaps and stamp order of a bag (reads every
+    message; JointState topics are decoded for their header stamps)."""
+    store = typestore()
+    path = Path(path)
+    with open_bag(path) as reader:
+        stamps: dict[int, list[int]] = {c.id: [] for c in reader.connections}
+        decodable = {c.id for c in reader.connections
+                     if c.msgtype == JOINT_STATE and not (
+                         c.digest and c.digest.startswith('RIHS01_')
+                         and c.digest != store.hash_rihs01(JOINT_STATE))}
+        for conn, log_ns, raw in _messages(reader, reader.connections, path):
+            if conn.id in decodable:
+                try:
+                    st = store.deserialize_cdr(raw, JOINT_STATE).header.stamp
+                    stamps[conn.id].append(st.sec * 1_000_000_000 + st.nanosec)
+                    continue
+                except Exception:  # noqa: BLE001 - fall back to receive times for this topic
+                    decodable.discard(conn.id)
+                    stamps[conn.id] = []
+                    continue
+            if conn.id not in decodable:
+                stamps[conn.id].append(log_ns)
+        subs = getattr(reader.storage, 'storages', None) or [reader.storage]
+        storage = 'sqlite3' if any('Sqlite3' in type(s).__name__ for s in subs) else 'mcap'
+        topics = []
+        for conn in reader.connections:
+            s, _, check = clean_stream(np.asarray(stamps[conn.id], np.int64),
+                                       np.zeros(len(stamps[conn.id])))
+            info = TopicInfo(absolute_topic(conn.topic), conn.msgtype, len(stamps[conn.id]),
+                             check=check if conn.id in decodable else None)
+            if s.size:
+                info.first_ns, info.last_ns = int(s[0]), int(s[-1])
+            if s.size >= 2:
+                info.rate_hz, gaps, info.jitter = sample_clock(s)
+                info.gaps, info.missing = len(gaps), int(sum(n for _, n in gaps))
+            topics.append(info)
+        count = sum(t.count for t in topics)
+        start = reader.start_time if count else 0
+        end = reader.end_time if count else 0
+    return BagInfo(str(path), storage, count, start, end, topics)
+
+
+def iter_raw(path: str | Path, topics: list[str] | None = None
+             ) -> Iterator[tuple[str, str, int, bytes]]:
+    """(absolute topic, type, receive time ns, CDR bytes) of every message in receive-time order,
+    optionally only of `topics` (BagError when one is absent). Nothing is decoded."""
+    with open_bag(path) as reader:
+        conns = reader.connections
+        if topics:
+            conns = [c for t in topics for c in find_topic(reader, t, None, path)]
+        for conn, log_ns, raw in _messages(reader, conns, path):
+            yield absolute_topic(conn.topic), conn.msgtype, int(log_ns), bytes(raw)

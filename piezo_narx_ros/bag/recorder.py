@@ -1,0 +1,124 @@
+"""Queue + writer thread between subscription callbacks and a `BagWriter` (no ROS here).
+
+Callbacks only append (topic, receive time, bytes) to a queue, which costs about a microsecond, so
+the executor keeps up with several kHz; a background thread drains the queue into the bag in
+batches. Nothing is dropped: the queue is unbounded, its high-water mark is reported instead.
+"""
+from __future__ import annotations
+
+import queue
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+from piezo_narx_ros.bag.writer import BagWriter
+from piezo_narx_ros.errors import BagError
+
+_STOP = object()
+
+
+@dataclass
+class RecorderStats:
+    """Counters of a BagRecorder (messages, not bytes)."""
+    received: int = 0        # put() calls
+    written: int = 0         # messages handed to the bag
+    queue_peak: int = 0      # largest backlog seen by the writer thread
+    bytes_written: int = 0   # payload bytes written
+    error: str = ''          # first writer error, if the writer thread stopped on one
+
+
+class BagRecorder:
+    """Record serialized messages to a rosbag2 MCAP bag from any thread.
+
+    `add_topic` then `put` from callbacks; `close()` drains the queue, writes the summary and
+    metadata.yaml, and returns the stats. Safe to call `close()` more than once.
+    """
+
+    def __init__(self, path: str | Path, chunk_period_s: float = 0.5,
+                 custom_data: dict[str, str] | None = None, batch: int = 512):
+        self.path = Path(path)
+        self._bag = BagWriter(self.path, chunk_period_s=chunk_period_s, custom_data=custom_data)
+        self._lock = threading.Lock()  # add_topic (executor thread) vs writes (writer thread)
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._batch = int(batch)
+        self._chunk_period_s = float(chunk_period_s)
+        self.stats = RecorderStats()
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name='bag-writer', daemon=True)
+        self._thread.start()
+
+    @property
+    def topics(self) -> dict[str, str]:
+        """{absolute topic: type} registered so far."""
+        with self._lock:
+            return self._bag.topics
+
+    def add_topic(self, topic: str, msgtype: str, reliable: bool = True, depth: int = 100) -> str:
+        """Register a topic (see BagWriter.add_topic); returns its absolute name."""
+        with self._lock:
+            return self._bag.add_topic(topic, msgtype, reliable, depth)
+
+    def put(self, topic: str, log_time_ns: int, data: bytes) -> None:
+        """Queue one serialized message of a registered topic (absolute name) received at
+        `log_time_ns` (ns since the epoch). Cheap; safe from any thread."""
+        self.stats.received += 1
+        self._queue.put((topic, log_time_ns, data))
+
+    @property
+    def backlog(self) -> int:
+        """Messages queued but not yet written."""
+        return self._queue.qsize()
+
+    def _run(self) -> None:
+        q, bag, stats = self._queue, self._bag, self.stats
+        while True:
+            try:
+                item = q.get(timeout=self._chunk_period_s)
+            except queue.Empty:
+                with self._lock:
+                    if bag.message_count:
+                        bag.flush()  # idle: push the pending chunk to disk
+                continue
+            items = [item]
+            while len(items) < self._batch:
+                try:
+                    items.append(q.get_nowait())
+                except queue.Empty:
+                    break
+            stats.queue_peak = max(stats.queue_peak, len(items) + q.qsize())
+            stop = False
+            with self._lock:
+                for it in items:
+                    if it is _STOP:
+                        stop = True
+                        continue
+                    if stats.error:
+                        continue
+                    try:
+                        bag.write(*it)
+                    except BagError as exc:
+                        stats.error = str(exc)
+                        continue
+                    stats.written += 1
+                    stats.bytes_written += len(it[2])
+            if stop:
+                return
+
+    def close(self, timeout: float = 30.0) -> RecorderStats:
+        """Write everything queued, then the MCAP summary and metadata.yaml."""
+        if self._closed:
+            return self.stats
+        self._closed = True
+        self._queue.put(_STOP)
+        self._thread.join(timeout)
+        with self._lock:
+            self._bag.close()
+        return self.stats
+
+    def __enter__(self) -> 'BagRecorder':
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        self.close()
+        return False
+

@@ -1,0 +1,196 @@
+"""Make an interrupted MCAP recording readable again.
+
+A recorder killed with SIGKILL leaves `NAME.mcap` without its summary and footer (and the bag
+without metadata.yaml); only the chunks completed before the kill are in the file. `repair_bag`
+reads the file sequentially with the `mcap` library up to the first damaged record, writes the
+recovered schemas, channels and messages (bytes, times and sequence numbers unchanged) into a new
+MCAP file with the `mcap` writer, and rebuilds metadata.yaml. Nothing in the file is executed.
+"""
+from __future__ import annotations
+
+import os
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+from piezo_narx_ros.bag.writer import typestore
+from piezo_narx_ros.errors import BagError
+
+
+@dataclass
+class RepairReport:
+    """What `repair_bag` recovered."""
+    bag: Path
+    mcap: Path
+    backup: Path | None
+    messages: int = 0
+    topics: dict[str, int] = field(default_factory=dict)   # {topic: messages recovered}
+    dropped_bytes: int = 0         # tail of the file that could not be parsed
+    stop_reason: str = ''          # why reading stopped ('' when the file was complete)
+    orphans: int = 0               # messages of a channel whose definition was lost
+
+
+def _locate(path: Path) -> tuple[Path, Path]:
+    """(bag directory, its .mcap file) for a bag directory or a lone .mcap file."""
+    if not path.exists():
+        raise BagError(f'bag not found: {path}')
+    if path.is_file():
+        if path.suffix != '.mcap':
+            raise BagError(f'{path}: only MCAP bags can be repaired')
+        return path.parent, path
+    files = sorted(path.glob('*.mcap'))
+    if len(files) != 1:
+        if list(path.glob('*.db3')):
+            raise BagError(f'{path}: only MCAP bags can be repaired (this one is sqlite3)')
+        raise BagError(f'{path}: expected exactly one .mcap file, found {len(files)}')
+    return path, files[0]
+
+
+def _scan(mcap_path: Path):
+    """Read records until the end or the first damaged one.
+    Returns (schemas {id: Schema}, channels {id: Channel}, messages [Message], rosbag2 metadata
+    dict or None, bytes parsed, stop reason)."""
+    from mcap.exceptions import McapError
+    from mcap.records import Channel, Footer, Message, Metadata, Schema
+    from mcap.stream_reader import StreamReader
+
+    schemas, channels, messages, meta = {}, {}, [], None
+    good_end, reason = 0, ''
+    with mcap_path.open('rb') as f:
+        reader = StreamReader(f, validate_crcs=True)
+        records = reader.records
+        try:
+            for rec in records:
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = rec
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = rec
+                elif isinstance(rec, Message):
+                    messages.append(rec)
+                elif isinstance(rec, Metadata) and rec.name == 'rosbag2':
+                    meta = rec.metadata
+                elif isinstance(rec, Footer):
+                    good_end = mcap_path.stat().st_size
+                    break
+                # The file offset after each complete top-level record (chunk contents are
+                # yielded together after their chunk was read in full).
+                good_end = max(good_end, f.tell())
+            else:
+                reason = 'no footer'
+        except (McapError, struct.error, EOFError, ValueError, MemoryError) as exc:
+            reason = ' '.join(str(exc).split()) or type(exc).__name__
+    return schemas, channels, messages, meta, good_end, reason
+
+
+def _qos_list(channel) -> list:
+    text = channel.metadata.get('offered_qos_profiles', '')
+    try:
+        value = yaml.safe_load(text) if text else []
+    except yaml.YAMLError:
+        return []
+    return value if isinstance(value, list) else []
+
+
+def _type_hash(msgtype: str) -> str:
+    store = typestore()
+    return store.hash_rihs01(msgtype) if msgtype in store.fielddefs else ''
+
+
+def repair_bag(path: str | Path, backup: bool = True) -> RepairReport:
+    """Rebuild an MCAP bag (directory or lone .mcap) whose recording was interrupted.
+
+    The recovered messages replace the file in place; with `backup` the damaged original is kept
+    beside it as `NAME.mcap.damaged`. metadata.yaml is (re)written for a bag directory. Raises
+    BagError when the file is not MCAP or holds no complete schema/channel record.
+    """
+    from mcap.writer import CompressionType, Writer
+
+    path = Path(path)
+    bag_dir, mcap_path = _locate(path)
+    with mcap_path.open('rb') as f:
+        if f.read(8) != b'\x89MCAP0\r\n':
+            raise BagError(f'{mcap_path}: not an MCAP file (bad magic)')
+    schemas, channels, messages, meta, good_end, reason = _scan(mcap_path)
+    if not channels:
+        raise BagError(f'{mcap_path}: no complete chunk was written before the recording stopped;'
+                       ' nothing to recover')
+
+    report = RepairReport(bag_dir if path.is_dir() else path, mcap_path, None,
+                          dropped_bytes=max(0, mcap_path.stat().st_size - good_end),
+                          stop_reason=reason)
+    tmp = mcap_path.with_name(mcap_path.name + '.repairing')
+    counts = {cid: 0 for cid in channels}
+    t_min, t_max = 2**63 - 1, 0
+    with tmp.open('wb') as out:
+        writer = Writer(out, compression=CompressionType.NONE)
+        writer.start(profile='ros2', library='piezo_narx_ros bag repair')
+        schema_ids = {sid: writer.register_schema(s.name, s.encoding, s.data)
+                      for sid, s in schemas.items()}
+        chan_ids = {}
+        for cid, c in channels.items():
+            chan_ids[cid] = writer.register_channel(c.topic, c.message_encoding,
+                                                    schema_ids.get(c.schema_id, 0), c.metadata)
+        for m in messages:
+            new = chan_ids.get(m.channel_id)
+            if new is None:
+                report.orphans += 1
+                continue
+            writer.add_message(new, m.log_time, m.data, m.publish_time, m.sequence)
+            counts[m.channel_id] += 1
+            t_min, t_max = min(t_min, m.log_time), max(t_max, m.log_time)
+        report.messages = sum(counts.values())
+        types = {cid: schemas[c.schema_id].name if c.schema_id in schemas else ''
+                 for cid, c in channels.items()}
+        info = _metadata(mcap_path.name, channels, types, counts, t_min, t_max, meta)
+        writer.add_metadata('rosbag2', {'serialized_metadata': yaml.safe_dump(
+            info, default_flow_style=False).strip()})
+        writer.finish()
+    report.topics = {channels[c].topic: n for c, n in counts.items()}
+    if backup:
+        report.backup = mcap_path.with_name(mcap_path.name + '.damaged')
+        os.replace(mcap_path, report.backup)
+    os.replace(tmp, mcap_path)
+    if path.is_dir():
+        meta_tmp = bag_dir / 'metadata.yaml.tmp'
+        meta_tmp.write_text(yaml.safe_dump({'rosbag2_bagfile_information': info},
+                                           default_flow_style=False), encoding='utf8')
+        os.replace(meta_tmp, bag_dir / 'metadata.yaml')
+    return report
+
+
+def _metadata(file_name: str, channels: dict, types: dict, counts: dict, t_min: int, t_max: int,
+              old: dict | None) -> dict:
+    """rosbag2 metadata (version 9) describing the repaired file."""
+    count = int(sum(counts.values()))
+    start = int(t_min) if count else 0
+    duration = int(t_max - t_min) if count else 0
+    distro = ''
+    if old and 'serialized_metadata' in old:
+        try:
+            distro = str(yaml.safe_load(old['serialized_metadata']).get('ros_distro', ''))
+        except (yaml.YAMLError, AttributeError):
+            distro = ''
+    return {
+        'version': 9,
+        'storage_identifier': 'mcap',
+        'relative_file_paths': [file_name],
+        'duration': {'nanoseconds': duration},
+        'starting_time': {'nanoseconds_since_epoch': start},
+        'message_count': count,
+        'topics_with_message_count': [
+            {'topic_metadata': {'name': c.topic, 'type': types[cid],
+                                'serialization_format': c.message_encoding,
+                                'offered_qos_profiles': _qos_list(c),
+                                'type_description_hash': _type_hash(types[cid])},
+             'message_count': int(counts[cid])}
+            for cid, c in channels.items()],
+        'compression_format': '',
+        'compression_mode': '',
+        'files': [{'path': file_name, 'starting_time': {'nanoseconds_since_epoch': start},
+                   'duration': {'nanoseconds': duration}, 'message_count': count}],
+        'custom_data': None,
+        'ros_distro': distro or os.environ.get('ROS_DISTRO', ''),
+    }
+
