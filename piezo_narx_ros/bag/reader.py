@@ -52,7 +52,7 @@ def open_bag(path: str | Path):
     elif path.is_file() and path.suffix not in _FILE_SUFFIXES:
         raise BagError(f'{path}: not a bag (expected a bag directory, .mcap or .db3 file)')
     hint = ''
-    if target.suffix == '.mcap':
+    if target.suffix == '.mcap' or (target.is_dir() and any(target.glob('*.mcap'))):
         hint = f' (interrupted recording? try: piezo-narx bag repair {path})'
     try:
         reader = Reader(target)

@@ -1,0 +1,106 @@
+"""Pairing u and y by header stamp: gaps, duplicates, reordering, unmatched ends, irregular rate,
+both on arrays and through read_uy on a bag with the same defects."""
+import numpy as np
+import pytest
+
+from piezo_narx_ros.bag.pairing import clean_stream, pair_by_stamp, sample_clock
+from piezo_narx_ros.bag.reader import BagWarning, read_uy, read_uy_report
+from piezo_narx_ros.bag.writer import JOINT_STATE, BagWriter, joint_state_cdr
+from piezo_narx_ros.errors import BagError
+
+T = 500_000  # ns, 2 kHz
+T0 = 1_700_000_000_000_000_000
+
+
+def _stamps(n):
+    return T0 + T * np.arange(n, dtype=np.int64)
+
+
+def test_clean_stream_sorts_and_drops_repeats_keeping_the_first():
+    s = np.array([0, 2, 1, 3, 3, 3, 4]) * T
+    v = np.array([0., 2., 1., 3., 3., 9., 4.])
+    s2, v2, check = clean_stream(s, v)
+    np.testing.assert_array_equal(s2, np.arange(5) * T)
+    np.testing.assert_array_equal(v2, [0, 1, 2, 3, 4])
+    assert (check.reordered, check.duplicates, check.conflicting) == (1, 2, 1)
+
+
+def test_clean_pairing_has_no_issues():
+    t = _stamps(100)
+    tt, u, y, rep = pair_by_stamp(t, np.arange(100.), t, -np.arange(100.))
+    assert rep.issues() == [] and rep.fs == 2000.0 and rep.paired == 100
+    np.testing.assert_array_equal(y, -u)
+
+
+def test_gap_is_reported_with_its_position_and_size():
+    t = _stamps(100)
+    keep = np.ones(100, bool)
+    keep[40:43] = False  # the deflection lost 3 samples
+    _, u, y, rep = pair_by_stamp(t, np.arange(100.), t[keep], np.arange(100.)[keep])
+    assert rep.paired == 97 and rep.missing_samples == 3
+    assert rep.gaps == [(pytest.approx(39 * T * 1e-9), 3)]
+    np.testing.assert_array_equal(u, y)  # pairs stay aligned across the gap
+    text = ' '.join(rep.issues())
+    assert '1 gap(s), 3 missing' in text and '3 inside the record' in text
+
+
+def test_reordered_and_duplicated_deflection_still_pairs_exactly():
+    t = _stamps(50)
+    uy = np.arange(50.)
+    order = np.arange(50)
+    order[[10, 11]] = order[[11, 10]]             # swapped in transit
+    ty = np.concatenate([t[order], t[[20]]])      # and one re-delivered
+    yv = np.concatenate([uy[order], [uy[20]]])
+    _, u, y, rep = pair_by_stamp(t, uy, ty, yv)
+    np.testing.assert_array_equal(u, y)
+    assert rep.deflection.reordered == 2 and rep.deflection.duplicates == 1
+    assert rep.deflection.conflicting == 0 and rep.paired == 50 and not rep.gaps
+
+
+def test_unmatched_samples_at_the_ends_are_trimmed_silently():
+    t = _stamps(60)
+    _, u, _, rep = pair_by_stamp(t, np.arange(60.), t[5:58], np.arange(5., 58.))
+    assert rep.paired == 53 and rep.unmatched_command == 7 and rep.interior_unmatched == 0
+    assert rep.issues() == []
+    assert rep.t0_ns == t[5]
+
+
+def test_irregular_rate_is_reported():
+    rng = np.random.default_rng(0)
+    t = _stamps(200) + rng.integers(-60_000, 60_000, 200)  # up to ~24 % jitter
+    _, _, _, rep = pair_by_stamp(t, np.zeros(200), t, np.zeros(200))
+    assert rep.jitter > 0.05
+    assert any('irregular sample rate' in line for line in rep.issues())
+    fs, gaps, jitter = sample_clock(_stamps(10))
+    assert (fs, gaps, jitter) == (2000.0, [], 0.0)
+
+
+def test_no_common_stamp_is_an_error():
+    t = _stamps(20)
+    with pytest.raises(BagError, match=r'only 0 command/deflection stamp\(s\) match'):
+        pair_by_stamp(t, np.zeros(20), t + 1, np.zeros(20))
+
+
+def test_read_uy_warns_about_defects_in_a_bag(tmp_path):
+    """A bag whose deflection lost a sample, got one twice and two out of order."""
+    t = _stamps(80).tolist()
+    arrivals = list(range(80))
+    arrivals.remove(30)                            # lost
+    arrivals.insert(50, 49)                        # duplicate of 49
+    arrivals[60], arrivals[61] = arrivals[61], arrivals[60]   # reordered
+    with BagWriter(tmp_path / 'b') as bag:
+        c = bag.add_topic('piezo/voltage_command', JOINT_STATE)
+        d = bag.add_topic('piezo/deflection', JOINT_STATE)
+        for k in range(80):
+            bag.write(c, t[k] + 1000, joint_state_cdr(t[k], ('x',), effort=(float(k),)))
+        for i, k in enumerate(arrivals):
+            bag.write(d, t[0] + i * T + 2000,
+                      joint_state_cdr(t[k], ('x',), position=(k * 1e-6,)))
+    with pytest.warns(BagWarning) as caught:
+        rec = read_uy(tmp_path / 'b')
+    text = ' | '.join(str(w.message) for w in caught)
+    assert 'duplicate stamp' in text and 'out of stamp order' in text and 'gap' in text
+    assert len(rec.u) == 79
+    np.testing.assert_allclose(rec.y, rec.u * 1e-6)
+    _, rep = read_uy_report(tmp_path / 'b')
+    assert rep.missing_samples == 1 and rep.deflection.duplicates == 1
