@@ -30,6 +30,7 @@ class RepairReport:
     dropped_bytes: int = 0         # tail of the file that could not be parsed
     stop_reason: str = ''          # why reading stopped ('' when the file was complete)
     orphans: int = 0               # messages of a channel whose definition was lost
+    intact: bool = False           # nothing was wrong; the bag was left untouched
 
 
 def _locate(path: Path) -> tuple[Path, Path]:
@@ -101,7 +102,8 @@ def _type_hash(msgtype: str) -> str:
 def repair_bag(path: str | Path, backup: bool = True) -> RepairReport:
     """Rebuild an MCAP bag (directory or lone .mcap) whose recording was interrupted.
 
-    The recovered messages replace the file in place; with `backup` the damaged original is kept
+    An intact bag (footer present, metadata.yaml present) is left untouched (`intact`). Otherwise
+    the recovered messages replace the file in place; with `backup` the damaged original is kept
     beside it as `NAME.mcap.damaged`. metadata.yaml is (re)written for a bag directory. Raises
     BagError when the file is not MCAP or holds no complete schema/channel record.
     """
@@ -120,6 +122,10 @@ def repair_bag(path: str | Path, backup: bool = True) -> RepairReport:
     report = RepairReport(bag_dir if path.is_dir() else path, mcap_path, None,
                           dropped_bytes=max(0, mcap_path.stat().st_size - good_end),
                           stop_reason=reason)
+    if not reason and (path.is_file() or (bag_dir / 'metadata.yaml').is_file()):
+        report.intact = True
+        report.messages = len(messages)
+        return report
     tmp = mcap_path.with_name(mcap_path.name + '.repairing')
     counts = {cid: 0 for cid in channels}
     t_min, t_max = 2**63 - 1, 0

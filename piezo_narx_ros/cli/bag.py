@@ -1,0 +1,86 @@
+"""`piezo-narx bag info|repair|export`: inspect, fix and convert rosbag2 bags."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    """The `bag` subcommand and its three actions (light imports only)."""
+    parser = subparsers.add_parser(
+        'bag', help='inspect, repair or export rosbag2 bags (MCAP or sqlite3)',
+        description='Inspect, repair or export rosbag2 bags (a bag directory, .mcap or .db3).')
+    actions = parser.add_subparsers(dest='bag_action', metavar='ACTION')
+    actions.required = True
+
+    info = actions.add_parser('info', help='topics, counts, duration, rate and gaps')
+    info.add_argument('bag', help='bag directory, .mcap or .db3 file')
+
+    repair = actions.add_parser(
+        'repair', help='make an interrupted MCAP recording readable (summary, metadata.yaml)')
+    repair.add_argument('bag', help='bag directory or .mcap file')
+    repair.add_argument('--no-backup', action='store_true',
+                        help='do not keep the damaged file as NAME.mcap.damaged')
+
+    export = actions.add_parser('export', help='paired u (V), y (m), t (s), fs (Hz) to .npz')
+    export.add_argument('bag', help='bag directory, .mcap or .db3 file')
+    export.add_argument('--out', required=True, help='output .npz file')
+    export.add_argument('--command-topic', default='piezo/voltage_command')
+    export.add_argument('--deflection-topic', default='piezo/deflection')
+    export.add_argument('--axis', type=int, default=0, help='JointState array index (default 0)')
+    return parser
+
+
+def run(args) -> int:
+    """Run one bag action; BagError propagates to main (one line, exit 2)."""
+    return {'info': _info, 'repair': _repair, 'export': _export}[args.bag_action](args)
+
+
+def _info(args) -> int:
+    from piezo_narx_ros.bag.reader import bag_info
+    info = bag_info(args.bag)
+    print(f'bag:       {info.path}')
+    print(f'storage:   {info.storage}')
+    print(f'messages:  {info.message_count}')
+    print(f'duration:  {info.duration_s:.6g} s')
+    width = max([len(t.name) for t in info.topics] + [5])
+    print(f'{"topic":<{width}}  {"type":<36} {"count":>8} {"rate Hz":>10} {"gaps":>5} '
+          f'{"missing":>8}  stamps')
+    for t in info.topics:
+        if t.check is None:
+            order = 'receive time'
+        else:
+            notes = [f'{n} {what}' for n, what in ((t.check.reordered, 'reordered'),
+                                                  (t.check.duplicates, 'duplicate'))
+                     if n]
+            order = 'header' + (' (' + ', '.join(notes) + ')' if notes else '')
+        print(f'{t.name:<{width}}  {t.msgtype:<36} {t.count:>8} {t.rate_hz:>10.6g} '
+              f'{t.gaps:>5} {t.missing:>8}  {order}')
+    return 0
+
+
+def _repair(args) -> int:
+    from piezo_narx_ros.bag.repair import repair_bag
+    rep = repair_bag(args.bag, backup=not args.no_backup)
+    if rep.intact:
+        print(f'{rep.bag} is intact ({rep.messages} messages): nothing to repair')
+        return 0
+    print(f'repaired {rep.bag}: {rep.messages} message(s) recovered'
+          + (f', damaged original kept as {rep.backup}' if rep.backup else ''))
+    for topic, n in rep.topics.items():
+        print(f'  {topic}: {n}')
+    if rep.stop_reason:
+        print(f'  reading stopped at: {rep.stop_reason} ({rep.dropped_bytes} byte(s) dropped)')
+    return 0
+
+
+def _export(args) -> int:
+    import numpy as np
+
+    from piezo_narx_ros.bag.reader import read_uy_report
+    rec, report = read_uy_report(args.bag, args.command_topic, args.deflection_topic, args.axis)
+    for line in report.issues():
+        print(f'piezo-narx: warning: {line}', file=sys.stderr)
+    np.savez(args.out, u=rec.u, y=rec.y, t=rec.t, fs=np.float64(rec.fs))
+    print(f'wrote {args.out}: {len(rec.u)} samples at {rec.fs:.6g} Hz')
+    return 0
