@@ -8,7 +8,7 @@ predict/simulate/stepper API of NARXNetwork.
 import numpy as np
 
 from ..errors import DataError
-from .kernels import ARXStepper, arx_simulate
+from .kernels import ARXStepper, arx_predict, arx_simulate
 from .regressors import LaggedModel, as_signal, check_orders, lagged_regressors
 
 
@@ -68,8 +68,8 @@ class ARXModel(LaggedModel):
         self._ay = np.ascontiguousarray(-a[::-1])
         return self
 
-    def _predict_rows(self, X):
-        return X[:, :self.nu + 1] @ self.b - X[:, self.nu + 1:] @ self.a + self.c
+    def _predict_inplace(self, u, y, start):
+        return arx_predict(u, y, start, self._bu, self._ay, self.c)
 
     def _simulate_inplace(self, u, y, start):
         arx_simulate(u, y, start, self._bu, self._ay, self.c)

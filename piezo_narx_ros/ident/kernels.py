@@ -42,6 +42,17 @@ def narx_simulate(u, y, start, Wu, Wy, b1, w2, b2):
 
 
 @njit(cache=True)
+def narx_predict(u, y, start, Wu, Wy, b1, w2, b2):
+    """One-step-ahead outputs (N,) for k >= start from measured u, y (N,); [:start] = y[:start]."""
+    nu1 = Wu.shape[1]
+    ny = Wy.shape[1]
+    out = y.copy()
+    for k in range(start, u.size):
+        out[k] = _narx_eval(u, k - nu1 + 1, y, k - ny, Wu, Wy, b1, w2, b2)
+    return out
+
+
+@njit(cache=True)
 def narx_step(u_k, ubuf, ybuf, Wu, Wy, b1, w2, b2):
     """Shift u_k into ubuf (nu+1,), evaluate y(k), shift it into ybuf (ny,); returns y(k) in m."""
     for i in range(ubuf.size - 1):
@@ -72,6 +83,15 @@ def arx_simulate(u, y, start, bu, ay, c):
     ny = ay.size
     for k in range(start, u.size):
         y[k] = _arx_eval(u, k - nu1 + 1, y, k - ny, bu, ay, c)
+
+
+@njit(cache=True)
+def arx_predict(u, y, start, bu, ay, c):
+    """One-step-ahead outputs (N,) for k >= start from measured u, y (N,); [:start] = y[:start]."""
+    out = y.copy()
+    for k in range(start, u.size):
+        out[k] = _arx_eval(u, k - bu.size + 1, y, k - ay.size, bu, ay, c)
+    return out
 
 
 @njit(cache=True)

@@ -11,26 +11,24 @@ import time
 import numpy as np
 
 from ..errors import DataError
-from .kernels import NARXStepper, narx_simulate
+from .kernels import NARXStepper, narx_predict, narx_simulate
 from .regressors import LaggedModel, as_signal, check_orders
 
 #: Training options and their defaults (fast enough for a 16-network grid on 50k samples).
 TRAINING_DEFAULTS = {
-    'restarts': 3,           # seeded random initialisations of the one-step LM stage
-    'max_iter': 60,          # LM iterations of the one-step stage (the best restart continues)
-    'restart_iter': 15,      # LM iterations each restart gets before the best one is kept
-    'restart_samples': 6000,  # one-step rows used while screening restarts
-    'val_fraction': 0.15,    # tail of the estimation data held out for early stopping / selection
-    'max_fail': 6,           # early stopping: iterations without held-out improvement
-    'refine_iter': 15,       # simulation-error LM iterations (0 disables the refinement)
-    'segment_length': 100,   # samples per free-run segment in the refinement
-    'n_segments': 120,       # segments per refinement batch
-    'threads': 1,            # torch threads inside fit
+    'restarts': 3,             # seeded random initialisations screened in the one-step stage
+    'restart_iter': 8,         # LM iterations each restart gets before the best one is kept
+    'restart_samples': 2000,   # one-step rows (random subset) used while screening restarts
+    'max_iter': 25,            # LM iterations of the one-step stage for the best restart
+    'onestep_samples': 4000,   # one-step rows (random subset; 0 = all) for that stage
+    'val_fraction': 0.15,      # tail of the estimation data held out for early stopping/selection
+    'max_fail': 6,             # early stopping: LM iterations without held-out improvement
+    'refine_iter': 40,         # simulation-error LM iterations (0 disables the refinement)
+    'refine_max_fail': 10,     # its early stopping on the held-out free-run error
+    'segment_length': 200,     # samples per free-run segment in the refinement
+    'n_segments': 40,          # segments (evenly spread; 0 = tile all the data)
+    'threads': 1,              # torch threads inside fit
 }
-
-
-def _sigmoid(z):
-    return 1.0 / (1.0 + np.exp(-z))
 
 
 class NARXNetwork(LaggedModel):
@@ -106,7 +104,6 @@ class NARXNetwork(LaggedModel):
         mean = np.r_[np.full(n_u, um), np.full(self.ny, ym)]
         std = np.r_[np.full(n_u, us), np.full(self.ny, ys)]
         Wr = self.W1 / std
-        self._Wx = Wr                                    # regressor order, for predict
         self._b1r = self.b1 - Wr @ mean
         self._Wu = np.ascontiguousarray(Wr[:, :n_u][:, ::-1])
         self._Wy = np.ascontiguousarray(Wr[:, n_u:][:, ::-1])
@@ -148,8 +145,8 @@ class NARXNetwork(LaggedModel):
         return self
 
     # ---------------------------------------------------------------- inference
-    def _predict_rows(self, X):
-        return _sigmoid(X @ self._Wx.T + self._b1r) @ self._w2r + self._b2r
+    def _predict_inplace(self, u, y, start):
+        return narx_predict(u, y, start, self._Wu, self._Wy, self._b1r, self._w2r, self._b2r)
 
     def _simulate_inplace(self, u, y, start):
         narx_simulate(u, y, start, self._Wu, self._Wy, self._b1r, self._w2r, self._b2r)
