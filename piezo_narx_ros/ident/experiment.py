@@ -1,0 +1,357 @@
+"""The paper's identification experiment: a grid of NARX networks and ARX baselines, judged on R²
+and the Billings correlation tests, and the choice of one model.
+
+Protocol
+--------
+* Each record is split 50/50: the first half estimates, the second half validates. With several
+  records the estimation halves are concatenated for fitting (the few regressor rows that straddle
+  a junction are a negligible fraction); each validation half is predicted and simulated on its
+  own, initialised from its first n0 measured outputs, and the scores pool the samples k >= n0.
+* Every candidate is scored (R², RMSE, NRMSE, fit %) in one-step prediction and in free-run
+  simulation, on estimation and on validation data.
+* The correlation tests run on the validation residuals of both modes; the `residuals` option says
+  which verdict selects. The default is 'prediction', as in Billings: the tests ask whether the
+  one-step residual is unpredictable from past residuals and inputs, which is what a correct NARX
+  structure guarantees. Free-run residuals of even a perfect model are coloured whenever noise
+  enters the output equation, so they are reported too but do not select by default.
+* Selection: among candidates whose tests pass, the fewest parameters; ties go to the best
+  validation simulation R². If none passes, the best validation simulation R², flagged
+  `validated = False`.
+
+Runs candidates on `jobs` worker processes (spawn start, one torch/BLAS thread each) with a
+tqdm bar on long grids. Results do not depend on `jobs`: each fit is seeded and independent.
+"""
+from __future__ import annotations
+
+import concurrent.futures as cf
+import contextlib
+import multiprocessing as mp
+import os
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from piezo_narx_ros.errors import ConfigError, DataError, PiezoNarxError
+from piezo_narx_ros.ident import metrics
+from piezo_narx_ros.ident.correlation import correlation_tests
+from piezo_narx_ros.ident.data import Record, check_length
+
+RESIDUAL_KINDS = ('prediction', 'simulation')
+
+
+@dataclass(frozen=True)
+class CandidateSpec:
+    """One model of the grid. For ARX, ny = na and nu = nb; `hidden` is None."""
+    kind: str           # 'narx' or 'arx'
+    nu: int
+    ny: int
+    hidden: int | None = None
+    seed: int = 0
+
+    @property
+    def label(self) -> str:
+        """Short human-readable name, e.g. 'NARX(ny=2, nu=3, H=10)' or 'ARX(na=2, nb=3)'."""
+        if self.kind == 'arx':
+            return f'ARX(na={self.ny}, nb={self.nu})'
+        return f'NARX(ny={self.ny}, nu={self.nu}, H={self.hidden})'
+
+    def build(self, training_options: dict | None = None):
+        """An unfitted model for this spec (imports the model classes lazily)."""
+        if self.kind == 'arx':
+            from piezo_narx_ros.ident.arx import ARXModel
+            return ARXModel(na=self.ny, nb=self.nu)
+        if self.kind == 'narx':
+            from piezo_narx_ros.ident.narx import NARXNetwork
+            return NARXNetwork(nu=self.nu, ny=self.ny, hidden=self.hidden, seed=self.seed,
+                               **(training_options or {}))
+        raise ConfigError(f'unknown model kind {self.kind!r} (use narx or arx)')
+
+
+@dataclass
+class ExperimentConfig:
+    """Settings of the lag-grid experiment (orders in samples, fraction unit-free)."""
+    ny: tuple = (1, 2, 3, 4)            # NARX output lags
+    nu: tuple = (1, 2, 3, 4)            # NARX input lags
+    hidden: int = 10                    # sigmoid units of the hidden layer
+    seed: int = 0
+    arx_na: tuple = tuple(range(1, 11))  # empty = no ARX baseline
+    arx_nb: tuple = tuple(range(1, 11))
+    narx: bool = True
+    split: float = 0.5                  # estimation fraction of each record
+    max_lag: int = 20                   # correlation test lags
+    max_outside_fraction: float = 0.0   # 0 = strict (DESIGN.md)
+    residuals: str = 'prediction'       # which residuals' tests select: prediction | simulation
+    jobs: int = 2
+    progress: bool | None = None        # None: a bar when the grid has networks and a TTY
+    training: dict = field(default_factory=dict)  # passed to NARXNetwork(**training)
+
+    def specs(self) -> list[CandidateSpec]:
+        """Every candidate, networks first (the long fits start first on the pool)."""
+        out = []
+        if self.narx:
+            out += [CandidateSpec('narx', nu=nu, ny=ny, hidden=self.hidden, seed=self.seed)
+                    for ny in self.ny for nu in self.nu]
+        out += [CandidateSpec('arx', nu=nb, ny=na) for na in self.arx_na for nb in self.arx_nb]
+        return out
+
+    def validate(self) -> None:
+        """ConfigError naming the first bad setting."""
+        for name in ('ny', 'nu', 'arx_na', 'arx_nb'):
+            vals = getattr(self, name)
+            if any(int(v) != v or v < (0 if name in ('nu', 'arx_nb') else 1) for v in vals):
+                raise ConfigError(f'{name} orders must be integers >= '
+                                  f'{0 if name in ("nu", "arx_nb") else 1}, got {list(vals)}')
+        if self.narx and (not self.ny or not self.nu):
+            raise ConfigError('NARX grid is empty: give at least one ny and one nu')
+        if self.narx and (int(self.hidden) != self.hidden or self.hidden < 1):
+            raise ConfigError(f'hidden must be an integer >= 1, got {self.hidden}')
+        if not self.specs():
+            raise ConfigError('nothing to fit: the NARX grid is off and the ARX grid is empty')
+        if not 0.1 <= self.split <= 0.9:
+            raise ConfigError(f'split must be in [0.1, 0.9], got {self.split}')
+        if self.residuals not in RESIDUAL_KINDS:
+            raise ConfigError(f'residuals must be prediction or simulation, got {self.residuals!r}')
+        if int(self.jobs) != self.jobs or self.jobs < 1:
+            raise ConfigError(f'jobs must be an integer >= 1, got {self.jobs}')
+        if int(self.max_lag) != self.max_lag or self.max_lag < 1:
+            raise ConfigError(f'max_lag must be an integer >= 1, got {self.max_lag}')
+        if not 0.0 <= self.max_outside_fraction < 1.0:
+            raise ConfigError(f'max_outside_fraction must be in [0, 1), got '
+                              f'{self.max_outside_fraction}')
+
+    @property
+    def max_n0(self) -> int:
+        """Deepest lag of the whole grid, samples."""
+        lags = list(self.ny) + list(self.nu) if self.narx else []
+        lags += list(self.arx_na) + list(self.arx_nb)
+        return int(max(lags))
+
+
+@dataclass
+class CandidateResult:
+    """Scores of one fitted candidate; `model` is the fitted object (not serialised)."""
+    spec: CandidateSpec
+    n_params: int | None = None
+    scores: dict = field(default_factory=dict)  # [estimation|validation][prediction|simulation]
+    tests: dict = field(default_factory=dict)   # [prediction|simulation] -> CorrelationResult dict
+    validated: bool = False
+    fit_seconds: float = 0.0
+    error: str | None = None
+    model: object = None
+
+    def r2(self, data: str = 'validation', mode: str = 'simulation') -> float:
+        """R² for data set and mode; -inf when unavailable (failed fit or diverged simulation)."""
+        value = self.scores.get(data, {}).get(mode, {}).get('r2')
+        return -np.inf if value is None else value
+
+    def to_dict(self) -> dict:
+        """JSON-ready form, without the model."""
+        return {'label': self.spec.label, **asdict(self.spec), 'n_params': self.n_params,
+                'scores': self.scores, 'tests': self.tests, 'validated': self.validated,
+                'fit_seconds': self.fit_seconds, 'error': self.error}
+
+
+@dataclass
+class ExperimentResult:
+    """Every candidate, the selected one, and what the experiment ran on."""
+    config: ExperimentConfig
+    candidates: list[CandidateResult]
+    selected: int                 # index into candidates
+    validated: bool               # the selected model passed the tests
+    sources: list[str]
+    fs: float
+    n_estimation: int             # samples used to fit
+    n_validation: int
+    wall_seconds: float
+
+    @property
+    def best(self) -> CandidateResult:
+        """The selected candidate."""
+        return self.candidates[self.selected]
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary: settings, data, every candidate, the selection."""
+        cfg = asdict(self.config)
+        cfg = {k: list(v) if isinstance(v, tuple) else v for k, v in cfg.items()}
+        return {'config': cfg, 'data': {'sources': self.sources, 'fs': self.fs,
+                                        'n_estimation': self.n_estimation,
+                                        'n_validation': self.n_validation},
+                'selection': {'index': self.selected, 'label': self.best.spec.label,
+                              'validated': self.validated,
+                              'rule': 'fewest parameters among candidates passing all five '
+                                      f'tests on {self.config.residuals} residuals, ties by '
+                                      'validation simulation R²; else best validation '
+                                      'simulation R² (not validated)'},
+                'wall_seconds': self.wall_seconds,
+                'candidates': [c.to_dict() for c in self.candidates]}
+
+
+def split_records(records: list[Record], fraction: float = 0.5) -> tuple[list[Record], list[Record]]:
+    """(estimation halves, validation halves) of every record."""
+    halves = [r.split(fraction) for r in records]
+    return [h[0] for h in halves], [h[1] for h in halves]
+
+
+def _concat(records: list[Record]) -> tuple[np.ndarray, np.ndarray]:
+    return (np.concatenate([r.u for r in records]), np.concatenate([r.y for r in records]))
+
+
+def model_outputs(model, records: list[Record]) -> dict[str, np.ndarray]:
+    """Pooled samples k >= n0 of every record: 'u' (V), 'y' (m), 'prediction', 'simulation' (m).
+
+    Each record is predicted from its measured past and simulated from its first n0 outputs.
+    """
+    n0 = model.n0
+    parts = {'u': [], 'y': [], 'prediction': [], 'simulation': []}
+    for r in records:
+        with np.errstate(all='ignore'):   # a diverging network must not spam warnings
+            pred = model.predict(r.u, r.y)
+            sim = model.simulate(r.u, r.y[:n0])
+        parts['u'].append(r.u[n0:])
+        parts['y'].append(r.y[n0:])
+        parts['prediction'].append(pred[n0:])
+        parts['simulation'].append(sim[n0:])
+    return {k: np.concatenate(v) for k, v in parts.items()}
+
+
+def evaluate_model(model, records: list[Record], max_lag: int = 20,
+                   max_outside_fraction: float = 0.0, with_tests: bool = True) -> dict:
+    """Scores of a fitted model on records: {'prediction': scores, 'simulation': scores,
+    'tests': {'prediction': ..., 'simulation': ...}} (tests omitted when with_tests is False).
+
+    A non-finite simulation (diverged network) gets scores of None and failing tests.
+    """
+    out = model_outputs(model, records)
+    result = {}
+    for mode in RESIDUAL_KINDS:
+        y_hat = out[mode]
+        if np.all(np.isfinite(y_hat)):
+            result[mode] = metrics.scores(out['y'], y_hat)
+        else:
+            result[mode] = {'r2': None, 'rmse': None, 'nrmse': None, 'fit_percent': None,
+                            'diverged': True}
+    if with_tests:
+        result['tests'] = {}
+        for mode in RESIDUAL_KINDS:
+            if result[mode]['r2'] is None:
+                result['tests'][mode] = {'passed': False, 'diverged': True, 'tests': {}}
+                continue
+            corr = correlation_tests(out['y'] - out[mode], out['u'], max_lag,
+                                     max_outside_fraction)
+            result['tests'][mode] = corr.to_dict(with_values=False)
+    return result
+
+
+# Worker state: the data is sent once per process (initializer), not once per candidate.
+_WORKER: dict = {}
+
+
+# A worker is one of `jobs` processes on as many cores: threaded BLAS/torch inside it would only
+# oversubscribe them. The variables must be set before the child imports numpy, hence at spawn.
+_SINGLE_THREAD_ENV = {'OMP_NUM_THREADS': '1', 'OPENBLAS_NUM_THREADS': '1', 'MKL_NUM_THREADS': '1'}
+
+
+@contextlib.contextmanager
+def _environment(values: dict):
+    saved = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _init_worker(est, val, config, single_thread):
+    if single_thread and config.narx:
+        import torch
+        torch.set_num_threads(1)
+    _WORKER.update(est=est, val=val, config=config)
+
+
+def _run_candidate(spec: CandidateSpec) -> CandidateResult:
+    est, val, config = _WORKER['est'], _WORKER['val'], _WORKER['config']
+    res = CandidateResult(spec=spec)
+    t0 = time.perf_counter()
+    try:
+        model = spec.build(config.training)
+        u, y = _concat(est)
+        model.fit(u, y, fs=est[0].fs)
+        res.fit_seconds = time.perf_counter() - t0
+        res.n_params = int(model.n_params)
+        res.scores['estimation'] = evaluate_model(model, est, with_tests=False)
+        val_eval = evaluate_model(model, val, config.max_lag, config.max_outside_fraction)
+        res.tests = val_eval.pop('tests')
+        res.scores['validation'] = val_eval
+        res.validated = bool(res.tests[config.residuals]['passed'])
+        res.model = model
+    except PiezoNarxError as exc:
+        res.error = str(exc)
+        res.fit_seconds = time.perf_counter() - t0
+    return res
+
+
+def select(candidates: list[CandidateResult]) -> tuple[int, bool]:
+    """(index, validated) by the selection rule of this module; DataError when nothing fitted."""
+    ok = [i for i, c in enumerate(candidates) if c.error is None]
+    if not ok:
+        raise DataError('no candidate model could be fitted: ' + (candidates[0].error or '?'))
+    passing = [i for i in ok if candidates[i].validated]
+    if passing:
+        best = min(passing, key=lambda i: (candidates[i].n_params, -candidates[i].r2()))
+        return best, True
+    best = max(ok, key=lambda i: candidates[i].r2())
+    return best, False
+
+
+def run_experiment(records: list[Record], config: ExperimentConfig | None = None) -> ExperimentResult:
+    """Fit and score the whole grid on records (split per `config.split`) and select one model."""
+    config = config or ExperimentConfig()
+    config.validate()
+    if not records:
+        raise DataError('no records to identify from')
+    for r in records:
+        check_length(r, config.max_n0, config.max_lag)
+    t0 = time.perf_counter()
+    est, val = split_records(records, config.split)
+    specs = config.specs()
+    show = config.progress
+    if show is None:
+        show = config.narx and len(specs) > 20 and os.isatty(2)
+    results = _run_all(specs, est, val, config, show)
+    index, validated = select(results)
+    return ExperimentResult(config=config, candidates=results, selected=index,
+                            validated=validated, sources=[r.source for r in records],
+                            fs=records[0].fs, n_estimation=sum(len(r) for r in est),
+                            n_validation=sum(len(r) for r in val),
+                            wall_seconds=time.perf_counter() - t0)
+
+
+def _run_all(specs, est, val, config, show) -> list[CandidateResult]:
+    from tqdm import tqdm
+    bar = tqdm(total=len(specs), desc='fitting', unit='model', disable=not show)
+    try:
+        if config.jobs == 1:
+            _init_worker(est, val, config, single_thread=False)
+            results = []
+            for spec in specs:
+                results.append(_run_candidate(spec))
+                bar.update()
+            return results
+        # spawn, not fork: forking a parent that holds torch/OpenMP threads can deadlock.
+        ctx = mp.get_context('spawn')
+        results = [None] * len(specs)
+        with _environment(_SINGLE_THREAD_ENV), cf.ProcessPoolExecutor(max_workers=config.jobs, mp_context=ctx,
+                                    initializer=_init_worker,
+                                    initargs=(est, val, config, True)) as pool:
+            futures = {pool.submit(_run_candidate, s): i for i, s in enumerate(specs)}
+            for fut in cf.as_completed(futures):
+                results[futures[fut]] = fut.result()
+                bar.update()
+        return results
+    finally:
+        bar.close()
