@@ -1,0 +1,191 @@
+"""`piezo-narx fit`: run the lag-grid identification experiment and save the selected model.
+
+    piezo-narx fit INPUT... --out DIR [--ny 1-4 --nu 1-4 --hidden 10 --arx-na 1-10 --arx-nb 1-10]
+
+Writes DIR/model.json (+ DIR/model.npz) for the selected model, DIR/candidates.json with every
+candidate's metrics and test verdicts, and DIR/report/ (metrics.json and the figures).
+Settings come from, in increasing precedence: built-in defaults (the same as config/fit.yaml),
+`--config FILE`, then the command-line options.
+"""
+import argparse
+
+# Keys a --config YAML file may hold (config/fit.yaml lists them all with their defaults).
+CONFIG_KEYS = ('ny', 'nu', 'hidden', 'seed', 'arx_na', 'arx_nb', 'arx', 'split', 'max_lag',
+               'max_outside_fraction', 'residuals', 'jobs', 'training', 'command_topic',
+               'deflection_topic')
+
+
+def add_parser(subparsers):
+    """Register the `fit` subcommand (argparse only; heavy imports wait for run)."""
+    p = subparsers.add_parser(
+        'fit', help='identify NARX/ARX models from recorded data and select one',
+        description='Fit a grid of NARX networks and ARX models on the first half of each input, '
+                    'score them on the second half (R², correlation tests) and save the selected '
+                    'model and a report.')
+    p.add_argument('inputs', nargs='+', metavar='INPUT',
+                   help='.npz (u, y, fs), .csv (t,u,y or u,y), .mcap or rosbag2 directory')
+    p.add_argument('--out', required=True, metavar='DIR', help='output directory')
+    p.add_argument('--config', metavar='YAML', help='settings file (see config/fit.yaml)')
+    p.add_argument('--ny', metavar='RANGE', help='NARX output lags, e.g. 1-4 or 2 or 1,3 '
+                                                 '(default 1-4)')
+    p.add_argument('--nu', metavar='RANGE', help='NARX input lags (default 1-4)')
+    p.add_argument('--hidden', type=int, metavar='H', help='sigmoid units (default 10)')
+    p.add_argument('--arx-na', metavar='RANGE', help='ARX output orders (default 1-10)')
+    p.add_argument('--arx-nb', metavar='RANGE', help='ARX input orders (default 1-10)')
+    p.add_argument('--no-arx', action='store_true', help='skip the ARX baseline')
+    p.add_argument('--fs', type=float, metavar='HZ', help='sample rate for inputs without one')
+    p.add_argument('--seed', type=int, help='training seed (default 0)')
+    p.add_argument('--jobs', type=int, help='worker processes (default 2)')
+    p.add_argument('--max-lag', type=int, metavar='L', help='correlation test lags (default 20)')
+    p.add_argument('--max-outside', type=float, metavar='FRACTION', dest='max_outside_fraction',
+                   help='fraction of tested lags allowed outside the 95%% band '
+                        '(default 0: strict)')
+    p.add_argument('--residuals', choices=('prediction', 'simulation'),
+                   help='residuals whose correlation tests select the model '
+                        '(default prediction)')
+    p.add_argument('--command-topic', help='bag topic of the voltage commands '
+                                           '(default piezo/voltage_command)')
+    p.add_argument('--deflection-topic', help='bag topic of the deflection '
+                                              '(default piezo/deflection)')
+    p.add_argument('--no-report', action='store_true', help='skip the figures')
+    p.add_argument('--quiet', action='store_true', help='no progress bar or summary')
+    return p
+
+
+def parse_range(text, name: str) -> tuple:
+    """'1-4' -> (1, 2, 3, 4); '3' -> (3,); '1,3' -> (1, 3); a list of ints passes through."""
+    from piezo_narx_ros.errors import ConfigError
+    if isinstance(text, (list, tuple)):
+        items = list(text)
+    elif isinstance(text, int) and not isinstance(text, bool):
+        items = [text]
+    else:
+        items = []
+        try:
+            for part in str(text).split(','):
+                part = part.strip()
+                if '-' in part[1:]:
+                    lo, hi = part.split('-', 1)
+                    lo, hi = int(lo), int(hi)
+                    if hi < lo:
+                        raise ValueError
+                    items += list(range(lo, hi + 1))
+                else:
+                    items.append(int(part))
+        except ValueError:
+            raise ConfigError(f'--{name.replace("_", "-")}: not a lag range: {text!r} '
+                              f'(use e.g. 1-4, 2 or 1,3)') from None
+    if not all(isinstance(i, int) and not isinstance(i, bool) for i in items):
+        raise ConfigError(f'{name}: lag orders must be integers, got {text!r}')
+    return tuple(sorted(set(items)))
+
+
+def load_settings(args) -> dict:
+    """Merged settings dict: defaults < --config file < command-line options."""
+    from piezo_narx_ros.errors import ConfigError
+    settings = {'ny': '1-4', 'nu': '1-4', 'hidden': 10, 'seed': 0, 'arx_na': '1-10',
+                'arx_nb': '1-10', 'arx': True, 'split': 0.5, 'max_lag': 20,
+                'max_outside_fraction': 0.0, 'residuals': 'prediction', 'jobs': 2,
+                'training': {}, 'command_topic': 'piezo/voltage_command',
+                'deflection_topic': 'piezo/deflection'}
+    if args.config:
+        import yaml
+        try:
+            with open(args.config) as f:
+                doc = yaml.safe_load(f) or {}
+        except OSError as exc:
+            raise ConfigError(f'{args.config}: cannot read settings file ({exc.strerror})') \
+                from None
+        except yaml.YAMLError as exc:
+            raise ConfigError(f'{args.config}: not valid YAML ({str(exc).splitlines()[0]})') \
+                from None
+        if not isinstance(doc, dict):
+            raise ConfigError(f'{args.config}: settings must be a mapping of key: value')
+        unknown = sorted(set(doc) - set(CONFIG_KEYS))
+        if unknown:
+            raise ConfigError(f'{args.config}: unknown setting(s) {", ".join(unknown)}; '
+                              f'known: {", ".join(CONFIG_KEYS)}')
+        settings.update(doc)
+    for key in ('ny', 'nu', 'hidden', 'seed', 'arx_na', 'arx_nb', 'max_lag',
+                'max_outside_fraction', 'residuals', 'jobs', 'command_topic',
+                'deflection_topic'):
+        value = getattr(args, key, None)
+        if value is not None:
+            settings[key] = value
+    if args.no_arx:
+        settings['arx'] = False
+    if not isinstance(settings['training'], dict):
+        raise ConfigError('training: must be a mapping of NARX training options')
+    return settings
+
+
+def experiment_config(settings: dict, progress: bool):
+    """ExperimentConfig from merged settings (ConfigError on bad values)."""
+    from piezo_narx_ros.errors import ConfigError
+    from piezo_narx_ros.ident.experiment import ExperimentConfig
+    try:
+        cfg = ExperimentConfig(
+            ny=parse_range(settings['ny'], 'ny'), nu=parse_range(settings['nu'], 'nu'),
+            hidden=int(settings['hidden']), seed=int(settings['seed']),
+            arx_na=parse_range(settings['arx_na'], 'arx_na') if settings['arx'] else (),
+            arx_nb=parse_range(settings['arx_nb'], 'arx_nb') if settings['arx'] else (),
+            split=float(settings['split']), max_lag=int(settings['max_lag']),
+            max_outside_fraction=float(settings['max_outside_fraction']),
+            residuals=str(settings['residuals']), jobs=int(settings['jobs']),
+            progress=None if progress else False, training=dict(settings['training']))
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f'invalid setting: {exc}') from None
+    cfg.validate()
+    return cfg
+
+
+def run(args) -> int:
+    """Load the inputs, run the experiment, write model, candidates and report; exit code 0."""
+    from pathlib import Path
+
+    from piezo_narx_ros.errors import ConfigError
+    from piezo_narx_ros.ident.data import load_records
+    from piezo_narx_ros.ident.experiment import run_experiment, split_records
+    from piezo_narx_ros.ident.model_io import save_model
+    from piezo_narx_ros.ident.report import write_json, write_report
+
+    settings = load_settings(args)
+    config = experiment_config(settings, progress=not args.quiet)
+    if args.fs is not None and not args.fs > 0:
+        raise ConfigError(f'--fs must be a positive number of Hz, got {args.fs}')
+    records = load_records(args.inputs, fs=args.fs, command_topic=settings['command_topic'],
+                           deflection_topic=settings['deflection_topic'])
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f'--out {out}: exists and is not a directory')
+    result = run_experiment(records, config)
+    out.mkdir(parents=True, exist_ok=True)
+    best = result.best
+    data_info = {'sources': result.sources, 'fs': result.fs, 'split': config.split,
+                 'n_estimation': result.n_estimation, 'n_validation': result.n_validation}
+    model_path = save_model(best.model, out / 'model.json', data=data_info,
+                            metrics={**best.scores, 'selected_by': config.residuals},
+                            tests={**best.tests, 'validated': result.validated})
+    write_json(result.to_dict(), out / 'candidates.json')
+    paths = {}
+    if not args.no_report:
+        _, validation = split_records(records, config.split)
+        paths = write_report(result, validation, out / 'report')
+    if not args.quiet:
+        val = best.scores['validation']
+        r2_sim = val['simulation']['r2']
+        print(f'selected {best.spec.label} ({best.n_params} parameters) of '
+              f'{len(result.candidates)} candidates in {result.wall_seconds:.1f} s')
+        print(f'validation R²: prediction {val["prediction"]["r2"]:.6f}, simulation '
+              f'{"diverged" if r2_sim is None else f"{r2_sim:.6f}"}')
+        verdicts = best.tests[config.residuals].get('tests', {})
+        print(f'correlation tests ({config.residuals} residuals): ' + ', '.join(
+            f'{k} {"pass" if v["passed"] else "fail"}' for k, v in verdicts.items()))
+        if not result.validated:
+            print('warning: no candidate passed all correlation tests; selected by validation '
+                  'simulation R² (not validated)')
+        print(f'model: {model_path}')
+        print(f'candidates: {out / "candidates.json"}')
+        if paths:
+            print(f'report: {out / "report"}')
+    return 0
