@@ -20,9 +20,10 @@ makes φuε(0) ≈ 0 by least squares, so lag 0 carries no evidence.
 Pass rule. Strict by default (DESIGN.md): a test passes when every tested lag lies inside the band.
 Note what strict costs: for truly white residuals each lag leaves the 95 % band with probability
 0.05, so a test over L = 20 lags passes with probability about 0.95**20 = 0.36, and the five tests
-together (140 lags) rarely all pass. `max_outside_fraction` allows a documented fraction of
-excursions (e.g. 0.05, the rate expected by chance) for users who want a test whose false-rejection
-rate does not grow with the number of lags; see docs/validation.md.
+together (140 lags) rarely all pass. `max_outside_fraction` > 0 allows floor(fraction x lags)
+excursions (e.g. 0.05, the rate expected by chance) so that the false-rejection rate does not grow
+with the number of lags; but no lag may then leave the 99.9 % band ±3.29/√N, so one large
+correlation (a clearly missing term) still fails the test. See docs/validation.md.
 
 All correlations are computed with FFTs (scipy.fft, one transform per sequence), O(N log N).
 """
@@ -69,6 +70,7 @@ class CorrelationResult:
     """The five tests on one residual sequence."""
     n: int                   # number of residual samples used
     band: float              # half-width of the 95 % band, 1.96/sqrt(n)
+    hard_band: float         # with a tolerance, no lag may exceed this (99.9 %, 3.29/sqrt(n))
     max_lag: int
     max_outside_fraction: float
     tests: dict[str, CorrelationTest] = field(default_factory=dict)
@@ -91,7 +93,8 @@ class CorrelationResult:
                 d.pop('lags')
                 d.pop('values')
             tests[name] = d
-        return {'n': self.n, 'band': self.band, 'max_lag': self.max_lag,
+        return {'n': self.n, 'band': self.band, 'hard_band': self.hard_band,
+                'max_lag': self.max_lag,
                 'max_outside_fraction': self.max_outside_fraction, 'passed': self.passed,
                 'tests': tests}
 
@@ -131,8 +134,9 @@ def correlation_tests(residuals, u, max_lag: int = 20,
     """Run the five Billings tests on residuals ε (m) against input u (V), equal-length 1-D arrays.
 
     `max_lag` (samples, >= 1) is L; `max_outside_fraction` in [0, 1) is the fraction of tested
-    lags allowed outside ±1.96/sqrt(N) (0 = strict: every lag inside). A test whose correlation is
-    undefined (constant input or residual) does not pass.
+    lags allowed outside ±1.96/sqrt(N) (0 = strict: every lag inside; > 0: none beyond
+    ±3.29/sqrt(N) either). A test whose correlation is undefined (constant input or residual) does
+    not pass.
     """
     e = np.asarray(residuals, dtype=np.float64)
     u = np.asarray(u, dtype=np.float64)
@@ -152,6 +156,8 @@ def correlation_tests(residuals, u, max_lag: int = 20,
                         f'{max_outside_fraction}')
     n = e.size
     band = 1.96 / np.sqrt(n)
+    # Strict: the 95 % band is the only limit. Tolerant: the 99.9 % band is a hard limit.
+    hard_band = 3.29 / np.sqrt(n) if max_outside_fraction > 0 else band
     u2 = u * u - np.mean(u * u)
     e2 = e * e - np.mean(e * e)
     n_fft = sp_fft.next_fast_len(n + max_lag, real=True)
@@ -165,7 +171,7 @@ def correlation_tests(residuals, u, max_lag: int = 20,
         'phi_e_eu': ('eu', 'e'),   # ε(k) against (εu)(k-τ)
     }
     all_lags = np.arange(-max_lag, max_lag + 1)
-    result = CorrelationResult(n=n, band=float(band), max_lag=max_lag,
+    result = CorrelationResult(n=n, band=float(band), hard_band=float(hard_band), max_lag=max_lag,
                                max_outside_fraction=float(max_outside_fraction))
     for name in TEST_NAMES:
         lagged, current = pairs[name]
@@ -179,8 +185,10 @@ def correlation_tests(residuals, u, max_lag: int = 20,
         if np.any(np.isnan(values[tested])):
             n_outside, passed = n_tested, False
         else:
-            n_outside = int(np.sum(np.abs(values[tested]) > band))
-            passed = n_outside <= int(np.floor(max_outside_fraction * n_tested))
+            magnitude = np.abs(values[tested])
+            n_outside = int(np.sum(magnitude > band))
+            passed = (n_outside <= int(np.floor(max_outside_fraction * n_tested))
+                      and not np.any(magnitude > hard_band))
         result.tests[name] = CorrelationTest(name=name, lags=lags, values=values,
                                              n_tested=n_tested, n_outside=n_outside,
                                              passed=bool(passed))
