@@ -90,7 +90,7 @@ def test_arx_grid_recovers_true_orders_and_writes_report(tmp_path):
 
 
 def test_strict_rule_validates_no_more_than_tolerant_rule():
-    rec = arx_record(seed=3)
+    rec = arx_record()
     grid = dict(narx=False, arx_na=(1, 2, 3), arx_nb=(1, 2), jobs=1)
     strict = run_experiment([rec], ExperimentConfig(**grid))
     tolerant = run_experiment([rec], ExperimentConfig(max_outside_fraction=0.1, **grid))
