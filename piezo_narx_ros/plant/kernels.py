@@ -1,0 +1,125 @@
+"""Compiled per-sample kernels of the plant and of the amplifier limits (numba, cache=True).
+
+One kernel, `advance`, serves both PiezoCantilever.run() (loop over N samples inside numba) and
+PiezoCantilever.step() (N = 1), so both interfaces give bit-identical numbers.
+"""
+import math
+
+import numpy as np
+from numba import njit
+
+# Layout of the `consts` vector passed to advance().
+C_VMIN, C_VMAX, C_SLEW_STEP, C_AMP_ALPHA, C_DP, C_A, C_B, C_GAMMA, C_NOISE, C_QUANT = range(10)
+N_CONSTS = 10
+# Layout of the `state` vector: amplifier output (V), Bouc-Wen state h (m), then the linear states
+# [creep x_1..x_m (m), tip deflection y (m), tip velocity (m/s), sensor output (m)].
+S_V, S_H, S_LIN = 0, 1, 2
+
+
+@njit(cache=True)
+def bouc_wen_increment(h, dv, a, b, gamma):
+    """Bouc-Wen state after the input moves monotonically by dv (V); exact for exponent n = 1.
+
+    Along the path length s = |v - v0| the model dh/dt = a*dv/dt - b*|dv/dt|*h - gamma*dv/dt*|h|
+    becomes the linear ODE dh/ds = sv*a - (b + gamma*sv*sign(h))*h, solved in closed form on each
+    piece where sign(h) is constant (at most two pieces: h can cross zero once). Depending on dv
+    only, not on time, it is rate-independent by construction. a = A*d_p (m/V), b, gamma (1/V).
+    """
+    if dv == 0.0:
+        return h
+    sv = 1.0 if dv > 0.0 else -1.0
+    s_rem = abs(dv)
+    for _ in range(2):
+        if h > 0.0:
+            sh = 1.0
+        elif h < 0.0:
+            sh = -1.0
+        else:
+            sh = sv  # from h = 0 the state moves in the direction of sv*a (a >= 0)
+        c = b + gamma * sv * sh
+        if c > 1e-300:
+            h_inf = sv * a / c
+            h_end = h_inf + (h - h_inf) * math.exp(-c * s_rem)
+        else:
+            h_inf = 0.0
+            h_end = h + sv * a * s_rem
+        if h != 0.0 and h_end * h < 0.0:
+            # Crosses zero inside the increment: stop there and continue with the other sign.
+            if c > 1e-300:
+                s0 = math.log((h_inf - h) / h_inf) / c
+            else:
+                s0 = -h / (sv * a)
+            s_rem -= s0
+            h = 0.0
+            if s_rem <= 0.0:
+                return 0.0
+            continue
+        return h_end
+    return h
+
+
+@njit(cache=True)
+def advance(u_cmd, noise, n_sub, consts, phi, g0, g1, state, work, y_meas, y_true, u_applied):
+    """Advance the plant over len(u_cmd) samples; writes the three output arrays in place.
+
+    u_cmd (N,) V is held (zero-order hold) over each sample period, which is split in n_sub
+    sub-steps. Per sub-step: amplifier (clamp, exact first-order step clipped by the slew limit),
+    Bouc-Wen (exact increment), then the linear creep/mode/sensor part with its exact first-order-hold
+    discretisation (phi, g0, g1) on the hysteretic deflection w = d_p*v - h. Outputs are taken at the
+    end of the sample period: y_meas (m, noisy and quantised sensor), y_true (m, tip), u_applied (V).
+    noise (N,) holds standard normal draws. state is updated in place; work is scratch of phi's size
+    (passed in so that a one-sample call allocates nothing).
+    """
+    n_lin = phi.shape[0]
+    vmin, vmax = consts[C_VMIN], consts[C_VMAX]
+    slew_step, alpha = consts[C_SLEW_STEP], consts[C_AMP_ALPHA]
+    d_p, a_bw = consts[C_DP], consts[C_A] * consts[C_DP]
+    b_bw, gamma = consts[C_B], consts[C_GAMMA]
+    noise_std, quant = consts[C_NOISE], consts[C_QUANT]
+    lin = state[S_LIN:]
+    tmp = work
+    for k in range(u_cmd.shape[0]):
+        target = min(max(u_cmd[k], vmin), vmax)
+        for _ in range(n_sub):
+            v0 = state[S_V]
+            h0 = state[S_H]
+            dv = (target - v0) * alpha
+            if dv > slew_step:
+                dv = slew_step
+            elif dv < -slew_step:
+                dv = -slew_step
+            v1 = v0 + dv
+            h1 = bouc_wen_increment(h0, dv, a_bw, b_bw, gamma)
+            w0 = d_p * v0 - h0
+            w1 = d_p * v1 - h1
+            for i in range(n_lin):
+                acc = g0[i] * w0 + g1[i] * (w1 - w0)
+                for j in range(n_lin):
+                    acc += phi[i, j] * lin[j]
+                tmp[i] = acc
+            for i in range(n_lin):
+                lin[i] = tmp[i]
+            state[S_V] = v1
+            state[S_H] = h1
+        y_true[k] = lin[n_lin - 3]
+        meas = lin[n_lin - 1] + noise_std * noise[k]
+        if quant > 0.0:
+            meas = quant * math.floor(meas / quant + 0.5)
+        y_meas[k] = meas
+        u_applied[k] = state[S_V]
+
+
+@njit(cache=True)
+def slew_limit(u, max_step, u0):
+    """Copy of u (V) whose sample-to-sample change is at most max_step (V), starting from u0 (V)."""
+    out = np.empty_like(u)
+    prev = u0
+    for k in range(u.shape[0]):
+        d = u[k] - prev
+        if d > max_step:
+            d = max_step
+        elif d < -max_step:
+            d = -max_step
+        prev = prev + d
+        out[k] = prev
+    return out

@@ -1,0 +1,148 @@
+"""Physical parameters of the simulated PZT/nickel unimorph cantilever and their validation.
+
+Every value lives in config/plant.yaml (SI units), where each is documented with its source or
+reason; docs/plant.md derives the beam-theory figures. This module only reads and checks them.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from piezo_narx_ros.errors import ConfigError
+
+DEFAULT_PATH = Path(__file__).resolve().parents[2] / 'config' / 'plant.yaml'
+
+
+@dataclass(frozen=True)
+class PlantParams:
+    """Parameters of the plant; SI units (V, m, s, Hz).
+
+    Amplifier: output clamped to [v_min, v_max] V, slew-limited to slew_rate V/s, first-order
+    small-signal bandwidth amp_bandwidth Hz.
+    Hysteresis (Bouc-Wen, Rakotondrabe's form): w = d_p*v - h,
+    dh/dt = A*d_p*dv/dt - B*|dv/dt|*h - gamma*dv/dt*|h|; d_p in m/V, A dimensionless, B and gamma in 1/V.
+    Creep: z = w + sum_i creep_gains[i]*x_i with tau_i dx_i/dt = w - x_i (gains dimensionless, s).
+    Mode: tip deflection y obeys y'' + 2*zeta*wn*y' + wn^2*y = wn^2*z, wn = 2*pi*mode_frequency.
+    Sensor: first-order low-pass sensor_bandwidth Hz, white noise noise_std m, quantisation step m.
+    substeps: integration sub-steps per sample (linear parts are exact per sub-step).
+    """
+    v_min: float = -200.0
+    v_max: float = 200.0
+    slew_rate: float = 1.0e5
+    amp_bandwidth: float = 3000.0
+    d_p: float = 5.2e-7
+    A: float = 0.35
+    B: float = 0.008
+    gamma: float = 0.004
+    creep_gains: tuple = field(default=(0.008, 0.008, 0.008, 0.008))
+    creep_time_constants: tuple = field(default=(0.1, 1.0, 10.0, 100.0))
+    mode_frequency: float = 765.0
+    mode_damping: float = 0.02
+    sensor_bandwidth: float = 5000.0
+    noise_std: float = 5.0e-8
+    quantisation: float = 5.0e-9
+    substeps: int = 8
+
+    def __post_init__(self):
+        validate(self)
+
+    def replace(self, **changes) -> 'PlantParams':
+        """Copy with some fields changed (validated), e.g. params.replace(noise_std=0.0)."""
+        return dataclasses.replace(self, **changes)
+
+    def as_dict(self) -> dict:
+        """Plain dict (lists for the creep tuples) for YAML/JSON metadata."""
+        out = dataclasses.asdict(self)
+        out['creep_gains'] = list(self.creep_gains)
+        out['creep_time_constants'] = list(self.creep_time_constants)
+        return out
+
+
+def _finite(name, value, lo=None, hi=None, lo_open=False):
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f'plant parameter {name} must be a number, got {value!r}')
+    value = float(value)
+    if not math.isfinite(value):
+        raise ConfigError(f'plant parameter {name} must be finite, got {value!r}')
+    if lo is not None and (value <= lo if lo_open else value < lo):
+        raise ConfigError(f'plant parameter {name} must be {">" if lo_open else ">="} {lo}, got {value!r}')
+    if hi is not None and value > hi:
+        raise ConfigError(f'plant parameter {name} must be <= {hi}, got {value!r}')
+    return value
+
+
+def validate(p: PlantParams) -> None:
+    """Raise ConfigError naming the first invalid parameter."""
+    for name in ('v_min', 'v_max', 'd_p', 'A', 'B', 'gamma'):
+        _finite(name, getattr(p, name))
+    if not p.v_min < p.v_max:
+        raise ConfigError(f'plant parameter v_min ({p.v_min}) must be below v_max ({p.v_max})')
+    if not (isinstance(p.slew_rate, (int, float)) and p.slew_rate > 0 and not math.isnan(p.slew_rate)):
+        raise ConfigError(f'plant parameter slew_rate must be > 0 V/s (.inf for none), got {p.slew_rate!r}')
+    for name in ('amp_bandwidth', 'mode_frequency', 'sensor_bandwidth'):
+        _finite(name, getattr(p, name), 0.0, lo_open=True)
+    _finite('d_p', p.d_p, 0.0, lo_open=True)
+    _finite('A', p.A, 0.0)
+    # B > 0 and |gamma| <= B keep the Bouc-Wen state bounded and the loop passive.
+    if not (p.B > 0 and abs(p.gamma) <= p.B):
+        raise ConfigError(f'plant parameters B ({p.B}) and gamma ({p.gamma}) must satisfy B > 0 and |gamma| <= B')
+    _finite('mode_damping', p.mode_damping, 0.0, lo_open=True)
+    _finite('noise_std', p.noise_std, 0.0)
+    _finite('quantisation', p.quantisation, 0.0)
+    if isinstance(p.substeps, bool) or not isinstance(p.substeps, int) or not 1 <= p.substeps <= 1000:
+        raise ConfigError(f'plant parameter substeps must be an integer in 1..1000, got {p.substeps!r}')
+    gains, taus = p.creep_gains, p.creep_time_constants
+    if not isinstance(gains, (tuple, list)) or not isinstance(taus, (tuple, list)):
+        raise ConfigError('plant parameters creep_gains and creep_time_constants must be lists')
+    if len(gains) != len(taus):
+        raise ConfigError(f'plant parameters creep_gains ({len(gains)}) and creep_time_constants '
+                          f'({len(taus)}) must have the same length')
+    for i, (g, tau) in enumerate(zip(gains, taus)):
+        _finite(f'creep_gains[{i}]', g, 0.0)
+        _finite(f'creep_time_constants[{i}]', tau, 0.0, lo_open=True)
+
+
+def load_plant_params(path=None) -> PlantParams:
+    """Read plant parameters from a YAML file (config/plant.yaml by default).
+
+    The file holds a mapping `plant:` of PlantParams fields (SI units); fields it leaves out keep their
+    defaults. Unknown keys, wrong types and out-of-range values raise ConfigError naming the key.
+    """
+    import yaml
+
+    path = Path(path) if path is not None else DEFAULT_PATH
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f'cannot read plant config {path}: {exc.strerror or exc}') from None
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f'plant config {path} is not valid YAML: {str(exc).splitlines()[0]}') from None
+    if isinstance(doc, dict) and 'plant' in doc:
+        doc = doc['plant']
+    if not isinstance(doc, dict):
+        raise ConfigError(f'plant config {path} must hold a mapping of parameters under "plant:"')
+    known = {f.name for f in dataclasses.fields(PlantParams)}
+    unknown = sorted(set(doc) - known)
+    if unknown:
+        raise ConfigError(f'plant config {path}: unknown parameter {unknown[0]!r}')
+    values = dict(doc)
+    for key in ('creep_gains', 'creep_time_constants'):
+        if key in values:
+            if not isinstance(values[key], (list, tuple)):
+                raise ConfigError(f'plant config {path}: {key} must be a list, got {values[key]!r}')
+            values[key] = tuple(values[key])
+    for key, value in values.items():
+        # YAML reads `1e5` (no dot) as a string; accept numeric strings for float fields.
+        if isinstance(value, str) and key != 'substeps':
+            try:
+                values[key] = float(value)
+            except ValueError:
+                raise ConfigError(f'plant config {path}: {key} must be a number, got {value!r}') from None
+    try:
+        return PlantParams(**values)
+    except ConfigError as exc:
+        raise ConfigError(f'plant config {path}: {exc}') from None

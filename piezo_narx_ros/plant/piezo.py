@@ -1,0 +1,184 @@
+"""Simulated piezoelectric unimorph cantilever: amplifier, hysteresis, creep, first mode, sensor.
+
+Signal chain (continuous time, integrated per sample with sub-steps):
+
+    u_cmd (V, zero-order hold) -> amplifier: clamp, first-order, slew limit -> v (V, "applied")
+    v -> Bouc-Wen hysteresis -> w = d_p*v - h (m)
+    w -> creep (parallel slow first-order elements) -> z (m)
+    z -> first bending mode (2nd order, unit static gain) -> y_true (m, tip deflection)
+    y_true -> sensor: first-order low-pass, white noise, quantisation -> y (m, measured)
+
+Sample k holds u_cmd[k] over [t_k, t_k + 1/fs] and reports y, y_true and v at the end of that period,
+so y[k] depends on u[k] (the NARX regressor includes u(k)).
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from scipy.linalg import expm
+
+from piezo_narx_ros.errors import ConfigError, DataError
+from piezo_narx_ros.plant import kernels
+from piezo_narx_ros.plant.params import PlantParams, load_plant_params
+
+_NOISE_BLOCK = 4096  # standard normals drawn at a time by step(); the stream is block-size independent
+
+
+class PlantRun(NamedTuple):
+    """Result of PiezoCantilever.run(): (N,) arrays."""
+    u_applied: np.ndarray  # V, amplifier output at the end of each sample period
+    y: np.ndarray          # m, measured deflection (sensor: low-pass, noise, quantisation)
+    y_true: np.ndarray     # m, true tip deflection
+
+
+def linear_system(p: PlantParams):
+    """Continuous state-space (A, B) of the linear part, input w (m) from the hysteresis.
+
+    States: creep x_1..x_m (m), tip deflection y (m), tip velocity (m/s), sensor output (m).
+    """
+    m = len(p.creep_gains)
+    n = m + 3
+    a = np.zeros((n, n))
+    b = np.zeros(n)
+    iy, iv, isens = m, m + 1, m + 2
+    wn = 2.0 * math.pi * p.mode_frequency
+    ws = 2.0 * math.pi * p.sensor_bandwidth
+    for i, tau in enumerate(p.creep_time_constants):
+        a[i, i] = -1.0 / tau
+        b[i] = 1.0 / tau
+    # y'' = wn^2 * (w + sum k_i x_i - y) - 2 zeta wn y'
+    a[iy, iv] = 1.0
+    a[iv, :m] = wn ** 2 * np.asarray(p.creep_gains, dtype=float)
+    a[iv, iy] = -wn ** 2
+    a[iv, iv] = -2.0 * p.mode_damping * wn
+    b[iv] = wn ** 2
+    a[isens, iy] = ws
+    a[isens, isens] = -ws
+    return a, b
+
+
+def foh_discretise(a, b, h):
+    """Exact discretisation for an input linear in time over a step of h s (first-order hold).
+
+    Returns (phi, g0, g1) with x(t+h) = phi x(t) + g0 w(t) + g1 (w(t+h) - w(t)).
+    """
+    n = a.shape[0]
+    aug = np.zeros((n + 2, n + 2))
+    aug[:n, :n] = a
+    aug[:n, n] = b
+    aug[n, n + 1] = 1.0 / h  # d/dt w = (w1 - w0)/h, carried as unit ramp scaled below
+    e = expm(aug * h)
+    return e[:n, :n].copy(), e[:n, n].copy(), e[:n, n + 1].copy()
+
+
+class PiezoCantilever:
+    """The plant, with a per-sample interface (step) and an array interface (run) on one state.
+
+    params: PlantParams (None: config/plant.yaml); fs: sample rate, Hz; seed: seed of the sensor noise.
+    run(u) advances the state exactly as len(u) calls of step() would (same numbers to the last bit).
+    """
+
+    def __init__(self, params: PlantParams | None = None, fs: float = 2000.0, seed: int = 0):
+        if params is None:
+            params = load_plant_params()
+        if not isinstance(params, PlantParams):
+            raise ConfigError(f'params must be a PlantParams, got {type(params).__name__}')
+        if isinstance(fs, bool) or not isinstance(fs, (int, float)) or not math.isfinite(fs) or fs <= 0:
+            raise ConfigError(f'plant sample rate fs must be a positive number of Hz, got {fs!r}')
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ConfigError(f'plant seed must be a non-negative integer, got {seed!r}')
+        self.params = params
+        self.fs = float(fs)
+        self.seed = int(seed)
+        h = 1.0 / (self.fs * params.substeps)
+        a, b = linear_system(params)
+        self._phi, self._g0, self._g1 = foh_discretise(a, b, h)
+        consts = np.zeros(kernels.N_CONSTS)
+        consts[kernels.C_VMIN] = params.v_min
+        consts[kernels.C_VMAX] = params.v_max
+        consts[kernels.C_SLEW_STEP] = params.slew_rate * h
+        consts[kernels.C_AMP_ALPHA] = -math.expm1(-2.0 * math.pi * params.amp_bandwidth * h)
+        consts[kernels.C_DP] = params.d_p
+        consts[kernels.C_A] = params.A
+        consts[kernels.C_B] = params.B
+        consts[kernels.C_GAMMA] = params.gamma
+        consts[kernels.C_NOISE] = params.noise_std
+        consts[kernels.C_QUANT] = params.quantisation
+        self._consts = consts
+        self._state = np.zeros(kernels.S_LIN + self._phi.shape[0])
+        self._work = np.zeros(self._phi.shape[0])
+        # One-sample buffers reused by step() so that it allocates no arrays per call.
+        self._u1 = np.zeros(1)
+        self._n1 = np.zeros(1)
+        self._y1 = np.zeros(1)
+        self._yt1 = np.zeros(1)
+        self._ua1 = np.zeros(1)
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to rest (all states zero, amplifier at 0 V) and the noise generator re-seeded."""
+        self._state[:] = 0.0
+        self._rng = np.random.Generator(np.random.PCG64(self.seed))
+        self._noise = np.empty(0)
+        self._noise_pos = 0
+
+    @property
+    def state(self) -> np.ndarray:
+        """Copy of the state: [v (V), h (m), creep states (m)..., y (m), dy/dt (m/s), sensor (m)]."""
+        return self._state.copy()
+
+    @property
+    def u_applied(self) -> float:
+        """Amplifier output now, V."""
+        return float(self._state[kernels.S_V])
+
+    def _draw(self, n: int) -> np.ndarray:
+        """Next n standard normals of the noise stream (buffered block first)."""
+        left = self._noise[self._noise_pos:]
+        if n <= left.size:
+            self._noise_pos += n
+            return left[:n]
+        fresh = self._rng.standard_normal(n - left.size)
+        self._noise = np.empty(0)
+        self._noise_pos = 0
+        return np.concatenate([left, fresh])
+
+    def step(self, u_cmd: float) -> tuple[float, float, float]:
+        """Apply command u_cmd (V) for one sample period; returns (y_meas m, y_true m, u_applied V).
+
+        A non-finite command raises DataError and leaves the state untouched.
+        """
+        u = float(u_cmd)
+        if not math.isfinite(u):
+            raise DataError(f'plant command must be a finite voltage, got {u_cmd!r}')
+        if self._noise_pos >= self._noise.size:
+            self._noise = self._rng.standard_normal(_NOISE_BLOCK)
+            self._noise_pos = 0
+        self._u1[0] = u
+        self._n1[0] = self._noise[self._noise_pos]
+        self._noise_pos += 1
+        kernels.advance(self._u1, self._n1, self.params.substeps, self._consts, self._phi,
+                        self._g0, self._g1, self._state, self._work, self._y1, self._yt1, self._ua1)
+        return float(self._y1[0]), float(self._yt1[0]), float(self._ua1[0])
+
+    def run(self, u_cmd) -> PlantRun:
+        """Apply a whole command array u_cmd (N,) V from the current state; returns a PlantRun.
+
+        Non-finite or non-1-D input raises DataError (naming the first bad index) before any change.
+        """
+        u = np.ascontiguousarray(u_cmd, dtype=float)
+        if u.ndim != 1:
+            raise DataError(f'plant command array must be 1-D, got shape {u.shape}')
+        bad = np.flatnonzero(~np.isfinite(u))
+        if bad.size:
+            raise DataError(f'plant command has a non-finite value at index {bad[0]}: {u[bad[0]]}')
+        n = u.size
+        noise = self._draw(n)
+        y = np.empty(n)
+        y_true = np.empty(n)
+        u_app = np.empty(n)
+        kernels.advance(u, noise, self.params.substeps, self._consts, self._phi, self._g0, self._g1,
+                        self._state, self._work, y, y_true, u_app)
+        return PlantRun(u_applied=u_app, y=y, y_true=y_true)

@@ -1,0 +1,263 @@
+"""Excitation signals (volts) for the plant, the command node and offline data sets.
+
+generate(kind, fs, seconds, amplitude, offset=0.0, seed=0, **options) returns (N,) volts with
+N = round(seconds*fs), deterministic for a given seed. Every kind takes the amplifier limits
+u_min, u_max (V, clamp) and slew_rate (V/s, sample-to-sample limit, starting from the first sample so
+that the array loops without a ramp-in). Kind-specific options and their defaults are in OPTIONS.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from piezo_narx_ros.errors import ConfigError
+
+COMMON = {'u_min': -200.0, 'u_max': 200.0, 'slew_rate': math.inf}
+OPTIONS = {
+    'sine': {'freq': 1.0, 'phase': 0.0},
+    'triangle': {'freq': 1.0},
+    # f_res: line spacing, Hz (None: 1/seconds, so the record is one period); spectrum: flat (equal
+    # line amplitudes), pink (amplitude ~ f^-1/2) or brown (amplitude ~ 1/f).
+    'multisine': {'f_min': 0.1, 'f_max': 100.0, 'f_res': None, 'spectrum': 'flat'},
+    'chirp': {'f0': 1.0, 'f1': None, 'method': 'linear'},          # f1 None: 0.45*fs
+    'aprbs': {'min_hold': 0.01, 'max_hold': 0.5},                   # s
+    'steps': {'levels': (0.0, 1.0, 0.0, -1.0, 0.0), 'hold': None},  # levels x amplitude; hold None: even split
+    'playback': {'path': None, 'key': 'u', 'column': None, 'file_fs': None},
+}
+KINDS = tuple(OPTIONS)
+SPECTRA = ('flat', 'pink', 'brown')
+CHIRP_METHODS = ('linear', 'logarithmic')
+# A default identification record (the paper's 25 s at 2 kHz): band 0.1-100 Hz, peak 100 V.
+IDENT_DEFAULTS = {'kind': 'multisine', 'seconds': 25.0, 'fs': 2000.0, 'amplitude': 100.0,
+                  'f_min': 0.1, 'f_max': 100.0, 'spectrum': 'flat'}
+
+
+def _num(name, value, lo=None, hi=None, lo_open=False):
+    """Validated float; ConfigError names the parameter."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ConfigError(f'signal parameter {name} must be a number, got {value!r}')
+    value = float(value)
+    if math.isnan(value) or (math.isinf(value) and name != 'slew_rate'):
+        raise ConfigError(f'signal parameter {name} must be finite, got {value!r}')
+    if lo is not None and (value <= lo if lo_open else value < lo):
+        raise ConfigError(f'signal parameter {name} must be {">" if lo_open else ">="} {lo:g}, got {value:g}')
+    if hi is not None and value > hi:
+        raise ConfigError(f'signal parameter {name} must be <= {hi:g}, got {value:g}')
+    return value
+
+
+def generate(kind, fs, seconds, amplitude, offset=0.0, seed=0, **options) -> np.ndarray:
+    """Excitation signal, (N,) V, N = round(seconds*fs).
+
+    kind: one of KINDS; fs: sample rate, Hz; seconds: duration, s (playback: None = file length);
+    amplitude: peak deviation from offset, V (playback: None = as recorded, else rescaled to this
+    peak); offset: V; seed: seed of the random parts (multisine phases, APRBS levels and holds).
+    Options: see OPTIONS[kind] and COMMON (u_min, u_max in V; slew_rate in V/s).
+    """
+    if kind not in OPTIONS:
+        raise ConfigError(f'unknown signal kind {kind!r}; choose one of {", ".join(KINDS)}')
+    allowed = {**COMMON, **OPTIONS[kind]}
+    unknown = sorted(set(options) - set(allowed))
+    if unknown:
+        raise ConfigError(f'unknown option {unknown[0]!r} for signal {kind!r}; '
+                          f'options: {", ".join(sorted(allowed))}')
+    opt = {**allowed, **{k: v for k, v in options.items() if v is not None}}
+    fs = _num('fs', fs, 0.0, lo_open=True)
+    offset = _num('offset', offset)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ConfigError(f'signal parameter seed must be a non-negative integer, got {seed!r}')
+    if kind == 'playback':
+        amp = None if amplitude is None else _num('amplitude', amplitude, 0.0)
+        n = None if seconds is None else _n_samples(seconds, fs)
+        base = _playback(fs, n, opt)
+        if amp is not None:
+            peak = np.max(np.abs(base - base.mean()))
+            base = (base - base.mean()) * (amp / peak if peak > 0 else 0.0)
+            u = base + offset
+        else:
+            u = base + offset
+    else:
+        amp = _num('amplitude', amplitude, 0.0)
+        n = _n_samples(seconds, fs)
+        t = np.arange(n) / fs
+        rng = np.random.Generator(np.random.PCG64(int(seed)))
+        u = offset + amp * _SHAPES[kind](t, fs, opt, rng)
+    return apply_limits(u, fs, opt['u_min'], opt['u_max'], opt['slew_rate'])
+
+
+def apply_limits(u, fs, u_min=-200.0, u_max=200.0, slew_rate=math.inf) -> np.ndarray:
+    """Clamp u (V) to [u_min, u_max] V, then limit its change to slew_rate/fs V per sample."""
+    u_min = _num('u_min', u_min)
+    u_max = _num('u_max', u_max)
+    if not u_min < u_max:
+        raise ConfigError(f'signal parameter u_min ({u_min:g}) must be below u_max ({u_max:g})')
+    slew_rate = _num('slew_rate', slew_rate, 0.0, lo_open=True)
+    u = np.clip(np.asarray(u, dtype=float), u_min, u_max)
+    if math.isfinite(slew_rate) and u.size:
+        from piezo_narx_ros.plant.kernels import slew_limit
+        u = slew_limit(u, slew_rate / float(fs), u[0])
+    return u
+
+
+def _n_samples(seconds, fs):
+    seconds = _num('seconds', seconds, 0.0, lo_open=True)
+    n = int(round(seconds * fs))
+    if n < 1:
+        raise ConfigError(f'signal parameter seconds ({seconds:g}) gives no sample at fs = {fs:g} Hz')
+    return n
+
+
+def _check_freq(name, f, fs):
+    return _num(name, f, 0.0, fs / 2.0, lo_open=True)
+
+
+def _sine(t, fs, opt, rng):
+    f = _check_freq('freq', opt['freq'], fs)
+    return np.sin(2.0 * np.pi * f * t + _num('phase', opt['phase']))
+
+
+def _triangle(t, fs, opt, rng):
+    from scipy.signal import sawtooth
+    f = _check_freq('freq', opt['freq'], fs)
+    # Phase pi/2 starts at 0 going up, like the sine.
+    return sawtooth(2.0 * np.pi * f * t + np.pi / 2.0, 0.5)
+
+
+def _multisine(t, fs, opt, rng):
+    """Random-phase multisine on the lines k*f_res inside [f_min, f_max], scaled to peak 1."""
+    n = t.size
+    f_min = _check_freq('f_min', opt['f_min'], fs)
+    f_max = _check_freq('f_max', opt['f_max'], fs)
+    if not f_min < f_max:
+        raise ConfigError(f'signal parameter f_min ({f_min:g} Hz) must be below f_max ({f_max:g} Hz)')
+    spectrum = opt['spectrum']
+    if spectrum not in SPECTRA:
+        raise ConfigError(f'signal parameter spectrum must be one of {", ".join(SPECTRA)}, got {spectrum!r}')
+    f_res = fs / n if opt['f_res'] is None else _num('f_res', opt['f_res'], 0.0, lo_open=True)
+    # The period must be a whole number of samples for an exact periodic signal (IFFT on one period).
+    period = max(int(round(fs / f_res)), 2)
+    lines = np.arange(period // 2 + 1) * fs / period
+    on = (lines >= f_min - 1e-9) & (lines <= f_max + 1e-9) & (lines > 0)
+    if not on.any():
+        raise ConfigError(f'signal parameter f_res ({f_res:g} Hz) puts no line in {f_min:g}-{f_max:g} Hz')
+    mag = np.zeros(lines.size)
+    mag[on] = {'flat': 1.0, 'pink': lines[on] ** -0.5, 'brown': 1.0 / lines[on]}[spectrum]
+    phases = rng.uniform(0.0, 2.0 * np.pi, size=lines.size)
+    one = np.fft.irfft(mag * np.exp(1j * phases), n=period)
+    x = np.resize(one, n)  # repeats the period to n samples
+    peak = np.max(np.abs(x))
+    return x / peak
+
+
+def _chirp(t, fs, opt, rng):
+    from scipy.signal import chirp
+    f0 = _check_freq('f0', opt['f0'], fs)
+    f1 = _check_freq('f1', 0.45 * fs if opt['f1'] is None else opt['f1'], fs)
+    method = opt['method']
+    if method not in CHIRP_METHODS:
+        raise ConfigError(f'signal parameter method must be one of {", ".join(CHIRP_METHODS)}, got {method!r}')
+    duration = t[-1] if t.size > 1 else 1.0 / fs
+    # phi=-90 deg starts the sweep at 0 V (a sine), not with a jump to the peak.
+    return chirp(t, f0=f0, t1=duration, f1=f1, method=method, phi=-90.0)
+
+
+def _aprbs(t, fs, opt, rng):
+    """Steps of random level (uniform in [-1, 1]) held for random times in [min_hold, max_hold] s."""
+    lo = _num('min_hold', opt['min_hold'], 1.0 / fs)
+    hi = _num('max_hold', opt['max_hold'], lo)
+    n = t.size
+    out = np.empty(n)
+    k = 0
+    while k < n:
+        hold = max(int(round(rng.uniform(lo, hi) * fs)), 1)
+        out[k:k + hold] = rng.uniform(-1.0, 1.0)
+        k += hold
+    return out
+
+
+def _steps(t, fs, opt, rng):
+    levels = opt['levels']
+    if isinstance(levels, str):
+        try:
+            levels = [float(x) for x in levels.split(',')]
+        except ValueError:
+            raise ConfigError(f'signal parameter levels must be numbers separated by commas, got {levels!r}') from None
+    levels = [_num(f'levels[{i}]', v) for i, v in enumerate(levels)]
+    if not levels:
+        raise ConfigError('signal parameter levels must hold at least one level')
+    n = t.size
+    hold = n / len(levels) / fs if opt['hold'] is None else _num('hold', opt['hold'], 1.0 / fs)
+    idx = np.minimum((t / hold).astype(int), len(levels) - 1)
+    return np.asarray(levels)[idx]
+
+
+def _playback(fs, n, opt):
+    """Samples from a file: .npz key `key` (default u) or a .csv column (name or index)."""
+    path = opt['path']
+    if not path:
+        raise ConfigError('signal parameter path (the file to play back) is required for playback')
+    path = Path(path)
+    file_fs = None
+    if path.suffix == '.npz':
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                if opt['key'] not in data.files:
+                    raise ConfigError(f'playback file {path} has no key {opt["key"]!r} (keys: {", ".join(data.files)})')
+                u = np.asarray(data[opt['key']], dtype=float)
+                if 'fs' in data.files:
+                    file_fs = float(data['fs'])
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f'cannot read playback file {path}: {exc}') from None
+    elif path.suffix == '.csv':
+        u = _csv_column(path, opt['column'])
+    else:
+        raise ConfigError(f'playback file {path} must be .npz or .csv')
+    if u.ndim != 1 or u.size < 1:
+        raise ConfigError(f'playback file {path}: the signal must be a non-empty 1-D array, got shape {u.shape}')
+    if not np.all(np.isfinite(u)):
+        raise ConfigError(f'playback file {path}: the signal has non-finite values')
+    if opt['file_fs'] is not None:
+        file_fs = _num('file_fs', opt['file_fs'], 0.0, lo_open=True)
+    if file_fs is not None and abs(file_fs - fs) > 1e-9 * fs:
+        # Linear resampling onto the output rate.
+        t_file = np.arange(u.size) / file_fs
+        u = np.interp(np.arange(int(round(t_file[-1] * fs)) + 1) / fs, t_file, u)
+    if n is None:
+        return u
+    return np.resize(u, n)  # loops the file when the requested duration is longer
+
+
+def _csv_column(path, column):
+    try:
+        with open(path) as fh:
+            header = fh.readline().strip().split(',')
+        has_header = any(not _is_float(h) for h in header)
+        data = np.loadtxt(path, delimiter=',', skiprows=1 if has_header else 0, ndmin=2)
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f'cannot read playback file {path}: {exc}') from None
+    names = [h.strip() for h in header] if has_header else []
+    if column is None:
+        column = 'u' if 'u' in names else 0
+    if isinstance(column, str) and not column.isdigit():
+        if column not in names:
+            raise ConfigError(f'playback file {path} has no column {column!r} (columns: {", ".join(names)})')
+        idx = names.index(column)
+    else:
+        idx = int(column)
+    if not 0 <= idx < data.shape[1]:
+        raise ConfigError(f'playback file {path} has no column {idx} ({data.shape[1]} columns)')
+    return data[:, idx]
+
+
+def _is_float(text):
+    try:
+        float(text)
+        return True
+    except ValueError:
+        return False
+
+
+_SHAPES = {'sine': _sine, 'triangle': _triangle, 'multisine': _multisine, 'chirp': _chirp,
+           'aprbs': _aprbs, 'steps': _steps}
