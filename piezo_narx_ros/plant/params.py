@@ -32,16 +32,16 @@ class PlantParams:
     v_max: float = 200.0
     slew_rate: float = 1.0e5
     amp_bandwidth: float = 3000.0
-    d_p: float = 5.2e-7
-    A: float = 0.35
-    B: float = 0.008
+    d_p: float = 4.8e-7
+    A: float = 0.30
+    B: float = 0.011
     gamma: float = 0.004
     creep_gains: tuple = field(default=(0.008, 0.008, 0.008, 0.008))
     creep_time_constants: tuple = field(default=(0.1, 1.0, 10.0, 100.0))
     mode_frequency: float = 765.0
     mode_damping: float = 0.02
     sensor_bandwidth: float = 5000.0
-    noise_std: float = 5.0e-8
+    noise_std: float = 3.3e-8
     quantisation: float = 5.0e-9
     substeps: int = 8
 
