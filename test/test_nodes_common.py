@@ -1,0 +1,121 @@
+"""nodes/common.py: QoS, validated parameters, JointState helpers, diagnostics (in-process, no peers)."""
+import pytest
+import rclpy
+from rclpy.parameter import Parameter
+from rclpy.qos import ReliabilityPolicy
+
+from piezo_narx_ros.errors import ConfigError, DataError
+from piezo_narx_ros.nodes import common
+from piezo_narx_ros.nodes.common import ParamSpec, PiezoNode
+
+
+@pytest.fixture
+def ctx():
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    yield context
+    rclpy.try_shutdown(context=context)
+
+
+SPECS = [
+    ParamSpec('fs', 2000.0, 'sample rate, Hz', low=1.0, high=1e5),
+    ParamSpec('depth', 100, 'queue depth', low=1, high=10000),
+    ParamSpec('kind', 'sine', 'signal', choices=('sine', 'prbs')),
+    ParamSpec('axis', 'x', 'axis name', check=(lambda v: bool(v.strip()), 'must not be empty')),
+]
+
+
+class _Node(PiezoNode):
+    NODE_NAME = 'common_test'
+    PARAMS = SPECS
+
+
+def _make(ctx, **overrides):
+    return _Node(context=ctx, parameter_overrides=[Parameter(k, value=v)
+                                                   for k, v in overrides.items()])
+
+
+def test_sample_qos_reliable_by_default_best_effort_on_request():
+    q = common.sample_qos()
+    assert q.reliability == ReliabilityPolicy.RELIABLE and q.depth >= 100
+    assert common.sample_qos(best_effort=True).reliability == ReliabilityPolicy.BEST_EFFORT
+    with pytest.raises(ConfigError):
+        common.sample_qos(depth=0)
+
+
+def test_parameters_declared_with_descriptor_and_int_accepted_for_float(ctx):
+    node = _make(ctx, fs=500)
+    try:
+        assert node.params == {'fs': 500.0, 'depth': 100, 'kind': 'sine', 'axis': 'x'}
+        assert isinstance(node.params['fs'], float)
+        d = node.describe_parameter('fs')
+        assert d.description == 'sample rate, Hz'
+        assert d.floating_point_range[0].from_value == 1.0
+        assert node.describe_parameter('depth').integer_range[0].to_value == 10000
+        assert node.get_namespace() == '/piezo'
+    finally:
+        node.destroy_node()
+
+
+@pytest.mark.parametrize('overrides, fragment', [
+    ({'fs': -3.0}, 'fs must be >= 1.0'),
+    ({'fs': 'abc'}, 'fs must be a number'),
+    ({'depth': 0}, 'depth must be >= 1'),
+    ({'kind': 'square'}, "kind must be one of ['sine', 'prbs']"),
+    ({'axis': ' '}, 'axis must not be empty'),
+    ({'kind': 3}, "parameter kind"),
+])
+def test_bad_start_values_refused_with_one_line_reason(ctx, overrides, fragment):
+    with pytest.raises(ConfigError) as info:
+        _make(ctx, **overrides)
+    msg = str(info.value)
+    assert fragment in msg and '\n' not in msg
+
+
+def test_runtime_set_is_validated(ctx):
+    node = _make(ctx)
+    try:
+        res = node.set_parameters([Parameter('kind', value='nope')])[0]
+        assert not res.successful and 'kind must be one of' in res.reason
+        res = node.set_parameters([Parameter('fs', value=float('nan'))])[0]
+        assert not res.successful
+        assert node.set_parameters([Parameter('kind', value='prbs')])[0].successful
+    finally:
+        node.destroy_node()
+
+
+def test_joint_state_round_trip_keeps_exact_nanoseconds():
+    t_ns = 1_700_000_000 * 10**9 + 123_456_789
+    msg = common.make_joint_state(t_ns, ['x', 'y'], position=[1e-6, 2e-6], effort=[10.0, -5.0])
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (1_700_000_000, 123_456_789)
+    s = common.parse_joint_state(msg)
+    assert s.t_ns == t_ns
+    assert s.value('position', 'y') == 2e-6 and s.value('effort', 'x') == 10.0
+    with pytest.raises(DataError, match="axis 'z'"):
+        s.value('effort', 'z')
+    unnamed = common.parse_joint_state(common.make_joint_state(5, [], effort=[3.0]))
+    assert unnamed.value('effort', 'x') == 3.0
+    with pytest.raises(DataError, match='no position'):
+        unnamed.value('position', 'x')
+
+
+def test_diagnostics_status_carries_node_name_level_and_values(ctx):
+    node = _make(ctx)
+    try:
+        state = {'n': 3}
+        diag = common.Diagnostics(node, lambda: (common.DIAG_WARN, 'late', {'count': state['n'],
+                                                                           'rms': 1.5e-7}))
+        arr = diag.build()
+        assert len(arr.status) == 1
+        st = arr.status[0]
+        assert st.name == '/piezo/common_test' and st.level == common.DIAG_WARN
+        assert common.diagnostic_values(st) == {'count': '3', 'rms': '1.5e-07'}
+        state['n'] = 4
+        assert common.diagnostic_values(diag.build().status[0])['count'] == '4'
+    finally:
+        node.destroy_node()
+
+
+def test_make_executor_rejects_unknown_kind():
+    with pytest.raises(ConfigError, match='executor'):
+        common.make_executor('threads')
