@@ -1,0 +1,162 @@
+"""Drift-free sample clock and voltage-command streaming, ROS-free.
+
+The command node asks `CommandStreamer.poll(now)` on every timer tick and publishes what it gets.
+Sample k is stamped t_k = t0 + k/fs exactly (integer nanoseconds, no accumulated float error), and
+is due once the monotonic clock has passed start + k/fs. A late tick returns every sample that has
+become due (catch-up), so a slow tick never drops a sample or shifts later stamps.
+"""
+from __future__ import annotations
+
+import math
+from fractions import Fraction
+
+import numpy as np
+
+from piezo_narx_ros.errors import ConfigError
+
+NS = 1_000_000_000
+
+
+class SampleClock:
+    """Sample index <-> time for a rate fs (Hz) anchored at stamp t0_ns (ns, the stamp of sample 0)
+    and monotonic instant mono0_ns (ns, when sample 0 is due).
+
+    fs is kept as an exact fraction so stamps stay exact for any run length.
+    """
+
+    def __init__(self, fs: float, t0_ns: int, mono0_ns: int):
+        if not (isinstance(fs, (int, float)) and math.isfinite(fs) and fs > 0):
+            raise ConfigError(f'sample rate fs must be a positive number of Hz, got {fs!r}')
+        frac = Fraction(fs).limit_denominator(1_000_000)
+        self.fs = float(fs)
+        self._num, self._den = frac.numerator, frac.denominator  # fs = num/den
+        self.t0_ns = int(t0_ns)
+        self.mono0_ns = int(mono0_ns)
+
+    def offset_ns(self, k: int) -> int:
+        """k/fs in integer nanoseconds (rounded half up)."""
+        return (2 * k * NS * self._den + self._num) // (2 * self._num)
+
+    def stamp_ns(self, k: int) -> int:
+        """Stamp of sample k, ns: t0 + k/fs."""
+        return self.t0_ns + self.offset_ns(k)
+
+    def due_count(self, now_mono_ns: int) -> int:
+        """Number of samples due at monotonic time now (samples 0..n-1 have their instant <= now)."""
+        elapsed = int(now_mono_ns) - self.mono0_ns
+        if elapsed < 0:
+            return 0
+        return elapsed * self._num // (NS * self._den) + 1
+
+
+class CommandStreamer:
+    """Streams a voltage signal at fs: clamp to [u_min, u_max], slew limit, loop or stop at the end.
+
+    signal: (N, n_axes) or (N,) volts, one period/record of the excitation; the clamp is applied
+    once, the slew limit (V/s) sample by sample from `u_start` (V, the amplifier at rest), also
+    across the loop wrap. `start(t0_ns, mono0_ns)` anchors the clock; `poll(now_mono_ns)` returns the
+    samples due since the last poll as (stamps (n,) int ns, volts (n, n_axes)); `stop()` pauses
+    (the next start re-anchors the clock and resumes the signal where it stopped).
+    """
+
+    def __init__(self, signal, fs: float, loop: bool = True, u_min: float = -200.0,
+                 u_max: float = 200.0, slew_rate: float = math.inf, u_start: float = 0.0,
+                 max_burst: int = 10_000):
+        sig = np.asarray(signal, dtype=float)
+        if sig.ndim == 1:
+            sig = sig[:, None]
+        if sig.ndim != 2 or sig.shape[0] < 1 or sig.shape[1] < 1:
+            raise ConfigError(f'command signal must be (N,) or (N, axes) with N >= 1, got shape '
+                              f'{np.shape(signal)}')
+        if not np.all(np.isfinite(sig)):
+            raise ConfigError('command signal contains NaN or infinite values')
+        if not u_min < u_max:
+            raise ConfigError(f'u_min ({u_min:g} V) must be below u_max ({u_max:g} V)')
+        if not slew_rate > 0:
+            raise ConfigError(f'slew_rate must be > 0 V/s, got {slew_rate:g}')
+        if max_burst < 1:
+            raise ConfigError(f'max_burst must be >= 1, got {max_burst}')
+        SampleClock(fs, 0, 0)  # validates fs
+        self.fs = float(fs)
+        self.loop = bool(loop)
+        self.signal = np.clip(sig, u_min, u_max)
+        self.n_axes = sig.shape[1]
+        self.max_step = slew_rate / self.fs if math.isfinite(slew_rate) else math.inf
+        self.max_burst = int(max_burst)
+        self._last = np.full(self.n_axes, float(np.clip(u_start, u_min, u_max)))
+        self.position = 0          # next index into the signal (total samples streamed so far)
+        self.clock: SampleClock | None = None
+        self._k = 0                # next sample index of the current clock segment
+        self.late_polls = 0        # polls that returned more than one sample (catch-up)
+        self.max_batch = 0         # largest number of samples one poll returned
+        self.published = 0
+
+    @property
+    def running(self) -> bool:
+        """True between start() and stop()/the end of a non-looping signal."""
+        return self.clock is not None and not self.finished
+
+    @property
+    def finished(self) -> bool:
+        """True when a non-looping signal has been streamed entirely."""
+        return not self.loop and self.position >= self.signal.shape[0]
+
+    def start(self, t0_ns: int, mono0_ns: int) -> None:
+        """Anchor a new clock segment: the next sample gets stamp t0_ns and is due at mono0_ns."""
+        self.clock = SampleClock(self.fs, t0_ns, mono0_ns)
+        self._k = 0
+
+    def stop(self) -> None:
+        """Pause; the signal position is kept."""
+        self.clock = None
+
+    def poll(self, now_mono_ns: int) -> tuple[np.ndarray, np.ndarray]:
+        """Samples due at now (monotonic ns) not yet returned: (stamps (n,) int ns, volts
+        (n, n_axes)). At most max_burst per call, so the caller stays responsive after a long
+        stall; the rest comes out on the next call (nothing is dropped)."""
+        if not self.running:
+            return np.empty(0, dtype=np.int64), np.empty((0, self.n_axes))
+        n = self.clock.due_count(now_mono_ns) - self._k
+        if not self.loop:
+            n = min(n, self.signal.shape[0] - self.position)
+        n = max(0, min(n, self.max_burst))
+        stamps = np.fromiter((self.clock.stamp_ns(self._k + i) for i in range(n)),
+                             dtype=np.int64, count=n)
+        idx = (self.position + np.arange(n)) % self.signal.shape[0]
+        volts = self._slew(self.signal[idx])
+        self._k += n
+        self.position += n
+        self.published += n
+        if n > 1:
+            self.late_polls += 1
+        self.max_batch = max(self.max_batch, n)
+        return stamps, volts
+
+    def _slew(self, u: np.ndarray) -> np.ndarray:
+        if not math.isfinite(self.max_step) or u.shape[0] == 0:
+            if u.shape[0]:
+                self._last = u[-1].copy()
+            return u
+        out = np.empty_like(u)
+        last = self._last
+        for i in range(u.shape[0]):
+            last = last + np.clip(u[i] - last, -self.max_step, self.max_step)
+            out[i] = last
+        self._last = last.copy()
+        return out
+
+
+def make_signal(kind: str, fs: float, seconds: float, amplitude: float, offset: float = 0.0,
+                seed: int = 0, n_axes: int = 1, **options) -> np.ndarray:
+    """(N, n_axes) volts from plant.signals.generate, axis i with seed + i.
+
+    Options not used by `kind` are ignored (a node declares them all); None values mean "default".
+    """
+    from piezo_narx_ros.plant.signals import COMMON, OPTIONS, generate
+    if kind not in OPTIONS:
+        raise ConfigError(f'unknown signal kind {kind!r}; choose one of {", ".join(OPTIONS)}')
+    allowed = set(OPTIONS[kind]) | set(COMMON)
+    opts = {k: v for k, v in options.items() if k in allowed and v is not None}
+    cols = [generate(kind, fs, seconds, amplitude, offset, seed + i, **opts)
+            for i in range(n_axes)]
+    return np.stack(cols, axis=1)

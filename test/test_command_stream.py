@@ -1,0 +1,89 @@
+"""command/stream.py: drift-free sample clock, catch-up, limits, loop/stop, without DDS."""
+import math
+
+import numpy as np
+import pytest
+
+from piezo_narx_ros.command.stream import CommandStreamer, SampleClock, make_signal
+from piezo_narx_ros.errors import ConfigError
+
+NS = 10**9
+
+
+def test_clock_stamps_are_exact_after_a_day_at_odd_rates():
+    c = SampleClock(2000.0, t0_ns=5, mono0_ns=0)
+    k = 2000 * 86400
+    assert c.stamp_ns(k) == 5 + 86400 * NS
+    c3 = SampleClock(3000.0, 0, 0)  # 1/3000 s is not a whole number of ns: no drift anyway
+    assert c3.stamp_ns(3000 * 3600) == 3600 * NS
+    assert c3.stamp_ns(1) == 333_333 and c3.stamp_ns(2) == 666_667
+    with pytest.raises(ConfigError):
+        SampleClock(0.0, 0, 0)
+
+
+def test_due_count_follows_monotonic_time():
+    c = SampleClock(1000.0, 0, mono0_ns=10 * NS)
+    assert c.due_count(10 * NS - 1) == 0
+    assert c.due_count(10 * NS) == 1
+    assert c.due_count(10 * NS + 999_999) == 1
+    assert c.due_count(10 * NS + 1_000_000) == 2
+    assert c.due_count(11 * NS) == 1001
+
+
+def test_late_poll_catches_up_every_sample_with_exact_stamps():
+    s = CommandStreamer(np.arange(10.0), fs=1000.0, loop=True, max_burst=4)
+    s.start(t0_ns=7 * NS, mono0_ns=0)
+    t, u = s.poll(0)
+    assert t.tolist() == [7 * NS] and u[:, 0].tolist() == [0.0]
+    t, u = s.poll(1_000_000)                  # on time: one sample
+    assert t.tolist() == [7 * NS + 1_000_000]
+    t1, u1 = s.poll(12_500_000)               # 11 samples due: burst-limited to 4 ...
+    t2, u2 = s.poll(12_500_000)
+    t3, u3 = s.poll(12_500_000)
+    t4, _ = s.poll(12_500_000)                # ... and nothing dropped or duplicated
+    stamps = np.concatenate([t1, t2, t3])
+    assert len(stamps) == 11 and t4.size == 0
+    assert np.array_equal(np.diff(stamps), np.full(10, 1_000_000))
+    assert stamps[0] == 7 * NS + 2_000_000
+    volts = np.concatenate([u1, u2, u3])[:, 0]
+    assert volts.tolist() == [2, 3, 4, 5, 6, 7, 8, 9, 0, 1, 2]   # looped
+    assert s.late_polls == 3 and s.max_batch == 4 and s.published == 13
+
+
+def test_non_looping_signal_finishes_and_stop_resumes_position():
+    s = CommandStreamer([1.0, 2.0, 3.0], fs=100.0, loop=False)
+    s.start(0, 0)
+    assert s.poll(10_000_000)[1][:, 0].tolist() == [1.0, 2.0]
+    s.stop()
+    assert s.poll(10**12)[0].size == 0 and not s.running
+    s.start(5 * NS, 10**12)
+    t, u = s.poll(10**12 + 10**9)
+    assert t.tolist() == [5 * NS] and u[:, 0].tolist() == [3.0]
+    assert s.finished and not s.running
+
+
+def test_clamp_and_slew_limit_apply_across_the_loop_wrap():
+    s = CommandStreamer([0.0, 100.0, 300.0, -300.0], fs=10.0, u_min=-150.0, u_max=150.0,
+                        slew_rate=500.0)   # 50 V per sample
+    s.start(0, 0)
+    _, u = s.poll(int(0.75 * NS))          # 8 samples: two periods
+    assert u[:, 0].tolist() == [0.0, 50.0, 100.0, 50.0, 0.0, 50.0, 100.0, 50.0]
+    assert np.all(np.abs(np.diff(u[:, 0])) <= 50.0 + 1e-12)
+
+
+def test_streamer_refuses_bad_configuration():
+    with pytest.raises(ConfigError, match='NaN'):
+        CommandStreamer([0.0, math.nan], fs=10.0)
+    with pytest.raises(ConfigError, match='u_min'):
+        CommandStreamer([0.0], fs=10.0, u_min=5.0, u_max=1.0)
+    with pytest.raises(ConfigError, match='fs'):
+        CommandStreamer([0.0], fs=-1.0)
+
+
+def test_make_signal_ignores_options_of_other_kinds_and_seeds_axes():
+    u = make_signal('aprbs', 1000.0, 0.5, 10.0, n_axes=2, freq=3.0, min_hold=0.01, max_hold=0.05,
+                    u_min=-5.0, u_max=5.0)
+    assert u.shape == (500, 2) and np.abs(u).max() <= 5.0
+    assert not np.array_equal(u[:, 0], u[:, 1])
+    with pytest.raises(ConfigError, match='kind'):
+        make_signal('noise', 1000.0, 1.0, 1.0)
