@@ -129,6 +129,7 @@ class RigDriver:
         self._latencies: deque[float] = deque(maxlen=2000)
         self._last_position: tuple[float, ...] = (math.nan,) * config.n_axes
         self._report_counts = dict(self.counts)
+        self._stopping = False
         self._lock = threading.Lock()
 
     # ----------------------------------------------------------------------------- commands
@@ -140,6 +141,8 @@ class RigDriver:
         """
         v = np.asarray(volts, dtype=float).ravel()
         with self._lock:
+            if self._stopping:
+                return self.limiter.output.copy()
             if v.size != self.config.n_axes:
                 self.counts['commands_rejected'] += 1
                 raise DataError(f'command has {v.size} values, the driver drives {self.config.n_axes} axes')
@@ -155,6 +158,22 @@ class RigDriver:
             self._send(out, int(stamp_ns), now, flags=0, publish=True)
             return out
 
+    def reject(self) -> None:
+        """Count a command message refused before it reached command() (e.g. axis missing)."""
+        with self._lock:
+            self.counts['commands_rejected'] += 1
+
+    def stop_output(self) -> None:
+        """Shutting down: from now on tick() ramps to 0 V as if the watchdog had tripped, and
+        commands are ignored. `parked` tells when the output has reached 0 V."""
+        with self._lock:
+            self._stopping = True
+
+    @property
+    def parked(self) -> bool:
+        """True when the output is at 0 V on every axis."""
+        return not np.any(self.limiter.output)
+
     def tick(self, now: float, stamp_ns: int = 0) -> None:
         """Expire unanswered commands; when the watchdog has tripped, send the next ramp step.
 
@@ -162,10 +181,10 @@ class RigDriver:
         """
         with self._lock:
             self._expire(now)
-            if not self.watchdog.expired(now):
+            if not (self.watchdog.expired(now) or self._stopping):
                 return
             self.counts['watchdog_trips'] = self.watchdog.trips
-            if self.state == STATE_PARKED:
+            if self.state in (STATE_PARKED, STATE_IDLE) and self.parked:
                 return
             period = 1.0 / self.config.ramp_rate
             if self.state != STATE_RAMPING:

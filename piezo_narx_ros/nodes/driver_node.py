@@ -1,0 +1,142 @@
+"""driver_node: the simulator node's contract for a real rig, over UDP to a real-time target.
+
+Subscribes voltage_command, sends each sample (after the driver's own voltage and slew limits) to
+the target, and publishes the target's reply on deflection with the command's stamp (position =
+measured m, effort = volts applied). A watchdog ramps the output to 0 V when commands stop; the
+output is also ramped to 0 V on shutdown. All logic is in piezo_narx_ros.rig.driver.RigDriver.
+"""
+from __future__ import annotations
+
+import time
+
+from rcl_interfaces.msg import SetParametersResult
+from sensor_msgs.msg import JointState
+
+from piezo_narx_ros.errors import ConfigError, DataError
+from piezo_narx_ros.nodes.common import (TOPIC_COMMAND, TOPIC_DEFLECTION, Diagnostics, ParamSpec,
+                                         PiezoNode, main_for, make_joint_state, parse_joint_state,
+                                         sample_qos)
+from piezo_narx_ros.rig.client import RigClient
+from piezo_narx_ros.rig.driver import DriverConfig, RigDriver
+
+_SHUTDOWN_RAMP_MAX_S = 2.0  # longest a shutdown waits for the output to reach 0 V
+
+
+def _nonempty(value: str) -> bool:
+    return isinstance(value, str) and bool(value.strip())
+
+
+class DriverNode(PiezoNode):
+    """Thin wiring: parameters -> RigDriver + RigClient; topics and timers -> driver calls."""
+
+    NODE_NAME = 'driver_node'
+    PARAMS = (
+        ParamSpec('target_host', '127.0.0.1', 'address of the real-time target (rig)',
+                  check=(_nonempty, 'must not be empty')),
+        ParamSpec('target_port', 50000, 'UDP port of the target', low=1, high=65535),
+        ParamSpec('local_port', 50001, 'local UDP port the replies come back to (0 = any free port)',
+                  low=0, high=65535),
+        ParamSpec('axis', 'x', 'axis name taken from voltage_command and written on deflection',
+                  check=(_nonempty, 'must not be empty')),
+        ParamSpec('v_min', -200.0, 'lowest voltage ever sent to the target, V (must be <= 0)',
+                  low=-1000.0, high=0.0),
+        ParamSpec('v_max', 200.0, 'highest voltage ever sent to the target, V (must be >= 0)',
+                  low=0.0, high=1000.0),
+        ParamSpec('max_slew_rate', 2.0e5, 'largest rate of change of the output, V/s', low=1e-3,
+                  high=1e9),
+        ParamSpec('sample_rate', 2000.0, 'nominal command rate, Hz: one command may move the '
+                  'output by max_slew_rate / sample_rate V', low=1.0, high=100000.0),
+        ParamSpec('watchdog_timeout', 0.1, 'time without a command before the output ramps to '
+                  '0 V, s', low=1e-3, high=60.0),
+        ParamSpec('ramp_rate', 1000.0, 'datagrams per second while ramping to 0 V, Hz', low=1.0,
+                  high=20000.0),
+        ParamSpec('reply_timeout', 0.01, 'time after which an unanswered command counts as a reply '
+                  'timeout, s', low=1e-5, high=10.0),
+        ParamSpec('best_effort', False, 'publish deflection best effort instead of reliable'),
+        ParamSpec('qos_depth', 100, 'keep-last depth of voltage_command and deflection', low=1,
+                  high=100000),
+    )
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        # Fixed at start-up (the limits are safety settings and the socket is bound once). Not
+        # ParamSpec(read_only=True): common.declare_parameters re-sets the descriptor after
+        # declaring, which a read-only parameter refuses.
+        self.add_on_set_parameters_callback(self._refuse_changes)
+        p = self.params
+        if p['v_min'] >= p['v_max']:
+            raise ConfigError(f"parameter v_min ({p['v_min']} V) must be below v_max ({p['v_max']} V)")
+        config = DriverConfig(n_axes=1, v_min=p['v_min'], v_max=p['v_max'],
+                              max_slew_rate=p['max_slew_rate'], sample_rate=p['sample_rate'],
+                              watchdog_timeout=p['watchdog_timeout'], ramp_rate=p['ramp_rate'],
+                              reply_timeout=p['reply_timeout'])
+        self.client = RigClient(p['target_host'], p['target_port'], p['local_port'])
+        self.driver = RigDriver(config, self.client.send)
+        self.axis = p['axis']
+        qos = sample_qos(best_effort=p['best_effort'], depth=p['qos_depth'])
+        self.pub = self.create_publisher(JointState, TOPIC_DEFLECTION, qos)
+        self.sub = self.create_subscription(JointState, TOPIC_COMMAND, self.on_command,
+                                            sample_qos(depth=p['qos_depth']))
+        self.timer = self.create_timer(1.0 / p['ramp_rate'], self.on_tick)
+        self.diagnostics = Diagnostics(self, self.provide_diagnostics)
+        self.client.start(self.on_datagram)
+        self.get_logger().info(
+            f"driving axis {self.axis!r} on {p['target_host']}:{p['target_port']} from UDP port "
+            f"{self.client.local_port}; limits [{p['v_min']:g}, {p['v_max']:g}] V, "
+            f"{p['max_slew_rate']:g} V/s; watchdog {p['watchdog_timeout']:g} s")
+
+    def _refuse_changes(self, params) -> SetParametersResult:
+        names = [q.name for q in params if q.name in self.params]
+        if names:
+            return SetParametersResult(successful=False, reason=f'{", ".join(names)} can only be '
+                                       'set at start-up (restart driver_node)')
+        return SetParametersResult(successful=True)
+
+    def on_command(self, msg: JointState) -> None:
+        """One command sample -> the target (limits applied by the driver)."""
+        now = time.monotonic()
+        try:
+            sample = parse_joint_state(msg)
+            volts = sample.value('effort', self.axis)
+        except DataError as exc:
+            self.driver.reject()
+            self.get_logger().warning(f'command rejected: {exc}', throttle_duration_sec=1.0)
+            return
+        try:
+            self.driver.command([volts], sample.t_ns, now)
+        except DataError as exc:
+            self.get_logger().warning(f'command rejected: {exc}', throttle_duration_sec=1.0)
+
+    def on_datagram(self, data: bytes, now: float) -> None:
+        """Receive thread: a reply that answers a command becomes a deflection message."""
+        sample = self.driver.receive(data, now)
+        if sample is not None:
+            self.pub.publish(make_joint_state(sample.stamp_ns, [self.axis], sample.position_m,
+                                              sample.applied_volts))
+
+    def on_tick(self) -> None:
+        """Watchdog ramp and reply-timeout bookkeeping."""
+        self.driver.tick(time.monotonic(), self.get_clock().now().nanoseconds)
+
+    def provide_diagnostics(self):
+        return self.driver.report(time.monotonic())
+
+    def close(self) -> None:
+        """Ramp the output to 0 V at the slew limit (bounded wait), then close the socket."""
+        self.driver.stop_output()
+        deadline = time.monotonic() + _SHUTDOWN_RAMP_MAX_S
+        period = 1.0 / self.params['ramp_rate']
+        while not self.driver.parked and time.monotonic() < deadline:
+            self.driver.tick(time.monotonic(), time.time_ns())
+            time.sleep(period)
+        if not self.driver.parked:
+            self.get_logger().error(
+                f'output still at {self.driver.limiter.output[0]:g} V after {_SHUTDOWN_RAMP_MAX_S:g} s '
+                'of shutdown ramp; the target must park it')
+        self.client.close()
+
+
+main = main_for(DriverNode)
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,84 @@
+"""UDP transport of the driver: sends command datagrams, receives replies on a background thread."""
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from typing import Callable
+
+from piezo_narx_ros.errors import ConfigError
+
+_MAX_DATAGRAM = 65535
+
+
+class RigClient:
+    """A UDP socket bound to (local_host, local_port) that talks to (target_host, target_port).
+
+    `send(data)` may raise OSError (the driver counts it). `start(on_datagram)` runs a thread that
+    calls on_datagram(data, t_monotonic_s) for every datagram received from the target address;
+    datagrams from any other address are ignored (counted in `foreign`).
+    """
+
+    def __init__(self, target_host: str, target_port: int, local_port: int = 0,
+                 local_host: str = '0.0.0.0'):
+        try:
+            infos = socket.getaddrinfo(target_host, target_port, socket.AF_INET, socket.SOCK_DGRAM)
+        except (socket.gaierror, UnicodeError) as exc:
+            raise ConfigError(f'target_host {target_host!r} cannot be resolved: {exc}') from None
+        self.target = infos[0][4]
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            self.sock.bind((local_host, local_port))
+        except OSError as exc:
+            self.sock.close()
+            raise ConfigError(f'cannot bind UDP port {local_host}:{local_port}: {exc.strerror or exc}') from None
+        # A short timeout lets the receive thread notice close() without a wake-up datagram.
+        self.sock.settimeout(0.1)
+        self.foreign = 0
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+
+    @property
+    def local_port(self) -> int:
+        """The UDP port actually bound (useful when local_port=0 picked a free one)."""
+        return self.sock.getsockname()[1]
+
+    def send(self, data: bytes) -> None:
+        """Send one datagram to the target (raises OSError on failure)."""
+        self.sock.sendto(data, self.target)
+
+    def start(self, on_datagram: Callable[[bytes, float], object]) -> None:
+        """Start the receive thread (daemon; stopped by close())."""
+        self._thread = threading.Thread(target=self._run, args=(on_datagram,), name='rig-rx',
+                                        daemon=True)
+        self._thread.start()
+
+    def _run(self, on_datagram) -> None:
+        target_ip = self.target[0]
+        while not self._stop.is_set():
+            try:
+                data, addr = self.sock.recvfrom(_MAX_DATAGRAM)
+            except socket.timeout:
+                continue
+            except OSError:
+                # ICMP port-unreachable from an earlier send surfaces here on Linux; the driver's
+                # reply timeouts already report a silent target, so just keep listening.
+                if self._stop.is_set():
+                    break
+                time.sleep(0.001)
+                continue
+            if addr[0] != target_ip and not _both_loopback(addr[0], target_ip):
+                self.foreign += 1
+                continue
+            on_datagram(data, time.monotonic())
+
+    def close(self) -> None:
+        """Stop the receive thread and close the socket."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
+        self.sock.close()
+
+
+def _both_loopback(a: str, b: str) -> bool:
+    return a.startswith('127.') and b.startswith('127.')

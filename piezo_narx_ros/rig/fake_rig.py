@@ -1,0 +1,150 @@
+"""A fake real-time target: a UDP server that answers command datagrams with the simulated plant.
+
+Each command datagram advances one PiezoCantilever per axis by one step (so the stream is
+deterministic for a seed, whatever the wall-clock timing) and is answered with the measured
+deflection (m) and the volts the plant applied. A repeated datagram (same sequence number as the
+previous one) is answered again from a cache without stepping the plant, as an idempotent target
+would. Malformed datagrams are counted and dropped.
+
+    fake_rig --port 50000 --seed 0
+"""
+from __future__ import annotations
+
+import argparse
+import signal
+import socket
+import sys
+import threading
+
+from piezo_narx_ros.errors import ConfigError, PiezoNarxError
+from piezo_narx_ros.rig import protocol
+
+_MAX_DATAGRAM = 65535
+
+
+class FakeRig:
+    """UDP server on (host, port) wrapping n_axes PiezoCantilever plants (axis i uses seed + i)."""
+
+    def __init__(self, host: str = '127.0.0.1', port: int = 50000, seed: int = 0, fs: float = 2000.0,
+                 n_axes: int = 1, plant_config: str | None = None):
+        from piezo_narx_ros.plant import PiezoCantilever, load_plant_params  # heavy: numba kernels
+
+        if not 1 <= n_axes <= protocol.MAX_AXES:
+            raise ConfigError(f'axes must be 1..{protocol.MAX_AXES}, got {n_axes}')
+        if not fs > 0:
+            raise ConfigError(f'fs must be > 0 Hz, got {fs}')
+        params = load_plant_params(plant_config)
+        self.plants = [PiezoCantilever(params, fs=fs, seed=seed + i) for i in range(n_axes)]
+        self.n_axes = n_axes
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            self.sock.bind((host, port))
+        except OSError as exc:
+            self.sock.close()
+            raise ConfigError(f'cannot bind UDP {host}:{port}: {exc.strerror or exc}') from None
+        self.sock.settimeout(0.1)
+        self.commands = 0
+        self.malformed = 0
+        self.repeats = 0
+        self._last: tuple[int, tuple, bytes] | None = None  # (seq, volts, reply)
+        self._stop = threading.Event()
+
+    @property
+    def address(self) -> tuple[str, int]:
+        """(host, port) actually bound."""
+        return self.sock.getsockname()
+
+    def handle(self, data: bytes) -> bytes | None:
+        """The reply datagram for one received datagram, or None when it is malformed."""
+        try:
+            cmd = protocol.unpack_command(data, self.n_axes)
+        except protocol.DatagramError:
+            self.malformed += 1
+            return None
+        if self._last is not None and self._last[0] == cmd.seq and self._last[1] == cmd.volts:
+            self.repeats += 1
+            return self._last[2]
+        position, applied = [], []
+        for plant, volts in zip(self.plants, cmd.volts):
+            y_meas, _y_true, u_applied = plant.step(volts)
+            position.append(float(y_meas))
+            applied.append(float(u_applied))
+        reply = protocol.pack_reply(protocol.Reply(cmd.seq, cmd.stamp_ns, tuple(position),
+                                                   tuple(applied)))
+        self.commands += 1
+        self._last = (cmd.seq, cmd.volts, reply)
+        return reply
+
+    def serve(self) -> None:
+        """Answer datagrams until stop() is called."""
+        while not self._stop.is_set():
+            try:
+                data, addr = self.sock.recvfrom(_MAX_DATAGRAM)
+            except socket.timeout:
+                continue
+            except OSError:
+                if self._stop.is_set():
+                    break
+                continue
+            reply = self.handle(data)
+            if reply is not None:
+                try:
+                    self.sock.sendto(reply, addr)
+                except OSError:
+                    pass  # the driver went away; keep serving
+
+    def start(self) -> threading.Thread:
+        """Serve on a daemon thread (for tests and embedding); returns the thread."""
+        thread = threading.Thread(target=self.serve, name='fake-rig', daemon=True)
+        thread.start()
+        return thread
+
+    def stop(self) -> None:
+        """Make serve() return and close the socket."""
+        self._stop.set()
+
+    def close(self) -> None:
+        """Close the socket (after serve() has returned)."""
+        self.sock.close()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Command-line options of fake_rig."""
+    p = argparse.ArgumentParser(prog='fake_rig', description=__doc__.split('\n\n')[0])
+    p.add_argument('--host', default='127.0.0.1', help='address to listen on (default 127.0.0.1)')
+    p.add_argument('--port', type=int, default=50000, help='UDP port to listen on (default 50000)')
+    p.add_argument('--seed', type=int, default=0, help='plant noise seed (axis i uses seed+i)')
+    p.add_argument('--fs', type=float, default=2000.0, help='plant sample rate, Hz (default 2000)')
+    p.add_argument('--axes', type=int, default=1, help='number of axes (default 1)')
+    p.add_argument('--plant-config', default=None, help='plant YAML (default config/plant.yaml)')
+    return p
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console script: serve until SIGINT/SIGTERM; a bad option or busy port exits 2 with one line."""
+    args = build_parser().parse_args(argv)
+    try:
+        if not 0 <= args.port <= 65535:
+            raise ConfigError(f'port must be 0..65535, got {args.port}')
+        rig = FakeRig(args.host, args.port, args.seed, args.fs, args.axes, args.plant_config)
+    except (PiezoNarxError, FileNotFoundError) as exc:
+        print(f'fake_rig: error: {exc}', file=sys.stderr)
+        sys.exit(2)
+
+    def stop(_signum, _frame):
+        rig.stop()
+
+    signal.signal(signal.SIGINT, stop)
+    signal.signal(signal.SIGTERM, stop)
+    host, port = rig.address
+    print(f'fake_rig: listening on {host}:{port} (udp), seed {args.seed}, fs {args.fs:g} Hz, '
+          f'{args.axes} axis(es)', flush=True)
+    rig.serve()
+    rig.close()
+    print(f'fake_rig: stopped after {rig.commands} commands, {rig.malformed} malformed datagrams',
+          flush=True)
+    sys.exit(0)
+
+
+if __name__ == '__main__':
+    main()
