@@ -1,0 +1,277 @@
+"""Free-run deflection estimator, ROS-free: the estimator node's whole logic.
+
+`FreeRunEstimator.on_command(t_ns, u)` takes one voltage command (stamp in integer ns, volts) and
+returns the estimates to publish as [(t_ns, y_hat_m), ...]; `on_measurement(t_ns, y)` takes a
+measured deflection (m) when a sensor exists, for initialisation, running error and optional
+re-anchoring. Nothing here imports torch: the model's Stepper (numpy/numba) does the arithmetic.
+
+Conventions (so that the live estimate equals offline `model.simulate` to rounding):
+- from rest: every u, y before the first command is 0, as `simulate(u, y0=None)`;
+- from measurement: the first n0 estimates are the measured outputs, as `simulate(u, y[:n0])`.
+A missing sample (stamp gap) or a rejected command (NaN/inf or outside [u_min, u_max]) is replaced
+by the last good command (the amplifier holds its output), estimated, published and counted.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from piezo_narx_ros.errors import ConfigError
+
+INIT_MODES = ('auto', 'rest', 'measurement')
+
+
+@dataclass
+class EstimatorStats:
+    """Counters shown on /diagnostics (samples unless said)."""
+    commands: int = 0          # commands received
+    estimates: int = 0         # estimates returned for publication
+    rejected_nonfinite: int = 0
+    rejected_range: int = 0
+    gaps: int = 0              # stamp gaps detected (events)
+    filled: int = 0            # samples estimated from a held command (gaps + rejected)
+    out_of_order: int = 0      # commands with a stamp not after the previous one (dropped)
+    resets: int = 0            # restarts after a gap longer than max_fill
+    out_of_range: int = 0      # estimates outside the model's trained output range (+ margin)
+    reanchors: int = 0
+    init: str = 'waiting'      # 'waiting', 'rest', 'measurement', 'rest (no measurement)'
+
+
+class FreeRunEstimator:
+    """Runs `model` (NARXNetwork/ARXModel: nu, ny, n0, stepper(), output_range) in free run.
+
+    fs: command rate, Hz (gap detection). init: 'rest', 'measurement' (wait for n0 measured
+    samples, at most init_timeout s, then rest), or 'auto' (measurement when the caller says a
+    deflection source exists, see `start`). u_min/u_max: accepted command range, V. max_fill: the
+    longest gap (samples) bridged by holding the command; a longer one restarts the estimator.
+    range_margin: fraction of the trained output span allowed beyond it before an estimate is
+    flagged. window: samples in the running error (RMS, R²). reanchor_every: every that many
+    samples, restart the recursion from the latest measured outputs (0 = never, the default).
+    """
+
+    def __init__(self, model, fs: float | None = None, init: str = 'auto', u_min: float = -200.0,
+                 u_max: float = 200.0, max_fill: int = 2000, range_margin: float = 0.1,
+                 window: int = 2000, reanchor_every: int = 0, init_timeout: float = 0.5):
+        for attr in ('nu', 'ny', 'n0', 'stepper'):
+            if not hasattr(model, attr):
+                raise ConfigError(f'model has no {attr!r}: not a NARX/ARX model')
+        fs = fs or getattr(model, 'fs', None)
+        if not fs or not math.isfinite(fs) or fs <= 0:
+            raise ConfigError('sample rate unknown: the model file has no fs and none was given')
+        if init not in INIT_MODES:
+            raise ConfigError(f'init must be one of {list(INIT_MODES)}, got {init!r}')
+        if not u_min < u_max:
+            raise ConfigError(f'u_min ({u_min:g} V) must be below u_max ({u_max:g} V)')
+        if max_fill < 0 or window < 2 or reanchor_every < 0 or init_timeout < 0:
+            raise ConfigError('max_fill, reanchor_every, init_timeout must be >= 0 and window >= 2')
+        self.model = model
+        self.fs = float(fs)
+        self.period_ns = 1e9 / self.fs
+        self.init_mode = init
+        self.u_min, self.u_max = float(u_min), float(u_max)
+        self.max_fill = int(max_fill)
+        self.window = int(window)
+        self.reanchor_every = int(reanchor_every)
+        self.init_timeout_samples = max(int(round(init_timeout * self.fs)), model.n0)
+        self.nu, self.ny, self.n0 = int(model.nu), int(model.ny), int(model.n0)
+        rng = getattr(model, 'output_range', None)
+        if rng is not None:
+            lo, hi = float(rng[0]), float(rng[1])
+            pad = range_margin * (hi - lo)
+            self.y_lo, self.y_hi = lo - pad, hi + pad
+        else:
+            self.y_lo, self.y_hi = -math.inf, math.inf
+        self.stats = EstimatorStats()
+        self._hist = max(self.n0, 1) + 64 + self.reanchor_every  # u/t history kept for re-anchoring
+        self._err = deque(maxlen=self.window)
+        self._ymeas = deque(maxlen=self.window)
+        self.restart()
+
+    # -------------------------------------------------------------------------------- state
+    def restart(self, wait_for_measurement: bool | None = None) -> None:
+        """Forget the past; the next command starts a new run (initialised per `init`)."""
+        if wait_for_measurement is None:
+            wait_for_measurement = self.init_mode == 'measurement'
+        self._wait = bool(wait_for_measurement) and self.init_mode != 'rest'
+        self._decided = self.init_mode != 'auto'
+        self._stepper = None
+        self._pending: list[tuple[int, float, bool]] = []   # commands while waiting for y0
+        self._last_t: int | None = None
+        self._last_u = 0.0
+        self._t_hist = deque(maxlen=self._hist)
+        self._u_hist = deque(maxlen=self._hist)
+        self._est: dict[int, float] = {}       # t -> y_hat, for matching measurements
+        self._meas: dict[int, float] = {}      # t -> y measured, not matched yet / for y0
+        self._since_anchor = 0
+        self.out_of_range_now = False
+        self.stats.init = 'waiting'
+
+    def start(self, measurement_available: bool) -> None:
+        """Tell an 'auto' estimator whether a deflection source exists (call before the first
+        command; later calls are ignored)."""
+        if not self._decided:
+            self._wait = bool(measurement_available)
+            self._decided = True
+
+    @property
+    def initialised(self) -> bool:
+        return self._stepper is not None
+
+    # ------------------------------------------------------------------------------- inputs
+    def on_command(self, t_ns: int, u: float) -> list[tuple[int, float]]:
+        """One command (stamp ns, volts) -> estimates to publish [(t_ns, y_hat m), ...]."""
+        st = self.stats
+        st.commands += 1
+        if not self._decided:
+            self._decided = True
+            self._wait = self.init_mode == 'measurement'
+        out: list[tuple[int, float]] = []
+        good = True
+        if not math.isfinite(u):
+            st.rejected_nonfinite += 1
+            good = False
+        elif not self.u_min <= u <= self.u_max:
+            st.rejected_range += 1
+            good = False
+        last = self._last_t
+        if last is not None:
+            if t_ns <= last:
+                st.out_of_order += 1
+                return out
+            missing = int(round((t_ns - last) / self.period_ns)) - 1
+            if missing > 0:
+                st.gaps += 1
+                if missing > self.max_fill:
+                    st.resets += 1
+                    wait = self._wait
+                    self.restart(wait)
+                    self._decided = True
+                else:
+                    step = (t_ns - last) / (missing + 1)
+                    for i in range(1, missing + 1):
+                        self._advance(last + int(round(i * step)), self._last_u, True, out)
+        u_eff = u if good else self._last_u
+        self._advance(t_ns, u_eff, not good, out)
+        return out
+
+    def on_measurement(self, t_ns: int, y: float) -> list[tuple[int, float]]:
+        """One measured deflection (stamp ns, m) for initialisation, running error and
+        re-anchoring. Returns the estimates that became ready (those held back while waiting for
+        the initial measurements), usually none."""
+        out: list[tuple[int, float]] = []
+        if not math.isfinite(y):
+            return out
+        y_hat = self._est.pop(t_ns, None)
+        if y_hat is not None:
+            self._record_error(y, y_hat)
+        self._meas[t_ns] = y
+        if len(self._meas) > 2 * self._hist:
+            del self._meas[next(iter(self._meas))]
+        if self._stepper is None and self._pending and self._try_init_from_measurement():
+            self._flush_init(out)
+        return out
+
+    # ------------------------------------------------------------------------------ outputs
+    def running_error(self) -> tuple[float, float, int]:
+        """(RMS error m, R², n) over the last `window` matched samples; NaN when too few."""
+        n = len(self._err)
+        if n < 2:
+            return math.nan, math.nan, n
+        e = np.fromiter(self._err, float, n)
+        y = np.fromiter(self._ymeas, float, n)
+        sse = float(e @ e)
+        sst = float(((y - y.mean()) ** 2).sum())
+        return math.sqrt(sse / n), (1.0 - sse / sst) if sst > 0 else math.nan, n
+
+    # ------------------------------------------------------------------------------ internals
+    def _advance(self, t_ns: int, u: float, filled: bool, out: list) -> None:
+        self._last_t = t_ns
+        self._last_u = u
+        if filled:
+            self.stats.filled += 1
+        self._t_hist.append(t_ns)
+        self._u_hist.append(u)
+        if self._stepper is None:
+            if not self._wait:
+                self._stepper = self.model.stepper()
+                self.stats.init = 'rest'
+            else:
+                self._pending.append((t_ns, u, filled))
+                if not self._try_init_from_measurement() and \
+                        len(self._pending) >= self.init_timeout_samples:
+                    self._init_pending_from_rest(out)
+                else:
+                    self._flush_init(out)
+                return
+        self._emit(t_ns, self._stepper.step(u), out)
+        if self.reanchor_every:
+            self._since_anchor += 1
+            if self._since_anchor >= self.reanchor_every and self._reanchor():
+                self._since_anchor = 0
+
+    def _emit(self, t_ns: int, y_hat: float, out: list) -> None:
+        out.append((t_ns, y_hat))
+        self.stats.estimates += 1
+        oor = not self.y_lo <= y_hat <= self.y_hi
+        self.out_of_range_now = oor
+        if oor:
+            self.stats.out_of_range += 1
+        y = self._meas.get(t_ns)   # kept: re-anchoring reads it
+        if y is not None:
+            self._record_error(y, y_hat)
+        else:
+            self._est[t_ns] = y_hat
+            if len(self._est) > 2 * self._hist:
+                del self._est[next(iter(self._est))]
+
+    def _record_error(self, y: float, y_hat: float) -> None:
+        self._err.append(y - y_hat)
+        self._ymeas.append(y)
+
+    def _try_init_from_measurement(self) -> bool:
+        """Initialise when the first n0 pending commands all have a measurement."""
+        n0 = self.n0
+        if len(self._pending) < n0 or any(t not in self._meas for t, _, _ in self._pending[:n0]):
+            return False
+        u0 = [u for _, u, _ in self._pending[:n0]]
+        y0 = [self._meas[t] for t, _, _ in self._pending[:n0]]
+        self._stepper = self.model.stepper(u0[n0 - self.nu:] if self.nu else None,
+                                           y0[n0 - self.ny:] if self.ny else None)
+        self.stats.init = 'measurement'
+        self._init_outputs = y0
+        return True
+
+    def _flush_init(self, out: list) -> None:
+        """After initialisation from measurement: publish y0 then step the rest of the queue."""
+        if self._stepper is None or not self._pending:
+            return
+        pending, self._pending = self._pending, []
+        y0 = self._init_outputs
+        for i, (t, u, _) in enumerate(pending):
+            self._emit(t, y0[i] if i < self.n0 else self._stepper.step(u), out)
+
+    def _init_pending_from_rest(self, out: list) -> None:
+        self._stepper = self.model.stepper()
+        self.stats.init = 'rest (no measurement)'
+        pending, self._pending = self._pending, []
+        for t, u, _ in pending:
+            self._emit(t, self._stepper.step(u), out)
+
+    def _reanchor(self) -> bool:
+        """Restart the recursion at the latest stamp s whose ny preceding outputs are measured,
+        then re-step the commands after s. Returns False when the measurements are not there."""
+        ts, us = list(self._t_hist), list(self._u_hist)
+        ny, nu = self.ny, self.nu
+        for j in range(len(ts), max(nu, ny) - 1, -1):   # j: first sample to re-step
+            ys = [self._meas.get(t) for t in ts[j - ny:j]]
+            if any(v is None for v in ys):
+                continue
+            self._stepper.reset(us[j - nu:j] if nu else None, ys if ny else None)
+            for u in us[j:]:
+                self._stepper.step(u)
+            self.stats.reanchors += 1
+            return True
+        return False
