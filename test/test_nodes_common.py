@@ -22,6 +22,7 @@ SPECS = [
     ParamSpec('depth', 100, 'queue depth', low=1, high=10000),
     ParamSpec('kind', 'sine', 'signal', choices=('sine', 'prbs')),
     ParamSpec('axis', 'x', 'axis name', check=(lambda v: bool(v.strip()), 'must not be empty')),
+    ParamSpec('gain', 1.0, 'fixed gain', low=0.0, high=10.0, read_only=True),
 ]
 
 
@@ -46,7 +47,8 @@ def test_sample_qos_reliable_by_default_best_effort_on_request():
 def test_parameters_declared_with_descriptor_and_int_accepted_for_float(ctx):
     node = _make(ctx, fs=500)
     try:
-        assert node.params == {'fs': 500.0, 'depth': 100, 'kind': 'sine', 'axis': 'x'}
+        assert node.params == {'fs': 500.0, 'depth': 100, 'kind': 'sine', 'axis': 'x',
+                               'gain': 1.0}
         assert isinstance(node.params['fs'], float)
         d = node.describe_parameter('fs')
         assert d.description == 'sample rate, Hz'
@@ -64,6 +66,7 @@ def test_parameters_declared_with_descriptor_and_int_accepted_for_float(ctx):
     ({'kind': 'square'}, "kind must be one of ['sine', 'prbs']"),
     ({'axis': ' '}, 'axis must not be empty'),
     ({'kind': 3}, "parameter kind"),
+    ({'gain': 11.0}, 'gain must be <= 10.0'),
 ])
 def test_bad_start_values_refused_with_one_line_reason(ctx, overrides, fragment):
     with pytest.raises(ConfigError) as info:
@@ -80,6 +83,8 @@ def test_runtime_set_is_validated(ctx):
         res = node.set_parameters([Parameter('fs', value=float('nan'))])[0]
         assert not res.successful
         assert node.set_parameters([Parameter('kind', value='prbs')])[0].successful
+        assert not node.set_parameters([Parameter('gain', value=2.0)])[0].successful
+        assert node.describe_parameter('gain').read_only
     finally:
         node.destroy_node()
 

@@ -141,9 +141,12 @@ def declare_parameters(node: Node, specs: Iterable[ParamSpec]) -> dict[str, Any]
             raise ConfigError(f'parameter {reason}')
         if spec.is_float:
             value = float(value)
-        full = spec.descriptor(True)
-        full.type = node.describe_parameter(spec.name).type  # set_descriptor insists on it
-        node.set_descriptor(spec.name, full)
+        if not spec.read_only:
+            # A read-only parameter refuses set_descriptor; it keeps its bounds in the text of
+            # additional_constraints, and nothing can change it after this check anyway.
+            full = spec.descriptor(True)
+            full.type = node.describe_parameter(spec.name).type  # set_descriptor insists on it
+            node.set_descriptor(spec.name, full)
         values[spec.name] = value
 
     def on_set(params) -> SetParametersResult:
