@@ -9,8 +9,8 @@ import numpy as np
 from numba import njit
 
 # Layout of the `consts` vector passed to advance().
-C_VMIN, C_VMAX, C_SLEW_STEP, C_AMP_ALPHA, C_DP, C_A, C_B, C_GAMMA, C_NOISE, C_QUANT = range(10)
-N_CONSTS = 10
+C_VMIN, C_VMAX, C_SLEW, C_AMP_W, C_H, C_DP, C_A, C_B, C_GAMMA, C_NOISE, C_QUANT = range(11)
+N_CONSTS = 11
 # Layout of the `state` vector: amplifier output (V), Bouc-Wen state h (m), then the linear states
 # [creep x_1..x_m (m), tip deflection y (m), tip velocity (m/s), sensor output (m)].
 S_V, S_H, S_LIN = 0, 1, 2
@@ -59,11 +59,30 @@ def bouc_wen_increment(h, dv, a, b, gamma):
 
 
 @njit(cache=True)
+def amplifier_substep(v, target, w_a, slew, h):
+    """Amplifier output after h s: exact solution of dv/dt = clip(w_a*(target - v), -slew, slew).
+
+    v, target in V; w_a = 2*pi*bandwidth in rad/s; slew in V/s (inf: none). While the first-order
+    rate exceeds the slew limit the output ramps at the limit; from |target - v| = slew/w_a on it
+    follows the exponential.
+    """
+    e = target - v
+    if w_a * abs(e) <= slew:
+        return target - e * math.exp(-w_a * h)
+    sign = 1.0 if e > 0.0 else -1.0
+    t_ramp = (abs(e) - slew / w_a) / slew
+    if t_ramp >= h:
+        return v + sign * slew * h
+    e_end = sign * slew / w_a  # remaining error when the ramp ends
+    return target - e_end * math.exp(-w_a * (h - t_ramp))
+
+
+@njit(cache=True)
 def advance(u_cmd, noise, n_sub, consts, phi, g0, g1, state, work, y_meas, y_true, u_applied):
     """Advance the plant over len(u_cmd) samples; writes the three output arrays in place.
 
     u_cmd (N,) V is held (zero-order hold) over each sample period, which is split in n_sub
-    sub-steps. Per sub-step: amplifier (clamp, exact first-order step clipped by the slew limit),
+    sub-steps. Per sub-step: amplifier (clamp, then the exact slew-limited first-order response),
     Bouc-Wen (exact increment), then the linear creep/mode/sensor part with its exact first-order-hold
     discretisation (phi, g0, g1) on the hysteretic deflection w = d_p*v - h. Outputs are taken at the
     end of the sample period: y_meas (m, noisy and quantised sensor), y_true (m, tip), u_applied (V).
@@ -72,7 +91,7 @@ def advance(u_cmd, noise, n_sub, consts, phi, g0, g1, state, work, y_meas, y_tru
     """
     n_lin = phi.shape[0]
     vmin, vmax = consts[C_VMIN], consts[C_VMAX]
-    slew_step, alpha = consts[C_SLEW_STEP], consts[C_AMP_ALPHA]
+    slew, w_a, h = consts[C_SLEW], consts[C_AMP_W], consts[C_H]
     d_p, a_bw = consts[C_DP], consts[C_A] * consts[C_DP]
     b_bw, gamma = consts[C_B], consts[C_GAMMA]
     noise_std, quant = consts[C_NOISE], consts[C_QUANT]
@@ -83,12 +102,8 @@ def advance(u_cmd, noise, n_sub, consts, phi, g0, g1, state, work, y_meas, y_tru
         for _ in range(n_sub):
             v0 = state[S_V]
             h0 = state[S_H]
-            dv = (target - v0) * alpha
-            if dv > slew_step:
-                dv = slew_step
-            elif dv < -slew_step:
-                dv = -slew_step
-            v1 = v0 + dv
+            v1 = amplifier_substep(v0, target, w_a, slew, h)
+            dv = v1 - v0
             h1 = bouc_wen_increment(h0, dv, a_bw, b_bw, gamma)
             w0 = d_p * v0 - h0
             w1 = d_p * v1 - h1

@@ -43,7 +43,7 @@ class PlantParams:
     sensor_bandwidth: float = 5000.0
     noise_std: float = 3.3e-8
     quantisation: float = 5.0e-9
-    substeps: int = 8
+    substeps: int = 16
 
     def __post_init__(self):
         validate(self)

@@ -2,7 +2,7 @@
 
 Signal chain (continuous time, integrated per sample with sub-steps):
 
-    u_cmd (V, zero-order hold) -> amplifier: clamp, first-order, slew limit -> v (V, "applied")
+    u_cmd (V, zero-order hold) -> amplifier: clamp, slew-limited first order -> v (V, "applied")
     v -> Bouc-Wen hysteresis -> w = d_p*v - h (m)
     w -> creep (parallel slow first-order elements) -> z (m)
     z -> first bending mode (2nd order, unit static gain) -> y_true (m, tip deflection)
@@ -98,8 +98,9 @@ class PiezoCantilever:
         consts = np.zeros(kernels.N_CONSTS)
         consts[kernels.C_VMIN] = params.v_min
         consts[kernels.C_VMAX] = params.v_max
-        consts[kernels.C_SLEW_STEP] = params.slew_rate * h
-        consts[kernels.C_AMP_ALPHA] = -math.expm1(-2.0 * math.pi * params.amp_bandwidth * h)
+        consts[kernels.C_SLEW] = params.slew_rate
+        consts[kernels.C_AMP_W] = 2.0 * math.pi * params.amp_bandwidth
+        consts[kernels.C_H] = h
         consts[kernels.C_DP] = params.d_p
         consts[kernels.C_A] = params.A
         consts[kernels.C_B] = params.B
