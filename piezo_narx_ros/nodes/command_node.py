@@ -1,0 +1,144 @@
+"""command_node: streams voltage_command (JointState, effort = V) at the sample rate.
+
+The excitation comes from piezo_narx_ros.plant.signals.generate (kind and options from
+parameters); the clock, catch-up, limits and looping live in command.stream.CommandStreamer. The
+node only turns timer ticks into `poll()` calls and samples into messages. `running` can be set at
+run time to pause/resume; `wait_for_subscribers` holds the first sample until the listeners are
+matched, so that a recording or an estimator sees sample 0.
+"""
+from __future__ import annotations
+
+import time
+
+from rcl_interfaces.msg import SetParametersResult
+from sensor_msgs.msg import JointState
+
+from piezo_narx_ros.command.stream import CommandStreamer, make_signal
+from piezo_narx_ros.errors import ConfigError
+from piezo_narx_ros.nodes.common import (DIAG_OK, DIAG_WARN, TOPIC_COMMAND, Diagnostics,
+                                         ParamSpec, PiezoNode, main_for, ns_to_stamp, sample_qos)
+from piezo_narx_ros.plant.signals import KINDS
+
+_nonempty = (lambda v: len(v) > 0 and all(isinstance(a, str) and a.strip() for a in v),
+             'must be a non-empty list of non-empty names')
+
+
+class CommandNode(PiezoNode):
+    """Thin wiring: parameters -> CommandStreamer; timer -> poll -> publish."""
+
+    NODE_NAME = 'command_node'
+    PARAMS = (
+        ParamSpec('fs', 2000.0, 'sample rate, Hz', low=1.0, high=100000.0, read_only=True),
+        ParamSpec('axes', ['x'], 'axis names (one signal per axis, axis i seeded seed + i)',
+                  read_only=True, check=_nonempty),
+        ParamSpec('kind', 'multisine', 'signal kind', choices=KINDS, read_only=True),
+        ParamSpec('amplitude', 100.0, 'peak deviation from offset, V', low=0.0, high=1000.0,
+                  read_only=True),
+        ParamSpec('offset', 0.0, 'signal offset, V', low=-1000.0, high=1000.0, read_only=True),
+        ParamSpec('seconds', 25.0, 'length of one period of the signal, s', low=1e-3, high=3600.0,
+                  read_only=True),
+        ParamSpec('seed', 0, 'seed of the random parts of the signal', low=0, high=2**31 - 1,
+                  read_only=True),
+        ParamSpec('freq', 1.0, 'sine/triangle frequency, Hz', low=1e-6, high=50000.0,
+                  read_only=True),
+        ParamSpec('f_min', 0.1, 'multisine lowest line, Hz', low=1e-6, high=50000.0,
+                  read_only=True),
+        ParamSpec('f_max', 100.0, 'multisine highest line, Hz', low=1e-6, high=50000.0,
+                  read_only=True),
+        ParamSpec('spectrum', 'flat', 'multisine line amplitudes',
+                  choices=('flat', 'pink', 'brown'), read_only=True),
+        ParamSpec('f0', 1.0, 'chirp start frequency, Hz', low=1e-6, high=50000.0, read_only=True),
+        ParamSpec('f1', 0.0, 'chirp end frequency, Hz (0: 0.45 fs)', low=0.0, high=50000.0,
+                  read_only=True),
+        ParamSpec('min_hold', 0.01, 'APRBS shortest hold, s', low=1e-6, high=3600.0,
+                  read_only=True),
+        ParamSpec('max_hold', 0.5, 'APRBS longest hold, s', low=1e-6, high=3600.0, read_only=True),
+        ParamSpec('path', '', 'playback: .npz/.csv file with the voltage record', read_only=True),
+        ParamSpec('u_min', -200.0, 'lowest command, V (clamp)', low=-10000.0, high=10000.0,
+                  read_only=True),
+        ParamSpec('u_max', 200.0, 'highest command, V (clamp)', low=-10000.0, high=10000.0,
+                  read_only=True),
+        ParamSpec('slew_rate', 0.0, 'largest command rate of change, V/s (0: no limit)',
+                  low=0.0, high=1e12, read_only=True),
+        ParamSpec('loop', True, 'repeat the signal; false: stop after one period', read_only=True),
+        ParamSpec('running', True, 'stream now; set false to pause, true to resume'),
+        ParamSpec('wait_for_subscribers', 0, 'start only when this many subscriptions are matched',
+                  low=0, high=1000, read_only=True),
+        ParamSpec('publish_period', 0.0, 'timer period, s (0: one tick per sample; larger values '
+                  'publish the due samples in batches)', low=0.0, high=1.0, read_only=True),
+        ParamSpec('max_burst', 10000, 'most samples published in one tick (the rest follow on '
+                  'the next ones; nothing is dropped)', low=1, high=10**7, read_only=True),
+        ParamSpec('best_effort', False, 'publish best effort instead of reliable', read_only=True),
+        ParamSpec('qos_depth', 100, 'keep-last depth of voltage_command', low=1, high=100000,
+                  read_only=True),
+    )
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        p = self.params
+        if p['u_min'] >= p['u_max']:
+            raise ConfigError(f"parameter u_min ({p['u_min']} V) must be below u_max "
+                              f"({p['u_max']} V)")
+        self.axes = list(p['axes'])
+        options = {k: p[k] for k in ('freq', 'f_min', 'f_max', 'spectrum', 'f0', 'min_hold',
+                                     'max_hold', 'u_min', 'u_max')}
+        options['f1'] = p['f1'] or None
+        options['path'] = p['path'] or None
+        signal = make_signal(p['kind'], p['fs'], p['seconds'], p['amplitude'], p['offset'],
+                             p['seed'], len(self.axes), **options)
+        self.streamer = CommandStreamer(signal, p['fs'], loop=p['loop'], u_min=p['u_min'],
+                                        u_max=p['u_max'],
+                                        slew_rate=p['slew_rate'] or float('inf'),
+                                        max_burst=p['max_burst'])
+        self.want_running = p['running']
+        self.pub = self.create_publisher(JointState, TOPIC_COMMAND,
+                                         sample_qos(p['best_effort'], p['qos_depth']))
+        self._msg = JointState()   # reused: publish() serialises it at once
+        self._msg.name = self.axes
+        self.add_post_set_parameters_callback(self._on_set)
+        period = p['publish_period'] or 1.0 / p['fs']
+        self.timer = self.create_timer(period, self.on_tick)
+        self.diagnostics = Diagnostics(self, self.status)
+        self.get_logger().info(
+            f"{p['kind']} on {self.axes} at {p['fs']:g} Hz, {signal.shape[0]} samples per "
+            f"{'loop' if p['loop'] else 'run'}, limits [{p['u_min']:g}, {p['u_max']:g}] V")
+
+    def _on_set(self, params) -> None:
+        for q in params:
+            if q.name == 'running':
+                self.want_running = bool(q.value)
+                if not self.want_running:
+                    self.streamer.stop()
+
+    def on_tick(self) -> None:
+        """Publish every sample due now (several after a late tick)."""
+        s = self.streamer
+        if not s.running:
+            if not self.want_running or s.finished:
+                return
+            if self.pub.get_subscription_count() < self.params['wait_for_subscribers']:
+                return
+            s.start(self.get_clock().now().nanoseconds, time.monotonic_ns())
+        stamps, volts = s.poll(time.monotonic_ns())
+        msg, stamp, pub = self._msg, self._msg.header.stamp, self.pub
+        for t, u in zip(stamps.tolist(), volts.tolist()):
+            stamp.sec, stamp.nanosec = ns_to_stamp(t)
+            msg.effort = u
+            pub.publish(msg)
+        if s.finished and stamps.size:
+            self.get_logger().info(f'signal finished after {s.published} samples')
+
+    def status(self):
+        s = self.streamer
+        state = ('finished' if s.finished else 'running' if s.running else
+                 'waiting for subscribers' if self.want_running else 'paused')
+        level = DIAG_OK if state != 'waiting for subscribers' else DIAG_WARN
+        return level, state, {'published': s.published, 'position': s.position,
+                              'late_ticks': s.late_polls, 'max_batch': s.max_batch,
+                              'fs': s.fs, 'subscribers': self.pub.get_subscription_count()}
+
+
+main = main_for(CommandNode)
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,129 @@
+"""estimator_node: free-run deflection estimate from the voltage commands alone.
+
+Loads a model file (JSON + .npz, never a pickle, never torch), runs it in free run on
+voltage_command and publishes deflection_estimate with each command's stamp. When a deflection
+source exists it initialises from the first measured samples, reports the running error (RMS, R²)
+on /diagnostics and, if asked, re-anchors to the measurement. All logic is in
+piezo_narx_ros.estimator.free_run.FreeRunEstimator.
+"""
+from __future__ import annotations
+
+import math
+
+from sensor_msgs.msg import JointState
+
+from piezo_narx_ros.estimator.free_run import INIT_MODES, FreeRunEstimator
+from piezo_narx_ros.nodes.common import (DIAG_OK, DIAG_WARN, TOPIC_COMMAND, TOPIC_DEFLECTION,
+                                         TOPIC_ESTIMATE, Diagnostics, ParamSpec, PiezoNode,
+                                         main_for, ns_to_stamp, parse_joint_state, sample_qos)
+
+
+class EstimatorNode(PiezoNode):
+    """Thin wiring: voltage_command / deflection -> FreeRunEstimator -> deflection_estimate."""
+
+    NODE_NAME = 'estimator_node'
+    PARAMS = (
+        ParamSpec('model', '', 'model file (.json with its .npz beside it)', read_only=True,
+                  check=(lambda v: bool(v.strip()), 'must name a model file (.json)')),
+        ParamSpec('axis', 'x', 'axis read from voltage_command/deflection and published',
+                  read_only=True, check=(lambda v: bool(v.strip()), 'must not be empty')),
+        ParamSpec('fs', 0.0, 'command sample rate, Hz (0: the model file\'s fs)', low=0.0,
+                  high=100000.0, read_only=True),
+        ParamSpec('init', 'auto', 'initial state: rest, measurement (first n0 measured samples), '
+                  'or auto (measurement when deflection has a publisher)', choices=INIT_MODES,
+                  read_only=True),
+        ParamSpec('init_timeout', 0.5, 'longest wait for the initial measurements, s (then '
+                  'from rest)', low=0.0, high=60.0, read_only=True),
+        ParamSpec('u_min', -200.0, 'lowest accepted command, V (lower ones are rejected)',
+                  low=-10000.0, high=10000.0, read_only=True),
+        ParamSpec('u_max', 200.0, 'highest accepted command, V', low=-10000.0, high=10000.0,
+                  read_only=True),
+        ParamSpec('max_fill', 2000, 'longest gap bridged by holding the last command, samples '
+                  '(longer: restart)', low=0, high=10**7, read_only=True),
+        ParamSpec('range_margin', 0.1, 'fraction of the trained output span tolerated beyond it '
+                  'before an estimate is flagged', low=0.0, high=100.0, read_only=True),
+        ParamSpec('window', 2000, 'samples in the running error (RMS, R²)', low=2, high=10**7,
+                  read_only=True),
+        ParamSpec('reanchor_every', 0, 're-anchor the recursion to the measurement every that '
+                  'many samples (0: never)', low=0, high=10**9, read_only=True),
+        ParamSpec('best_effort', False, 'publish deflection_estimate best effort',
+                  read_only=True),
+        ParamSpec('qos_depth', 100, 'keep-last depth of the sample streams', low=1, high=100000,
+                  read_only=True),
+    )
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        from piezo_narx_ros.ident.model_io import load_model
+        p = self.params
+        self.model = load_model(p['model'])
+        self.est = FreeRunEstimator(
+            self.model, fs=p['fs'] or None, init=p['init'], u_min=p['u_min'], u_max=p['u_max'],
+            max_fill=p['max_fill'], range_margin=p['range_margin'], window=p['window'],
+            reanchor_every=p['reanchor_every'], init_timeout=p['init_timeout'])
+        self.est.model.stepper().step(0.0)   # compile/load the kernel before the first sample
+        self.axis = p['axis']
+        qos = sample_qos(False, p['qos_depth'])
+        self.pub = self.create_publisher(JointState, TOPIC_ESTIMATE,
+                                         sample_qos(p['best_effort'], p['qos_depth']))
+        self.sub_cmd = self.create_subscription(JointState, TOPIC_COMMAND, self.on_command, qos)
+        self.sub_meas = self.create_subscription(JointState, TOPIC_DEFLECTION,
+                                                 self.on_measurement, qos)
+        self._msg = JointState()
+        self._msg.name = [self.axis]
+        self._rejected_reported = 0
+        self.diagnostics = Diagnostics(self, self.status)
+        self.get_logger().info(
+            f"model {p['model']} ({type(self.model).__name__} nu={self.model.nu} "
+            f"ny={self.model.ny}) at {self.est.fs:g} Hz, init {p['init']}")
+
+    def _value(self, msg: JointState, field: str) -> tuple[int, float] | None:
+        sample = parse_joint_state(msg)
+        try:
+            return sample.t_ns, sample.value(field, self.axis)
+        except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the node
+            self.get_logger().warning(f'{field} message ignored: {exc}',
+                                      throttle_duration_sec=1.0)
+            return None
+
+    def on_command(self, msg: JointState) -> None:
+        got = self._value(msg, 'effort')
+        if got is None:
+            self.est.stats.rejected_nonfinite += 1   # unusable: counted like a non-finite one
+            return
+        if self.est.stats.commands == 0:
+            self.est.start(self.sub_meas.get_publisher_count() > 0)
+        self.publish(self.est.on_command(*got))
+
+    def on_measurement(self, msg: JointState) -> None:
+        got = self._value(msg, 'position')
+        if got is not None:
+            self.publish(self.est.on_measurement(*got))
+
+    def publish(self, estimates) -> None:
+        msg, stamp = self._msg, self._msg.header.stamp
+        for t, y in estimates:
+            stamp.sec, stamp.nanosec = ns_to_stamp(t)
+            msg.position = [y]
+            self.pub.publish(msg)
+
+    def status(self):
+        st = self.est.stats
+        rms, r2, n = self.est.running_error()
+        rejected = st.rejected_nonfinite + st.rejected_range
+        warn = self.est.out_of_range_now or rejected > self._rejected_reported
+        self._rejected_reported = rejected
+        msg = ('estimate outside the trained output range' if self.est.out_of_range_now else
+               'rejecting commands' if warn else f'ok (init {st.init})')
+        values = {k: getattr(st, k) for k in (
+            'commands', 'estimates', 'rejected_nonfinite', 'rejected_range', 'gaps', 'filled',
+            'out_of_order', 'resets', 'out_of_range', 'reanchors', 'init')}
+        if n >= 2 and not math.isnan(rms):
+            values.update(rms_error_m=rms, r2=r2, error_window=n)
+        return (DIAG_WARN if warn else DIAG_OK), msg, values
+
+
+main = main_for(EstimatorNode)
+
+if __name__ == '__main__':
+    main()
