@@ -49,8 +49,9 @@ def _vector(name: str, value, source: str) -> np.ndarray:
     arr = np.asarray(value)
     if arr.dtype.kind not in 'fiu':
         raise DataError(f'{source}: {name} is not numeric (dtype {arr.dtype})')
-    arr = np.asarray(arr, dtype=np.float64).reshape(-1) if arr.ndim == 2 and 1 in arr.shape \
-        else np.asarray(arr, dtype=np.float64)
+    arr = arr.astype(np.float64)
+    if arr.ndim == 2 and 1 in arr.shape:   # a column or row vector saved as 2-D
+        arr = arr.reshape(-1)
     if arr.ndim != 1:
         raise DataError(f'{source}: {name} must be 1-D, got shape {arr.shape}')
     if not np.all(np.isfinite(arr)):
