@@ -99,10 +99,11 @@ def main(argv=None):
         i = m.training_info_
         print(f'seed {seed}: fit {dt:.2f} s (stage 1 {i["stage1_seconds"]:.2f} s, stage 2 '
               f'{i.get("stage2_seconds", 0):.2f} s, kept {i["selected_stage"]}); free-run validation '
-              f'R2 {fits[-1][1]:.6f} vs measured, {fits[-1][2]:.6f} vs noise-free')
+              f'R2 {fits[-1][1]:.6f} vs measured y, {fits[-1][2]:.6f} vs y_true')
     print(f'median fit time {statistics.median(f[0] for f in fits):.2f} s; median free-run R2 '
           f'{statistics.median(f[1] for f in fits):.6f} (measured), '
-          f'{statistics.median(f[2] for f in fits):.6f} (noise-free)')
+          f'{statistics.median(f[2] for f in fits):.6f} (y_true: the plant\'s tip deflection '
+          f'before sensor filter and noise)')
     model = fits[0][3]
 
     print('\n# free-run simulate() throughput, H=10, nu=ny=4 (median of repeats)')

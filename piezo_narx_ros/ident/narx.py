@@ -27,7 +27,7 @@ TRAINING_DEFAULTS = {
     'refine_max_fail': 10,     # its early stopping on the held-out free-run error
     'segment_length': 200,     # samples per free-run segment in the refinement
     'n_segments': 40,          # segments (evenly spread; 0 = tile all the data)
-    'hessian_stride': 1,       # refinement J^T J from every k-th row (gradient uses all rows)
+    'hessian_stride': 2,       # refinement J^T J from every k-th row (gradient uses all rows)
     'threads': 1,              # torch threads inside fit
 }
 
