@@ -122,3 +122,32 @@ class BagRecorder:
         self.close()
         return False
 
+
+
+AUTO_TYPE = 'auto'
+
+
+def expand_types(topics: list[str], types: list[str]) -> list[str]:
+    """Type per topic from the `types` parameter: one entry applies to every topic, otherwise one
+    per topic; 'auto' (or '') means discover it from the ROS graph. Raises BagError on a length
+    mismatch."""
+    if len(types) == 1:
+        types = list(types) * len(topics)
+    if len(types) != len(topics):
+        raise BagError(f'types must have 1 or {len(topics)} entries (one per topic), '
+                       f'got {len(types)}')
+    return [t.strip() or AUTO_TYPE for t in types]
+
+
+def discovered_types(wanted: dict[str, str], graph: list[tuple[str, list[str]]]
+                     ) -> dict[str, str]:
+    """Resolve 'auto' entries of {absolute topic: type} from get_topic_names_and_types() output;
+    returns only the topics that now have a type (first advertised type wins)."""
+    advertised = {name: kinds for name, kinds in graph}
+    found = {}
+    for topic, kind in wanted.items():
+        if kind != AUTO_TYPE:
+            found[topic] = kind
+        elif advertised.get(topic):
+            found[topic] = advertised[topic][0]
+    return found

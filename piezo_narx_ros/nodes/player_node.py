@@ -1,0 +1,122 @@
+"""player_node: publish a bag's topics with their recorded timing (like `ros2 bag play`).
+
+Messages are published serialized, exactly as recorded, from a pacing thread that sleeps until
+each message is due (recorded receive-time spacing / rate). Remap topics with --ros-args -r.
+
+    player_node --ros-args -p bag:=bags/run1 -p rate:=2.0 -p loop:=true \
+        -p topics:="[/piezo/voltage_command]"
+"""
+from __future__ import annotations
+
+import threading
+import time
+
+import rclpy
+
+from piezo_narx_ros.bag.player import BagSchedule, topic_types
+from piezo_narx_ros.errors import ConfigError
+from piezo_narx_ros.nodes.common import (DIAG_ERROR, DIAG_OK, Diagnostics, ParamSpec, PiezoNode,
+                                         main_for, sample_qos)
+from piezo_narx_ros.nodes.recorder_node import message_class
+
+
+class PlayerNode(PiezoNode):
+    """Thin wiring: parameters -> BagSchedule, one raw publisher per topic, a pacing thread."""
+
+    NODE_NAME = 'player_node'
+    PARAMS = (
+        ParamSpec('bag', '', 'bag directory, .mcap or .db3 file to play', read_only=True,
+                  check=(bool, 'must name a bag')),
+        ParamSpec('topics', [''], "topics to play (absolute, as in the bag); [''] = all",
+                  read_only=True),
+        ParamSpec('rate', 1.0, 'playback speed factor', low=1e-3, high=1e3, read_only=True),
+        ParamSpec('loop', False, 'start over when the bag ends', read_only=True),
+        ParamSpec('start_delay_s', 1.0, 'wait before the first message so that subscribers '
+                  'are matched, s', low=0.0, high=60.0, read_only=True),
+        ParamSpec('wait_for_subscribers', 0, 'then also wait until every topic has this many '
+                  'matched subscribers (reliable, volatile QoS loses what is published before)',
+                  low=0, high=1000, read_only=True),
+        ParamSpec('exit_when_done', True, 'shut the node down after the last message',
+                  read_only=True),
+        ParamSpec('best_effort', False, 'publish best effort instead of reliable',
+                  read_only=True),
+        ParamSpec('depth', 1000, 'publisher queue depth (keep last)', low=1, high=100000,
+                  read_only=True),
+    )
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        p = self.params
+        topics = [t for t in p['topics'] if t] or None
+        types = topic_types(p['bag'], topics)  # BagError (one line) for a bad bag or topic
+        qos = sample_qos(p['best_effort'], p['depth'])
+        self._pubs = {}
+        for topic, kind in types.items():
+            try:
+                self._pubs[topic] = self.create_publisher(message_class(kind), topic, qos)
+            except ConfigError as exc:
+                self.get_logger().warning(f'skipping {topic}: {exc}')
+        if not self._pubs:
+            raise ConfigError(f'no playable topic in {p["bag"]}')
+        self.schedule = BagSchedule(p['bag'], list(self._pubs), p['rate'], p['loop'])
+        self.published = 0
+        self.late_max_s = 0.0
+        self.error = ''
+        self.done = False
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._play, name='bag-player', daemon=True)
+        self._diag = Diagnostics(self, self._status)
+        if p['exit_when_done']:
+            self._exit_timer = self.create_timer(0.25, self._exit_if_done)
+        self._thread.start()
+
+    def _play(self) -> None:
+        if self._stop.wait(self.params['start_delay_s']):
+            return
+        need = self.params['wait_for_subscribers']
+        while need and any(p.get_subscription_count() < need for p in self._pubs.values()):
+            if self._stop.wait(0.02):
+                return
+        start = time.monotonic()
+        try:
+            for due, topic, _, data in self.schedule:
+                wait = start + due - time.monotonic()
+                if wait > 0:
+                    if self._stop.wait(wait):
+                        return
+                else:
+                    self.late_max_s = max(self.late_max_s, -wait)
+                if self._stop.is_set():
+                    return
+                self._pubs[topic].publish(data)
+                self.published += 1
+        except Exception as exc:  # noqa: BLE001 - reported on /diagnostics and in the log
+            self.error = str(exc)
+            self.get_logger().error(f'playback stopped: {exc}')
+        self.get_logger().info(f'played {self.published} message(s)')
+        self.done = True
+
+    def _exit_if_done(self) -> None:
+        # Shut down from an executor callback: doing it from the pacing thread deadlocks the
+        # EventsExecutor. The timer period also lets reliable writers deliver the tail.
+        if self.done:
+            rclpy.try_shutdown(context=self.context)
+
+    def _status(self):
+        values = {'bag': self.params['bag'], 'published': self.published,
+                  'passes': self.schedule.passes, 'late_max_s': self.late_max_s}
+        if self.error:
+            return DIAG_ERROR, f'playback stopped: {self.error}', values
+        return DIAG_OK, 'done' if self.done else 'playing', values
+
+    def close(self) -> None:
+        """Stop the pacing thread."""
+        self._stop.set()
+        if self._thread.is_alive() and threading.current_thread() is not self._thread:
+            self._thread.join(5.0)
+
+
+main = main_for(PlayerNode)
+
+if __name__ == '__main__':
+    main()
