@@ -27,6 +27,8 @@ class RigClient:
             raise ConfigError(f'target_host {target_host!r} cannot be resolved: {exc}') from None
         self.target = infos[0][4]
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        # Room for a burst of replies while the receive thread waits for the GIL.
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 21)
         try:
             self.sock.bind((local_host, local_port))
         except OSError as exc:

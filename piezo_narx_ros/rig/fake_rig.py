@@ -35,8 +35,14 @@ class FakeRig:
             raise ConfigError(f'fs must be > 0 Hz, got {fs}')
         params = load_plant_params(plant_config)
         self.plants = [PiezoCantilever(params, fs=fs, seed=seed + i) for i in range(n_axes)]
+        for plant in self.plants:
+            # Pay the JIT compilation now, not on the first datagram (it would stall the replies).
+            plant.step(0.0)
+            plant.reset()
         self.n_axes = n_axes
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        # Room for a burst of a few thousand datagrams if this process is descheduled for a while.
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 21)
         try:
             self.sock.bind((host, port))
         except OSError as exc:

@@ -1,0 +1,263 @@
+"""driver_node as a real process over DDS (isolated domain from conftest), against a UDP target.
+
+The test process holds a probe node (publishes voltage_command, listens to deflection and
+/diagnostics) and, for the watchdog test, plays the target itself so it can see every datagram.
+"""
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.executors import SingleThreadedExecutor
+from sensor_msgs.msg import JointState
+
+from piezo_narx_ros.nodes.common import diagnostic_values, make_joint_state, sample_qos, stamp_to_ns
+from piezo_narx_ros.plant import PiezoCantilever, load_plant_params
+from piezo_narx_ros.rig import protocol as p
+
+T0 = 1_700_000_000_000_000_000  # ns
+DT = 500_000                     # ns, 2 kHz
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+def start_driver(**params) -> subprocess.Popen:
+    args = [sys.executable, '-m', 'piezo_narx_ros.nodes.driver_node', '--ros-args']
+    for k, v in params.items():
+        args += ['-p', f'{k}:={v}']
+    return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def stop(proc: subprocess.Popen) -> str:
+    if proc.poll() is None:
+        proc.terminate()
+    try:
+        out, _ = proc.communicate(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, _ = proc.communicate()
+    return out
+
+
+class Probe:
+    """Test-side node in its own context, spun on a background thread."""
+
+    def __init__(self):
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx)
+        self.node = rclpy.create_node('probe', namespace='piezo', context=self.ctx)
+        self.pub = self.node.create_publisher(JointState, 'voltage_command', sample_qos(depth=1000))
+        self.deflection = []
+        self.status = []
+        self.node.create_subscription(JointState, 'deflection', self.deflection.append,
+                                      sample_qos(depth=1000))
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self):
+        while self.ctx.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.05)
+            except Exception:  # context shut down under us
+                break
+
+    def _on_diag(self, msg):
+        self.status += [s for s in msg.status if s.name.endswith('driver_node')]
+
+    def wait(self, predicate, timeout, what):
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            if time.monotonic() > deadline:
+                what = what() if callable(what) else what
+                raise AssertionError(f'timed out after {timeout} s waiting for {what}')
+            time.sleep(0.01)
+
+    def wait_connected(self, timeout=20.0):
+        self.wait(lambda: self.pub.get_subscription_count() > 0
+                  and self.node.count_publishers('/piezo/deflection') > 0, timeout, 'discovery')
+
+    def handshake(self, timeout=20.0):
+        """Publish 0 V warm-up commands (stamps before T0) until the driver answers, so that the
+        real sequence starts after DDS matching has settled; returns the deflection messages
+        the warm-ups produced (each one stepped the target once)."""
+        self.wait_connected(timeout)
+        deadline = time.monotonic() + timeout
+        j = 0
+        while not self.deflection:
+            if time.monotonic() > deadline:
+                raise AssertionError('driver never answered a warm-up command')
+            j += 1
+            self.pub.publish(make_joint_state(T0 - j * DT, ['x'], effort=[0.0]))
+            time.sleep(0.05)
+        time.sleep(0.2)
+        warm, self.deflection[:] = list(self.deflection), []
+        return warm
+
+    def send(self, volts, names=('x',), first=0):
+        """Publish one command per value, paced near 2 kHz in bursts of 20; returns stamps (ns)."""
+        stamps = []
+        for k, v in enumerate(volts):
+            t = T0 + (first + k) * DT
+            self.pub.publish(make_joint_state(t, list(names), effort=[v]))
+            stamps.append(t)
+            if k % 20 == 19:
+                time.sleep(0.01)
+        return stamps
+
+    def close(self):
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.ctx)
+        self.thread.join(timeout=2)
+
+
+@pytest.fixture
+def probe():
+    pr = Probe()
+    yield pr
+    pr.close()
+
+
+def test_driver_with_fake_rig_reproduces_the_plant_stream(probe):
+    rig_port, local_port = free_udp_port(), free_udp_port()
+    rig = subprocess.Popen([sys.executable, '-m', 'piezo_narx_ros.rig.fake_rig', '--port', str(rig_port),
+                            '--seed', '7'], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    # A watchdog ramp datagram would step the rig's plant too: keep the watchdog out of this test.
+    driver = start_driver(target_port=rig_port, local_port=local_port, reply_timeout=0.5,
+                          watchdog_timeout=30.0)
+    try:
+        assert 'listening' in rig.stdout.readline()
+        warm = probe.handshake()
+        k = np.arange(600)
+        u = 80.0 * np.sin(2 * np.pi * 3.0 * k / 2000.0) + 20.0 * np.sin(2 * np.pi * 41.0 * k / 2000.0)
+        stamps = probe.send(u)
+        probe.wait(lambda: len(probe.deflection) >= len(u), 20.0,
+                   lambda: f'all deflection samples, got {len(probe.deflection)}')
+        # Malformed datagrams at the driver's reply port are counted and survived.
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as junk:
+            for data in (b'x', b'PZRG' + bytes(20), p.pack_command(p.Command(1, 0, (1.0,)))):
+                junk.sendto(data, ('127.0.0.1', local_port))
+        probe.send([5.0], first=len(u))
+        probe.wait(lambda: len(probe.deflection) > len(u), 10.0, 'a sample after the junk')
+        probe.wait(lambda: any(diagnostic_values(s).get('replies_malformed') == '3'
+                               for s in probe.status), 5.0, 'malformed count on /diagnostics')
+    finally:
+        out = stop(driver)
+        stop(rig)
+    msgs = probe.deflection[:len(u)]
+    assert [stamp_to_ns(m.header.stamp) for m in msgs] == stamps, out
+    assert all(list(m.name) == ['x'] for m in msgs)
+    plant = PiezoCantilever(load_plant_params(), fs=2000.0, seed=7)
+    for _ in warm:
+        plant.step(0.0)
+    expect = np.array([plant.step(v) for v in u])
+    assert np.array_equal([m.position[0] for m in msgs], expect[:, 0])   # bit-identical
+    assert np.array_equal([m.effort[0] for m in msgs], expect[:, 2])
+    last = diagnostic_values(probe.status[-1])
+    assert last['reply_timeouts'] == '0' and last['replies_duplicate'] == '0'
+
+
+class EchoTarget:
+    """A UDP target in the test: records (arrival s, Command), replies position = 1e-7 m/V,
+    skips the replies to samples k in `drop` and answers samples in `dup` twice (k from the stamp)."""
+
+    def __init__(self, drop=(), dup=()):
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(('127.0.0.1', 0))
+        self.sock.settimeout(0.05)
+        self.port = self.sock.getsockname()[1]
+        self.got, self.peer = [], None
+        self.drop, self.dup = set(drop), set(dup)
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self):
+        while not self._stop.is_set():
+            try:
+                data, addr = self.sock.recvfrom(65535)
+            except socket.timeout:
+                continue
+            cmd = p.unpack_command(data)
+            i = (cmd.stamp_ns - T0) // DT if not cmd.flags & p.FLAG_RAMP else None
+            self.got.append((time.monotonic(), cmd))
+            self.peer = addr
+            if i in self.drop:
+                continue
+            reply = p.pack_reply(p.Reply(cmd.seq, cmd.stamp_ns, (cmd.volts[0] * 1e-7,), cmd.volts))
+            for _ in range(2 if i in self.dup else 1):
+                self.sock.sendto(reply, addr)
+
+    def close(self):
+        self._stop.set()
+        self.thread.join(timeout=2)
+        self.sock.close()
+
+
+def test_limits_clamp_and_watchdog_ramps_to_zero_at_the_slew_limit(probe):
+    slew, ramp_rate, timeout = 400.0, 200.0, 0.3        # 0.2 V per command, 2 V per ramp datagram
+    target = EchoTarget(drop=range(10, 15), dup=(20,))
+    driver = start_driver(target_port=target.port, local_port=0, v_max=40.0, max_slew_rate=slew,
+                          sample_rate=2000.0, watchdog_timeout=timeout, ramp_rate=ramp_rate,
+                          reply_timeout=0.05)
+    try:
+        probe.handshake()
+        n = 300
+        probe.send([1000.0] * n)                                  # asks far beyond the limits
+        bad = make_joint_state(T0, ['y'], effort=[1.0])           # wrong axis
+        probe.pub.publish(bad)
+        probe.pub.publish(make_joint_state(T0, ['x'], effort=[float('nan')]))
+        probe.wait(lambda: target.got and target.got[-1][1].volts == (0.0,), 10.0, 'ramp to 0 V')
+        probe.wait(lambda: any(diagnostic_values(s).get('state') == 'parked' for s in probe.status),
+                   5.0, 'parked state on /diagnostics')
+    finally:
+        out = stop(driver)
+        target.close()
+    cmds = [c for _, c in target.got if not c.flags & p.FLAG_RAMP and c.stamp_ns >= T0]
+    last_cmd_t = max(t for t, c in target.got if not c.flags & p.FLAG_RAMP)
+    ramp = [(t, c) for t, c in target.got if c.flags & p.FLAG_RAMP and t > last_cmd_t]
+    sent = np.array([c.volts[0] for c in cmds])
+    assert len(cmds) == n, out
+    assert sent.max() == 40.0                                            # clamped to v_max
+    assert np.all(np.diff(np.r_[0.0, sent]) <= slew / 2000.0 + 1e-9)     # slew-limited per command
+    assert sent[199] == pytest.approx(40.0) and sent[198] < 40.0
+    # Ramp: starts about watchdog_timeout after the last command, 2 V steps down to exactly 0 V.
+    volts = np.array([c.volts[0] for _, c in ramp])
+    assert timeout - 0.02 <= ramp[0][0] - last_cmd_t <= timeout + 0.25
+    assert volts[0] == pytest.approx(38.0) and volts[-1] == 0.0
+    assert np.all(np.diff(np.r_[40.0, volts]) >= -slew / ramp_rate - 1e-9)
+    assert np.all(np.diff(volts) <= 0)
+    assert ramp[-1][0] - ramp[0][0] >= 0.8 * (38.0 / slew)                # real time, not a jump
+    # The published stream has every command's reply except the 5 dropped, and no ramp samples.
+    assert len(probe.deflection) == n - 5
+    assert [m.effort[0] for m in probe.deflection] == [v for i, v in enumerate(sent)
+                                                       if i not in range(10, 15)]
+    values = diagnostic_values(probe.status[-1])
+    assert values['reply_timeouts'] == '5' and values['replies_duplicate'] == '1'
+    assert values['commands_rejected'] == '2' and values['commands_clamped'] == str(n)
+    assert int(values['watchdog_trips']) >= 1
+
+
+@pytest.mark.parametrize('params, reason', [
+    ({'v_min': 10.0}, 'parameter v_min must be <= 0.0, got 10.0'),
+    ({'v_min': 0.0, 'v_max': 0.0}, 'v_min (0.0 V) must be below v_max (0.0 V)'),
+    ({'reply_timeout': -1.0}, 'parameter reply_timeout must be >= 1e-05'),
+    ({'target_host': 'no.such.host.invalid'}, "target_host 'no.such.host.invalid' cannot be resolved"),
+])
+def test_bad_parameters_are_refused_with_a_reason(params, reason):
+    proc = start_driver(local_port=0, **params)
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 2, out
+    lines = out.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith('driver_node: error: ') and reason in lines[0], out
