@@ -7,6 +7,8 @@ import pytest
 from scipy import signal as sps
 
 from piezo_narx_ros.plant import PiezoCantilever, PlantParams, generate, load_plant_params
+# Loop width as defined in docs/plant.md; one sine period after one period of settling.
+from piezo_narx_ros.plant.figures import loop_width, sine_period as sine_loop
 
 FS = 2000.0
 
@@ -14,27 +16,6 @@ FS = 2000.0
 @pytest.fixture(scope='module')
 def params():
     return load_plant_params()
-
-
-def loop_width(u, y, bins=80):
-    """Max vertical opening between the descending and ascending branches / peak-to-peak y.
-
-    u, y: one period of a sine response. Branch values are averaged in voltage bins (beats the noise).
-    """
-    rising = np.gradient(u) > 0
-    edges = np.linspace(u.min(), u.max(), bins + 1)[4:-4]  # ends: branches meet, few samples
-    centre = 0.5 * (edges[:-1] + edges[1:])
-    up = np.array([y[rising & (u >= a) & (u < b)].mean() for a, b in zip(edges[:-1], edges[1:])])
-    down = np.array([y[~rising & (u >= a) & (u < b)].mean() for a, b in zip(edges[:-1], edges[1:])])
-    return np.max(down - up) / np.ptp(y), centre, up, down
-
-
-def sine_loop(params, amplitude, freq, cycles=2, seed=0):
-    """Last period of (u, y_measured, y_true) under a sine of `amplitude` V and `freq` Hz."""
-    n_period = int(round(FS / freq))
-    u = generate('sine', FS, cycles / freq, amplitude, freq=freq)
-    res = PiezoCantilever(params, FS, seed=seed).run(u)
-    return u[-n_period:], res.y[-n_period:], res.y_true[-n_period:]
 
 
 def test_slow_sine_loop_is_hysteretic_with_design_width(params):
