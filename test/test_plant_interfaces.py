@@ -62,11 +62,13 @@ def test_bad_command_raises_and_leaves_state(params):
     p = PiezoCantilever(params, FS)
     p.run(np.full(10, 20.0))
     before = p.state
-    for bad in (float('nan'), float('inf')):
+    for bad in (float('nan'), float('inf'), 'ten volts', None):
         with pytest.raises(DataError, match='finite'):
             p.step(bad)
     with pytest.raises(DataError, match='index 2'):
         p.run([1.0, 2.0, float('nan')])
+    with pytest.raises(DataError, match='numbers'):
+        p.run(['a', 'b'])
     with pytest.raises(DataError, match='1-D'):
         p.run(np.zeros((3, 2)))
     assert np.array_equal(p.state, before)

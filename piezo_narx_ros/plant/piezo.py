@@ -151,7 +151,10 @@ class PiezoCantilever:
 
         A non-finite command raises DataError and leaves the state untouched.
         """
-        u = float(u_cmd)
+        try:
+            u = float(u_cmd)
+        except (TypeError, ValueError):
+            raise DataError(f'plant command must be a finite voltage, got {u_cmd!r}') from None
         if not math.isfinite(u):
             raise DataError(f'plant command must be a finite voltage, got {u_cmd!r}')
         if self._noise_pos >= self._noise.size:
@@ -169,7 +172,10 @@ class PiezoCantilever:
 
         Non-finite or non-1-D input raises DataError (naming the first bad index) before any change.
         """
-        u = np.ascontiguousarray(u_cmd, dtype=float)
+        try:
+            u = np.ascontiguousarray(u_cmd, dtype=float)
+        except (TypeError, ValueError):
+            raise DataError('plant command array must hold numbers (volts)') from None
         if u.ndim != 1:
             raise DataError(f'plant command array must be 1-D, got shape {u.shape}')
         bad = np.flatnonzero(~np.isfinite(u))
