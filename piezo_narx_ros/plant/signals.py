@@ -72,12 +72,10 @@ def generate(kind, fs, seconds, amplitude, offset=0.0, seed=0, **options) -> np.
         amp = None if amplitude is None else _num('amplitude', amplitude, 0.0)
         n = None if seconds is None else _n_samples(seconds, fs)
         base = _playback(fs, n, opt)
-        if amp is not None:
+        if amp is not None:  # rescale the deviation from the file's mean to the requested peak
             peak = np.max(np.abs(base - base.mean()))
             base = (base - base.mean()) * (amp / peak if peak > 0 else 0.0)
-            u = base + offset
-        else:
-            u = base + offset
+        u = base + offset
     else:
         amp = _num('amplitude', amplitude, 0.0)
         n = _n_samples(seconds, fs)
