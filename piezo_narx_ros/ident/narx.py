@@ -24,7 +24,7 @@ TRAINING_DEFAULTS = {
     'val_fraction': 0.15,      # tail of the estimation data held out for early stopping/selection
     'max_fail': 6,             # early stopping: LM iterations without held-out improvement
     'refine_iter': 40,         # simulation-error LM iterations (0 disables the refinement)
-    'refine_max_fail': 10,     # its early stopping on the held-out free-run error
+    'refine_max_fail': 40,     # its early stopping (held-out free-run error often rises first)
     'segment_length': 200,     # samples per free-run segment in the refinement
     'n_segments': 40,          # segments (evenly spread; 0 = tile all the data)
     'hessian_stride': 2,       # refinement J^T J from every k-th row (gradient uses all rows)

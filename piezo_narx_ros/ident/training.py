@@ -227,7 +227,7 @@ def _segment_starts(k_lo, k_hi, length, n_segments):
 
 def train_narx(un, yn, nu, ny, hidden, seed, restarts=3, restart_iter=8, restart_samples=2000,
                max_iter=25, onestep_samples=4000, val_fraction=0.15, max_fail=6, refine_iter=40,
-               refine_max_fail=10, segment_length=200, n_segments=40, hessian_stride=2, threads=1):
+               refine_max_fail=40, segment_length=200, n_segments=40, hessian_stride=2, threads=1):
     """Fit the network on normalised signals un, yn (N,); see the module docstring and
     narx.TRAINING_DEFAULTS for the options. Returns (W1 (H, d), b1 (H,), w2 (H,), b2, info)."""
     t_start = time.perf_counter()
