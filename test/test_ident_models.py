@@ -165,6 +165,11 @@ def test_stepper_history_and_bad_input():
         m.stepper(u_past=[1.0, 2.0])
     with pytest.raises(DataError, match='y_past contains NaN'):
         m.stepper(y_past=[np.nan, 0.0])
+    before = st.y_past
+    with pytest.raises(DataError, match='finite voltage'):
+        st.step(float('nan'))
+    np.testing.assert_array_equal(st.y_past, before)        # a bad sample leaves the state alone
+    np.testing.assert_array_equal(st.u_past, [0.0, 1.0, 2.0])
 
 
 def test_narx_rejects_bad_construction_and_unfitted_use():
@@ -180,6 +185,8 @@ def test_narx_rejects_bad_construction_and_unfitted_use():
         NARXNetwork(**FAST).fit(np.ones(500), np.arange(500.0))
     with pytest.raises(DataError, match='NaN'):
         NARXNetwork(**FAST).fit(np.r_[np.nan, np.ones(499)], np.arange(500.0))
+    with pytest.raises(DataError, match='both u_val and y_val'):
+        NARXNetwork(**FAST).fit(np.arange(500.0), np.arange(500.0), u_val=np.arange(50.0))
 
 
 # ---------------------------------------------------------------- NARX: training

@@ -9,6 +9,8 @@ time, so one evaluation reads a contiguous window of the input and output histor
 ``simulate`` and ``Stepper.step`` call the same evaluation function on the same window layout, so
 the two agree to rounding (in practice bit for bit).
 """
+import math
+
 import numpy as np
 from numba import njit
 
@@ -158,15 +160,25 @@ class NARXStepper(Stepper):
     """Stepper of a NARXNetwork (see Stepper)."""
 
     def step(self, u_k):
-        """Feed one input sample u_k (V); returns the free-run output y(k) (m)."""
+        """Feed one input sample u_k (V); returns the free-run output y(k) (m).
+
+        A non-finite u_k raises DataError and leaves the histories untouched."""
+        u = float(u_k)
+        if not math.isfinite(u):
+            raise DataError(f'stepper input must be a finite voltage, got {u_k!r}')
         Wu, Wy, b1, w2, b2 = self._params
-        return narx_step(float(u_k), self._ubuf, self._ybuf, Wu, Wy, b1, w2, b2)
+        return narx_step(u, self._ubuf, self._ybuf, Wu, Wy, b1, w2, b2)
 
 
 class ARXStepper(Stepper):
     """Stepper of an ARXModel (see Stepper)."""
 
     def step(self, u_k):
-        """Feed one input sample u_k (V); returns the free-run output y(k) (m)."""
+        """Feed one input sample u_k (V); returns the free-run output y(k) (m).
+
+        A non-finite u_k raises DataError and leaves the histories untouched."""
+        u = float(u_k)
+        if not math.isfinite(u):
+            raise DataError(f'stepper input must be a finite voltage, got {u_k!r}')
         bu, ay, c = self._params
-        return arx_step(float(u_k), self._ubuf, self._ybuf, bu, ay, c)
+        return arx_step(u, self._ubuf, self._ybuf, bu, ay, c)

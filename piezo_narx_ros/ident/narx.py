@@ -123,6 +123,8 @@ class NARXNetwork(LaggedModel):
         from . import training  # torch lives there; inference never imports it
 
         opts = self.training_options
+        if (u_val is None) != (y_val is None):
+            raise DataError('give both u_val and y_val, or neither')
         u = as_signal(u, 'u', min_len=self.n0 + 20)
         y = as_signal(y, 'y', n=u.size)
         us, ys = float(u.std()), float(y.std())
