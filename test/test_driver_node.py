@@ -49,17 +49,24 @@ def stop(proc: subprocess.Popen) -> str:
 
 
 class Probe:
-    """Test-side node in its own context, spun on a background thread."""
+    """Test-side node in its own context, spun on a background thread.
 
-    def __init__(self):
+    Publishes /piezo/voltage_command with stamps T0 + k DT (k counts on across calls) and collects
+    /piezo/deflection (and the `extra` deflection topics) and the driver's /diagnostics."""
+
+    def __init__(self, extra=()):
         self.ctx = rclpy.Context()
         rclpy.init(context=self.ctx)
         self.node = rclpy.create_node('probe', namespace='piezo', context=self.ctx)
         self.pub = self.node.create_publisher(JointState, 'voltage_command', sample_qos(depth=1000))
-        self.deflection = []
+        self.k = 0
+        self.topics = ['/piezo/deflection', *extra]
+        self.received = {t: [] for t in self.topics}
+        self.deflection = self.received['/piezo/deflection']
         self.status = []
-        self.node.create_subscription(JointState, 'deflection', self.deflection.append,
-                                      sample_qos(depth=1000))
+        for topic in self.topics:
+            self.node.create_subscription(JointState, topic, self.received[topic].append,
+                                          sample_qos(depth=1000))
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)
         self.executor = SingleThreadedExecutor(context=self.ctx)
         self.executor.add_node(self.node)
@@ -85,34 +92,36 @@ class Probe:
             time.sleep(0.01)
 
     def wait_connected(self, timeout=20.0):
-        self.wait(lambda: self.pub.get_subscription_count() > 0
-                  and self.node.count_publishers('/piezo/deflection') > 0, timeout, 'discovery')
+        self.wait(lambda: self.pub.get_subscription_count() >= len(self.topics)
+                  and all(self.node.count_publishers(t) > 0 for t in self.topics), timeout,
+                  'discovery')
 
     def handshake(self, timeout=20.0):
-        """Publish 0 V warm-up commands (stamps before T0) until the driver answers, so that the
-        real sequence starts after DDS matching has settled; returns the deflection messages
-        the warm-ups produced (each one stepped the target once)."""
+        """Publish 0 V warm-up commands until every deflection topic answers, so that the real
+        sequence starts after DDS matching has settled. Returns the first warm-up sample index
+        answered on /piezo/deflection: from there to the real sequence the plant sees 0 V."""
         self.wait_connected(timeout)
         deadline = time.monotonic() + timeout
-        j = 0
-        while not self.deflection:
+        while not all(self.received.values()):
             if time.monotonic() > deadline:
-                raise AssertionError('driver never answered a warm-up command')
-            j += 1
-            self.pub.publish(make_joint_state(T0 - j * DT, ['x'], effort=[0.0]))
+                raise AssertionError('no answer to the warm-up commands')
+            self.send([0.0])
             time.sleep(0.05)
         time.sleep(0.2)
-        warm, self.deflection[:] = list(self.deflection), []
-        return warm
+        first = (stamp_to_ns(self.deflection[0].header.stamp) - T0) // DT
+        for msgs in self.received.values():
+            msgs.clear()
+        return first
 
-    def send(self, volts, names=('x',), first=0):
+    def send(self, volts, names=('x',)):
         """Publish one command per value, paced near 2 kHz in bursts of 20; returns stamps (ns)."""
         stamps = []
-        for k, v in enumerate(volts):
-            t = T0 + (first + k) * DT
+        for i, v in enumerate(volts):
+            t = T0 + self.k * DT
+            self.k += 1
             self.pub.publish(make_joint_state(t, list(names), effort=[v]))
             stamps.append(t)
-            if k % 20 == 19:
+            if i % 20 == 19:
                 time.sleep(0.01)
         return stamps
 
@@ -138,7 +147,8 @@ def test_driver_with_fake_rig_reproduces_the_plant_stream(probe):
                           watchdog_timeout=30.0)
     try:
         assert 'listening' in rig.stdout.readline()
-        warm = probe.handshake()
+        first = probe.handshake()
+        k0 = probe.k
         k = np.arange(600)
         u = 80.0 * np.sin(2 * np.pi * 3.0 * k / 2000.0) + 20.0 * np.sin(2 * np.pi * 41.0 * k / 2000.0)
         stamps = probe.send(u)
@@ -148,7 +158,7 @@ def test_driver_with_fake_rig_reproduces_the_plant_stream(probe):
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as junk:
             for data in (b'x', b'PZRG' + bytes(20), p.pack_command(p.Command(1, 0, (1.0,)))):
                 junk.sendto(data, ('127.0.0.1', local_port))
-        probe.send([5.0], first=len(u))
+        probe.send([5.0])
         probe.wait(lambda: len(probe.deflection) > len(u), 10.0, 'a sample after the junk')
         probe.wait(lambda: any(diagnostic_values(s).get('replies_malformed') == '3'
                                for s in probe.status), 5.0, 'malformed count on /diagnostics')
@@ -159,7 +169,7 @@ def test_driver_with_fake_rig_reproduces_the_plant_stream(probe):
     assert [stamp_to_ns(m.header.stamp) for m in msgs] == stamps, out
     assert all(list(m.name) == ['x'] for m in msgs)
     plant = PiezoCantilever(load_plant_params(), fs=2000.0, seed=7)
-    for _ in warm:
+    for _ in range(first, k0):        # warm-ups answered, and gaps between them bridged at 0 V
         plant.step(0.0)
     expect = np.array([plant.step(v) for v in u])
     assert np.array_equal([m.position[0] for m in msgs], expect[:, 0])   # bit-identical
@@ -168,17 +178,55 @@ def test_driver_with_fake_rig_reproduces_the_plant_stream(probe):
     assert last['reply_timeouts'] == '0' and last['replies_duplicate'] == '0'
 
 
+def test_driver_with_fake_rig_equals_simulator_node_across_lost_commands():
+    """Both answer the same /piezo/voltage_command; samples the driver never sees (a stamp gap, as
+    after a DDS loss) are bridged the same way by the fake rig and the simulator node."""
+    rig_port = free_udp_port()
+    rig = subprocess.Popen([sys.executable, '-m', 'piezo_narx_ros.rig.fake_rig', '--port',
+                            str(rig_port), '--seed', '5'], stdout=subprocess.PIPE,
+                           stderr=subprocess.STDOUT, text=True)
+    sim = subprocess.Popen([sys.executable, '-m', 'piezo_narx_ros.nodes.simulator_node',
+                            '--ros-args', '-p', 'seed:=5'], stdout=subprocess.PIPE,
+                           stderr=subprocess.STDOUT, text=True)
+    driver = subprocess.Popen([sys.executable, '-m', 'piezo_narx_ros.nodes.driver_node',
+                               '--ros-args', '-r', '__ns:=/rig',
+                               '-r', 'voltage_command:=/piezo/voltage_command',
+                               '-p', f'target_port:={rig_port}', '-p', 'local_port:=0',
+                               '-p', 'watchdog_timeout:=30.0', '-p', 'reply_timeout:=0.5'],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    probe = Probe(extra=('/rig/deflection',))
+    try:
+        assert 'listening' in rig.stdout.readline()
+        probe.handshake()
+        k = np.arange(400)
+        u = 100.0 * np.sin(2 * np.pi * 7.0 * k / 2000.0)
+        probe.send(u[:200])
+        probe.k += 37                                           # 37 commands lost upstream
+        probe.send(u[200:])
+        probe.wait(lambda: min(map(len, probe.received.values())) >= len(u), 20.0,
+                   lambda: f'both streams, got {[len(m) for m in probe.received.values()]}')
+    finally:
+        probe.close()
+        outs = [stop(proc) for proc in (driver, sim, rig)]
+    sim_msgs, rig_msgs = probe.received['/piezo/deflection'], probe.received['/rig/deflection']
+    assert len(sim_msgs) == len(rig_msgs) == len(u), outs
+    for a, b in zip(sim_msgs, rig_msgs):
+        assert (a.header.stamp, list(a.position), list(a.effort)) == \
+            (b.header.stamp, list(b.position), list(b.effort))
+    assert np.ptp([m.position[0] for m in rig_msgs]) > 1e-6   # a real signal, not zeros
+
+
 class EchoTarget:
     """A UDP target in the test: records (arrival s, Command), replies position = 1e-7 m/V,
     skips the replies to samples k in `drop` and answers samples in `dup` twice (k from the stamp)."""
 
-    def __init__(self, drop=(), dup=()):
+    def __init__(self):
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(('127.0.0.1', 0))
         self.sock.settimeout(0.05)
         self.port = self.sock.getsockname()[1]
         self.got, self.peer = [], None
-        self.drop, self.dup = set(drop), set(dup)
+        self.drop, self.dup = set(), set()
         self._stop = threading.Event()
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
@@ -207,12 +255,14 @@ class EchoTarget:
 
 def test_limits_clamp_and_watchdog_ramps_to_zero_at_the_slew_limit(probe):
     slew, ramp_rate, timeout = 400.0, 200.0, 0.3        # 0.2 V per command, 2 V per ramp datagram
-    target = EchoTarget(drop=range(10, 15), dup=(20,))
+    target = EchoTarget()
     driver = start_driver(target_port=target.port, local_port=0, v_max=40.0, max_slew_rate=slew,
                           sample_rate=2000.0, watchdog_timeout=timeout, ramp_rate=ramp_rate,
                           reply_timeout=0.05)
     try:
         probe.handshake()
+        k0 = probe.k
+        target.drop, target.dup = {k0 + i for i in range(10, 15)}, {k0 + 20}
         n = 300
         probe.send([1000.0] * n)                                  # asks far beyond the limits
         bad = make_joint_state(T0, ['y'], effort=[1.0])           # wrong axis
@@ -224,7 +274,7 @@ def test_limits_clamp_and_watchdog_ramps_to_zero_at_the_slew_limit(probe):
     finally:
         out = stop(driver)
         target.close()
-    cmds = [c for _, c in target.got if not c.flags & p.FLAG_RAMP and c.stamp_ns >= T0]
+    cmds = [c for _, c in target.got if not c.flags & p.FLAG_RAMP and c.stamp_ns >= T0 + k0 * DT]
     last_cmd_t = max(t for t, c in target.got if not c.flags & p.FLAG_RAMP)
     ramp = [(t, c) for t, c in target.got if c.flags & p.FLAG_RAMP and t > last_cmd_t]
     sent = np.array([c.volts[0] for c in cmds])

@@ -89,3 +89,23 @@ def test_fake_rig_cli_serves_and_refuses_bad_options():
         proc.terminate()
         out, _ = proc.communicate(timeout=10)
     assert proc.returncode == 0 and 'stopped after 1 commands' in out
+
+
+def test_stamp_gaps_are_bridged_with_the_held_voltage_like_the_simulator(rig):
+    ks = [0, 1, 2, 5, 6]                          # samples 3 and 4 lost upstream
+    volts = [10.0, 20.0, 30.0, 40.0, 50.0]
+    replies = []
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        for i, (k, v) in enumerate(zip(ks, volts)):
+            cmd = p.Command(i, 1_000 + k * 500_000, (v,))
+            replies.append(p.unpack_reply(_exchange(sock, rig.address, p.pack_command(cmd))))
+        # A watchdog ramp datagram is stepped once and ends the bridging: no fill after it.
+        ramp = p.Command(5, 123, (45.0,), p.FLAG_RAMP)
+        replies.append(p.unpack_reply(_exchange(sock, rig.address, p.pack_command(ramp))))
+        late = p.Command(6, 1_000 + 100 * 500_000, (44.0,))
+        replies.append(p.unpack_reply(_exchange(sock, rig.address, p.pack_command(late))))
+    plant = PiezoCantilever(load_plant_params(), fs=2000.0, seed=3)
+    applied = [10.0, 20.0, 30.0, 30.0, 30.0, 40.0, 50.0, 45.0, 44.0]
+    y = [plant.step(v)[0] for v in applied]
+    assert [r.position_m[0] for r in replies] == [y[i] for i in (0, 1, 2, 5, 6, 7, 8)]
+    assert rig.filled == 2

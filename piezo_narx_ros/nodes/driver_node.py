@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import time
 
-from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
 
 from piezo_narx_ros.errors import ConfigError, DataError
@@ -27,42 +26,42 @@ def _nonempty(value: str) -> bool:
 
 
 class DriverNode(PiezoNode):
-    """Thin wiring: parameters -> RigDriver + RigClient; topics and timers -> driver calls."""
+    """Thin wiring: parameters -> RigDriver + RigClient; topics and timers -> driver calls.
+
+    Every parameter is read-only: the limits are safety settings and the socket is bound once.
+    """
 
     NODE_NAME = 'driver_node'
     PARAMS = (
         ParamSpec('target_host', '127.0.0.1', 'address of the real-time target (rig)',
-                  check=(_nonempty, 'must not be empty')),
-        ParamSpec('target_port', 50000, 'UDP port of the target', low=1, high=65535),
+                  check=(_nonempty, 'must not be empty'), read_only=True),
+        ParamSpec('target_port', 50000, 'UDP port of the target', low=1, high=65535, read_only=True),
         ParamSpec('local_port', 50001, 'local UDP port the replies come back to (0 = any free port)',
-                  low=0, high=65535),
+                  low=0, high=65535, read_only=True),
         ParamSpec('axis', 'x', 'axis name taken from voltage_command and written on deflection',
-                  check=(_nonempty, 'must not be empty')),
+                  check=(_nonempty, 'must not be empty'), read_only=True),
         ParamSpec('v_min', -200.0, 'lowest voltage ever sent to the target, V (must be <= 0)',
-                  low=-1000.0, high=0.0),
+                  low=-1000.0, high=0.0, read_only=True),
         ParamSpec('v_max', 200.0, 'highest voltage ever sent to the target, V (must be >= 0)',
-                  low=0.0, high=1000.0),
+                  low=0.0, high=1000.0, read_only=True),
         ParamSpec('max_slew_rate', 2.0e5, 'largest rate of change of the output, V/s', low=1e-3,
-                  high=1e9),
+                  high=1e9, read_only=True),
         ParamSpec('sample_rate', 2000.0, 'nominal command rate, Hz: one command may move the '
-                  'output by max_slew_rate / sample_rate V', low=1.0, high=100000.0),
+                  'output by max_slew_rate / sample_rate V', low=1.0, high=100000.0, read_only=True),
         ParamSpec('watchdog_timeout', 0.1, 'time without a command before the output ramps to '
-                  '0 V, s', low=1e-3, high=60.0),
+                  '0 V, s', low=1e-3, high=60.0, read_only=True),
         ParamSpec('ramp_rate', 1000.0, 'datagrams per second while ramping to 0 V, Hz', low=1.0,
-                  high=20000.0),
+                  high=20000.0, read_only=True),
         ParamSpec('reply_timeout', 0.01, 'time after which an unanswered command counts as a reply '
-                  'timeout, s', low=1e-5, high=10.0),
-        ParamSpec('best_effort', False, 'publish deflection best effort instead of reliable'),
-        ParamSpec('qos_depth', 100, 'keep-last depth of voltage_command and deflection', low=1,
-                  high=100000),
+                  'timeout, s', low=1e-5, high=10.0, read_only=True),
+        ParamSpec('best_effort', False, 'publish deflection best effort instead of reliable',
+                  read_only=True),
+        ParamSpec('qos_depth', 1000, 'keep-last depth of voltage_command and deflection', low=1,
+                  high=100000, read_only=True),
     )
 
     def __init__(self, **kwargs):
         super().__init__(**kwargs)
-        # Fixed at start-up (the limits are safety settings and the socket is bound once). Not
-        # ParamSpec(read_only=True): common.declare_parameters re-sets the descriptor after
-        # declaring, which a read-only parameter refuses.
-        self.add_on_set_parameters_callback(self._refuse_changes)
         p = self.params
         if p['v_min'] >= p['v_max']:
             raise ConfigError(f"parameter v_min ({p['v_min']} V) must be below v_max ({p['v_max']} V)")
@@ -84,13 +83,6 @@ class DriverNode(PiezoNode):
             f"driving axis {self.axis!r} on {p['target_host']}:{p['target_port']} from UDP port "
             f"{self.client.local_port}; limits [{p['v_min']:g}, {p['v_max']:g}] V, "
             f"{p['max_slew_rate']:g} V/s; watchdog {p['watchdog_timeout']:g} s")
-
-    def _refuse_changes(self, params) -> SetParametersResult:
-        names = [q.name for q in params if q.name in self.params]
-        if names:
-            return SetParametersResult(successful=False, reason=f'{", ".join(names)} can only be '
-                                       'set at start-up (restart driver_node)')
-        return SetParametersResult(successful=True)
 
     def on_command(self, msg: JointState) -> None:
         """One command sample -> the target (limits applied by the driver)."""

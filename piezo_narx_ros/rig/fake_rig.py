@@ -2,7 +2,10 @@
 
 Each command datagram advances one PiezoCantilever per axis by one step (so the stream is
 deterministic for a seed, whatever the wall-clock timing) and is answered with the measured
-deflection (m) and the volts the plant applied. A repeated datagram (same sequence number as the
+deflection (m) and the volts the plant applied. Like simulator_node, a gap in the command stamps
+(commands lost upstream) is bridged by stepping the plant with the held voltage, so that driver +
+fake rig and simulator_node give the same stream for the same commands; watchdog ramp datagrams are
+stepped once each and end the gap bridging until the next command. A repeated datagram (same sequence number as the
 previous one) is answered again from a cache without stepping the plant, as an idempotent target
 would. Malformed datagrams are counted and dropped.
 
@@ -26,7 +29,7 @@ class FakeRig:
     """UDP server on (host, port) wrapping n_axes PiezoCantilever plants (axis i uses seed + i)."""
 
     def __init__(self, host: str = '127.0.0.1', port: int = 50000, seed: int = 0, fs: float = 2000.0,
-                 n_axes: int = 1, plant_config: str | None = None):
+                 n_axes: int = 1, plant_config: str | None = None, max_fill: int = 20000):
         from piezo_narx_ros.plant import PiezoCantilever, load_plant_params  # heavy: numba kernels
 
         if not 1 <= n_axes <= protocol.MAX_AXES:
@@ -40,6 +43,11 @@ class FakeRig:
             plant.step(0.0)
             plant.reset()
         self.n_axes = n_axes
+        self.period_ns = 1e9 / fs
+        self.max_fill = max_fill
+        self._last_stamp: int | None = None
+        self._held = [0.0] * n_axes
+        self.filled = 0
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         # Room for a burst of a few thousand datagrams if this process is descheduled for a while.
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 21)
@@ -70,6 +78,12 @@ class FakeRig:
         if self._last is not None and self._last[0] == cmd.seq and self._last[1] == cmd.volts:
             self.repeats += 1
             return self._last[2]
+        if cmd.flags & protocol.FLAG_RAMP:
+            self._last_stamp = None
+        else:
+            self._bridge_gap(cmd.stamp_ns)
+            self._last_stamp = cmd.stamp_ns
+        self._held = list(cmd.volts)
         position, applied = [], []
         for plant, volts in zip(self.plants, cmd.volts):
             y_meas, _y_true, u_applied = plant.step(volts)
@@ -80,6 +94,18 @@ class FakeRig:
         self.commands += 1
         self._last = (cmd.seq, cmd.volts, reply)
         return reply
+
+    def _bridge_gap(self, stamp_ns: int) -> None:
+        if self._last_stamp is None or stamp_ns <= self._last_stamp:
+            return
+        missing = int(round((stamp_ns - self._last_stamp) / self.period_ns)) - 1
+        n = min(missing, self.max_fill)
+        if n <= 0:
+            return
+        self.filled += n
+        for plant, held in zip(self.plants, self._held):
+            for _ in range(n):
+                plant.step(held)
 
     def serve(self) -> None:
         """Answer datagrams until stop() is called."""
@@ -123,6 +149,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--fs', type=float, default=2000.0, help='plant sample rate, Hz (default 2000)')
     p.add_argument('--axes', type=int, default=1, help='number of axes (default 1)')
     p.add_argument('--plant-config', default=None, help='plant YAML (default config/plant.yaml)')
+    p.add_argument('--max-fill', type=int, default=20000,
+                   help='longest stamp gap (samples) bridged by holding the voltage (default 20000)')
     return p
 
 
@@ -132,7 +160,8 @@ def main(argv: list[str] | None = None) -> None:
     try:
         if not 0 <= args.port <= 65535:
             raise ConfigError(f'port must be 0..65535, got {args.port}')
-        rig = FakeRig(args.host, args.port, args.seed, args.fs, args.axes, args.plant_config)
+        rig = FakeRig(args.host, args.port, args.seed, args.fs, args.axes, args.plant_config,
+                      args.max_fill)
     except (PiezoNarxError, FileNotFoundError) as exc:
         print(f'fake_rig: error: {exc}', file=sys.stderr)
         sys.exit(2)
