@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from piezo_narx_ros.errors import DataError
+from piezo_narx_ros.errors import ConfigError, DataError
 from piezo_narx_ros.ident.arx import ARXModel
 from piezo_narx_ros.ident.narx import NARXNetwork
 from piezo_narx_ros.ident.regressors import lagged_regressors
@@ -173,8 +173,12 @@ def test_stepper_history_and_bad_input():
 
 
 def test_narx_rejects_bad_construction_and_unfitted_use():
-    with pytest.raises(DataError, match='unknown training option'):
+    with pytest.raises(ConfigError, match='unknown training option'):
         NARXNetwork(restartz=3)
+    with pytest.raises(ConfigError, match='segment_length must be an integer >= 1'):
+        NARXNetwork(segment_length=0)
+    with pytest.raises(ConfigError, match='val_fraction'):
+        NARXNetwork(val_fraction=0.9)
     with pytest.raises(DataError, match='hidden must be a positive integer'):
         NARXNetwork(hidden=0)
     with pytest.raises(DataError, match='no weights yet'):

@@ -68,7 +68,7 @@ class ARXModel(LaggedModel):
         self._ay = np.ascontiguousarray(-a[::-1])
         return self
 
-    def _predict_inplace(self, u, y, start):
+    def _one_step(self, u, y, start):
         return arx_predict(u, y, start, self._bu, self._ay, self.c)
 
     def _simulate_inplace(self, u, y, start):

@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 
-from ..errors import DataError
+from ..errors import ConfigError, DataError
 from .kernels import NARXStepper, narx_predict, narx_simulate
 from .regressors import LaggedModel, as_signal, check_orders
 
@@ -30,6 +30,31 @@ TRAINING_DEFAULTS = {
     'hessian_stride': 2,       # refinement J^T J from every k-th row (gradient uses all rows)
     'threads': 1,              # torch threads inside fit
 }
+
+
+#: Smallest allowed value of each integer option.
+_MIN_INT = {'restarts': 1, 'restart_iter': 0, 'restart_samples': 0, 'max_iter': 0,
+            'onestep_samples': 0, 'max_fail': 1, 'refine_iter': 0, 'refine_max_fail': 1,
+            'segment_length': 1, 'n_segments': 0, 'hessian_stride': 1, 'threads': 1}
+
+
+def _check_options(options):
+    """Training options merged over the defaults; ConfigError naming an unknown or bad one."""
+    unknown = set(options) - set(TRAINING_DEFAULTS)
+    if unknown:
+        raise ConfigError(f'unknown training option(s): {", ".join(sorted(unknown))}; '
+                          f'known: {", ".join(TRAINING_DEFAULTS)}')
+    merged = {**TRAINING_DEFAULTS, **options}
+    for name, lo in _MIN_INT.items():
+        v = merged[name]
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
+            raise ConfigError(f'training option {name} must be an integer >= {lo}, got {v!r}')
+        merged[name] = int(v)
+    v = merged['val_fraction']
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= 0.5:
+        raise ConfigError(f'training option val_fraction must be a number in [0, 0.5], got {v!r}')
+    merged['val_fraction'] = float(v)
+    return merged
 
 
 class NARXNetwork(LaggedModel):
@@ -52,11 +77,7 @@ class NARXNetwork(LaggedModel):
         if self.hidden != hidden or self.hidden < 1:
             raise DataError(f'hidden must be a positive integer, got {hidden!r}')
         self.seed = int(seed)
-        unknown = set(training_options) - set(TRAINING_DEFAULTS)
-        if unknown:
-            raise DataError(f'unknown training option(s): {", ".join(sorted(unknown))}; '
-                            f'known: {", ".join(TRAINING_DEFAULTS)}')
-        self.training_options = {**TRAINING_DEFAULTS, **training_options}
+        self.training_options = _check_options(training_options)
         self.W1 = None
         self.training_info_ = {}
 
@@ -148,7 +169,7 @@ class NARXNetwork(LaggedModel):
         return self
 
     # ---------------------------------------------------------------- inference
-    def _predict_inplace(self, u, y, start):
+    def _one_step(self, u, y, start):
         return narx_predict(u, y, start, self._Wu, self._Wy, self._b1r, self._w2r, self._b2r)
 
     def _simulate_inplace(self, u, y, start):

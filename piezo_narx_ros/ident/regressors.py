@@ -67,7 +67,7 @@ def lagged_regressors(u, y, nu, ny):
 class LaggedModel:
     """Shared predict/simulate/stepper plumbing of ARXModel and NARXNetwork.
 
-    Subclasses set ``nu``, ``ny`` and implement ``_predict_inplace(u, y, start)`` (one-step outputs),
+    Subclasses set ``nu``, ``ny`` and implement ``_one_step(u, y, start)`` (one-step outputs),
     ``_simulate_inplace(u, y, start)`` (free run filling y[start:]) and ``_make_stepper(u_past,
     y_past)``; ``_is_fitted()`` tells whether weights exist.
     """
@@ -102,7 +102,7 @@ class LaggedModel:
         self._require_fitted()
         u = as_signal(u, 'u', min_len=self.n0 + 1)
         y = as_signal(y, 'y', n=u.size)
-        return self._predict_inplace(u, y, self.n0)
+        return self._one_step(u, y, self.n0)
 
     def simulate(self, u, y0=None):
         """Free-run simulation from the input alone.
