@@ -69,3 +69,10 @@ def test_pack_refuses_values_a_target_cannot_represent():
         p.pack_command(p.Command(0, 0, ()))
     with pytest.raises(p.DatagramError, match='applied'):
         p.pack_reply(p.Reply(0, 0, (1.0,), ()))
+
+
+def test_example_in_docs_driver_md_is_what_pack_produces():
+    doc = (p.__file__.rsplit('/piezo_narx_ros/', 1)[0] + '/docs/driver.md')
+    hex_line = next(line for line in open(doc) if line.startswith('50 5a 52 47'))
+    assert bytes.fromhex(hex_line.replace(' ', '').strip()) == \
+        p.pack_command(p.Command(7, 1_500_000_000, (12.5,)))
