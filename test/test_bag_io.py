@@ -168,3 +168,23 @@ def test_writer_refuses_existing_path_and_unknown_type(tmp_path):
             bag.add_topic('foo', 'my_pkg/msg/Foo')
         with pytest.raises(BagError, match='was not added'):
             bag.write('/bar', 1, b'')
+
+
+def test_rclpy_serialized_payloads_with_trailing_bytes_are_read(tmp_path):
+    """rclpy's serialize_message returns 8 bytes more than the message; such bytes, republished
+    and recorded, must still decode."""
+    from rclpy.serialization import serialize_message
+
+    from piezo_narx_ros.nodes.common import make_joint_state
+    with BagWriter(tmp_path / 'b') as bag:
+        c = bag.add_topic('piezo/voltage_command', JOINT_STATE)
+        d = bag.add_topic('piezo/deflection', JOINT_STATE)
+        for k in range(20):
+            t = T0 + k * 500_000
+            raw_u = serialize_message(make_joint_state(t, ['x'], effort=[0.5 * k]))
+            assert len(raw_u) > len(joint_state_cdr(t, effort=(0.5 * k,))) + 3
+            bag.write(c, t, raw_u)
+            bag.write(d, t, serialize_message(make_joint_state(t, ['x'], position=[1e-6 * k])))
+    rec = read_uy(tmp_path / 'b')
+    np.testing.assert_array_equal(rec.u, 0.5 * np.arange(20))
+    np.testing.assert_array_equal(rec.y, 1e-6 * np.arange(20))

@@ -102,6 +102,24 @@ def find_topic(reader, topic: str, msgtype: str | None = None, path='bag') -> li
     return conns
 
 
+def decode_cdr(raw: bytes, typename: str):
+    """Decode CDR bytes of a built-in type with the rosbags type store.
+
+    Trailing bytes after a complete message are tolerated: rclpy's serialize_message with this
+    rmw returns buffers 8 bytes longer than the message, and a bag of republished bytes keeps
+    them, while rosbags refuses more than 3 bytes of end padding."""
+    from rosbags.serde import SerdeError
+    store = typestore()
+    try:
+        return store.deserialize_cdr(raw, typename)
+    except SerdeError as exc:
+        if 'size mismatch' not in str(exc) or len(raw) < 4:
+            raise
+    msgdef = store.get_msgdef(typename)
+    func = msgdef.deserialize_cdr_le if raw[1] == 1 else msgdef.deserialize_cdr_be
+    return func(memoryview(raw)[4:], 0, msgdef.cls, store)[0]
+
+
 # ------------------------------------------------------------------------------- JointState data
 @dataclass
 class JointSeries:
@@ -121,7 +139,6 @@ def read_joint_series(path: str | Path, fields: dict[str, str], axis: int = 0
     fields: {topic: 'position' | 'effort'}; axis: index into that array. Returns {topic (as given):
     JointSeries}. Messages lacking field[axis] are counted in `malformed`, not raised.
     """
-    store = typestore()
     with open_bag(path) as reader:
         by_conn = {}
         for topic, fld in fields.items():
@@ -135,7 +152,7 @@ def read_joint_series(path: str | Path, fields: dict[str, str], axis: int = 0
         for conn, log_ns, raw in _messages(reader, conns, path):
             topic = by_conn[conn.id]
             try:
-                msg = store.deserialize_cdr(raw, JOINT_STATE)
+                msg = decode_cdr(raw, JOINT_STATE)
             except Exception as exc:  # noqa: BLE001 - any decode failure is a damaged message
                 raise BagError(f'bag {path}: cannot decode a {JOINT_STATE} message on '
                                f'{absolute_topic(topic)} at log time {log_ns} ns: '
@@ -246,7 +263,7 @@ def bag_info(path: str | Path) -> BagInfo:
         for conn, log_ns, raw in _messages(reader, reader.connections, path):
             if conn.id in decodable:
                 try:
-                    st = store.deserialize_cdr(raw, JOINT_STATE).header.stamp
+                    st = decode_cdr(raw, JOINT_STATE).header.stamp
                     stamps[conn.id].append(st.sec * 1_000_000_000 + st.nanosec)
                     continue
                 except Exception:  # noqa: BLE001 - fall back to receive times for this topic
