@@ -53,6 +53,22 @@ def test_from_measurement_equals_simulate_with_measured_y0(model):
     assert np.max(np.abs(np.array([y for _, y in out]) - ref)) <= 1e-12
 
 
+def test_initialises_at_the_first_measured_window_when_early_measurements_are_lost(model):
+    u = _u(500, 11)
+    y_meas = model.simulate(u) + 1e-8
+    est = FreeRunEstimator(model, init='measurement')
+    out = []
+    for k in range(500):
+        out += est.on_command(k * P, float(u[k]))
+        if k >= 30 and k != 31:                  # 0..29 and 31 never arrive
+            out += est.on_measurement(k * P, float(y_meas[k]))
+    j = 32                                        # first n0 = 3 consecutive measured: 32, 33, 34
+    assert est.stats.init == 'measurement' and est.stats.unestimated == j
+    assert [t for t, _ in out] == [k * P for k in range(j, 500)]
+    ref = model.simulate(u[j:], y_meas[j:j + model.n0])
+    assert np.max(np.abs(np.array([y for _, y in out]) - ref)) <= 1e-12
+
+
 def test_measurement_that_never_comes_falls_back_to_rest_without_losing_samples(model):
     u = _u(400, 2)
     est = FreeRunEstimator(model, init='measurement', init_timeout=0.05)   # 100 samples

@@ -37,6 +37,7 @@ class EstimatorStats:
     resets: int = 0            # restarts after a gap longer than max_fill
     out_of_range: int = 0      # estimates outside the model's trained output range (+ margin)
     reanchors: int = 0
+    unestimated: int = 0       # commands before the first n0 measured ones (init from measurement)
     init: str = 'waiting'      # 'waiting', 'rest', 'measurement', 'rest (no measurement)'
 
 
@@ -232,12 +233,23 @@ class FreeRunEstimator:
         self._ymeas.append(y)
 
     def _try_init_from_measurement(self) -> bool:
-        """Initialise when the first n0 pending commands all have a measurement."""
-        n0 = self.n0
-        if len(self._pending) < n0 or any(t not in self._meas for t, _, _ in self._pending[:n0]):
+        """Initialise at the first n0 consecutive pending commands that all have a measurement
+        (usually the first n0; later ones when the first measurements were lost, e.g. while the
+        deflection subscription was still being matched). Earlier commands get no estimate and
+        are counted as `unestimated`."""
+        n0, pending, meas = self.n0, self._pending, self._meas
+        run = 0
+        for j, (t, _, _) in enumerate(pending):
+            run = run + 1 if t in meas else 0
+            if run >= n0:
+                break
+        else:
             return False
-        u0 = [u for _, u, _ in self._pending[:n0]]
-        y0 = [self._meas[t] for t, _, _ in self._pending[:n0]]
+        start = j + 1 - n0
+        self.stats.unestimated += start
+        del pending[:start]
+        u0 = [u for _, u, _ in pending[:n0]]
+        y0 = [meas[t] for t, _, _ in pending[:n0]]
         self._stepper = self.model.stepper(u0[n0 - self.nu:] if self.nu else None,
                                            y0[n0 - self.ny:] if self.ny else None)
         self.stats.init = 'measurement'
