@@ -140,8 +140,9 @@ def probe():
 
 def test_driver_with_fake_rig_reproduces_the_plant_stream(probe):
     rig_port, local_port = free_udp_port(), free_udp_port()
-    rig = subprocess.Popen([sys.executable, '-m', 'piezo_narx_ros.rig.fake_rig', '--port', str(rig_port),
-                            '--seed', '7'], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    rig = subprocess.Popen([sys.executable, '-m', 'piezo_narx_ros.rig.fake_rig', '--port',
+                            str(rig_port), '--seed', '7'], stdout=subprocess.PIPE,
+                           stderr=subprocess.STDOUT, text=True)
     # A watchdog ramp datagram would step the rig's plant too: keep the watchdog out of this test.
     driver = start_driver(target_port=rig_port, local_port=local_port, reply_timeout=0.5,
                           watchdog_timeout=30.0)
@@ -150,7 +151,7 @@ def test_driver_with_fake_rig_reproduces_the_plant_stream(probe):
         first = probe.handshake()
         k0 = probe.k
         k = np.arange(600)
-        u = 80.0 * np.sin(2 * np.pi * 3.0 * k / 2000.0) + 20.0 * np.sin(2 * np.pi * 41.0 * k / 2000.0)
+        u = 80.0 * np.sin(2 * np.pi * 3.0 * k / 2000.0) + 20.0 * np.sin(2 * np.pi * 41 * k / 2000.0)
         stamps = probe.send(u)
         probe.wait(lambda: len(probe.deflection) >= len(u), 20.0,
                    lambda: f'all deflection samples, got {len(probe.deflection)}')
@@ -218,7 +219,7 @@ def test_driver_with_fake_rig_equals_simulator_node_across_lost_commands():
 
 class EchoTarget:
     """A UDP target in the test: records (arrival s, Command), replies position = 1e-7 m/V,
-    skips the replies to samples k in `drop` and answers samples in `dup` twice (k from the stamp)."""
+    skips the replies to samples k in `drop` and answers samples in `dup` twice (k from stamps)."""
 
     def __init__(self):
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -303,11 +304,13 @@ def test_limits_clamp_and_watchdog_ramps_to_zero_at_the_slew_limit(probe):
     ({'v_min': 10.0}, 'parameter v_min must be <= 0.0, got 10.0'),
     ({'v_min': 0.0, 'v_max': 0.0}, 'v_min (0.0 V) must be below v_max (0.0 V)'),
     ({'reply_timeout': -1.0}, 'parameter reply_timeout must be >= 1e-05'),
-    ({'target_host': 'no.such.host.invalid'}, "target_host 'no.such.host.invalid' cannot be resolved"),
+    ({'target_host': 'no.such.host.invalid'},
+     "target_host 'no.such.host.invalid' cannot be resolved"),
 ])
 def test_bad_parameters_are_refused_with_a_reason(params, reason):
     proc = start_driver(local_port=0, **params)
     out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 2, out
     lines = out.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith('driver_node: error: ') and reason in lines[0], out
+    assert len(lines) == 1 and lines[0].startswith('driver_node: error: '), out
+    assert reason in lines[0], out

@@ -1,4 +1,4 @@
-"""Fake rig over real UDP sockets (no DDS): same numbers as PiezoCantilever.step, malformed survived."""
+"""Fake rig over real UDP sockets (no DDS): PiezoCantilever.step's numbers, malformed survived."""
 import socket
 import subprocess
 import sys
@@ -59,10 +59,11 @@ def test_malformed_datagrams_are_counted_and_the_rig_keeps_serving(rig):
         for junk in (b'', b'hello', p.pack_reply(p.Reply(1, 0, (0.0,), (0.0,))),
                      p.pack_command(p.Command(1, 0, (1.0, 2.0)))):   # wrong axis count
             sock.sendto(junk, rig.address)
-        reply = p.unpack_reply(_exchange(sock, rig.address, p.pack_command(p.Command(5, 42, (10.0,)))))
+        cmd = p.pack_command(p.Command(5, 42, (10.0,)))
+        reply = p.unpack_reply(_exchange(sock, rig.address, cmd))
         assert reply.seq == 5 and reply.stamp_ns == 42 and reply.applied_volts[0] != 0.0
         # A retransmitted datagram is answered from cache without stepping the plant again.
-        again = p.unpack_reply(_exchange(sock, rig.address, p.pack_command(p.Command(5, 42, (10.0,)))))
+        again = p.unpack_reply(_exchange(sock, rig.address, cmd))
         assert again == reply
     assert rig.malformed == 4 and rig.commands == 1 and rig.repeats == 1
 
@@ -71,8 +72,9 @@ def test_fake_rig_cli_serves_and_refuses_bad_options():
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(('127.0.0.1', 0))
         port = s.getsockname()[1]
-    proc = subprocess.Popen([sys.executable, '-m', 'piezo_narx_ros.rig.fake_rig', '--port', str(port),
-                             '--seed', '0'], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    cmd = [sys.executable, '-m', 'piezo_narx_ros.rig.fake_rig', '--port', str(port)]
+    proc = subprocess.Popen(cmd + ['--seed', '0'], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
     try:
         assert 'listening on 127.0.0.1:%d' % port in proc.stdout.readline()
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
@@ -81,10 +83,10 @@ def test_fake_rig_cli_serves_and_refuses_bad_options():
         expect = PiezoCantilever(load_plant_params(), fs=2000.0, seed=0).step(50.0)
         assert reply.position_m[0] == expect[0]
         # A second rig on the same port is refused in one line.
-        busy = subprocess.run([sys.executable, '-m', 'piezo_narx_ros.rig.fake_rig', '--port', str(port)],
-                              capture_output=True, text=True, timeout=60)
+        busy = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
         assert busy.returncode == 2
-        assert busy.stderr.startswith('fake_rig: error: cannot bind') and busy.stderr.count('\n') == 1
+        assert busy.stderr.startswith('fake_rig: error: cannot bind')
+        assert busy.stderr.count('\n') == 1
     finally:
         proc.terminate()
         out, _ = proc.communicate(timeout=10)

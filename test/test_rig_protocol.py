@@ -20,7 +20,8 @@ def test_command_bytes_are_the_documented_layout():
 
 
 def test_reply_interleaves_metres_and_volts_per_axis():
-    data = p.pack_reply(p.Reply(seq=9, stamp_ns=-5, position_m=(1e-6, 2e-6), applied_volts=(10.0, 20.0)))
+    data = p.pack_reply(p.Reply(seq=9, stamp_ns=-5, position_m=(1e-6, 2e-6),
+                                applied_volts=(10.0, 20.0)))
     assert len(data) == p.reply_size(2) == 24 + 32
     assert data[5] == 2
     assert struct.unpack_from('<4d', data, 24) == (1e-6, 10.0, 2e-6, 20.0)

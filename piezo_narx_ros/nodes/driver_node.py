@@ -35,9 +35,10 @@ class DriverNode(PiezoNode):
     PARAMS = (
         ParamSpec('target_host', '127.0.0.1', 'address of the real-time target (rig)',
                   check=(_nonempty, 'must not be empty'), read_only=True),
-        ParamSpec('target_port', 50000, 'UDP port of the target', low=1, high=65535, read_only=True),
-        ParamSpec('local_port', 50001, 'local UDP port the replies come back to (0 = any free port)',
-                  low=0, high=65535, read_only=True),
+        ParamSpec('target_port', 50000, 'UDP port of the target', low=1, high=65535,
+                  read_only=True),
+        ParamSpec('local_port', 50001, 'local UDP port the replies come back to (0 = any free '
+                  'port)', low=0, high=65535, read_only=True),
         ParamSpec('axis', 'x', 'axis name taken from voltage_command and written on deflection',
                   check=(_nonempty, 'must not be empty'), read_only=True),
         ParamSpec('v_min', -200.0, 'lowest voltage ever sent to the target, V (must be <= 0)',
@@ -47,7 +48,8 @@ class DriverNode(PiezoNode):
         ParamSpec('max_slew_rate', 2.0e5, 'largest rate of change of the output, V/s', low=1e-3,
                   high=1e9, read_only=True),
         ParamSpec('sample_rate', 2000.0, 'nominal command rate, Hz: one command may move the '
-                  'output by max_slew_rate / sample_rate V', low=1.0, high=100000.0, read_only=True),
+                  'output by max_slew_rate / sample_rate V', low=1.0, high=100000.0,
+                  read_only=True),
         ParamSpec('watchdog_timeout', 0.1, 'time without a command before the output ramps to '
                   '0 V, s', low=1e-3, high=60.0, read_only=True),
         ParamSpec('ramp_rate', 1000.0, 'datagrams per second while ramping to 0 V, Hz', low=1.0,
@@ -64,7 +66,8 @@ class DriverNode(PiezoNode):
         super().__init__(**kwargs)
         p = self.params
         if p['v_min'] >= p['v_max']:
-            raise ConfigError(f"parameter v_min ({p['v_min']} V) must be below v_max ({p['v_max']} V)")
+            raise ConfigError(f"parameter v_min ({p['v_min']} V) must be below v_max "
+                              f"({p['v_max']} V)")
         config = DriverConfig(n_axes=1, v_min=p['v_min'], v_max=p['v_max'],
                               max_slew_rate=p['max_slew_rate'], sample_rate=p['sample_rate'],
                               watchdog_timeout=p['watchdog_timeout'], ramp_rate=p['ramp_rate'],
@@ -133,8 +136,8 @@ class DriverNode(PiezoNode):
             time.sleep(period)
         if not self.driver.parked:
             self.get_logger().error(
-                f'output still at {self.driver.limiter.output[0]:g} V after {_SHUTDOWN_RAMP_MAX_S:g} s '
-                'of shutdown ramp; the target must park it')
+                f'output still at {self.driver.limiter.output[0]:g} V after '
+                f'{_SHUTDOWN_RAMP_MAX_S:g} s of shutdown ramp; the target must park it')
         self.client.close()
 
 

@@ -33,7 +33,8 @@ class RigClient:
             self.sock.bind((local_host, local_port))
         except OSError as exc:
             self.sock.close()
-            raise ConfigError(f'cannot bind UDP port {local_host}:{local_port}: {exc.strerror or exc}') from None
+            raise ConfigError(f'cannot bind UDP port {local_host}:{local_port}: '
+                              f'{exc.strerror or exc}') from None
         # A short timeout lets the receive thread notice close() without a wake-up datagram.
         self.sock.settimeout(0.1)
         self.foreign = 0

@@ -4,7 +4,8 @@ RigDriver is driven by three calls, each given the monotonic time `now` (s) so t
   command(volts, stamp_ns, now)  a command sample arrived: limit it and send it to the target;
   receive(data, now)             a datagram arrived from the target: the Sample to publish, or None;
   tick(now)                      periodic: expire unanswered commands, run the watchdog ramp.
-Outgoing datagrams go through the `send(bytes)` callable (a UDP socket in the node, a list in tests).
+Outgoing datagrams go through the `send(bytes)` callable (a UDP socket in the node, a list in
+tests).
 The three calls may come from different threads (the node receives on its own thread), so each one
 holds a lock.
 """
@@ -37,7 +38,7 @@ class DriverConfig:
     v_min: float = -200.0          # V, lowest voltage ever sent
     v_max: float = 200.0           # V, highest voltage ever sent
     max_slew_rate: float = 2.0e5   # V/s, largest rate of change ever sent
-    sample_rate: float = 2000.0    # Hz, nominal command rate: one command may move max_slew_rate/sample_rate V
+    sample_rate: float = 2000.0    # Hz, nominal command rate; slew step max_slew_rate/sample_rate
     watchdog_timeout: float = 0.1  # s without a command before the ramp to 0 V starts
     ramp_rate: float = 1000.0      # Hz, datagrams per second while ramping
     reply_timeout: float = 0.01    # s after which an unanswered command counts as a reply timeout
@@ -46,7 +47,8 @@ class DriverConfig:
         """Raise ConfigError naming the first bad field."""
         if not 1 <= self.n_axes <= protocol.MAX_AXES:
             raise ConfigError(f'n_axes must be 1..{protocol.MAX_AXES}, got {self.n_axes}')
-        for name in ('max_slew_rate', 'sample_rate', 'watchdog_timeout', 'ramp_rate', 'reply_timeout'):
+        for name in ('max_slew_rate', 'sample_rate', 'watchdog_timeout', 'ramp_rate',
+                     'reply_timeout'):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f'{name} must be a positive finite number, got {value}')
@@ -145,7 +147,8 @@ class RigDriver:
                 return self.limiter.output.copy()
             if v.size != self.config.n_axes:
                 self.counts['commands_rejected'] += 1
-                raise DataError(f'command has {v.size} values, the driver drives {self.config.n_axes} axes')
+                raise DataError(f'command has {v.size} values, the driver drives '
+                                f'{self.config.n_axes} axes')
             if not np.all(np.isfinite(v)):
                 self.counts['commands_rejected'] += 1
                 raise DataError(f'command volts {v.tolist()} are not finite')
@@ -200,7 +203,8 @@ class RigDriver:
             if not np.any(out):
                 self.state = STATE_PARKED
 
-    def _send(self, volts: np.ndarray, stamp_ns: int, now: float, flags: int, publish: bool) -> None:
+    def _send(self, volts: np.ndarray, stamp_ns: int, now: float, flags: int,
+              publish: bool) -> None:
         seq = self._seq
         self._seq = (self._seq + 1) % protocol.SEQ_MODULO
         data = protocol.pack_command(protocol.Command(seq, stamp_ns, tuple(volts.tolist()), flags))
@@ -293,8 +297,8 @@ class RigDriver:
                 answered = delta['replies'] + delta['replies_late']
                 if answered == 0:
                     level = DIAG_ERROR
-                    problems.append(f"target not replying: {delta['reply_timeouts']} reply timeouts "
-                                    f"(> {self.config.reply_timeout:g} s)")
+                    problems.append(f"target not replying: {delta['reply_timeouts']} reply "
+                                    f"timeouts (> {self.config.reply_timeout:g} s)")
                 else:
                     level = max(level, DIAG_WARN)
                     problems.append(f"reply timeout: {delta['reply_timeouts']} replies later than "

@@ -5,9 +5,9 @@ deterministic for a seed, whatever the wall-clock timing) and is answered with t
 deflection (m) and the volts the plant applied. Like simulator_node, a gap in the command stamps
 (commands lost upstream) is bridged by stepping the plant with the held voltage, so that driver +
 fake rig and simulator_node give the same stream for the same commands; watchdog ramp datagrams are
-stepped once each and end the gap bridging until the next command. A repeated datagram (same sequence number as the
-previous one) is answered again from a cache without stepping the plant, as an idempotent target
-would. Malformed datagrams are counted and dropped.
+stepped once each and end the gap bridging until the next command. A repeated datagram (same
+sequence number and volts as the previous one) is answered again from a cache without stepping
+the plant, as an idempotent target would. Malformed datagrams are counted and dropped.
 
     fake_rig --port 50000 --seed 0
 """
@@ -28,8 +28,9 @@ _MAX_DATAGRAM = 65535
 class FakeRig:
     """UDP server on (host, port) wrapping n_axes PiezoCantilever plants (axis i uses seed + i)."""
 
-    def __init__(self, host: str = '127.0.0.1', port: int = 50000, seed: int = 0, fs: float = 2000.0,
-                 n_axes: int = 1, plant_config: str | None = None, max_fill: int = 20000):
+    def __init__(self, host: str = '127.0.0.1', port: int = 50000, seed: int = 0,
+                 fs: float = 2000.0, n_axes: int = 1, plant_config: str | None = None,
+                 max_fill: int = 20000):
         from piezo_narx_ros.plant import PiezoCantilever, load_plant_params  # heavy: numba kernels
 
         if not 1 <= n_axes <= protocol.MAX_AXES:
@@ -150,12 +151,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--axes', type=int, default=1, help='number of axes (default 1)')
     p.add_argument('--plant-config', default=None, help='plant YAML (default config/plant.yaml)')
     p.add_argument('--max-fill', type=int, default=20000,
-                   help='longest stamp gap (samples) bridged by holding the voltage (default 20000)')
+                   help='longest stamp gap (samples) bridged by holding the voltage '
+                   '(default 20000)')
     return p
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Console script: serve until SIGINT/SIGTERM; a bad option or busy port exits 2 with one line."""
+    """Console script: serve until SIGINT/SIGTERM; a bad option or a busy port exits 2, one line."""
     args = build_parser().parse_args(argv)
     try:
         if not 0 <= args.port <= 65535:

@@ -22,7 +22,8 @@ class SlewLimiter:
     def __init__(self, v_min: float, v_max: float, max_slew_rate: float, n_axes: int = 1,
                  v0: float = 0.0):
         if not (math.isfinite(v_min) and math.isfinite(v_max)) or v_min >= v_max:
-            raise ConfigError(f'voltage limits must be finite with v_min < v_max, got [{v_min}, {v_max}] V')
+            raise ConfigError('voltage limits must be finite with v_min < v_max, '
+                              f'got [{v_min}, {v_max}] V')
         if not v_min <= 0.0 <= v_max:
             # The watchdog parks the output at 0 V, so 0 V must be allowed.
             raise ConfigError(f'voltage limits [{v_min}, {v_max}] V must include 0 V')
@@ -62,7 +63,8 @@ class Watchdog:
 
     def __init__(self, timeout: float):
         if not (math.isfinite(timeout) and timeout > 0):
-            raise ConfigError(f'watchdog_timeout must be a positive finite number of seconds, got {timeout}')
+            raise ConfigError('watchdog_timeout must be a positive finite number of seconds, '
+                              f'got {timeout}')
         self.timeout = float(timeout)
         self.last_feed: float | None = None
         self.trips = 0

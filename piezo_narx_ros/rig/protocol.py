@@ -1,7 +1,7 @@
-"""UDP datagram format between driver_node and a real-time rig target (docs/driver.md, byte by byte).
+"""UDP datagrams between driver_node and a real-time rig target (docs/driver.md, byte by byte).
 
-Every datagram is little-endian and starts with the same 24-byte header, so a target written in C can
-read it with one packed struct (or memcpy per field):
+Every datagram is little-endian and starts with the same 24-byte header, so a target written in C
+can read it with one packed struct (or memcpy per field):
 
     offset size type     field
     0      4    char[4]  magic     b'PZRG'
@@ -91,7 +91,7 @@ def _check_finite(values, what: str) -> None:
 
 
 def pack_command(cmd: Command) -> bytes:
-    """Encode a command datagram; raises DatagramError for out-of-range fields or non-finite volts."""
+    """Encode a command datagram; DatagramError for out-of-range fields or non-finite volts."""
     n = len(cmd.volts)
     _check_fields(cmd.seq, cmd.stamp_ns, cmd.flags, n)
     _check_finite(cmd.volts, 'volts')
@@ -114,7 +114,8 @@ def pack_reply(reply: Reply) -> bytes:
 
 def _unpack_header(data: bytes, kind: int, per_axis: int, expected_axes: int | None):
     if len(data) < HEADER_SIZE:
-        raise DatagramError(f'datagram of {len(data)} bytes is shorter than the {HEADER_SIZE}-byte header')
+        raise DatagramError(f'datagram of {len(data)} bytes is shorter than the '
+                            f'{HEADER_SIZE}-byte header')
     magic, version, got_kind, n, seq, flags, stamp_ns = HEADER.unpack_from(data)
     if magic != MAGIC:
         raise DatagramError(f'bad magic {magic!r} (expected {MAGIC!r})')
