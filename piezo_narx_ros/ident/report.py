@@ -137,12 +137,14 @@ def plot_r2_grid(result: ExperimentResult, kind: str = 'narx'):
     rows, cols, grids = found
     plt = _pyplot()
     big = max(len(rows), len(cols)) > 5
-    fig, axes = plt.subplots(2, 2, figsize=(10, 8.4) if big else (9, 7.4), constrained_layout=True)
+    fig, axes = plt.subplots(2, 2, figsize=(12, 9.5) if big else (9, 7.4), constrained_layout=True)
     nines = {k: -np.log10(np.clip(1.0 - g, 1e-12, None)) for k, g in grids.items()}
     finite = np.concatenate([v[np.isfinite(v)] for v in nines.values()])
     vmin, vmax = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
     if vmax - vmin < 1e-6:
         vmax = vmin + 1.0
+    # Enough decimals that the best cells do not all print as 1.000.
+    decimals = int(np.clip(np.ceil(vmax) + 1, 3, 4 if big else 6))
     ylab, xlab = ('output lag ny', 'input lag nu') if kind == 'narx' else ('na', 'nb')
     image = None
     for i, mode in enumerate(('prediction', 'simulation')):
@@ -159,11 +161,10 @@ def plot_r2_grid(result: ExperimentResult, kind: str = 'narx'):
             for r in range(len(rows)):
                 for c in range(len(cols)):
                     v = g[r, c]
-                    text = 'diverged' if not np.isfinite(v) else (f'{v:.5f}' if not big
-                                                                   else f'{v:.3f}')
+                    text = 'diverged' if not np.isfinite(v) else f'{v:.{decimals}f}'
                     shade = nines[(data, mode)][r, c]
                     dark = np.isfinite(shade) and shade < vmin + 0.6 * (vmax - vmin)
-                    ax.text(c, r, text, ha='center', va='center', fontsize=6 if big else 9,
+                    ax.text(c, r, text, ha='center', va='center', fontsize=6.5 if big else 9,
                             color='white' if dark else 'black')
     best = result.best.spec
     if best.kind == kind:
@@ -229,10 +230,7 @@ def plot_simulation(rec: Record, sim: np.ndarray, label: str, n0: int):
     axes[1].set_ylabel('residual (µm)')
     rms = float(np.sqrt(np.mean(resid ** 2)))
     axes[1].set_title(f'residual y - ŷ (RMS {rms:.4g} µm)')
-    # Zoom: a window of about 5 % of the record (at least 200 samples) around its middle.
-    width = min(rec.u.size, max(200, rec.u.size // 20))
-    start = max(n0, rec.u.size // 2 - width // 2)
-    cut = slice(start, min(rec.u.size, start + width))
+    cut = _zoom_window(rec.u.size, n0)
     axes[2].plot(t[cut], rec.y[cut] * UM, color='tab:blue', linewidth=1.2, label='measured')
     axes[2].plot(t[cut], sim[cut] * UM, color='tab:orange', linewidth=1.2, linestyle='--',
                  label='simulated')
@@ -245,16 +243,27 @@ def plot_simulation(rec: Record, sim: np.ndarray, label: str, n0: int):
     return fig
 
 
+def _zoom_window(n: int, n0: int) -> slice:
+    """About 5 % of a record (at least 200 samples) around its middle, after the first n0."""
+    width = min(n, max(200, n // 20))
+    start = max(n0, n // 2 - width // 2)
+    return slice(start, min(n, start + width))
+
+
 def plot_hysteresis(rec: Record, sim: np.ndarray, label: str, n0: int):
-    """Fig. 9: hysteresis loop, deflection (µm) against input (V), measured and simulated."""
+    """Fig. 9: hysteresis loop, deflection (µm) against input (V), measured and simulated; the whole
+    validation record and, to see single loops, the zoom window of Fig. 8."""
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7, 5.6), constrained_layout=True)
-    ax.plot(rec.u[n0:], rec.y[n0:] * UM, color='tab:blue', linewidth=0.6, label='measured')
-    ax.plot(rec.u[n0:], sim[n0:] * UM, color='tab:orange', linewidth=0.6, linestyle='--',
-            label='simulated (free run)')
-    ax.set_xlabel('input u (V)')
-    ax.set_ylabel('deflection y (µm)')
-    ax.set_title(f'Hysteresis loop, validation data: {label}')
-    ax.legend(loc='upper left')
-    ax.grid(alpha=0.3)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5), constrained_layout=True)
+    for ax, cut, title in ((axes[0], slice(n0, None), 'whole validation record'),
+                           (axes[1], _zoom_window(rec.u.size, n0), 'zoom (as Fig. 8)')):
+        ax.plot(rec.u[cut], rec.y[cut] * UM, color='tab:blue', linewidth=0.8, label='measured')
+        ax.plot(rec.u[cut], sim[cut] * UM, color='tab:orange', linewidth=0.8, linestyle='--',
+                alpha=0.8, label='simulated (free run)')
+        ax.set_xlabel('input u (V)')
+        ax.set_ylabel('deflection y (µm)')
+        ax.set_title(title)
+        ax.legend(loc='upper left')
+        ax.grid(alpha=0.3)
+    fig.suptitle(f'Hysteresis loop y(u): {label}')
     return fig
