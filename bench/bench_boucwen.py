@@ -1,4 +1,4 @@
-"""Bouc-Wen hysteresis benchmark (Noel & Schoukens 2016): fit on train.npz, free-run on test_multisine.
+"""Bouc-Wen benchmark (Noel & Schoukens 2016): fit on train.npz, free-run on test_multisine.
 
 Run: python bench/bench_boucwen.py [--data ../shared/data/boucwen] [--save model.json] [--floor]
 
@@ -49,7 +49,8 @@ def true_system_from_rest(u, fs):
     def f(tt, x):
         y, v, z = x
         ui = np.interp(tt, t, u)
-        return [v, (ui - c * v - k * y - z) / m, alpha * v - beta * (gamma * abs(v) * z + delta * v * abs(z))]
+        dz = alpha * v - beta * (gamma * abs(v) * z + delta * v * abs(z))
+        return [v, (ui - c * v - k * y - z) / m, dz]
 
     sol = solve_ivp(f, (0.0, t[-1]), [0.0, 0.0, 0.0], t_eval=t, max_step=0.25 / fs, rtol=1e-8,
                     atol=1e-12, method='LSODA')
@@ -88,10 +89,12 @@ def main(argv=None):
     y_steady = model.simulate(np.tile(ut, 2))[ut.size:]
     print(f'settings: nu={args.nu} ny={args.ny} hidden={args.hidden} seed={args.seed} '
           f'options={json.dumps(args.options)} ({model.n_params} weights)')
-    print(f'data: {u.size} training samples (last {info["n_holdout"]} held out for early stopping), '
+    print(f'data: {u.size} training samples (last {info["n_holdout"]} held out for early '
+          f'stopping), '
           f'{ut.size} test samples, fs={fs:g} Hz')
     print(f'fit: {fit_s:.1f} s (one-step LM {info["stage1_seconds"]:.1f} s, simulation-error LM '
-          f'{info.get("stage2_seconds", 0):.1f} s over {info.get("refine_iterations", 0)} iterations, '
+          f'{info.get("stage2_seconds", 0):.1f} s over {info.get("refine_iterations", 0)} '
+          f'iterations, '
           f'kept the {info["selected_stage"]} stage)')
     r_rest, r_steady = rmse(yt, y_rest), rmse(yt, y_steady)
     print(f'test RMSE from rest (figure of merit): {r_rest:.3e} m '

@@ -98,7 +98,8 @@ def main(argv=None):
         fits.append((dt, r2(yv[4:], ys[4:]), r2(ytv[4:], ys[4:]), m))
         i = m.training_info_
         print(f'seed {seed}: fit {dt:.2f} s (stage 1 {i["stage1_seconds"]:.2f} s, stage 2 '
-              f'{i.get("stage2_seconds", 0):.2f} s, kept {i["selected_stage"]}); free-run validation '
+              f'{i.get("stage2_seconds", 0):.2f} s, kept {i["selected_stage"]}); '
+              f'free-run validation '
               f'R2 {fits[-1][1]:.6f} vs measured y, {fits[-1][2]:.6f} vs y_true')
     print(f'median fit time {statistics.median(f[0] for f in fits):.2f} s; median free-run R2 '
           f'{statistics.median(f[1] for f in fits):.6f} (measured), '
@@ -110,7 +111,8 @@ def main(argv=None):
     u_long = np.tile(uv, 40)                                   # 1,000,000 samples
     model.simulate(u_long[:100])
     t_sim = median_time(lambda: model.simulate(u_long), reps)
-    print(f'{u_long.size} samples in {t_sim * 1e3:.1f} ms -> {u_long.size / t_sim / 1e6:.2f} M samples/s')
+    print(f'{u_long.size} samples in {t_sim * 1e3:.1f} ms -> '
+          f'{u_long.size / t_sim / 1e6:.2f} M samples/s')
     arx = ARXModel(4, 4).fit(ue, ye)
     t_arx = median_time(lambda: arx.simulate(u_long), reps)
     print(f'ARX(4,4): {u_long.size / t_arx / 1e6:.2f} M samples/s')
@@ -144,7 +146,8 @@ def main(argv=None):
             for nb in range(1, 11):
                 ARXModel(na, nb).fit(ue, ye)
         t_arx = time.perf_counter() - t0
-        print(f'16 NARX {t_narx:.1f} s + 100 ARX {t_arx:.1f} s = {t_narx + t_arx:.1f} s on one core '
+        print(f'16 NARX {t_narx:.1f} s + 100 ARX {t_arx:.1f} s = {t_narx + t_arx:.1f} s '
+              f'on one core '
               f'(about {(t_narx + t_arx) / 2:.1f} s split over 2 cores)')
     return 0
 

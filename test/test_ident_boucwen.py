@@ -39,7 +39,8 @@ def test_cheap_network_beats_arx_on_boucwen(boucwen):
     model = NARXNetwork(8, 8, 10, seed=0, refine_iter=40).fit(u, y, fs=fs)
     from_rest, steady = scores(model, ut, yt)
     arx_rest, arx_steady = scores(ARXModel(10, 10).fit(u, y), ut, yt)
-    # measured here: 5.1e-5 m from rest and 2.0e-5 m in steady state; ARX(10,10) 1.56e-4 m and 1.51e-4 m
+    # measured here: 5.1e-5 m from rest and 2.0e-5 m in steady state;
+    # ARX(10,10) 1.56e-4 m and 1.51e-4 m
     assert from_rest < 6.0e-5
     assert steady < 3.0e-5
     assert arx_steady > 3 * steady

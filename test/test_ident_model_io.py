@@ -1,4 +1,4 @@
-"""Model files: exact round trip, provenance, and a one-line ModelFileError for every malformed case."""
+"""Model files: exact round trip, provenance, one-line ModelFileError for every malformed case."""
 import json
 import subprocess
 import sys

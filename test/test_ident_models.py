@@ -1,4 +1,4 @@
-"""Identification core: regressors, ARX least squares, NARX network training and free-run kernels."""
+"""Identification core: regressors, ARX least squares, NARX training and free-run kernels."""
 import numpy as np
 import pytest
 from scipy import signal
@@ -184,7 +184,8 @@ def test_narx_rejects_bad_construction_and_unfitted_use():
     with pytest.raises(DataError, match='no weights yet'):
         NARXNetwork().simulate(np.zeros(10))
     with pytest.raises(DataError, match='W1'):
-        NARXNetwork(2, 2, 3).set_weights(np.zeros((3, 4)), np.zeros(3), np.zeros(3), 0, (0, 1, 0, 1))
+        NARXNetwork(2, 2, 3).set_weights(np.zeros((3, 4)), np.zeros(3), np.zeros(3), 0,
+                                         (0, 1, 0, 1))
     with pytest.raises(DataError, match='constant'):
         NARXNetwork(**FAST).fit(np.ones(500), np.arange(500.0))
     with pytest.raises(DataError, match='NaN'):

@@ -37,13 +37,13 @@ class ARXModel(LaggedModel):
         return self.a is not None
 
     def fit(self, u, y, u_val=None, y_val=None, fs=None):
-        """Least-squares fit on estimation data u (V), y (m). u_val/y_val are not used (no tuning)."""
+        """Least-squares fit on estimation data u (V), y (m); u_val/y_val are unused (no tuning)."""
         u = as_signal(u, 'u', min_len=self.n0 + self.n_params)
         y = as_signal(y, 'y', n=u.size)
         X, t = lagged_regressors(u, y, self.nu, self.ny)
         if self.fit_intercept:
             X = np.hstack([X, np.ones((X.shape[0], 1))])
-        # Columns in V and m differ by orders of magnitude; scaling them keeps lstsq well conditioned.
+        # Columns in V and m differ by orders of magnitude; scaling keeps lstsq well conditioned.
         scale = np.sqrt(np.mean(X * X, axis=0))
         scale[scale == 0] = 1.0
         theta, *_ = np.linalg.lstsq(X / scale, t, rcond=None)

@@ -128,8 +128,8 @@ class Stepper:
     """Free-run a model one sample at a time (the estimator's inner loop).
 
     ``u_past`` holds ``[u(k-nu) ... u(k-1)]`` and ``y_past`` ``[y(k-ny) ... y(k-1)]`` in time order
-    (None = rest, zeros). ``step(u_k)`` returns the model output y(k) in m for the new input u_k in V
-    and shifts both histories. No array is allocated per step.
+    (None = rest, zeros). ``step(u_k)`` returns the model output y(k) in m for the new input u_k
+    in V and shifts both histories. No array is allocated per step.
     """
 
     def __init__(self, params, nu, ny, u_past=None, y_past=None):

@@ -2,9 +2,10 @@
 
 Loading never executes code from the files (json + np.load(allow_pickle=False)) and never imports
 torch. The JSON records the structure, activation, normalisation, sample rate, units, the input and
-output ranges seen in training, the training settings, and (when given) the data the model was fitted
-on, its metrics and test results. The .npz holds every weight array, so a save/load round trip is
-bit-exact; the JSON also stores the .npz's SHA-256 so a changed or truncated weights file is caught.
+output ranges seen in training, the training settings, and (when given) the data the model was
+fitted on, its metrics and test results. The .npz holds every weight array, so a save/load round
+trip is bit-exact; the JSON also stores the .npz's SHA-256 so a changed or truncated weights file is
+caught.
 """
 import hashlib
 import json
@@ -148,8 +149,8 @@ def _read_json(path):
     if not isinstance(doc, dict):
         raise ModelFileError(f'{name}: top level must be a JSON object')
     if doc.get('format') != FORMAT:
-        raise ModelFileError(f'{name}: not a piezo_narx_ros model (format is {doc.get("format")!r}, '
-                             f'expected {FORMAT!r})')
+        raise ModelFileError(f'{name}: not a piezo_narx_ros model '
+                             f'(format is {doc.get("format")!r}, expected {FORMAT!r})')
     version = _get(doc, 'format_version', name, (int,))
     if version > FORMAT_VERSION:
         raise ModelFileError(f'{name}: format_version {version} is newer than this reader supports '

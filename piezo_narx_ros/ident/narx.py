@@ -98,7 +98,8 @@ class NARXNetwork(LaggedModel):
     def set_weights(self, W1, b1, w2, b2, normalisation):
         """Set the weights in normalised units.
 
-        W1 : (H, nu+1+ny) input weights, columns in regressor order [u(k)..u(k-nu), y(k-1)..y(k-ny)];
+        W1 : (H, nu+1+ny) input weights, columns in regressor order
+             [u(k)..u(k-nu), y(k-1)..y(k-ny)];
         b1 : (H,); w2 : (H,); b2 : scalar; normalisation : (u_mean V, u_std V, y_mean m, y_std m).
         """
         H, d = self.hidden, self.n_inputs
@@ -108,7 +109,8 @@ class NARXNetwork(LaggedModel):
         b2 = float(np.asarray(b2, dtype=np.float64).reshape(-1)[0]) if np.size(b2) == 1 else None
         norm = np.array(normalisation, dtype=np.float64).ravel()
         if W1.shape != (H, d) or b1.shape != (H,) or w2.shape != (H,) or b2 is None:
-            raise DataError(f'NARX weights must be W1 {(H, d)}, b1 ({H},), w2 ({H},), b2 scalar; got '
+            raise DataError(f'NARX weights must be W1 {(H, d)}, b1 ({H},), w2 ({H},), b2 scalar; '
+                            f'got '
                             f'W1 {W1.shape}, b1 {b1.shape}, w2 {w2.shape}, b2 size {np.size(b2)}')
         if norm.shape != (4,) or norm[1] <= 0 or norm[3] <= 0:
             raise DataError('normalisation must be (u_mean, u_std > 0, y_mean, y_std > 0)')
@@ -138,8 +140,8 @@ class NARXNetwork(LaggedModel):
 
         Stage 1: Levenberg-Marquardt on the one-step error (seeded restarts, early stopping on a
         held-out tail). Stage 2: simulation-error LM on free-run segments, kept only if the held-out
-        free-run error improves. u_val/y_val (if given) are only scored into ``training_info_``, never
-        used for a choice, so they stay an honest validation set.
+        free-run error improves. u_val/y_val (if given) are only scored into ``training_info_``,
+        never used for a choice, so they stay an honest validation set.
         """
         from . import training  # torch lives there; inference never imports it
 

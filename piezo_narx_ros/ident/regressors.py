@@ -17,7 +17,8 @@ def check_orders(nu, ny):
     except (TypeError, ValueError):
         raise DataError(f'lag orders must be integers, got nu={nu!r}, ny={ny!r}') from None
     if nu_i != nu or ny_i != ny or nu_i < 0 or ny_i < 1:
-        raise DataError(f'lag orders must be integers with nu >= 0 and ny >= 1, got nu={nu!r}, ny={ny!r}')
+        raise DataError(f'lag orders must be integers with nu >= 0 and ny >= 1, '
+                        f'got nu={nu!r}, ny={ny!r}')
     return nu_i, ny_i
 
 
@@ -83,7 +84,8 @@ class LaggedModel:
 
     def _require_fitted(self):
         if not self._is_fitted():
-            raise DataError(f'{type(self).__name__} has no weights yet: call fit() or load a model file')
+            raise DataError(f'{type(self).__name__} has no weights yet: '
+                            f'call fit() or load a model file')
 
     def _record_ranges(self, u, y, fs):
         self.input_range = (float(u.min()), float(u.max()))

@@ -106,7 +106,7 @@ def _segments(u, y, starts, L, nu, ny, theta, H, J, e, with_jac):
             if with_jac:
                 row = J[r]
                 _jac_row(x, s, theta, H, d, row)
-                # df/dy(k-j) = sum_h w2[h] s_h (1 - s_h) W1[h, nu+j]; measured past has no sensitivity.
+                # df/dy(k-j) = sum_h w2[h] s_h (1 - s_h) W1[h, nu+j]; measured past: no sensitivity.
                 for j in range(1, ny + 1):
                     g[j - 1] = 0.0
                     for h in range(H):
@@ -216,7 +216,7 @@ def _freerun_mse(theta, H, un, yn, nu, ny, k_start):
 
 
 def _segment_starts(k_lo, k_hi, length, n_segments):
-    """Start indices of free-run segments inside [k_lo, k_hi): tiled, or n_segments evenly spread."""
+    """Start indices of free-run segments in [k_lo, k_hi): tiled, or n_segments evenly spread."""
     n_tile = (k_hi - k_lo) // length
     if n_tile < 1:
         return np.zeros(0, dtype=np.int64)
