@@ -96,7 +96,8 @@ def main(argv=None):
     try:
         import sysidentpy
     except ImportError:
-        sys.exit('bench_sysidentpy: SysIdentPy is not installed; pip install -r bench/requirements.txt')
+        sys.exit('bench_sysidentpy: SysIdentPy is not installed; '
+                 'pip install -r bench/requirements.txt')
 
     u, y, _, source = piezo_data(args.samples)
     half = u.size // 2

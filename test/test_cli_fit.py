@@ -15,7 +15,7 @@ FAST_TRAINING = {'restarts': 1, 'restart_iter': 2, 'max_iter': 8, 'refine_iter':
 
 
 def piezo_like(n=3000, fs=2000.0, seed=0, noise=2e-9):
-    """(u V, y m): Bouc-Wen-type hysteresis (rate-independent) into a lightly damped 2nd-order mode."""
+    """(u V, y m): Bouc-Wen-type hysteresis into a lightly damped 2nd-order mode."""
     rng = np.random.default_rng(seed)
     steps = rng.uniform(0, 100, n // 40 + 2)
     u = np.interp(np.arange(n), np.arange(steps.size) * 40, steps)

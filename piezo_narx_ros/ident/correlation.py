@@ -111,7 +111,7 @@ def _correlate(spec_a, spec_b, lags: np.ndarray, n_fft: int) -> np.ndarray:
     den = np.sqrt(ea * eb)
     if den == 0.0 or not np.isfinite(den):
         return np.full(lags.size, np.nan)
-    # irfft(conj(A) B)[τ mod n] = Σk a(k-τ) b(k); n >= N + L keeps lags |τ| <= L free of wrap-around.
+    # irfft(conj(A) B)[τ mod n] = Σk a(k-τ) b(k); n >= N + L keeps |τ| <= L free of wrap-around.
     full = sp_fft.irfft(np.conj(fa) * fb, n_fft)
     return full[lags % n_fft] / den
 

@@ -187,7 +187,8 @@ class ExperimentResult:
                 'candidates': [c.to_dict() for c in self.candidates]}
 
 
-def split_records(records: list[Record], fraction: float = 0.5) -> tuple[list[Record], list[Record]]:
+def split_records(records: list[Record],
+                  fraction: float = 0.5) -> tuple[list[Record], list[Record]]:
     """(estimation halves, validation halves) of every record."""
     halves = [r.split(fraction) for r in records]
     return [h[0] for h in halves], [h[1] for h in halves]
@@ -308,7 +309,8 @@ def select(candidates: list[CandidateResult]) -> tuple[int, bool]:
     return best, False
 
 
-def run_experiment(records: list[Record], config: ExperimentConfig | None = None) -> ExperimentResult:
+def run_experiment(records: list[Record],
+                   config: ExperimentConfig | None = None) -> ExperimentResult:
     """Fit and score the whole grid on records (split per `config.split`) and select one model."""
     config = config or ExperimentConfig()
     config.validate()
@@ -338,16 +340,20 @@ def _run_all(specs, est, val, config, show) -> list[CandidateResult]:
         if config.jobs == 1:
             _init_worker(est, val, config, single_thread=False)
             results = []
-            for spec in specs:
-                results.append(_run_candidate(spec))
-                bar.update()
+            try:
+                for spec in specs:
+                    results.append(_run_candidate(spec))
+                    bar.update()
+            finally:
+                _WORKER.clear()   # do not keep the data alive after the run
             return results
         # spawn, not fork: forking a parent that holds torch/OpenMP threads can deadlock.
         ctx = mp.get_context('spawn')
         results = [None] * len(specs)
-        with _environment(_SINGLE_THREAD_ENV), cf.ProcessPoolExecutor(max_workers=config.jobs, mp_context=ctx,
-                                    initializer=_init_worker,
-                                    initargs=(est, val, config, True)) as pool:
+        pool = cf.ProcessPoolExecutor(max_workers=config.jobs, mp_context=ctx,
+                                      initializer=_init_worker,
+                                      initargs=(est, val, config, True))
+        with _environment(_SINGLE_THREAD_ENV), pool:
             futures = {pool.submit(_run_candidate, s): i for i, s in enumerate(specs)}
             for fut in cf.as_completed(futures):
                 results[futures[fut]] = fut.result()

@@ -2,7 +2,7 @@
 
     metrics.json               every candidate's scores and test verdicts, the selection, and the
                                selected model's correlation functions (values per lag)
-    fig6_narx_r2_grid.png      R² over the NARX lag grid: prediction/simulation x estimation/validation
+    fig6_narx_r2_grid.png      R² over the NARX lag grid, prediction/simulation x estimation/validation
     fig6_arx_r2_grid.png       the same for the ARX (na, nb) grid
     fig7_correlation.png       the five Billings tests of the selected model with the 95 % band
     fig8_simulation.png        measured vs free-run output on validation data, residual, and a zoom
@@ -52,7 +52,7 @@ def write_json(obj, path) -> Path:
 
 
 def selected_correlations(result: ExperimentResult, validation: list[Record]) -> dict:
-    """Full correlation functions of the selected model on the validation data, per residual kind."""
+    """Correlation functions of the selected model on the validation data, per residual kind."""
     model = result.best.model
     out = model_outputs(model, validation)
     cfg = result.config
