@@ -75,6 +75,7 @@ class DriverNode(PiezoNode):
         self.client = RigClient(p['target_host'], p['target_port'], p['local_port'])
         self.driver = RigDriver(config, self.client.send)
         self.axis = p['axis']
+        self._closing = False  # set on shutdown: replies are still counted, no longer published
         qos = sample_qos(best_effort=p['best_effort'], depth=p['qos_depth'])
         self.pub = self.create_publisher(JointState, TOPIC_DEFLECTION, qos)
         self.sub = self.create_subscription(JointState, TOPIC_COMMAND, self.on_command,
@@ -110,7 +111,7 @@ class DriverNode(PiezoNode):
     def on_datagram(self, data: bytes, now: float) -> None:
         """Receive thread: a reply that answers a command becomes a deflection message."""
         sample = self.driver.receive(data, now)
-        if sample is not None:
+        if sample is not None and not self._closing:
             self.pub.publish(make_joint_state(sample.stamp_ns, [self.axis], sample.position_m,
                                               sample.applied_volts))
 
@@ -128,6 +129,7 @@ class DriverNode(PiezoNode):
 
     def close(self) -> None:
         """Ramp the output to 0 V at the slew limit (bounded wait), then close the socket."""
+        self._closing = True
         self.driver.stop_output()
         deadline = time.monotonic() + _SHUTDOWN_RAMP_MAX_S
         period = 1.0 / self.params['ramp_rate']

@@ -38,6 +38,8 @@ class RigClient:
         # A short timeout lets the receive thread notice close() without a wake-up datagram.
         self.sock.settimeout(0.1)
         self.foreign = 0
+        self.callback_errors = 0
+        self.last_error = ''
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
 
@@ -73,7 +75,11 @@ class RigClient:
             if addr[0] != target_ip and not _both_loopback(addr[0], target_ip):
                 self.foreign += 1
                 continue
-            on_datagram(data, time.monotonic())
+            try:
+                on_datagram(data, time.monotonic())
+            except Exception as exc:  # noqa: BLE001 - one bad callback must not end reception
+                self.callback_errors += 1
+                self.last_error = f'{type(exc).__name__}: {exc}'
 
     def close(self) -> None:
         """Stop the receive thread and close the socket."""
