@@ -287,27 +287,32 @@ def run_node(node_cls: Callable[..., Node], args: list[str] | None = None,
     `executor` says otherwise.
     """
     import os
+    import signal
+    import threading
+
     from rclpy.executors import ExternalShutdownException
+    from rclpy.signals import SignalHandlerOptions
 
     if args is None:
         args = sys.argv
     kind = executor or os.environ.get('PIEZO_NARX_EXECUTOR', 'events')
     prog = getattr(node_cls, 'NODE_NAME', node_cls.__name__)
+    stop = threading.Event()
+    # Our own handlers only set a flag: the spin loop then ends between callbacks, so no callback
+    # ever runs on a context that a signal has already shut down (rclpy's handlers do that, and
+    # publish() in a running callback then fails). EventsExecutor.spin() also ignores shutdown.
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
     code = EXIT_OK
     node = None
-    # rclpy installs its own SIGINT/SIGTERM handlers: they shut the context down, which ends spin().
-    rclpy.init(args=args)
+    ex = None
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = node_cls()
         ex = make_executor(kind)
         ex.add_node(node)
-        try:
-            # Not ex.spin(): EventsExecutor.spin() here does not return after a signal shuts the
-            # context down (it busy-loops); spin_once in a loop does, at no measurable cost.
-            while rclpy.ok():
-                ex.spin_once(timeout_sec=0.1)
-        finally:
-            ex.shutdown()
+        while not stop.is_set() and rclpy.ok():
+            ex.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         code = EXIT_OK
     except PiezoNarxError as exc:
@@ -318,14 +323,15 @@ def run_node(node_cls: Callable[..., Node], args: list[str] | None = None,
               flush=True)
         code = EXIT_FAILURE
     finally:
+        if ex is not None:
+            ex.shutdown()
         if node is not None:
             try:
                 node.close()  # node-specific cleanup hook (see PiezoNode)
             except Exception:  # noqa: BLE001 - never mask the real exit reason
                 pass
             node.destroy_node()
-        if rclpy.ok():
-            rclpy.try_shutdown()
+        rclpy.try_shutdown()
     return code
 
 
