@@ -23,7 +23,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
 os.environ.setdefault('ROS_DOMAIN_ID', str(101 + os.getpid() % 100))
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
@@ -139,7 +138,8 @@ def main(argv=None) -> int:
             r = live_run(rate, args.seconds, tmp)
             print(f'{r["rate"]:>8.0f} {r["pub_rate"]:>8.0f} {3 * r["sent_per_topic"]:>7} '
                   f'{sum(r["recorded"].values()):>9} {r["lost"]:>5} {r["missing_in_stamps"]:>5} '
-                  f'{100 * r["cpu"]:>6.1f} {100 * r["cpu_total"]:>9.1f} {r["bag_mb"]:>6.2f} {r["exit"]}')
+                  f'{100 * r["cpu"]:>6.1f} {100 * r["cpu_total"]:>9.1f} {r["bag_mb"]:>6.2f} '
+                  f'{r["exit"]}')
         o = offline(args.offline_samples, args.repeats, tmp)
         print(f'\noffline ({o["messages"]} JointState messages, median of {args.repeats}):')
         print(f'  BagWriter: {o["write_s"]:.3f} s = {o["write_rate"]:,.0f} msg/s')

@@ -1,5 +1,6 @@
 """recorder_node in its own process over DDS (isolated domain, see conftest): every published
-message lands in the bag unchanged and in order; SIGTERM closes it; SIGKILL leaves a repairable bag."""
+message lands in the bag unchanged and in order; SIGTERM closes it; SIGKILL leaves a repairable
+bag; bad parameters refuse to start with one line."""
 import os
 import signal
 import subprocess

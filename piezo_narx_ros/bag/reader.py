@@ -15,7 +15,7 @@ from typing import Iterator
 
 import numpy as np
 
-from piezo_narx_ros.bag.pairing import (PairingReport, StreamCheck, clean_stream, pair_by_stamp,
+from piezo_narx_ros.bag.pairing import (StreamCheck, clean_stream, pair_by_stamp,
                                         sample_clock)
 from piezo_narx_ros.bag.writer import (COMMAND_TOPIC, DEFLECTION_TOPIC, JOINT_STATE,
                                        absolute_topic, typestore)
@@ -180,10 +180,9 @@ def read_uy_report(path: str | Path, command_topic: str = COMMAND_TOPIC,
     series = read_joint_series(path, {command_topic: 'effort', deflection_topic: 'position'},
                                axis)
     su, sy = series[command_topic], series[deflection_topic]
-    for s, kind in ((su, 'command'), (sy, 'deflection')):
+    for s, kind, fld in ((su, 'command', 'effort'), (sy, 'deflection', 'position')):
         if s.values.size == 0:
-            extra = (f' ({s.malformed} message(s) without {"effort" if kind == "command" else "position"}'
-                     f'[{axis}])' if s.malformed else '')
+            extra = f' ({s.malformed} message(s) without {fld}[{axis}])' if s.malformed else ''
             raise BagError(f'bag {path}: no {kind} samples on {s.topic}{extra}')
     t_ns, u, y, report = pair_by_stamp(su.stamps_ns, su.values, sy.stamps_ns, sy.values)
     report.command.malformed, report.deflection.malformed = su.malformed, sy.malformed

@@ -94,8 +94,8 @@ class BagWriter:
         name = absolute_topic(topic)
         if name in self._connections:
             if self._connections[name].msgtype != msgtype:
-                raise BagError(f'topic {name} already recorded as {self._connections[name].msgtype},'
-                               f' not {msgtype}')
+                raise BagError(f'topic {name} already recorded as '
+                               f'{self._connections[name].msgtype}, not {msgtype}')
             return name
         store = typestore()
         if msgtype not in store.fielddefs:

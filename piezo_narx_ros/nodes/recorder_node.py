@@ -1,8 +1,9 @@
 """recorder_node: record topics to a rosbag2 MCAP bag (like `ros2 bag record -s mcap`).
 
 Subscriptions are raw (serialized CDR, never decoded); each message is stamped with its receive
-time (system clock, ns) and handed to a BagRecorder, whose writer thread does the file work. SIGINT/SIGTERM close the
-bag (summary and metadata.yaml); after SIGKILL, `piezo-narx bag repair BAG` restores it.
+time (system clock, ns) and handed to a BagRecorder, whose writer thread does the file work.
+SIGINT/SIGTERM close the bag (summary and metadata.yaml); after SIGKILL,
+`piezo-narx bag repair BAG` restores it.
 
     recorder_node --ros-args -p output:=bags/run1 \
         -p topics:="[voltage_command, deflection, deflection_estimate]"
