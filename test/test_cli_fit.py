@@ -238,3 +238,13 @@ def test_evaluate_bad_input_one_line_exit_2(fitted, data_dir, tmp_path, capsys, 
     extra = ['--max-lag', '40'] if case == 'short' else []
     code, _, err = cli(['evaluate', model, data, '--json', *extra], capsys)
     assert code == 2 and err.count('\n') == 1 and message in err, err
+
+
+def test_warnings_print_as_one_line(capsys):
+    import warnings
+
+    from piezo_narx_ros.cli.fit import one_line_warnings
+    with one_line_warnings():
+        warnings.warn('bag.mcap: 3 samples missing on /piezo/deflection', UserWarning)
+    err = capsys.readouterr().err
+    assert err == 'piezo-narx: warning: bag.mcap: 3 samples missing on /piezo/deflection\n'

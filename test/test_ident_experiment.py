@@ -131,3 +131,17 @@ def test_too_short_record_raises():
 def test_bad_config_raises(kwargs, match):
     with pytest.raises(ConfigError, match=match):
         ExperimentConfig(**kwargs).validate()
+
+
+def test_boucwen_benchmark_arx_baseline(boucwen_dir):
+    # Public hysteresis benchmark (u in N, y in m, 750 Hz): a linear ARX captures most of the
+    # response in free run but leaves the hysteresis, which the tests must see.
+    from piezo_narx_ros.ident.data import load_records
+    records = load_records([boucwen_dir / 'train.npz'])
+    assert records[0].fs == 750.0 and len(records[0]) == 40960
+    cfg = ExperimentConfig(narx=False, arx_na=(2, 4), arx_nb=(2, 4), jobs=1)
+    result = run_experiment(records, cfg)
+    best = result.best
+    assert 0.8 < best.r2() < 0.99          # linear model, hysteretic system
+    assert not result.validated
+    assert not best.tests['prediction']['passed']

@@ -70,6 +70,12 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.0, residuals='pr
 
 def run(args) -> int:
     """Load model and inputs, print the scores; exit code 0."""
+    from piezo_narx_ros.cli.fit import one_line_warnings
+    with one_line_warnings():
+        return _run(args)
+
+
+def _run(args) -> int:
     import json
 
     from piezo_narx_ros.ident.data import load_records

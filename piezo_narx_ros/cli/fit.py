@@ -8,6 +8,7 @@ Settings come from, in increasing precedence: built-in defaults (the same as con
 `--config FILE`, then the command-line options.
 """
 import argparse
+import contextlib
 
 # Keys a --config YAML file may hold (config/fit.yaml lists them all with their defaults).
 CONFIG_KEYS = ('ny', 'nu', 'hidden', 'seed', 'arx_na', 'arx_nb', 'arx', 'split', 'max_lag',
@@ -139,8 +140,24 @@ def experiment_config(settings: dict, progress: bool):
     return cfg
 
 
+@contextlib.contextmanager
+def one_line_warnings():
+    """Show warnings (e.g. bag gaps from the reader) as one stderr line each while inside."""
+    import sys
+    import warnings
+    with warnings.catch_warnings():
+        warnings.showwarning = lambda message, *args, **kwargs: print(
+            f'piezo-narx: warning: {message}', file=sys.stderr)
+        yield
+
+
 def run(args) -> int:
     """Load the inputs, run the experiment, write model, candidates and report; exit code 0."""
+    with one_line_warnings():
+        return _run(args)
+
+
+def _run(args) -> int:
     from pathlib import Path
 
     from piezo_narx_ros.errors import ConfigError
