@@ -108,7 +108,8 @@ def test_records_everything_and_closes_on_sigterm(tmp_path):
 
 def test_sigkill_leaves_a_repairable_bag(tmp_path):
     ns, bag = '/rec2', tmp_path / 'killed'
-    proc = start_recorder(bag, ns, '-p', 'chunk_period_s:=0.1')
+    # types:=[auto] also exercises discovery: the topics exist only once the publisher is up
+    proc = start_recorder(bag, ns, '-p', 'chunk_period_s:=0.1', '-p', 'types:=[auto]')
     pub = Publisher(ns)
     try:
         assert pub.wait_matched(), 'recorder never subscribed'
