@@ -1,0 +1,32 @@
+"""Nodes refuse bad parameters at start-up: exit code 2 and one line naming the problem."""
+import subprocess
+import sys
+
+import pytest
+
+CASES = [
+    ('command_node', ['-p', 'fs:=-5.0'], 'fs must be >= 1.0'),
+    ('command_node', ['-p', 'kind:=noise'], 'kind must be one of'),
+    ('command_node', ['-p', 'u_min:=10.0', '-p', 'u_max:=5.0'], 'u_min (10.0 V) must be below'),
+    ('command_node', ['-p', 'f_max:=5000.0'], 'f_max'),     # above fs/2: refused by the generator
+    ('simulator_node', ['-p', 'axes:=[""]'], 'axes must be a non-empty list'),
+    ('simulator_node', ['-p', 'plant_params:=/nonexistent/plant.yaml'], 'plant.yaml'),
+    ('estimator_node', [], 'model must name a model file'),
+    ('estimator_node', ['-p', 'model:=/nonexistent/m.json'], '/nonexistent/m.json'),
+    ('estimator_node', ['-p', 'model:=x.json', '-p', 'init:=later'], 'init must be one of'),
+]
+
+
+def test_bad_parameters_refused_with_one_line_and_exit_2():
+    procs = []
+    for node, args, _ in CASES:   # all at once: start-up (imports) dominates
+        procs.append(subprocess.Popen(
+            [sys.executable, '-m', f'piezo_narx_ros.nodes.{node}', '--ros-args', *args,
+             '-r', '__ns:=/badparams'], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            text=True))
+    for (node, args, fragment), p in zip(CASES, procs):
+        out, err = p.communicate(timeout=120)
+        lines = [line for line in err.splitlines() if line.strip()]
+        assert p.returncode == 2, (node, args, err)
+        assert len(lines) == 1 and lines[0].startswith(f'{node}: error: '), err
+        assert fragment in lines[0], (fragment, lines[0])
