@@ -127,6 +127,7 @@ def test_too_short_record_raises():
     ({'ny': (0,)}, 'ny'), ({'hidden': 0}, 'hidden'), ({'residuals': 'both'}, 'residuals'),
     ({'jobs': 0}, 'jobs'), ({'split': 0.99}, 'split'), ({'max_outside_fraction': 1.5}, 'max_'),
     ({'narx': False, 'arx_na': ()}, 'nothing to fit'),
+    ({'training': {'epochs': 5}}, 'unknown training option'),
 ])
 def test_bad_config_raises(kwargs, match):
     with pytest.raises(ConfigError, match=match):

@@ -198,6 +198,12 @@ def _run(args) -> int:
         verdicts = best.tests[config.residuals].get('tests', {})
         print(f'correlation tests ({config.residuals} residuals): ' + ', '.join(
             f'{k} {"pass" if v["passed"] else "fail"}' for k, v in verdicts.items()))
+        failed = [c for c in result.candidates if c.error is not None]
+        if failed:
+            print(f'warning: {len(failed)} candidate(s) could not be fitted, e.g. '
+                  f'{failed[0].spec.label}: {failed[0].error}')
+        n_pass = sum(c.validated for c in result.candidates)
+        print(f'{n_pass} of {len(result.candidates)} candidates pass all five tests')
         if not result.validated:
             print('warning: no candidate passed all correlation tests; selected by validation '
                   'simulation R² (not validated)')

@@ -119,6 +119,12 @@ class ExperimentConfig:
         if not 0.0 <= self.max_outside_fraction < 1.0:
             raise ConfigError(f'max_outside_fraction must be in [0, 1), got '
                               f'{self.max_outside_fraction}')
+        if self.narx:
+            # Fail here on a mistyped training option, not once per network inside the workers.
+            try:
+                self.specs()[0].build(self.training)
+            except PiezoNarxError as exc:
+                raise ConfigError(f'training: {exc}') from None
 
     @property
     def max_n0(self) -> int:
