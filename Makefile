@@ -20,5 +20,15 @@ demo: setup
 test: setup
 	$(PY) -m pytest -q test
 
+# Benchmarks print figures (speed targets are checked here, not in unit tests).
+bench: setup
+	$(PY) -m pip install -q -r bench/requirements.txt
+	$(PY) bench/bench_simulate.py
+	$(PY) bench/bench_plant.py
+	$(PY) bench/bench_grid.py
+	$(PY) bench/bench_sysidentpy.py
+	$(PY) bench/bench_live.py
+	$(PY) bench/bench_recorder.py
+
 clean:
 	rm -rf $(VENV) reports

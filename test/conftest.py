@@ -17,6 +17,8 @@ BOUCWEN = SHARED / 'data' / 'boucwen'
 os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 100))
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ.setdefault('MPLBACKEND', 'Agg')
+# numpy's OpenBLAS spins one thread per core; on a busy 2-core box that made ARX fits 20x slower.
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
 
 @pytest.fixture(scope='session')

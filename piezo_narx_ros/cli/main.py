@@ -7,7 +7,12 @@ so that `piezo-narx evaluate` never pays for torch or rclpy.
 """
 import argparse
 import importlib
+import os
 import sys
+
+# Before numpy loads: OpenBLAS's per-core spinning threads fight the fit's own worker processes
+# (measured: ARX(10,10) fit 427 ms with default threads vs 20 ms with one, on a busy 2-core box).
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
 from piezo_narx_ros.errors import PiezoNarxError
 
