@@ -69,7 +69,7 @@ class CommandNode(PiezoNode):
         ParamSpec('max_burst', 10000, 'most samples published in one tick (the rest follow on '
                   'the next ones; nothing is dropped)', low=1, high=10**7, read_only=True),
         ParamSpec('best_effort', False, 'publish best effort instead of reliable', read_only=True),
-        ParamSpec('qos_depth', 1000, 'keep-last depth of voltage_command', low=1, high=100000,
+        ParamSpec('qos_depth', 10000, 'keep-last depth of voltage_command', low=1, high=100000,
                   read_only=True),
     )
 

@@ -48,7 +48,7 @@ class EstimatorNode(PiezoNode):
                   'many samples (0: never)', low=0, high=10**9, read_only=True),
         ParamSpec('best_effort', False, 'publish deflection_estimate best effort',
                   read_only=True),
-        ParamSpec('qos_depth', 1000, 'keep-last depth of the sample streams', low=1, high=100000,
+        ParamSpec('qos_depth', 10000, 'keep-last depth of the sample streams', low=1, high=100000,
                   read_only=True),
     )
 

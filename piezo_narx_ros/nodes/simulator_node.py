@@ -90,7 +90,7 @@ class SimulatorNode(PiezoNode):
         ParamSpec('max_fill', 20000, 'longest command gap bridged by holding the voltage, '
                   'samples', low=0, high=10**8, read_only=True),
         ParamSpec('best_effort', False, 'publish deflection best effort', read_only=True),
-        ParamSpec('qos_depth', 1000, 'keep-last depth of voltage_command and deflection', low=1,
+        ParamSpec('qos_depth', 10000, 'keep-last depth of voltage_command and deflection', low=1,
                   high=100000, read_only=True),
     )
 

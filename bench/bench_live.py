@@ -1,0 +1,240 @@
+"""Live pipeline benchmark: command -> simulator -> estimator over DDS, one process per node.
+
+For each rate (default 2, 5 and 10 kHz) the three nodes run for --seconds (default 60) and a probe
+node in this process records every voltage_command, deflection and deflection_estimate. Printed:
+
+- latency command -> estimate: probe receive time of the estimate minus probe receive time of the
+  command with the same stamp (one clock, one process), p50 / p99 / max;
+- lateness stamp -> estimate: probe wall-clock receive time minus the sample's stamp t0 + k/fs (adds
+  the command node's timer lateness), p50 / p99 / max;
+- lost samples per topic (expected n minus distinct stamps received);
+- CPU per node process (user + system time over the streaming interval, % of one core);
+- the command node's catch-up figures (late ticks, largest batch) from /diagnostics;
+- per-sample estimator compute (FreeRunEstimator.on_command, this process, no DDS) p50 / p99.
+
+Targets: 2 kHz with p99 <= 1 ms and zero loss; estimator compute p99 <= 10 us.
+
+    python bench/bench_live.py                       # 60 s at 2, 5, 10 kHz
+    python bench/bench_live.py --seconds 10 --rates 2000
+    python bench/bench_live.py --publish-period 0.001   # batch the command timer at 1 kHz
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+NODES = 'piezo_narx_ros.nodes'
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process, s (from /proc)."""
+    with open(f'/proc/{pid}/stat') as f:
+        fields = f.read().rsplit(')', 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+
+
+def estimator_compute(model, n: int = 20000) -> tuple[float, float]:
+    """Per-sample time of FreeRunEstimator.on_command, (p50, p99) in us."""
+    from piezo_narx_ros.estimator.free_run import FreeRunEstimator
+    est = FreeRunEstimator(model, init='rest')
+    u = np.random.default_rng(0).uniform(-100, 100, n).tolist()
+    period = int(1e9 / est.fs)
+    dt = np.empty(n)
+    clock = time.perf_counter_ns
+    for k in range(n):
+        t = clock()
+        est.on_command(k * period, u[k])
+        dt[k] = clock() - t
+    return tuple(np.percentile(dt[n // 10:], [50, 99]) / 1e3)
+
+
+class Probe:
+    """Subscribes to the three sample streams and /diagnostics of one namespace."""
+
+    def __init__(self, ns: str):
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.experimental import EventsExecutor
+        from rclpy.node import Node
+        from sensor_msgs.msg import JointState
+
+        from piezo_narx_ros.nodes.common import diagnostic_values, sample_qos
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = Node('bench_probe', namespace=ns, context=self.context)
+        self.recv = {t: {} for t in ('voltage_command', 'deflection', 'deflection_estimate')}
+        self.wall = {}
+        self.diag = {}
+        mono, wall = time.monotonic_ns, time.time_ns
+
+        def make_cb(store, with_wall):
+            def cb(msg):
+                s = msg.header.stamp
+                t = s.sec * 1_000_000_000 + s.nanosec
+                store[t] = mono()
+                if with_wall:
+                    self.wall[t] = wall()
+            return cb
+
+        def on_diag(arr):
+            for st in arr.status:
+                self.diag[st.name] = diagnostic_values(st)
+
+        qos = sample_qos(depth=100000)
+        self.subs = {t: self.node.create_subscription(JointState, t, make_cb(store, t ==
+                                                       'deflection_estimate'), qos)
+                     for t, store in self.recv.items()}
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 100)
+        self.executor = EventsExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def spin_until(self, predicate, timeout: float) -> bool:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.01)
+            if predicate():
+                return True
+        return False
+
+    def close(self):
+        import rclpy
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+def start(module: str, ns: str, *params: str) -> subprocess.Popen:
+    args = [sys.executable, '-m', f'{NODES}.{module}', '--ros-args', '-r', f'__ns:={ns}']
+    for p in params:
+        args += ['-p', p]
+    return subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
+def stop(procs) -> list[int]:
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+    codes = []
+    for p in procs:
+        try:
+            codes.append(p.wait(10))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            codes.append(p.wait())
+    return codes
+
+
+def pct(a) -> str:
+    if len(a) == 0:
+        return 'n/a'
+    p50, p99, mx = np.percentile(a, [50, 99, 100])
+    return f'{p50:8.0f} {p99:8.0f} {mx:8.0f}'
+
+
+def run_rate(fs: float, seconds: float, model_path: Path, publish_period: float,
+             executor: str) -> dict:
+    ns = f'/bench{int(fs)}'
+    n = int(round(seconds * fs))
+    os.environ['PIEZO_NARX_EXECUTOR'] = executor
+    probe = Probe(ns)
+    procs = {'simulator': start('simulator_node', ns, f'fs:={fs}'),
+             'estimator': start('estimator_node', ns, f'model:={model_path}', f'fs:={fs}',
+                                'init:=rest')}
+    result = {'fs': fs, 'n': n}
+    try:
+        ok = probe.spin_until(lambda: all(probe.subs[t].get_publisher_count() >= 1 for t in
+                                          ('deflection', 'deflection_estimate')), 60.0)
+        if not ok:
+            raise RuntimeError('simulator/estimator did not come up: ' +
+                               ' | '.join(p.stderr.read() for p in procs.values()
+                                          if p.poll() is not None))
+        probe.spin_until(lambda: False, 0.5)
+        procs['command'] = start('command_node', ns, f'fs:={fs}', 'loop:=false',
+                                 f'seconds:={seconds}', 'wait_for_subscribers:=3',
+                                 f'publish_period:={publish_period}', 'kind:=multisine',
+                                 'amplitude:=100.0')
+        cmd = probe.recv['voltage_command']
+        probe.spin_until(lambda: len(cmd) > 0, 60.0)
+        cpu0 = {k: cpu_seconds(p.pid) for k, p in procs.items()}
+        t0 = time.monotonic()
+        est = probe.recv['deflection_estimate']
+        probe.spin_until(lambda: len(est) >= n, seconds + 10.0)
+        wall = time.monotonic() - t0
+        cpu1 = {k: cpu_seconds(p.pid) for k, p in procs.items()}
+        probe.spin_until(lambda: False, 1.2)   # one more /diagnostics round
+        result['cpu'] = {k: 100.0 * (cpu1[k] - cpu0[k]) / wall for k in procs}
+        result['lost'] = {t: n - len(v) for t, v in probe.recv.items()}
+        lat = [est[t] - cmd[t] for t in est if t in cmd]
+        result['latency_us'] = np.array(lat) / 1e3
+        result['lateness_us'] = np.array([probe.wall[t] - t for t in est]) / 1e3
+        result['diag'] = {k.rsplit('/', 1)[-1]: v for k, v in probe.diag.items()
+                          if k.startswith(ns)}
+    finally:
+        result['codes'] = stop(procs.values())
+        probe.close()
+    return result
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap.add_argument('--seconds', type=float, default=60.0, help='stream length per rate, s')
+    ap.add_argument('--rates', default='2000,5000,10000', help='comma-separated rates, Hz')
+    ap.add_argument('--model', default=None, help='model file (default: a toy NARX 4/4/10)')
+    ap.add_argument('--publish-period', type=float, default=0.0,
+                    help='command node timer period, s (0: one tick per sample)')
+    ap.add_argument('--executor', choices=('events', 'single'), default='events',
+                    help='executor of the node processes')
+    args = ap.parse_args(argv)
+    os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 100))
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+
+    from piezo_narx_ros.ident.model_io import load_model, save_model
+    tmp = tempfile.TemporaryDirectory()
+    if args.model:
+        model_path = Path(args.model)
+        model = load_model(model_path)
+    else:
+        from piezo_narx_ros.estimator.toy import toy_narx
+        model = toy_narx(nu=4, ny=4, hidden=10)
+        model_path = save_model(model, Path(tmp.name) / 'toy.json')
+    p50, p99 = estimator_compute(model)
+    print(f'model: {type(model).__name__} nu={model.nu} ny={model.ny} '
+          f'{getattr(model, "hidden", "")} hidden; executor {args.executor}; '
+          f'publish_period {args.publish_period or "1/fs"}; {os.cpu_count()} CPUs, '
+          f'load average {os.getloadavg()[0]:.1f}')
+    print(f'estimator compute per sample (FreeRunEstimator.on_command): p50 {p50:.2f} us, '
+          f'p99 {p99:.2f} us (target p99 <= 10 us)')
+    for fs in [float(r) for r in args.rates.split(',')]:
+        r = run_rate(fs, args.seconds, model_path, args.publish_period, args.executor)
+        print(f'\n--- {fs:g} Hz, {args.seconds:g} s, {r["n"]} samples '
+              f'(exit codes {r["codes"]}) ---')
+        print('                                 p50      p99      max  (us)')
+        print(f'latency command -> estimate  {pct(r["latency_us"])}')
+        print(f'lateness stamp -> estimate   {pct(r["lateness_us"])}')
+        print('lost samples: ' + ', '.join(f'{t} {v}' for t, v in r['lost'].items()))
+        print('CPU (% of one core): ' + ', '.join(f'{k} {v:.0f}' for k, v in r['cpu'].items()))
+        d = r['diag']
+        if 'command_node' in d:
+            c = d['command_node']
+            print(f"command node: late ticks {c.get('late_ticks')}, largest batch "
+                  f"{c.get('max_batch')}")
+        if 'estimator_node' in d:
+            e = d['estimator_node']
+            print(f"estimator: gaps {e.get('gaps')}, filled {e.get('filled')}, "
+                  f"rejected {e.get('rejected_nonfinite')}/{e.get('rejected_range')}")
+        if 'simulator_node' in d:
+            print(f"simulator: gaps {d['simulator_node'].get('gaps')}")
+    tmp.cleanup()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
