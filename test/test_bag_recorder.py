@@ -25,7 +25,7 @@ def test_concurrent_puts_are_all_written_in_order_per_thread(tmp_path):
             t.start()
         for t in threads:
             t.join()
-    assert rec.stats.received == rec.stats.written == 3 * n and not rec.stats.error
+    assert rec.received == rec.stats.written == 3 * n and not rec.stats.error
     series = read_joint_series(tmp_path / 'b', {t: 'effort' for t in topics})
     for t in topics:
         np.testing.assert_array_equal(series[t].values, np.arange(n))
@@ -36,7 +36,8 @@ def test_write_error_is_reported_not_raised_in_the_thread(tmp_path):
     rec = BagRecorder(tmp_path / 'b')
     rec.put('/never/added', T0, b'x')
     stats = rec.close()
-    assert stats.written == 0 and 'was not added' in stats.error
+    assert stats.written == 0 and stats.failed == rec.received == 1
+    assert 'was not added' in stats.error
     assert list(iter_raw(tmp_path / 'b')) == []
 
 

@@ -20,8 +20,8 @@ _STOP = object()
 @dataclass
 class RecorderStats:
     """Counters of a BagRecorder (messages, not bytes)."""
-    received: int = 0        # put() calls
     written: int = 0         # messages handed to the bag
+    failed: int = 0          # messages refused by the bag (see error)
     queue_peak: int = 0      # largest backlog seen by the writer thread
     bytes_written: int = 0   # payload bytes written
     error: str = ''          # first writer error, if the writer thread stopped on one
@@ -61,8 +61,13 @@ class BagRecorder:
     def put(self, topic: str, log_time_ns: int, data: bytes) -> None:
         """Queue one serialized message of a registered topic (absolute name) received at
         `log_time_ns` (ns since the epoch). Cheap; safe from any thread."""
-        self.stats.received += 1
-        self._queue.put((topic, log_time_ns, data))
+        self._queue.put((topic, log_time_ns, data))  # SimpleQueue.put is thread-safe
+
+    @property
+    def received(self) -> int:
+        """Messages put so far (written + failed + still queued); counted by the writer thread
+        only, so that put() stays lock-free."""
+        return self.stats.written + self.stats.failed + self.backlog
 
     @property
     def backlog(self) -> int:
@@ -93,11 +98,13 @@ class BagRecorder:
                         stop = True
                         continue
                     if stats.error:
+                        stats.failed += 1
                         continue
                     try:
                         bag.write(*it)
                     except BagError as exc:
                         stats.error = str(exc)
+                        stats.failed += 1
                         continue
                     stats.written += 1
                     stats.bytes_written += len(it[2])

@@ -111,8 +111,8 @@ class RecorderNode(PiezoNode):
 
     def _status(self):
         s = self.recorder.stats
-        values = {'path': str(self.recorder.path), 'received': s.received, 'written': s.written,
-                  'backlog': self.recorder.backlog, 'queue_peak': s.queue_peak,
+        values = {'path': str(self.recorder.path), 'received': self.recorder.received,
+                  'written': s.written, 'backlog': self.recorder.backlog, 'queue_peak': s.queue_peak,
                   'topics': len(self._subs), 'waiting_for': len(self._wanted) - len(self._subs)}
         if s.error:
             return DIAG_ERROR, f'writer stopped: {s.error}', values
