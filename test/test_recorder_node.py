@@ -14,7 +14,7 @@ from rclpy.node import Node
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 
-from piezo_narx_ros.bag.reader import iter_raw, read_uy
+from piezo_narx_ros.bag.reader import bag_info, iter_raw, read_uy
 from piezo_narx_ros.bag.repair import repair_bag
 from piezo_narx_ros.nodes.common import make_joint_state, sample_qos
 
@@ -148,3 +148,26 @@ def test_unknown_or_malformed_type_is_refused(tmp_path, types, expected):
     proc = start_recorder(tmp_path / 'x', '/rec4', '-p', f'types:={types}')
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 2 and expected in err
+
+
+def test_status_reports_waiting_topics_then_closes_the_bag(tmp_path):
+    """In-process, no traffic: an 'auto' topic nobody publishes keeps the node in WARN."""
+    from rclpy.parameter import Parameter
+
+    from piezo_narx_ros.nodes.common import DIAG_WARN
+    from piezo_narx_ros.nodes.recorder_node import RecorderNode
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        node = RecorderNode(context=ctx, namespace='/rec5', parameter_overrides=[
+            Parameter('output', value=str(tmp_path / 'b')),
+            Parameter('topics', value=['voltage_command', 'nobody_publishes']),
+            Parameter('types', value=['sensor_msgs/msg/JointState', 'auto'])])
+        level, message, values = node._status()
+        assert level == DIAG_WARN and message == 'waiting for topic types'
+        assert values['topics'] == 1 and values['waiting_for'] == 1 and values['received'] == 0
+        node.close()
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+    assert [t.name for t in bag_info(tmp_path / 'b').topics] == ['/rec5/voltage_command']
