@@ -115,3 +115,13 @@ def test_repair_leaves_an_intact_bag_alone_and_refuses_non_mcap(tmp_path):
     (header_only / 'h.mcap').write_bytes(before[:40])
     with pytest.raises(BagError, match='nothing to recover'):
         repair_bag(header_only)
+
+
+def test_lone_mcap_file_is_repaired_in_place(tmp_path):
+    bag = _multi_chunk_bag(tmp_path / 'src', n=1500)
+    lone = tmp_path / 'lone.mcap'
+    data = (bag / 'src.mcap').read_bytes()
+    lone.write_bytes(data[:int(len(data) * 0.8)])
+    rep = repair_bag(lone, backup=False)
+    assert rep.messages == 1000 and not rep.intact
+    assert _assert_exact_prefix(lone, at_least=1000) == 1000
