@@ -124,3 +124,40 @@ def test_diagnostics_status_carries_node_name_level_and_values(ctx):
 def test_make_executor_rejects_unknown_kind():
     with pytest.raises(ConfigError, match='executor'):
         common.make_executor('threads')
+
+
+@pytest.mark.parametrize('names, position, velocity, effort, frame', [
+    (['x'], [1e-6], [], [10.0], ''),
+    (['x', 'yy', 'zzz'], [1.0, -2.0, 3.5], [0.1], [4.0, 5.0, 6.0], 'abc'),
+    ([], [], [], [3.0], 'frame_with_odd_length'),
+    (['axis_0'], [], [], [], ''),
+])
+def test_cdr_decode_reads_what_rclpy_serialises(names, position, velocity, effort, frame):
+    from rclpy.serialization import serialize_message
+    msg = common.make_joint_state(1_795_241_581_123_456_789, names, position, effort)
+    msg.velocity = velocity
+    msg.header.frame_id = frame
+    s = common.decode_joint_state(serialize_message(msg))
+    assert (s.t_ns, s.names, s.position, s.effort) == (1_795_241_581_123_456_789, names,
+                                                      position, effort)
+
+
+@pytest.mark.parametrize('names, position, effort', [
+    (['x'], [1e-6], [10.0]), (['x', 'long_name'], [1.5], [2.0, -3.0]), ([], [], [7.0]),
+    (['ab', 'c'], [], []),
+])
+def test_cdr_encode_is_read_back_by_rclpy(names, position, effort):
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import JointState
+    msg = deserialize_message(common.encode_joint_state(123_000_000_007, names, position, effort),
+                              JointState)
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (123, 7)
+    assert (list(msg.name), list(msg.position), list(msg.effort)) == (names, position, effort)
+    assert msg.header.frame_id == '' and list(msg.velocity) == []
+
+
+def test_cdr_decode_refuses_truncated_bytes():
+    from rclpy.serialization import serialize_message
+    raw = serialize_message(common.make_joint_state(5, ['x'], effort=[1.0]))
+    with pytest.raises(DataError, match='malformed JointState'):
+        common.decode_joint_state(raw[:30])

@@ -16,7 +16,8 @@ from sensor_msgs.msg import JointState
 from piezo_narx_ros.command.stream import CommandStreamer, make_signal
 from piezo_narx_ros.errors import ConfigError
 from piezo_narx_ros.nodes.common import (DIAG_OK, DIAG_WARN, TOPIC_COMMAND, Diagnostics,
-                                         ParamSpec, PiezoNode, main_for, ns_to_stamp, sample_qos)
+                                         ParamSpec, PiezoNode, encode_joint_state, main_for,
+                                         sample_qos)
 from piezo_narx_ros.plant.signals import KINDS
 
 _nonempty = (lambda v: len(v) > 0 and all(isinstance(a, str) and a.strip() for a in v),
@@ -93,8 +94,6 @@ class CommandNode(PiezoNode):
         self.want_running = p['running']
         self.pub = self.create_publisher(JointState, TOPIC_COMMAND,
                                          sample_qos(p['best_effort'], p['qos_depth']))
-        self._msg = JointState()   # reused: publish() serialises it at once
-        self._msg.name = self.axes
         self.add_post_set_parameters_callback(self._on_set)
         period = p['publish_period'] or 1.0 / p['fs']
         self.timer = self.create_timer(period, self.on_tick)
@@ -120,11 +119,9 @@ class CommandNode(PiezoNode):
                 return
             s.start(self.get_clock().now().nanoseconds, time.monotonic_ns())
         stamps, volts = s.poll(time.monotonic_ns())
-        msg, stamp, pub = self._msg, self._msg.header.stamp, self.pub
+        names, pub = self.axes, self.pub
         for t, u in zip(stamps.tolist(), volts.tolist()):
-            stamp.sec, stamp.nanosec = ns_to_stamp(t)
-            msg.effort = u
-            pub.publish(msg)
+            pub.publish(encode_joint_state(t, names, effort=u))   # CDR bytes: 2x cheaper
         if s.finished and stamps.size:
             self.get_logger().info(f'signal finished after {s.published} samples')
 

@@ -15,7 +15,8 @@ from sensor_msgs.msg import JointState
 from piezo_narx_ros.estimator.free_run import INIT_MODES, FreeRunEstimator
 from piezo_narx_ros.nodes.common import (DIAG_OK, DIAG_WARN, TOPIC_COMMAND, TOPIC_DEFLECTION,
                                          TOPIC_ESTIMATE, Diagnostics, ParamSpec, PiezoNode,
-                                         main_for, ns_to_stamp, parse_joint_state, sample_qos)
+                                         decode_joint_state, encode_joint_state, main_for,
+                                         sample_qos)
 
 
 class EstimatorNode(PiezoNode):
@@ -66,27 +67,28 @@ class EstimatorNode(PiezoNode):
         qos = sample_qos(False, p['qos_depth'])
         self.pub = self.create_publisher(JointState, TOPIC_ESTIMATE,
                                          sample_qos(p['best_effort'], p['qos_depth']))
-        self.sub_cmd = self.create_subscription(JointState, TOPIC_COMMAND, self.on_command, qos)
+        # raw=True: the callbacks get CDR bytes (see common.decode_joint_state: 8x cheaper).
+        self.sub_cmd = self.create_subscription(JointState, TOPIC_COMMAND, self.on_command, qos,
+                                                raw=True)
         self.sub_meas = self.create_subscription(JointState, TOPIC_DEFLECTION,
-                                                 self.on_measurement, qos)
-        self._msg = JointState()
-        self._msg.name = [self.axis]
+                                                 self.on_measurement, qos, raw=True)
+        self._names = [self.axis]
         self._rejected_reported = 0
         self.diagnostics = Diagnostics(self, self.status)
         self.get_logger().info(
             f"model {p['model']} ({type(self.model).__name__} nu={self.model.nu} "
             f"ny={self.model.ny}) at {self.est.fs:g} Hz, init {p['init']}")
 
-    def _value(self, msg: JointState, field: str) -> tuple[int, float] | None:
-        sample = parse_joint_state(msg)
+    def _value(self, msg: bytes, field: str) -> tuple[int, float] | None:
         try:
+            sample = decode_joint_state(msg)
             return sample.t_ns, sample.value(field, self.axis)
         except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the node
             self.get_logger().warning(f'{field} message ignored: {exc}',
                                       throttle_duration_sec=1.0)
             return None
 
-    def on_command(self, msg: JointState) -> None:
+    def on_command(self, msg: bytes) -> None:
         got = self._value(msg, 'effort')
         if got is None:
             self.est.stats.rejected_nonfinite += 1   # unusable: counted like a non-finite one
@@ -95,17 +97,15 @@ class EstimatorNode(PiezoNode):
             self.est.start(self.sub_meas.get_publisher_count() > 0)
         self.publish(self.est.on_command(*got))
 
-    def on_measurement(self, msg: JointState) -> None:
+    def on_measurement(self, msg: bytes) -> None:
         got = self._value(msg, 'position')
         if got is not None:
             self.publish(self.est.on_measurement(*got))
 
     def publish(self, estimates) -> None:
-        msg, stamp = self._msg, self._msg.header.stamp
+        names, pub = self._names, self.pub
         for t, y in estimates:
-            stamp.sec, stamp.nanosec = ns_to_stamp(t)
-            msg.position = [y]
-            self.pub.publish(msg)
+            pub.publish(encode_joint_state(t, names, position=(y,)))
 
     def status(self):
         st = self.est.stats

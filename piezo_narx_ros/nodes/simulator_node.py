@@ -14,8 +14,9 @@ from sensor_msgs.msg import JointState
 
 from piezo_narx_ros.errors import DataError
 from piezo_narx_ros.nodes.common import (DIAG_OK, DIAG_WARN, TOPIC_COMMAND, TOPIC_DEFLECTION,
-                                         Diagnostics, ParamSpec, PiezoNode, main_for,
-                                         ns_to_stamp, parse_joint_state, sample_qos)
+                                         Diagnostics, ParamSpec, PiezoNode,
+                                         decode_joint_state, encode_joint_state, main_for,
+                                         sample_qos)
 
 
 class PlantResponder:
@@ -107,15 +108,20 @@ class SimulatorNode(PiezoNode):
         self.responder = PlantResponder(plants, p['fs'], p['max_fill'])
         qos = sample_qos(p['best_effort'], p['qos_depth'])
         self.pub = self.create_publisher(JointState, TOPIC_DEFLECTION, qos)
+        # raw=True: CDR bytes in and out (see common.decode_joint_state: 8x cheaper).
         self.sub = self.create_subscription(JointState, TOPIC_COMMAND, self.on_command,
-                                            sample_qos(False, p['qos_depth']))
-        self._msg = JointState()
-        self._msg.name = list(p['axes'])
+                                            sample_qos(False, p['qos_depth']), raw=True)
+        self._names = list(p['axes'])
         self.diagnostics = Diagnostics(self, self.status)
         self.get_logger().info(f"simulating {p['axes']} at {p['fs']:g} Hz")
 
-    def on_command(self, msg: JointState) -> None:
-        sample = parse_joint_state(msg)
+    def on_command(self, msg: bytes) -> None:
+        try:
+            sample = decode_joint_state(msg)
+        except DataError as exc:
+            self.responder.rejected += 1
+            self.get_logger().warning(f'command refused: {exc}', throttle_duration_sec=1.0)
+            return
         if sample.names:
             volts = dict(zip(sample.names, sample.effort))
         else:  # an unnamed message drives the first axis
@@ -125,11 +131,7 @@ class SimulatorNode(PiezoNode):
         except DataError as exc:
             self.get_logger().warning(f'command refused: {exc}', throttle_duration_sec=1.0)
             return
-        out = self._msg
-        out.header.stamp.sec, out.header.stamp.nanosec = ns_to_stamp(sample.t_ns)
-        out.position = y
-        out.effort = u
-        self.pub.publish(out)
+        self.pub.publish(encode_joint_state(sample.t_ns, self._names, y, u))
 
     def status(self):
         r = self.responder
