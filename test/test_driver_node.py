@@ -3,6 +3,7 @@
 The test process holds a probe node (publishes voltage_command, listens to deflection and
 /diagnostics) and, for the watchdog test, plays the target itself so it can see every datagram.
 """
+import os
 import socket
 import subprocess
 import sys
@@ -20,6 +21,9 @@ from piezo_narx_ros.nodes.common import diagnostic_values, make_joint_state, sam
 from piezo_narx_ros.plant import PiezoCantilever, load_plant_params
 from piezo_narx_ros.rig import protocol as p
 
+# A namespace of our own: ROS_DOMAIN_ID (pid % 100) can collide with another test session on the
+# machine, and its command_node must not feed our driver.
+NS = f'rigtest{os.getpid()}'
 T0 = 1_700_000_000_000_000_000  # ns
 DT = 500_000                     # ns, 2 kHz
 
@@ -31,7 +35,8 @@ def free_udp_port() -> int:
 
 
 def start_driver(**params) -> subprocess.Popen:
-    args = [sys.executable, '-m', 'piezo_narx_ros.nodes.driver_node', '--ros-args']
+    args = [sys.executable, '-m', 'piezo_narx_ros.nodes.driver_node', '--ros-args',
+            '-r', f'__ns:=/{NS}']
     for k, v in params.items():
         args += ['-p', f'{k}:={v}']
     return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -51,18 +56,18 @@ def stop(proc: subprocess.Popen) -> str:
 class Probe:
     """Test-side node in its own context, spun on a background thread.
 
-    Publishes /piezo/voltage_command with stamps T0 + k DT (k counts on across calls) and collects
-    /piezo/deflection (and the `extra` deflection topics) and the driver's /diagnostics."""
+    Publishes /NS/voltage_command with stamps T0 + k DT (k counts on across calls) and collects
+    /NS/deflection (and the `extra` deflection topics) and the driver's /diagnostics."""
 
     def __init__(self, extra=()):
         self.ctx = rclpy.Context()
         rclpy.init(context=self.ctx)
-        self.node = rclpy.create_node('probe', namespace='piezo', context=self.ctx)
+        self.node = rclpy.create_node('probe', namespace=NS, context=self.ctx)
         self.pub = self.node.create_publisher(JointState, 'voltage_command', sample_qos(depth=1000))
         self.k = 0
-        self.topics = ['/piezo/deflection', *extra]
+        self.topics = [f'/{NS}/deflection', *extra]
         self.received = {t: [] for t in self.topics}
-        self.deflection = self.received['/piezo/deflection']
+        self.deflection = self.received[self.topics[0]]
         self.status = []
         for topic in self.topics:
             self.node.create_subscription(JointState, topic, self.received[topic].append,
@@ -81,7 +86,7 @@ class Probe:
                 break
 
     def _on_diag(self, msg):
-        self.status += [s for s in msg.status if s.name.endswith('driver_node')]
+        self.status += [s for s in msg.status if s.name == f'/{NS}/driver_node']
 
     def wait(self, predicate, timeout, what):
         deadline = time.monotonic() + timeout
@@ -99,7 +104,7 @@ class Probe:
     def handshake(self, timeout=20.0):
         """Publish 0 V warm-up commands until every deflection topic answers, so that the real
         sequence starts after DDS matching has settled. Returns the first warm-up sample index
-        answered on /piezo/deflection: from there to the real sequence the plant sees 0 V."""
+        answered on /NS/deflection: from there to the real sequence the plant sees 0 V."""
         self.wait_connected(timeout)
         deadline = time.monotonic() + timeout
         while not all(self.received.values()):
@@ -180,22 +185,22 @@ def test_driver_with_fake_rig_reproduces_the_plant_stream(probe):
 
 
 def test_driver_with_fake_rig_equals_simulator_node_across_lost_commands():
-    """Both answer the same /piezo/voltage_command; samples the driver never sees (a stamp gap, as
+    """Both answer the same /NS/voltage_command; samples the driver never sees (a stamp gap, as
     after a DDS loss) are bridged the same way by the fake rig and the simulator node."""
     rig_port = free_udp_port()
     rig = subprocess.Popen([sys.executable, '-m', 'piezo_narx_ros.rig.fake_rig', '--port',
                             str(rig_port), '--seed', '5'], stdout=subprocess.PIPE,
                            stderr=subprocess.STDOUT, text=True)
     sim = subprocess.Popen([sys.executable, '-m', 'piezo_narx_ros.nodes.simulator_node',
-                            '--ros-args', '-p', 'seed:=5'], stdout=subprocess.PIPE,
-                           stderr=subprocess.STDOUT, text=True)
+                            '--ros-args', '-r', f'__ns:=/{NS}', '-p', 'seed:=5'],
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     driver = subprocess.Popen([sys.executable, '-m', 'piezo_narx_ros.nodes.driver_node',
-                               '--ros-args', '-r', '__ns:=/rig',
-                               '-r', 'voltage_command:=/piezo/voltage_command',
+                               '--ros-args', '-r', f'__ns:=/{NS}_rig',
+                               '-r', f'voltage_command:=/{NS}/voltage_command',
                                '-p', f'target_port:={rig_port}', '-p', 'local_port:=0',
                                '-p', 'watchdog_timeout:=30.0', '-p', 'reply_timeout:=0.5'],
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    probe = Probe(extra=('/rig/deflection',))
+    probe = Probe(extra=(f'/{NS}_rig/deflection',))
     try:
         assert 'listening' in rig.stdout.readline()
         probe.handshake()
@@ -209,7 +214,8 @@ def test_driver_with_fake_rig_equals_simulator_node_across_lost_commands():
     finally:
         probe.close()
         outs = [stop(proc) for proc in (driver, sim, rig)]
-    sim_msgs, rig_msgs = probe.received['/piezo/deflection'], probe.received['/rig/deflection']
+    sim_msgs = probe.received[f'/{NS}/deflection']
+    rig_msgs = probe.received[f'/{NS}_rig/deflection']
     assert len(sim_msgs) == len(rig_msgs) == len(u), outs
     for a, b in zip(sim_msgs, rig_msgs):
         assert (a.header.stamp, list(a.position), list(a.effort)) == \
