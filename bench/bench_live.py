@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import os
 import signal
+import struct
 import subprocess
 import sys
 import tempfile
@@ -75,10 +76,14 @@ class Probe:
         self.diag = {}
         mono, wall = time.monotonic_ns, time.time_ns
 
+        stamp = struct.Struct('<iI')
+
         def make_cb(store, with_wall):
-            def cb(msg):
-                s = msg.header.stamp
-                t = s.sec * 1_000_000_000 + s.nanosec
+            # raw=True and only the stamp read from the CDR bytes: the probe must not be the
+            # bottleneck it measures (rclpy's message conversion costs ~20 us per message).
+            def cb(raw):
+                sec, nsec = stamp.unpack_from(raw, 4)
+                t = sec * 1_000_000_000 + nsec
                 store[t] = mono()
                 if with_wall:
                     self.wall[t] = wall()
@@ -90,7 +95,7 @@ class Probe:
 
         qos = sample_qos(depth=100000)
         self.subs = {t: self.node.create_subscription(JointState, t, make_cb(store, t ==
-                                                       'deflection_estimate'), qos)
+                                                       'deflection_estimate'), qos, raw=True)
                      for t, store in self.recv.items()}
         self.node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 100)
         self.executor = EventsExecutor(context=self.context)
@@ -166,7 +171,7 @@ def run_rate(fs: float, seconds: float, model_path: Path, publish_period: float,
         cpu0 = {k: cpu_seconds(p.pid) for k, p in procs.items()}
         t0 = time.monotonic()
         est = probe.recv['deflection_estimate']
-        probe.spin_until(lambda: len(est) >= n, seconds + 10.0)
+        probe.spin_until(lambda: all(len(v) >= n for v in probe.recv.values()), seconds + 10.0)
         wall = time.monotonic() - t0
         cpu1 = {k: cpu_seconds(p.pid) for k, p in procs.items()}
         probe.spin_until(lambda: False, 1.2)   # one more /diagnostics round
@@ -180,6 +185,8 @@ def run_rate(fs: float, seconds: float, model_path: Path, publish_period: float,
     finally:
         result['codes'] = stop(procs.values())
         probe.close()
+        result['errors'] = {k: p.stderr.read().strip().splitlines()[-3:]
+                            for k, p in procs.items() if p.returncode}
     return result
 
 
@@ -216,6 +223,8 @@ def main(argv=None) -> int:
         r = run_rate(fs, args.seconds, model_path, args.publish_period, args.executor)
         print(f'\n--- {fs:g} Hz, {args.seconds:g} s, {r["n"]} samples '
               f'(exit codes {r["codes"]}) ---')
+        for k, lines in r['errors'].items():
+            print(f'{k} failed: ' + ' | '.join(lines))
         print('                                 p50      p99      max  (us)')
         print(f'latency command -> estimate  {pct(r["latency_us"])}')
         print(f'lateness stamp -> estimate   {pct(r["lateness_us"])}')
