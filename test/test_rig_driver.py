@@ -209,3 +209,15 @@ def test_target_fault_flag_is_reported():
     assert s.target_fault
     level, msg, _ = drv.report(0.001)
     assert level == DIAG_ERROR and 'fault' in msg
+
+
+def test_ping_reaches_the_target_without_moving_anything_and_is_not_published():
+    drv, target = make()
+    assert not drv.connected
+    drv.ping(0.0, stamp_ns=5)
+    ping = target.sent[-1]
+    assert ping.flags == p.FLAG_PING and ping.volts == (0.0,)
+    assert drv.receive(target.reply(ping), 0.001) is None
+    assert drv.connected and drv.counts['replies'] == 1 and drv.state == 'idle'
+    drv.tick(10.0)                                   # pings do not feed or trip the watchdog
+    assert len(target.sent) == 1 and drv.counts['watchdog_trips'] == 0

@@ -111,3 +111,19 @@ def test_stamp_gaps_are_bridged_with_the_held_voltage_like_the_simulator(rig):
     y = [plant.step(v)[0] for v in applied]
     assert [r.position_m[0] for r in replies] == [y[i] for i in (0, 1, 2, 5, 6, 7, 8)]
     assert rig.filled == 2
+
+
+def test_ping_reports_the_last_measurement_without_stepping(rig):
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        first = p.unpack_reply(_exchange(sock, rig.address, p.pack_command(
+            p.Command(1, 0, (0.0,), p.FLAG_PING))))
+        cmd = p.unpack_reply(_exchange(sock, rig.address, p.pack_command(p.Command(2, 0, (80.0,)))))
+        ping = p.unpack_reply(_exchange(sock, rig.address, p.pack_command(
+            p.Command(3, 9, (0.0,), p.FLAG_PING))))
+        nxt = p.unpack_reply(_exchange(sock, rig.address, p.pack_command(p.Command(4, 0, (80.0,)))))
+    assert (first.position_m, first.applied_volts) == ((0.0,), (0.0,))
+    assert (ping.seq, ping.stamp_ns, ping.position_m, ping.applied_volts) == \
+        (3, 9, cmd.position_m, cmd.applied_volts)
+    plant = PiezoCantilever(load_plant_params(), fs=2000.0, seed=3)
+    assert [cmd.position_m[0], nxt.position_m[0]] == [plant.step(80.0)[0], plant.step(80.0)[0]]
+    assert rig.pings == 2 and rig.commands == 2

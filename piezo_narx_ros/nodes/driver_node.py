@@ -3,10 +3,13 @@
 Subscribes voltage_command, sends each sample (after the driver's own voltage and slew limits) to
 the target, and publishes the target's reply on deflection with the command's stamp (position =
 measured m, effort = volts applied). A watchdog ramps the output to 0 V when commands stop; the
-output is also ramped to 0 V on shutdown. All logic is in piezo_narx_ros.rig.driver.RigDriver.
+output is also ramped to 0 V on shutdown. voltage_command is subscribed only once the target has
+answered a ping, so a command node waiting for subscribers does not stream into the void. All logic
+is in piezo_narx_ros.rig.driver.RigDriver.
 """
 from __future__ import annotations
 
+import math
 import time
 
 from sensor_msgs.msg import JointState
@@ -19,6 +22,7 @@ from piezo_narx_ros.rig.client import RigClient
 from piezo_narx_ros.rig.driver import STATE_RAMPING, DriverConfig, RigDriver
 
 _SHUTDOWN_RAMP_MAX_S = 2.0  # longest a shutdown waits for the output to reach 0 V
+_PING_PERIOD_S = 0.1        # start-up pings until the target answers
 
 
 def _nonempty(value: str) -> bool:
@@ -78,8 +82,8 @@ class DriverNode(PiezoNode):
         self._closing = False  # set on shutdown: replies are still counted, no longer published
         qos = sample_qos(best_effort=p['best_effort'], depth=p['qos_depth'])
         self.pub = self.create_publisher(JointState, TOPIC_DEFLECTION, qos)
-        self.sub = self.create_subscription(JointState, TOPIC_COMMAND, self.on_command,
-                                            sample_qos(depth=p['qos_depth']))
+        self.sub = None  # created once the target answers (on_tick)
+        self._last_ping = -math.inf
         # A slow supervision tick notices the watchdog; the fast ramp timer runs only while
         # ramping (a 1 kHz timer all the time costs ~10 % of a core in rclpy).
         supervision = min(max(p['watchdog_timeout'] / 4.0, 1e-3), 0.05)
@@ -117,15 +121,29 @@ class DriverNode(PiezoNode):
 
     def on_tick(self) -> None:
         """Watchdog ramp and reply-timeout bookkeeping; starts/stops the ramp timer."""
-        self.driver.tick(time.monotonic(), self.get_clock().now().nanoseconds)
+        now = time.monotonic()
+        self.driver.tick(now, self.get_clock().now().nanoseconds)
+        if self.sub is None:
+            self._connect(now)
         ramping = self.driver.state == STATE_RAMPING
         if ramping and self.ramp_timer.is_canceled():
             self.ramp_timer.reset()
         elif not ramping and not self.ramp_timer.is_canceled():
             self.ramp_timer.cancel()
 
+    def _connect(self, now: float) -> None:
+        if self.driver.connected:
+            self.sub = self.create_subscription(JointState, TOPIC_COMMAND, self.on_command,
+                                                sample_qos(depth=self.params['qos_depth']))
+            self.get_logger().info('target answered; subscribed to voltage_command')
+        elif now - self._last_ping >= _PING_PERIOD_S:
+            self._last_ping = now
+            self.driver.ping(now, self.get_clock().now().nanoseconds)
+
     def provide_diagnostics(self):
-        return self.driver.report(time.monotonic())
+        level, message, values = self.driver.report(time.monotonic())
+        # DiagnosticStatus.level is a byte field: an int would be serialised as garbage.
+        return bytes([level]), message, values
 
     def close(self) -> None:
         """Ramp the output to 0 V at the slew limit (bounded wait), then close the socket."""

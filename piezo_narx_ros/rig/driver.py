@@ -25,7 +25,7 @@ from piezo_narx_ros.rig.limits import SlewLimiter, Watchdog
 
 DIAG_OK, DIAG_WARN, DIAG_ERROR = 0, 1, 2  # diagnostic_msgs/DiagnosticStatus levels
 
-STATE_IDLE = 'idle'            # no command yet; output at rest (0 V), nothing sent
+STATE_IDLE = 'idle'            # no command yet; output at rest (0 V), only pings sent
 STATE_STREAMING = 'streaming'  # commands arriving
 STATE_RAMPING = 'ramping'      # watchdog tripped: output slewing to 0 V
 STATE_PARKED = 'parked'        # watchdog ramp finished: output held at 0 V
@@ -160,6 +160,18 @@ class RigDriver:
             self.state = STATE_STREAMING
             self._send(out, int(stamp_ns), now, flags=0, publish=True)
             return out
+
+    @property
+    def connected(self) -> bool:
+        """True once the target has answered any datagram (a ping, typically)."""
+        return self._last_reply is not None
+
+    def ping(self, now: float, stamp_ns: int = 0) -> None:
+        """Ask the target for its current measurement without applying anything (start-up check
+        that it is there); the reply is accounted like any other but not published."""
+        with self._lock:
+            self._send(self.limiter.output.copy(), int(stamp_ns), now, flags=protocol.FLAG_PING,
+                       publish=False)
 
     def reject(self) -> None:
         """Count a command message refused before it reached command() (e.g. axis missing)."""

@@ -5,7 +5,8 @@ deterministic for a seed, whatever the wall-clock timing) and is answered with t
 deflection (m) and the volts the plant applied. Like simulator_node, a gap in the command stamps
 (commands lost upstream) is bridged by stepping the plant with the held voltage, so that driver +
 fake rig and simulator_node give the same stream for the same commands; watchdog ramp datagrams are
-stepped once each and end the gap bridging until the next command. A repeated datagram (same
+stepped once each and end the gap bridging until the next command. A ping datagram is answered
+with the last measurement without stepping anything. A repeated datagram (same
 sequence number and volts as the previous one) is answered again from a cache without stepping
 the plant, as an idempotent target would. Malformed datagrams are counted and dropped.
 
@@ -61,6 +62,9 @@ class FakeRig:
         self.commands = 0
         self.malformed = 0
         self.repeats = 0
+        self.pings = 0
+        self._position = (0.0,) * n_axes   # last measured m and applied V, for ping replies
+        self._applied = (0.0,) * n_axes
         self._last: tuple[int, tuple, bytes] | None = None  # (seq, volts, reply)
         self._stop = threading.Event()
 
@@ -76,6 +80,11 @@ class FakeRig:
         except protocol.DatagramError:
             self.malformed += 1
             return None
+        if cmd.flags & protocol.FLAG_PING:
+            # Report the present state without applying anything or advancing the plant.
+            self.pings += 1
+            return protocol.pack_reply(protocol.Reply(cmd.seq, cmd.stamp_ns, self._position,
+                                                      self._applied))
         if self._last is not None and self._last[0] == cmd.seq and self._last[1] == cmd.volts:
             self.repeats += 1
             return self._last[2]
@@ -90,8 +99,9 @@ class FakeRig:
             y_meas, _y_true, u_applied = plant.step(volts)
             position.append(float(y_meas))
             applied.append(float(u_applied))
-        reply = protocol.pack_reply(protocol.Reply(cmd.seq, cmd.stamp_ns, tuple(position),
-                                                   tuple(applied)))
+        self._position, self._applied = tuple(position), tuple(applied)
+        reply = protocol.pack_reply(protocol.Reply(cmd.seq, cmd.stamp_ns, self._position,
+                                                   self._applied))
         self.commands += 1
         self._last = (cmd.seq, cmd.volts, reply)
         return reply

@@ -9,7 +9,7 @@ can read it with one packed struct (or memcpy per field):
     5      1    uint8    kind      1 = command (driver -> target), 2 = reply (target -> driver)
     6      2    uint16   n_axes    number of axes that follow (1..MAX_AXES)
     8      4    uint32   seq       command sequence number; a reply echoes the command's
-    12     4    uint32   flags     command: bit 0 = watchdog ramp; reply: bit 0 = target fault
+    12     4    uint32   flags     command: bit 0 ramp, bit 1 ping; reply: bit 0 target fault
     16     8    int64    stamp_ns  sample stamp t_k in ns (command); a reply echoes it
 
 Command payload: n_axes x float64 volts to output.
@@ -33,6 +33,7 @@ MAX_AXES = 16
 SEQ_MODULO = 1 << 32
 
 FLAG_RAMP = 0x1          # command: the driver's watchdog is ramping the output to 0 V
+FLAG_PING = 0x2          # command: do not apply; reply with the current measurement and output
 FLAG_TARGET_FAULT = 0x1  # reply: the target reports a fault (amplifier, sensor, its own limits)
 
 HEADER = struct.Struct('<4sBBHIIq')
