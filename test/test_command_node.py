@@ -30,3 +30,35 @@ def test_bad_parameters_refused_with_one_line_and_exit_2():
         assert p.returncode == 2, (node, args, err)
         assert len(lines) == 1 and lines[0].startswith(f'{node}: error: '), err
         assert fragment in lines[0], (fragment, lines[0])
+
+
+def test_running_parameter_pauses_and_resumes_the_stream():
+    import time
+
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from piezo_narx_ros.nodes.command_node import CommandNode
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        node = CommandNode(context=ctx, parameter_overrides=[
+            Parameter('fs', value=1000.0), Parameter('kind', value='sine'),
+            Parameter('seconds', value=1.0), Parameter('running', value=False)])
+        s = node.streamer
+        node.on_tick()
+        assert s.published == 0 and node.status()[1] == 'paused'
+        assert node.set_parameters([Parameter('running', value=True)])[0].successful
+        node.on_tick()
+        time.sleep(0.05)
+        node.on_tick()                       # ~50 samples due: caught up in one tick
+        assert s.published >= 40 and s.max_batch >= 30 and node.status()[1] == 'running'
+        assert node.set_parameters([Parameter('running', value=False)])[0].successful
+        n = s.published
+        time.sleep(0.02)
+        node.on_tick()
+        assert s.published == n and node.status()[1] == 'paused'
+        assert not node.set_parameters([Parameter('fs', value=5.0)])[0].successful   # read-only
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
