@@ -1,0 +1,231 @@
+"""What the demo measures on a live recording, ROS-free: free-run accuracy, latency and loss.
+
+The input is a bag recorded by recorder_node with voltage_command, deflection and
+deflection_estimate (JointState; stamps t_k shared by the three streams, receive times = the
+recorder's wall clock). Everything here works on numpy arrays read from that bag.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from piezo_narx_ros.errors import DataError
+from piezo_narx_ros.ident import metrics
+
+COMMAND = 'piezo/voltage_command'
+DEFLECTION = 'piezo/deflection'
+ESTIMATE = 'piezo/deflection_estimate'
+
+
+@dataclass
+class LiveRun:
+    """Samples of one live run, paired by stamp (arrays (n,) in stamp order).
+
+    t_s: seconds since the first command stamp; u: V; y: measured m; y_hat: estimated m;
+    log_*_ns: the recorder's receive time of each message, ns (same clock for all three).
+    first_estimate: index of the first sample with an estimate (samples before it were not
+    estimated: the estimator waits for its first measured window).
+    """
+    stamps_ns: np.ndarray
+    t_s: np.ndarray
+    u: np.ndarray
+    y: np.ndarray
+    y_hat: np.ndarray
+    log_command_ns: np.ndarray
+    log_deflection_ns: np.ndarray
+    log_estimate_ns: np.ndarray
+    first_estimate: int
+    lost: dict          # {stream: samples missing on it}, see load_live_run
+    fs: float
+
+
+def _unique(stamps: np.ndarray, *arrays: np.ndarray):
+    """Sort by stamp and keep the first message of a repeated stamp."""
+    order = np.argsort(stamps, kind='stable')
+    s = stamps[order]
+    keep = np.ones(s.size, dtype=bool)
+    keep[1:] = s[1:] != s[:-1]
+    return (s[keep],) + tuple(a[order][keep] for a in arrays)
+
+
+def load_live_run(bag, expected: int | None = None, fs: float | None = None) -> LiveRun:
+    """Read the three streams of a live run from `bag` and pair them by stamp.
+
+    expected: samples the command node published (from its diagnostics); None = the number of
+    distinct stamps seen on any stream. Lost samples per stream: expected minus distinct stamps
+    received, except for the estimate, which is only expected from its first sample on.
+    Raises DataError when a stream is empty.
+    """
+    from piezo_narx_ros.bag.reader import read_joint_series
+    series = read_joint_series(bag, {COMMAND: 'effort', DEFLECTION: 'position',
+                                     ESTIMATE: 'position'})
+    streams = {}
+    for topic, name in ((COMMAND, 'command'), (DEFLECTION, 'deflection'),
+                        (ESTIMATE, 'estimate')):
+        s = series[topic]
+        if s.values.size == 0:
+            raise DataError(f'{bag}: no samples on /{topic}')
+        streams[name] = _unique(s.stamps_ns, s.values, s.log_ns)
+    all_stamps = np.unique(np.concatenate([v[0] for v in streams.values()]))
+    n_expected = int(expected) if expected is not None else all_stamps.size
+    first_est = streams['estimate'][0][0]
+    unseen = max(0, n_expected - all_stamps.size)   # missed by all three streams
+    lost = {
+        'command': n_expected - streams['command'][0].size,
+        'deflection': n_expected - streams['deflection'][0].size,
+        # Only stamps from the first estimate on were due (those before: initialisation).
+        'estimate': int(np.count_nonzero(all_stamps >= first_est)) + unseen
+        - streams['estimate'][0].size,
+    }
+    cs, cu, clog = streams['command']
+    ds, dy, dlog = streams['deflection']
+    es, ey, elog = streams['estimate']
+    common = np.intersect1d(np.intersect1d(cs, ds), es)
+    if common.size < 2:
+        raise DataError(f'{bag}: fewer than 2 samples have command, deflection and estimate')
+    ic = np.searchsorted(cs, common)
+    idf = np.searchsorted(ds, common)
+    ie = np.searchsorted(es, common)
+    if fs is None:
+        fs = 1e9 / float(np.median(np.diff(cs))) if cs.size > 1 else float('nan')
+    return LiveRun(stamps_ns=common, t_s=(common - cs[0]) * 1e-9, u=cu[ic], y=dy[idf],
+                   y_hat=ey[ie], log_command_ns=clog[ic], log_deflection_ns=dlog[idf],
+                   log_estimate_ns=elog[ie],
+                   first_estimate=int(np.count_nonzero(cs < first_est)),
+                   lost={k: int(v) for k, v in lost.items()}, fs=float(fs))
+
+
+def percentiles_us(delays_ns: np.ndarray) -> dict:
+    """{'p50', 'p99', 'max', 'n'} of delays given in ns, reported in µs."""
+    d = np.asarray(delays_ns, dtype=np.float64) / 1e3
+    if d.size == 0:
+        return {'p50': None, 'p99': None, 'max': None, 'n': 0}
+    p50, p99, mx = np.percentile(d, [50, 99, 100])
+    return {'p50': float(p50), 'p99': float(p99), 'max': float(mx), 'n': int(d.size)}
+
+
+def live_figures(run: LiveRun, skip: int = 0) -> dict:
+    """Free-run accuracy and latency of a live run.
+
+    skip: paired samples left out of R²/RMSE at the start (the estimator's first n0 outputs are
+    copies of the measurement when it initialises from it). Returns a JSON-ready dict: r2, rmse_m,
+    rmse_nm, max_abs_error_nm, n_scored, latency_us (estimate receive time minus command receive
+    time, same stamp, both at the recorder), lateness_us (estimate receive time minus the stamp,
+    i.e. including the command node's timer lateness), lost samples.
+    """
+    if run.y.size - skip < 2:
+        raise DataError(f'too few paired samples to score ({run.y.size}, skipping {skip})')
+    y, y_hat = run.y[skip:], run.y_hat[skip:]
+    err = y_hat - y
+    return {
+        'n_paired': int(run.y.size),
+        'n_scored': int(y.size),
+        'skipped_at_start': int(skip),
+        'not_estimated_at_start': int(run.first_estimate),
+        'r2': metrics.r2(y, y_hat),
+        'rmse_m': metrics.rmse(y, y_hat),
+        'rmse_nm': metrics.rmse(y, y_hat) * 1e9,
+        'max_abs_error_nm': float(np.max(np.abs(err)) * 1e9),
+        'y_span_um': float(np.ptp(y) * 1e6),
+        'latency_us': percentiles_us(run.log_estimate_ns - run.log_command_ns),
+        'lateness_us': percentiles_us(run.log_estimate_ns - run.stamps_ns),
+        'lost': dict(run.lost),
+        'fs': run.fs,
+    }
+
+
+def offline_difference(run: LiveRun, model, skip: int) -> float | None:
+    """Largest |live estimate - model.simulate| (m) over the scored samples, the offline free run
+    started from the live estimate's first n0 values; None when samples are missing in between
+    (the live estimator then held the command, which the offline run cannot know)."""
+    if np.any(np.diff(run.stamps_ns) > 1.5e9 / run.fs):
+        return None
+    n0 = int(model.n0)
+    u, y_hat = run.u[skip - n0:] if skip >= n0 else run.u, run.y_hat[max(skip - n0, 0):]
+    sim = model.simulate(u, y_hat[:n0])
+    return float(np.max(np.abs(sim[n0:] - y_hat[n0:])))
+
+
+# ----------------------------------------------------------------------------------- figures
+def _pyplot():
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def plot_tracking(run: LiveRun, skip: int, zoom_s: float = 0.25):
+    """Measured vs estimated deflection (µm), the error (nm), and a zoom of zoom_s seconds."""
+    plt = _pyplot()
+    t, y, yh = run.t_s[skip:], run.y[skip:] * 1e6, run.y_hat[skip:] * 1e6
+    err_nm = (run.y_hat[skip:] - run.y[skip:]) * 1e9
+    fig, ax = plt.subplots(3, 1, figsize=(10, 8), constrained_layout=True)
+    ax[0].plot(t, y, lw=0.8, label='measured (deflection)')
+    ax[0].plot(t, yh, lw=0.8, ls='--', label='estimated (deflection_estimate, free run)')
+    ax[0].set_ylabel('deflection [µm]')
+    ax[0].legend(loc='upper right')
+    ax[0].set_title('live free-run estimate vs measurement')
+    ax[1].plot(t, err_nm, lw=0.6, color='C3')
+    ax[1].set_ylabel('estimate - measured [nm]')
+    mid = t[0] + 0.5 * (t[-1] - t[0])
+    sel = (t >= mid) & (t <= mid + zoom_s)
+    ax[2].plot(t[sel], y[sel], '.-', ms=3, lw=0.8, label='measured')
+    ax[2].plot(t[sel], yh[sel], '.--', ms=3, lw=0.8, label='estimated')
+    ax[2].set_ylabel('deflection [µm]')
+    ax[2].set_xlabel('time [s]')
+    ax[2].set_title(f'zoom: {zoom_s * 1e3:.0f} ms')
+    ax[2].legend(loc='upper right')
+    return fig
+
+
+def plot_hysteresis(run: LiveRun, skip: int):
+    """Deflection against command voltage, measured and estimated."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4.5), constrained_layout=True, sharey=True)
+    u = run.u[skip:]
+    for a, y, label, color in ((ax[0], run.y[skip:], 'measured', 'C0'),
+                               (ax[1], run.y_hat[skip:], 'estimated (free run)', 'C1')):
+        a.plot(u, y * 1e6, lw=0.3, color=color)
+        a.set_title(label)
+        a.set_xlabel('voltage command [V]')
+    ax[0].set_ylabel('deflection [µm]')
+    return fig
+
+
+def plot_latency(run: LiveRun):
+    """Histogram of estimate-minus-command receive times at the recorder (µs)."""
+    plt = _pyplot()
+    d = (run.log_estimate_ns - run.log_command_ns) / 1e3
+    fig, ax = plt.subplots(figsize=(8, 4), constrained_layout=True)
+    pos = d[d > 0]
+    if pos.size:
+        bins = np.logspace(np.log10(max(pos.min(), 1.0)), np.log10(pos.max() * 1.01 + 1), 60)
+        ax.hist(pos, bins=bins, color='C2')
+        ax.set_xscale('log')
+    for q, ls in ((50, '--'), (99, ':')):
+        v = float(np.percentile(d, q))
+        ax.axvline(max(v, 1.0), color='k', ls=ls, label=f'p{q} = {v:.0f} µs')
+    ax.set_xlabel('command -> estimate latency at the recorder [µs]')
+    ax.set_ylabel('samples')
+    ax.legend()
+    return fig
+
+
+def write_figures(run: LiveRun, skip: int, out_dir) -> dict[str, Path]:
+    """tracking.png, hysteresis.png, latency.png in out_dir; returns {name: path}."""
+    plt = _pyplot()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = {}
+    try:
+        for name, fig in (('tracking', plot_tracking(run, skip)),
+                          ('hysteresis', plot_hysteresis(run, skip)),
+                          ('latency', plot_latency(run))):
+            paths[name] = out_dir / f'live_{name}.png'
+            fig.savefig(paths[name], dpi=110)
+            plt.close(fig)
+    finally:
+        plt.close('all')
+    return paths

@@ -1,0 +1,363 @@
+"""The demo's phases: record (nodes over DDS), fit (`piezo-narx fit`), live (estimator over DDS),
+analysis. Processes are started and stopped with the bringup machinery (cli/bringup.py): a
+bringup YAML per phase is written to the output folder and loaded with `load_config`, so every
+phase can be rerun by hand with `piezo-narx bringup OUT/bringup_<phase>.yaml`.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import os
+import signal
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from piezo_narx_ros.cli.bringup import Bringup, NodeSpec, load_config
+from piezo_narx_ros.errors import ConfigError, PiezoNarxError
+
+DEFAULTS = {
+    'namespace': 'piezo', 'fs': 2000.0, 'seconds': 25.0, 'seed': 0, 'kind': 'multisine',
+    'amplitude': 100.0,
+    'fit': {'ny': '1-4', 'nu': '1-4', 'hidden': 10, 'arx_na': '1-10', 'arx_nb': '1-10',
+            'split': 0.5, 'jobs': 2},
+    'validation_seconds': 10.0, 'validation_seed': None,
+    'startup_timeout_s': 60.0, 'settle_s': 3.0, 'sigint_timeout_s': 10.0,
+    'sigterm_timeout_s': 3.0,
+    'quick': {'seconds': 4.0, 'validation_seconds': 3.0,
+              'fit': {'ny': 4, 'nu': 4, 'arx_na': '1-2', 'arx_nb': '1-2', 'jobs': 1}},
+}
+_POSITIVE = ('fs', 'seconds', 'validation_seconds', 'amplitude', 'startup_timeout_s', 'settle_s',
+             'sigint_timeout_s', 'sigterm_timeout_s')
+
+
+class PhaseFailed(PiezoNarxError):
+    """A demo phase could not complete (a node died, nothing recorded, fit failed)."""
+
+
+class Interrupted(Exception):
+    """SIGINT/SIGTERM arrived; carries the signal number."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def load_settings(path=None, quick: bool = False, **overrides) -> dict:
+    """Demo settings: DEFAULTS < YAML file < quick section (if quick) < non-None overrides.
+    ConfigError names an unknown key or a bad value."""
+    settings = copy.deepcopy(DEFAULTS)
+    if path is not None:
+        import yaml
+        try:
+            doc = yaml.safe_load(Path(path).read_text()) or {}
+        except OSError as exc:
+            raise ConfigError(f'{path}: cannot read demo settings ({exc.strerror})') from None
+        except yaml.YAMLError as exc:
+            raise ConfigError(f'{path}: not valid YAML ({str(exc).splitlines()[0]})') from None
+        if not isinstance(doc, dict):
+            raise ConfigError(f'{path}: demo settings must be a mapping of key: value')
+        unknown = sorted(set(doc) - set(DEFAULTS))
+        if unknown:
+            raise ConfigError(f'{path}: unknown setting(s) {", ".join(unknown)}; known: '
+                              f'{", ".join(DEFAULTS)}')
+        settings = _merge(settings, doc)
+    if quick:
+        settings = _merge(settings, settings.get('quick') or {})
+    settings = _merge(settings, {k: v for k, v in overrides.items() if v is not None})
+    for key in _POSITIVE:
+        v = settings[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+            raise ConfigError(f'{key} must be a positive number, got {v!r}')
+    for key in ('seed', 'validation_seed'):
+        v = settings[key]
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 0):
+            raise ConfigError(f'{key} must be an integer >= 0, got {v!r}')
+    if settings['validation_seed'] is None:
+        settings['validation_seed'] = settings['seed'] + 1
+    if not isinstance(settings['fit'], dict):
+        raise ConfigError('fit must be a mapping of `piezo-narx fit` settings')
+    from piezo_narx_ros.cli.fit import CONFIG_KEYS
+    unknown = sorted(set(settings['fit']) - set(CONFIG_KEYS))
+    if unknown:
+        raise ConfigError(f'fit: unknown setting(s) {", ".join(unknown)}')
+    if settings['fs'] * min(settings['seconds'], settings['validation_seconds']) < 500:
+        raise ConfigError('seconds x fs must give at least 500 samples per phase')
+    return settings
+
+
+class _Group(Bringup):
+    """Bringup that writes its log to a file and keeps each process's last line (for errors)."""
+
+    def __init__(self, specs, log_file, settings):
+        super().__init__(specs, out=log_file, sigint_timeout=settings['sigint_timeout_s'],
+                         sigterm_timeout=settings['sigterm_timeout_s'])
+        self.last: dict[str, str] = {}
+
+    def log(self, name: str, line: str) -> None:
+        if line.strip():
+            self.last[name] = line.strip()
+        super().log(name, line)
+
+    def exited(self) -> tuple[str, int] | None:
+        """(name, code) of the first process that has exited, else None."""
+        for name, proc in self.procs.items():
+            code = proc.poll()
+            if code is not None:
+                return name, code
+        return None
+
+
+@dataclass
+class PhaseTimes:
+    """Wall time of each phase, s."""
+    seconds: dict = field(default_factory=dict)
+
+    def add(self, name: str, t0: float) -> None:
+        self.seconds[name] = round(time.monotonic() - t0, 3)
+
+
+class Demo:
+    """Runs the phases in `out` with `settings` (see load_settings); `say` prints progress."""
+
+    def __init__(self, settings: dict, out: Path, say=print):
+        self.s = settings
+        self.out = Path(out)
+        self.say = say
+        self.ns = str(settings['namespace']).strip('/')
+        self.groups: list[_Group] = []
+        self.stop_signal: int | None = None
+        self.probe = None
+        self.times = PhaseTimes()
+        self._log = None
+
+    # -------------------------------------------------------------------- signals and children
+    def request_stop(self, signum, _frame=None) -> None:
+        """Signal handler: remember the signal; the waiting loops raise Interrupted."""
+        self.stop_signal = signum
+
+    def check(self) -> None:
+        """Raise Interrupted once a stop was requested."""
+        if self.stop_signal is not None:
+            raise Interrupted(self.stop_signal)
+
+    def start_group(self, specs: list[NodeSpec]) -> _Group:
+        """Start processes (output to the log file); stopped by stop_all."""
+        self.check()
+        group = _Group(specs, self._log, self.s)
+        self.groups.append(group)
+        group.start()
+        return group
+
+    def check_alive(self, phase: str) -> None:
+        """PhaseFailed when a process of a running group has exited."""
+        for g in self.groups:
+            died = g.exited()
+            if died is not None:
+                time.sleep(0.2)   # a terminal Ctrl-C reaches the children too: prefer that
+                self.check()
+                name, code = died
+                why = g.last.get(name, 'no output')
+                raise PhaseFailed(f'{phase}: {name} exited with code {code} ({why}); log: '
+                                  f'{self._log.name}')
+
+    def stop_all(self) -> dict[str, int]:
+        """Stop every running group (SIGINT -> SIGTERM -> SIGKILL); returns exit codes."""
+        codes = {}
+        while self.groups:
+            codes.update(self.groups.pop().stop())
+        return codes
+
+    def wait(self, seconds: float) -> None:
+        """Spin the diagnostics probe (or sleep) for `seconds`, staying interruptible."""
+        end = time.monotonic() + seconds
+        while True:
+            self.check()
+            left = end - time.monotonic()
+            if left <= 0:
+                return
+            if self.probe is not None:
+                self.probe.spin(min(left, 0.1))
+            else:
+                time.sleep(min(left, 0.1))
+
+    # ----------------------------------------------------------------------------- node phases
+    def _bringup_yaml(self, phase: str, nodes: list[dict]) -> Path:
+        import yaml
+        path = self.out / f'bringup_{phase}.yaml'
+        path.write_text(f'# Written by piezo-narx demo; rerun with: piezo-narx bringup {path}\n'
+                        + yaml.safe_dump({'namespace': self.ns, 'nodes': nodes},
+                                         sort_keys=False))
+        return path
+
+    def _fq(self, name: str) -> str:
+        return f'/{self.ns}/{name}' if self.ns else f'/{name}'
+
+    def stream(self, phase: str, bag: Path, seconds: float, seed: int, model: Path | None = None,
+               kind: str | None = None, extra_command: dict | None = None) -> dict:
+        """Run command -> simulator (-> estimator) -> recorder until the excitation has been
+        recorded; returns {'published': N, 'received': messages recorded, 'codes': exit codes}."""
+        s = self.s
+        topics = ['voltage_command', 'deflection'] + (['deflection_estimate'] if model else [])
+        listeners = [{'executable': 'simulator_node',
+                      'parameters': {'fs': float(s['fs']), 'seed': int(seed)}}]
+        if model is not None:
+            listeners.append({'executable': 'estimator_node',
+                              'parameters': {'model': str(model), 'fs': float(s['fs'])}})
+        listeners.append({'executable': 'recorder_node',
+                          # depth as the sample streams' (10000 = 5 s at 2 kHz): at the
+                          # default 1000 a 0.46 s stall of the loaded box lost 19 commands.
+                          'parameters': {'output': str(bag), 'topics': topics,
+                                         'depth': 10000}})
+        command = {'executable': 'command_node', 'parameters': {
+            'fs': float(s['fs']), 'kind': kind or s['kind'], 'amplitude': float(s['amplitude']),
+            'seconds': float(seconds), 'seed': int(seed), 'loop': False,
+            'wait_for_subscribers': len(listeners), **(extra_command or {})}}
+        specs = load_config(self._bringup_yaml(phase, listeners + [command]))
+        names = [n['executable'] for n in listeners]
+        self.start_group([sp for sp in specs if sp.name != 'command_node'])
+        self._wait_up(phase, names)
+        self.start_group([sp for sp in specs if sp.name == 'command_node'])
+        result = self._wait_recorded(phase, seconds, estimator=model is not None)
+        result['codes'] = self.stop_all()
+        bad = {n: c for n, c in result['codes'].items() if c not in (0, None)}
+        if 'recorder_node' in bad:   # the bag may be incomplete: the phase has failed
+            raise PhaseFailed(f'{phase}: recorder_node exited with code {bad["recorder_node"]} '
+                              f'while closing {bag}; log: {self._log.name}')
+        if bad:   # data complete (checked from the bag later), but say it was not clean
+            self.say(f'  {phase}: warning: stopped with escalation: '
+                     + ', '.join(f'{n} exit {c}' for n, c in bad.items()))
+        return result
+
+    def _wait_up(self, phase: str, names: list[str]) -> None:
+        """Until every listed node publishes diagnostics (it is constructed and spinning)."""
+        t0 = time.monotonic()
+        while not all(self.probe.status(self._fq(n)) for n in names):
+            self.check_alive(phase)
+            if time.monotonic() - t0 > self.s['startup_timeout_s']:
+                missing = [n for n in names if not self.probe.status(self._fq(n))]
+                raise PhaseFailed(f'{phase}: {", ".join(missing)} did not come up within '
+                                  f'{self.s["startup_timeout_s"]:g} s')
+            self.wait(0.2)
+        self.wait(0.5)   # discovery of the subscriptions among the nodes
+
+    def _wait_recorded(self, phase: str, seconds: float, estimator: bool) -> dict:
+        """Until the command node has finished and the recorder has everything (or nothing new
+        arrived for settle_s). Prints a progress line every few seconds."""
+        fs, n_total = self.s['fs'], int(round(seconds * self.s['fs']))
+        cmd, sim, est, rec = (self._fq(n) for n in ('command_node', 'simulator_node',
+                                                    'estimator_node', 'recorder_node'))
+        deadline = time.monotonic() + self.s['startup_timeout_s'] + 3 * seconds + 30
+        last_line = last_change = time.monotonic()
+        last_received = -1
+        while True:
+            self.check_alive(phase)
+            now = time.monotonic()
+            if now > deadline:
+                raise PhaseFailed(f'{phase}: excitation not recorded within '
+                                  f'{deadline - last_line:.0f} s')
+            st = self.probe.status(cmd)
+            published = self.probe.value(cmd, 'published')
+            received = self.probe.value(rec, 'received')
+            if received != last_received:
+                last_received, last_change = received, now
+            finished = st is not None and st[0] == 'finished'
+            if now - last_line >= 3.0:
+                last_line = now
+                self.say(f'  {phase}: {published / fs:5.1f} of {seconds:g} s sent '
+                         f'({published} samples), {received} messages recorded')
+            if finished:
+                answered = self.probe.value(sim, 'answered')
+                target = published + answered
+                done = answered >= published
+                if estimator:
+                    target += self.probe.value(est, 'estimates')
+                    done = done and self.probe.value(est, 'commands') >= published
+                if (done and received >= target) or now - last_change > self.s['settle_s']:
+                    self.wait(0.3)
+                    self.say(f'  {phase}: {published} samples sent, '
+                             f'{self.probe.value(rec, "received")} messages recorded')
+                    return {'published': published, 'expected': n_total,
+                            'received': self.probe.value(rec, 'received')}
+            self.wait(0.1)
+
+    # ------------------------------------------------------------------------------- fit phase
+    def fit(self, bag: Path, out: Path, no_report: bool = False) -> dict:
+        """`piezo-narx fit BAG --out OUT --config OUT/../fit_settings.yaml` as a child process."""
+        import yaml
+        settings_path = out.parent / f'{out.name}_settings.yaml'
+        settings_path.write_text('# piezo-narx fit settings written by piezo-narx demo\n'
+                                 + yaml.safe_dump(dict(self.s['fit']), sort_keys=False))
+        argv = [sys.executable, '-m', 'piezo_narx_ros.cli.main', 'fit', str(bag), '--out',
+                str(out), '--config', str(settings_path)] + (['--no-report'] if no_report else [])
+        group = self.start_group([NodeSpec('fit', argv)])
+        t0 = last = time.monotonic()
+        while group.exited() is None:
+            if time.monotonic() - last >= 10.0:
+                last = time.monotonic()
+                self.say(f'  fit: running for {last - t0:.0f} s')
+            self.wait(0.2)
+        name, code = group.exited()
+        self.groups.remove(group)
+        group.stop()   # joins the output thread
+        if code != 0:
+            raise PhaseFailed(f'fit: piezo-narx fit exited with code {code} '
+                              f'({group.last.get(name, "no output")}); log: {self._log.name}')
+        return json.loads((out / 'model.json').read_text())
+
+    # ----------------------------------------------------------------------------- orchestration
+    def __enter__(self) -> 'Demo':
+        from piezo_narx_ros.demo.probe import DiagnosticsProbe
+        self.out.mkdir(parents=True, exist_ok=True)
+        self._log = open(self.out / 'demo.log', 'a', buffering=1)
+        self.probe = DiagnosticsProbe()
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        try:
+            self.stop_all()
+        finally:
+            if self.probe is not None:
+                self.probe.close()
+                self.probe = None
+            if self._log is not None:
+                self._log.close()
+        return False
+
+
+def install_signal_handlers(demo: Demo) -> dict:
+    """Route SIGINT/SIGTERM to demo.request_stop; returns the previous handlers."""
+    return {s: signal.signal(s, demo.request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
+
+
+def restore_signal_handlers(old: dict) -> None:
+    """Put back the handlers returned by install_signal_handlers."""
+    for s, h in old.items():
+        signal.signal(s, h)
+
+
+def stream_counts(bag: Path, topics: dict[str, str]) -> dict[str, int]:
+    """Distinct stamps recorded per topic ({topic: 'effort'|'position'} -> {topic: count})."""
+    from piezo_narx_ros.bag.reader import read_joint_series
+    series = read_joint_series(bag, topics)
+    return {t: int(np.unique(v.stamps_ns).size) for t, v in series.items()}
+
+
+def child_environment() -> None:
+    """Children discover only on this host unless the caller chose otherwise."""
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    os.environ.setdefault('MPLBACKEND', 'Agg')
+
