@@ -324,3 +324,17 @@ def test_bad_parameters_are_refused_with_a_reason(params, reason):
     lines = out.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith('driver_node: error: '), out
     assert reason in lines[0], out
+
+
+def test_bringup_rig_file_starts_fake_rig_then_driver_then_command_node():
+    from pathlib import Path
+    from piezo_narx_ros.cli.bringup import load_config
+    repo = Path(__file__).resolve().parents[1]
+    specs = load_config(repo / 'config' / 'bringup_rig.yaml')
+    assert [s.name for s in specs] == ['fake_rig', 'driver_node', 'command_node']
+    rig, driver, command = (s.argv for s in specs)
+    assert 'piezo_narx_ros.rig.fake_rig' in rig and '--ros-args' not in rig
+    assert rig[-4:] == ['--port', '50000', '--seed', '0']
+    assert 'piezo_narx_ros.nodes.driver_node' in driver and 'target_port:=50000' in driver
+    assert any(a.endswith('driver_node.yaml') for a in driver)
+    assert 'wait_for_subscribers:=1' in command
