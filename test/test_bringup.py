@@ -1,4 +1,4 @@
-"""piezo-narx bringup: config parsing, prefixed logs, clean stop on SIGTERM, failure when a node dies."""
+"""piezo-narx bringup: config parsing, prefixed logs, clean stop on SIGTERM, failing node."""
 import os
 import re
 import signal

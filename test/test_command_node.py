@@ -2,7 +2,6 @@
 import subprocess
 import sys
 
-import pytest
 
 CASES = [
     ('command_node', ['-p', 'fs:=-5.0'], 'fs must be >= 1.0'),

@@ -1,4 +1,4 @@
-"""nodes/common.py: QoS, validated parameters, JointState helpers, diagnostics (in-process, no peers)."""
+"""nodes/common.py: QoS, validated parameters, JointState/CDR helpers, diagnostics (in-process)."""
 import pytest
 import rclpy
 from rclpy.parameter import Parameter

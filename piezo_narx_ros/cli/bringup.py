@@ -1,4 +1,4 @@
-"""`piezo-narx bringup CONFIG.yaml`: start a set of nodes as separate processes (no ros2 launch here).
+"""`piezo-narx bringup CONFIG.yaml`: start a set of nodes as processes (no ros2 launch here).
 
 CONFIG (YAML):
 

@@ -42,7 +42,7 @@ class SampleClock:
         return self.t0_ns + self.offset_ns(k)
 
     def due_count(self, now_mono_ns: int) -> int:
-        """Number of samples due at monotonic time now (samples 0..n-1 have their instant <= now)."""
+        """Number of samples due at monotonic time now (ns): samples 0..n-1 are due by then."""
         elapsed = int(now_mono_ns) - self.mono0_ns
         if elapsed < 0:
             return 0
@@ -54,8 +54,8 @@ class CommandStreamer:
 
     signal: (N, n_axes) or (N,) volts, one period/record of the excitation; the clamp is applied
     once, the slew limit (V/s) sample by sample from `u_start` (V, the amplifier at rest), also
-    across the loop wrap. `start(t0_ns, mono0_ns)` anchors the clock; `poll(now_mono_ns)` returns the
-    samples due since the last poll as (stamps (n,) int ns, volts (n, n_axes)); `stop()` pauses
+    across the loop wrap. `start(t0_ns, mono0_ns)` anchors the clock; `poll(now_mono_ns)` returns
+    the samples due since the last poll as (stamps (n,) int ns, volts (n, n_axes)); `stop()` pauses
     (the next start re-anchors the clock and resumes the signal where it stopped).
     """
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import time
 
-from rcl_interfaces.msg import SetParametersResult
 from sensor_msgs.msg import JointState
 
 from piezo_narx_ros.command.stream import CommandStreamer, make_signal

@@ -351,8 +351,8 @@ def run_node(node_cls: Callable[..., Node], args: list[str] | None = None,
     """Main of a node process: init, construct, spin, clean shutdown. Returns the exit code.
 
     SIGINT/SIGTERM stop the spin and exit 0; a node that refuses to start (ConfigError or any
-    PiezoNarxError from its constructor) prints one line `NAME: error: reason` and exits 2; any other
-    exception exits 1. The executor is EventsExecutor unless PIEZO_NARX_EXECUTOR=single or
+    PiezoNarxError from its constructor) prints one line `NAME: error: reason` and exits 2; any
+    other exception exits 1. The executor is EventsExecutor unless PIEZO_NARX_EXECUTOR=single or
     `executor` says otherwise.
     """
     import os
