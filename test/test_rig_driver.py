@@ -221,3 +221,13 @@ def test_ping_reaches_the_target_without_moving_anything_and_is_not_published():
     assert drv.connected and drv.counts['replies'] == 1 and drv.state == 'idle'
     drv.tick(10.0)                                   # pings do not feed or trip the watchdog
     assert len(target.sent) == 1 and drv.counts['watchdog_trips'] == 0
+
+
+def test_an_early_ramp_tick_still_moves_no_faster_than_the_slew_limit():
+    drv, target = make(max_slew_rate=1000.0)          # ramp_rate 500 Hz: 2 V per 2 ms
+    drv.limiter.output[:] = 50.0
+    drv.command([50.0], 0, 0.0)
+    drv.tick(0.06)
+    drv.tick(0.0619)                                  # 1.9 ms later: sent, 1.9 V
+    drv.tick(0.0629)                                  # 1.0 ms later: too early, skipped
+    assert [c.volts[0] for c in target.sent[1:]] == pytest.approx([48.0, 46.1])

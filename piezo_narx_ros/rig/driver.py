@@ -205,8 +205,10 @@ class RigDriver:
             if self.state != STATE_RAMPING:
                 self.state = STATE_RAMPING
                 elapsed = period
-            elif self._last_send is not None and now - self._last_send < period:
-                return  # ramp at ramp_rate datagrams/s at most
+            elif self._last_send is not None and now - self._last_send < 0.75 * period:
+                # About ramp_rate datagrams/s; the margin keeps a slightly early timer tick from
+                # being skipped (which would halve the ramp speed).
+                return
             else:
                 elapsed = now - self._last_send if self._last_send is not None else period
             # Never more than one period's worth of slew per datagram, even after a late tick.
