@@ -184,6 +184,7 @@ def test_driver_with_fake_rig_reproduces_the_plant_stream(probe):
     last = diagnostic_values(probe.status[-1])
     # (reply_timeouts may count start-up pings sent before fake_rig was listening)
     assert int(last['replies']) >= len(u) and last['replies_duplicate'] == '0'
+    assert last['receive_errors'] == '0' and last['datagrams_foreign'] == '0'
 
 
 def test_driver_with_fake_rig_equals_simulator_node_across_lost_commands():

@@ -142,6 +142,10 @@ class DriverNode(PiezoNode):
 
     def provide_diagnostics(self):
         level, message, values = self.driver.report(time.monotonic())
+        values.update(datagrams_foreign=self.client.foreign,
+                      receive_errors=self.client.callback_errors)
+        if self.client.callback_errors:
+            values['last_receive_error'] = self.client.last_error
         # DiagnosticStatus.level is a byte field: an int would be serialised as garbage.
         return bytes([level]), message, values
 
