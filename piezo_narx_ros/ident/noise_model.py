@@ -1,0 +1,108 @@
+"""Linear noise model of the residuals, so that the correlation tests judge the innovations.
+
+Billings (Nonlinear System Identification, 2013, ch. 5) applies the correlation tests to the
+residuals of the process model *plus its noise model* (NARMAX): a residual that is coloured only
+because noise enters the output through the lags (output-error noise seen by a one-step predictor
+is a moving average of the sensor noise) does not mean that the process model misses a term. Here
+the noise model is a linear autoregression of the residuals ε (m),
+
+    ε(k) = a1 ε(k-1) + ... + ap ε(k-p) + e(k),
+
+fitted by least squares on the ESTIMATION residuals only (order p by BIC, 0 <= p <= max_order) and
+then applied as a fixed whitening filter e(k) = ε(k) - Σ aj ε(k-j) to the validation residuals. An
+AR(p) is the truncated inverse of an MA noise model, and is linear least squares.
+
+Why this keeps the tests honest: the filter uses past residuals only, never the input, so whatever
+of the residual the input can still predict (a missing linear or nonlinear process term) stays in
+the innovations and is still caught by φuε, φu²'ε, φu²'ε² and φε(εu); and because the filter is
+fixed from the estimation half, it cannot adapt to the validation data it is judged on.
+
+The free-run estimate (what the estimator publishes) is the process model alone: the noise model is
+for validation only.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from piezo_narx_ros.errors import DataError
+
+NOISE_MODELS = ('none', 'ar')
+
+
+@dataclass(frozen=True)
+class ARNoiseModel:
+    """Whitening filter e(k) = ε(k) - Σ_j coef[j-1] ε(k-j), j = 1..order (coef unit-free)."""
+    coef: np.ndarray          # (order,) AR coefficients a1..ap
+    residual_std: float       # std of the estimation innovations, m
+    input_std: float          # std of the estimation residuals it was fitted on, m
+
+    @property
+    def order(self) -> int:
+        """Number of AR coefficients p (samples of residual history the filter needs)."""
+        return int(self.coef.size)
+
+    def whiten(self, residuals) -> np.ndarray:
+        """Innovations (N - order,) of residuals (N,): the first `order` samples only fill the
+        filter's history, so they are dropped."""
+        e = np.asarray(residuals, dtype=np.float64)
+        p = self.order
+        if e.ndim != 1 or e.size <= p:
+            raise DataError(f'noise model: need a 1-D residual longer than its order {p}, got '
+                            f'shape {e.shape}')
+        out = e[p:].copy()
+        for j in range(1, p + 1):
+            out -= self.coef[j - 1] * e[p - j:e.size - j]
+        return out
+
+    def to_dict(self) -> dict:
+        """JSON-ready description (kind, order, coefficients, stds in m)."""
+        return {'kind': 'ar', 'order': self.order, 'coef': self.coef.tolist(),
+                'residual_std': self.residual_std, 'input_std': self.input_std}
+
+
+def _lagged(e: np.ndarray, p: int, start: int) -> tuple[np.ndarray, np.ndarray]:
+    """Regressors [ε(k-1) .. ε(k-p)] and targets ε(k) for k = start..N-1."""
+    n = e.size
+    X = np.empty((n - start, p))
+    for j in range(1, p + 1):
+        X[:, j - 1] = e[start - j:n - j]
+    return X, e[start:]
+
+
+def fit_ar_noise_model(residuals, max_order: int = 20, criterion: str = 'bic') -> ARNoiseModel:
+    """AR noise model of estimation residuals ε (m), order 0..max_order chosen by BIC or AIC.
+
+    Every order is scored on the same samples k >= max_order, so the criteria compare like with
+    like. Order 0 (no filter) is chosen when the residuals are already white.
+    """
+    e = np.asarray(residuals, dtype=np.float64)
+    max_order = int(max_order)
+    if e.ndim != 1 or not np.all(np.isfinite(e)):
+        raise DataError('noise model: residuals must be a finite 1-D array')
+    if max_order < 0:
+        raise DataError(f'noise model: max_order must be >= 0, got {max_order}')
+    if criterion not in ('bic', 'aic'):
+        raise DataError(f'noise model: criterion must be bic or aic, got {criterion!r}')
+    if e.size < 10 * (max_order + 1):
+        raise DataError(f'noise model: {e.size} residual samples are too few for order '
+                        f'{max_order} (need >= {10 * (max_order + 1)})')
+    e = e - e.mean()
+    X, t = _lagged(e, max_order, max_order)
+    n = t.size
+    penalty = np.log(n) if criterion == 'bic' else 2.0
+    best = (n * np.log(np.mean(t * t)) if np.any(t) else -np.inf, np.zeros(0))
+    for p in range(1, max_order + 1):
+        coef, *_ = np.linalg.lstsq(X[:, :p], t, rcond=None)
+        r = t - X[:, :p] @ coef
+        mse = float(np.mean(r * r))
+        if mse <= 0.0:
+            break
+        score = n * np.log(mse) + p * penalty
+        if score < best[0]:
+            best = (score, coef)
+    coef = best[1]
+    r = t - X[:, :coef.size] @ coef if coef.size else t
+    return ARNoiseModel(coef=np.asarray(coef, dtype=np.float64), residual_std=float(np.std(r)),
+                        input_std=float(np.std(e)))
