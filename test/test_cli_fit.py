@@ -58,7 +58,7 @@ def fitted(data_dir, tmp_path_factory):
     with pytest.raises(SystemExit) as exc:
         main(['fit', str(data_dir / 'rec.npz'), '--ny', '2', '--nu', '2', '--hidden', '4',
               '--arx-na', '1-2', '--arx-nb', '1-2', '--jobs', '1', '--quiet', '--out', str(out),
-              '--config', str(data_dir / 'fast.yaml'), '--max-outside', '0.05'])
+              '--config', str(data_dir / 'fast.yaml')])
     assert exc.value.code == 0
     return out
 
@@ -69,6 +69,7 @@ def test_fit_writes_model_candidates_and_report(fitted):
         'NARX(ny=2, nu=2, H=4)', 'ARX(na=1, nb=1)', 'ARX(na=1, nb=2)', 'ARX(na=2, nb=1)',
         'ARX(na=2, nb=2)']
     assert cands['config']['max_outside_fraction'] == 0.05
+    assert (cands['config']['residuals'], cands['config']['noise_model']) == ('simulation', 'ar')
     assert cands['config']['training'] == FAST_TRAINING
     sel = cands['candidates'][cands['selection']['index']]
     for c in cands['candidates']:
@@ -82,6 +83,14 @@ def test_fit_writes_model_candidates_and_report(fitted):
     assert doc['metrics']['validation']['simulation']['r2'] == pytest.approx(
         sel['scores']['validation']['simulation']['r2'])
     assert (fitted / 'model.npz').is_file()
+    # The verdicts record which residuals and which noise model they used, and the raw ones.
+    tests = doc['tests']
+    assert tests['residuals'] == 'simulation' and tests['noise_model'] == 'ar'
+    assert tests['simulation']['noise_model']['kind'] == 'ar'
+    assert len(tests['simulation']['noise_model']['coef']) == \
+        tests['simulation']['noise_model']['order']
+    assert set(tests['raw']) == {'prediction', 'simulation'}
+    assert doc['metrics']['noise_model'] == 'ar'
     for name in ('metrics.json', 'fig6_narx_r2_grid.png', 'fig6_arx_r2_grid.png',
                  'fig7_correlation.png', 'fig8_simulation.png', 'fig9_hysteresis.png'):
         assert (fitted / 'report' / name).stat().st_size > 1000, name
@@ -100,6 +109,20 @@ def test_evaluate_json_matches_model_and_data(fitted, data_dir, capsys):
     assert all(isinstance(v, bool) for v in result['tests'].values())
     structure = json.loads((fitted / 'model.json').read_text())['structure']
     assert result['n'] == 3000 - max(structure['nu'], structure['ny'])   # scored from k = n0
+    assert result['tests_residuals'] == 'simulation'
+    stored = json.loads((fitted / 'model.json').read_text())['tests']['simulation']['noise_model']
+    assert result['tests_noise_model']['coef'] == stored['coef']      # the fixed, stored filter
+    assert result['tests_noise_model']['source'].startswith('model file')
+    assert set(result['tests_raw']) == set(result['tests'])
+    detail = result['tests_detail']
+    assert result['tests'] == {k: v['passed']
+                               for k, v in detail['simulation']['tests'].items()}
+
+    code, out, _ = cli(['evaluate', str(fitted / 'model.json'), str(data_dir / 'rec.npz'),
+                        '--json', '--noise-model', 'none'], capsys)
+    raw = json.loads(out)
+    assert code == 0 and raw['tests_noise_model'] is None
+    assert raw['tests'] == raw['tests_raw'] == result['tests_raw']
 
     code, out, _ = cli(['evaluate', str(fitted / 'model.json'), str(data_dir / 'rec.npz')],
                        capsys)
@@ -184,6 +207,7 @@ def _write_bad(d, name):
     (['rec.npz'], ['--ny', '4-1'], 'not a lag range'),
     (['rec.npz'], ['--hidden', '0'], 'hidden'),
     (['rec.npz'], ['--max-outside', '1.5'], 'max_outside_fraction'),
+    (['rec.npz'], ['--noise-order', '-2'], 'noise_order'),
 ])
 def test_fit_bad_input_one_line_exit_2(data_dir, tmp_path, capsys, inputs, extra, message):
     paths = [str(data_dir / 'rec.npz') if i == 'rec.npz' else
@@ -209,20 +233,24 @@ def test_default_config_file_matches_built_in_defaults(tmp_path):
 
     from piezo_narx_ros.cli.fit import experiment_config, load_settings
     blank = dict(config=None, ny=None, nu=None, hidden=None, seed=None, arx_na=None, arx_nb=None,
-                 max_lag=None, max_outside_fraction=None, residuals=None, jobs=None,
+                 max_lag=None, max_outside_fraction=None, residuals=None, noise_model=None,
+                 noise_order=None, jobs=None,
                  command_topic=None, deflection_topic=None, no_arx=False)
     built_in = load_settings(SimpleNamespace(**blank))
     from_file = load_settings(SimpleNamespace(**{**blank, 'config': str(REPO / 'config' /
                                                                         'fit.yaml')}))
     assert from_file == built_in
     cfg = experiment_config(built_in, progress=False)
-    assert len(cfg.specs()) == 16 + 100 and cfg.hidden == 10 and cfg.max_outside_fraction == 0
+    assert len(cfg.specs()) == 16 + 100 and cfg.hidden == 10
+    assert (cfg.max_outside_fraction, cfg.residuals, cfg.noise_model, cfg.noise_order) == (
+        0.05, 'simulation', 'ar', 20)
 
 
 @pytest.mark.parametrize('case, message', [
     ('missing_model', 'model.json'),
     ('fs_mismatch', 'sampled at 1000 Hz but the model was fitted at 2000 Hz'),
     ('short', 'too few'),
+    ('bad_noise_model', 'tests.simulation.noise_model is malformed'),
 ])
 def test_evaluate_bad_input_one_line_exit_2(fitted, data_dir, tmp_path, capsys, case, message):
     model = str(fitted / 'model.json')
@@ -231,6 +259,13 @@ def test_evaluate_bad_input_one_line_exit_2(fitted, data_dir, tmp_path, capsys, 
         model = str(tmp_path / 'model.json')
     elif case == 'fs_mismatch':
         data = str(_write_bad(tmp_path, 'other_fs.npz'))
+    elif case == 'bad_noise_model':
+        import shutil
+        doc = json.loads((fitted / 'model.json').read_text())
+        doc['tests']['simulation']['noise_model']['coef'] = ['print(1)']
+        (tmp_path / 'model.json').write_text(json.dumps(doc))
+        shutil.copy(fitted / 'model.npz', tmp_path / 'model.npz')
+        model = str(tmp_path / 'model.json')
     else:
         u, y = piezo_like(120)
         np.savez(tmp_path / 's.npz', u=u, y=y, fs=2000.0)

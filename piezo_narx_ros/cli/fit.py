@@ -12,8 +12,8 @@ import contextlib
 
 # Keys a --config YAML file may hold (config/fit.yaml lists them all with their defaults).
 CONFIG_KEYS = ('ny', 'nu', 'hidden', 'seed', 'arx_na', 'arx_nb', 'arx', 'split', 'max_lag',
-               'max_outside_fraction', 'residuals', 'jobs', 'training', 'command_topic',
-               'deflection_topic')
+               'max_outside_fraction', 'residuals', 'noise_model', 'noise_order', 'jobs',
+               'training', 'command_topic', 'deflection_topic')
 
 
 def add_parser(subparsers):
@@ -39,11 +39,16 @@ def add_parser(subparsers):
     p.add_argument('--jobs', type=int, help='worker processes (default 2)')
     p.add_argument('--max-lag', type=int, metavar='L', help='correlation test lags (default 20)')
     p.add_argument('--max-outside', type=float, metavar='FRACTION', dest='max_outside_fraction',
-                   help='fraction of tested lags allowed outside the 95%% band '
-                        '(default 0: strict)')
+                   help='fraction of tested lags allowed outside the 95%% band, none beyond '
+                        'the 99.9%% band (default 0.05, the chance rate; 0: strict)')
     p.add_argument('--residuals', choices=('prediction', 'simulation'),
                    help='residuals whose correlation tests select the model '
-                        '(default prediction)')
+                        '(default simulation)')
+    p.add_argument('--noise-model', choices=('ar', 'none'),
+                   help='whiten the residuals with an AR noise model fitted on the estimation '
+                        'half before the tests (default ar; none: raw residuals)')
+    p.add_argument('--noise-order', type=int, metavar='P',
+                   help='largest AR order of the noise model, chosen by BIC (default 20)')
     p.add_argument('--command-topic', help='bag topic of the voltage commands '
                                            '(default piezo/voltage_command)')
     p.add_argument('--deflection-topic', help='bag topic of the deflection '
@@ -86,7 +91,8 @@ def load_settings(args) -> dict:
     from piezo_narx_ros.errors import ConfigError
     settings = {'ny': '1-4', 'nu': '1-4', 'hidden': 10, 'seed': 0, 'arx_na': '1-10',
                 'arx_nb': '1-10', 'arx': True, 'split': 0.5, 'max_lag': 20,
-                'max_outside_fraction': 0.0, 'residuals': 'prediction', 'jobs': 2,
+                'max_outside_fraction': 0.05, 'residuals': 'simulation', 'noise_model': 'ar',
+                'noise_order': 20, 'jobs': 2,
                 'training': {}, 'command_topic': 'piezo/voltage_command',
                 'deflection_topic': 'piezo/deflection'}
     if args.config:
@@ -108,8 +114,8 @@ def load_settings(args) -> dict:
                               f'known: {", ".join(CONFIG_KEYS)}')
         settings.update(doc)
     for key in ('ny', 'nu', 'hidden', 'seed', 'arx_na', 'arx_nb', 'max_lag',
-                'max_outside_fraction', 'residuals', 'jobs', 'command_topic',
-                'deflection_topic'):
+                'max_outside_fraction', 'residuals', 'noise_model', 'noise_order', 'jobs',
+                'command_topic', 'deflection_topic'):
         value = getattr(args, key, None)
         if value is not None:
             settings[key] = value
@@ -132,7 +138,8 @@ def experiment_config(settings: dict, progress: bool):
             arx_nb=parse_range(settings['arx_nb'], 'arx_nb') if settings['arx'] else (),
             split=float(settings['split']), max_lag=int(settings['max_lag']),
             max_outside_fraction=float(settings['max_outside_fraction']),
-            residuals=str(settings['residuals']), jobs=int(settings['jobs']),
+            residuals=str(settings['residuals']), noise_model=str(settings['noise_model']),
+            noise_order=int(settings['noise_order']), jobs=int(settings['jobs']),
             progress=None if progress else False, training=dict(settings['training']))
     except (TypeError, ValueError) as exc:
         raise ConfigError(f'invalid setting: {exc}') from None
@@ -181,7 +188,8 @@ def _run(args) -> int:
     data_info = {'sources': result.sources, 'fs': result.fs, 'split': config.split,
                  'n_estimation': result.n_estimation, 'n_validation': result.n_validation}
     model_path = save_model(best.model, out / 'model.json', data=data_info,
-                            metrics={**best.scores, 'selected_by': config.residuals},
+                            metrics={**best.scores, 'selected_by': config.residuals,
+                                     'noise_model': config.noise_model},
                             tests={**best.tests, 'validated': result.validated})
     write_json(result.to_dict(), out / 'candidates.json')
     paths = {}
@@ -195,9 +203,12 @@ def _run(args) -> int:
               f'{len(result.candidates)} candidates in {result.wall_seconds:.1f} s')
         print(f'validation R²: prediction {val["prediction"]["r2"]:.6f}, simulation '
               f'{"diverged" if r2_sim is None else f"{r2_sim:.6f}"}')
-        verdicts = best.tests[config.residuals].get('tests', {})
-        print(f'correlation tests ({config.residuals} residuals): ' + ', '.join(
-            f'{k} {"pass" if v["passed"] else "fail"}' for k, v in verdicts.items()))
+        chosen = best.tests[config.residuals]
+        noise = chosen.get('noise_model')
+        how = f'AR({noise["order"]}) noise model' if noise else 'raw'
+        print(f'correlation tests ({config.residuals} residuals, {how}): ' + ', '.join(
+            f'{k} {"pass" if v["passed"] else "fail"}'
+            for k, v in chosen.get('tests', {}).items()))
         failed = [c for c in result.candidates if c.error is not None]
         if failed:
             print(f'warning: {len(failed)} candidate(s) could not be fitted, e.g. '
