@@ -55,8 +55,9 @@ def run_demo(settings: dict, out: Path) -> int:
             sel = cands['selection']
             val = model_doc['metrics']['validation']
             verdict = 'validated' if sel['validated'] else 'NOT validated'
-            _say(f'  selected {sel["label"]} ({verdict} by the correlation tests) of {len(cands["candidates"])} candidates; offline '
-                 f'validation R²: prediction {val["prediction"]["r2"]:.6f}, simulation '
+            _say(f'  selected {sel["label"]} ({verdict} by the correlation tests) of '
+                 f'{len(cands["candidates"])} candidates; offline validation R²: '
+                 f'prediction {val["prediction"]["r2"]:.6f}, simulation '
                  f'{_fmt(val["simulation"]["r2"], ".6f")}')
 
             _header(3, f'live: estimator_node with {sel["label"]}, fresh {s["kind"]} '

@@ -133,9 +133,10 @@ class PhaseTimes:
 class Demo:
     """Runs the phases in `out` with `settings` (see load_settings); `say` prints progress."""
 
-    def __init__(self, settings: dict, out: Path, say=print):
+    def __init__(self, settings: dict, out: Path, say=print, work: Path | None = None):
         self.s = settings
         self.out = Path(out)
+        self.work = Path(work) if work is not None else self.out   # bringup YAMLs and the log
         self.say = say
         self.ns = str(settings['namespace']).strip('/')
         self.groups: list[_Group] = []
@@ -197,7 +198,7 @@ class Demo:
     # ----------------------------------------------------------------------------- node phases
     def _bringup_yaml(self, phase: str, nodes: list[dict]) -> Path:
         import yaml
-        path = self.out / f'bringup_{phase}.yaml'
+        path = self.work / f'bringup_{phase}.yaml'
         path.write_text(f'# Written by piezo-narx demo; rerun with: piezo-narx bringup {path}\n'
                         + yaml.safe_dump({'namespace': self.ns, 'nodes': nodes},
                                          sort_keys=False))
@@ -228,6 +229,8 @@ class Demo:
             'wait_for_subscribers': len(listeners), **(extra_command or {})}}
         specs = load_config(self._bringup_yaml(phase, listeners + [command]))
         names = [n['executable'] for n in listeners]
+        self.wait(0.3)
+        self.probe.latest.clear()   # statuses of an earlier phase's nodes (same names) are stale
         self.start_group([sp for sp in specs if sp.name != 'command_node'])
         self._wait_up(phase, names)
         self.start_group([sp for sp in specs if sp.name == 'command_node'])
@@ -298,7 +301,7 @@ class Demo:
     def fit(self, bag: Path, out: Path, no_report: bool = False) -> dict:
         """`piezo-narx fit BAG --out OUT --config OUT/../fit_settings.yaml` as a child process."""
         import yaml
-        settings_path = out.parent / f'{out.name}_settings.yaml'
+        settings_path = self.work / f'{out.name}_settings.yaml'
         settings_path.write_text('# piezo-narx fit settings written by piezo-narx demo\n'
                                  + yaml.safe_dump(dict(self.s['fit']), sort_keys=False))
         argv = [sys.executable, '-m', 'piezo_narx_ros.cli.main', 'fit', str(bag), '--out',
@@ -322,7 +325,8 @@ class Demo:
     def __enter__(self) -> 'Demo':
         from piezo_narx_ros.demo.probe import DiagnosticsProbe
         self.out.mkdir(parents=True, exist_ok=True)
-        self._log = open(self.out / 'demo.log', 'a', buffering=1)
+        self.work.mkdir(parents=True, exist_ok=True)
+        self._log = open(self.work / 'demo.log', 'a', buffering=1)
         self.probe = DiagnosticsProbe()
         return self
 
