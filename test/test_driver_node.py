@@ -268,7 +268,7 @@ def test_limits_clamp_and_watchdog_ramps_to_zero_at_the_slew_limit(probe):
     target = EchoTarget()
     driver = start_driver(target_port=target.port, local_port=0, v_max=40.0, max_slew_rate=slew,
                           sample_rate=2000.0, watchdog_timeout=timeout, ramp_rate=ramp_rate,
-                          reply_timeout=0.05)
+                          reply_timeout=0.5)   # long: only the dropped replies may time out
     try:
         probe.handshake()
         k0 = probe.k
@@ -294,11 +294,13 @@ def test_limits_clamp_and_watchdog_ramps_to_zero_at_the_slew_limit(probe):
     assert sent[199] == pytest.approx(40.0) and sent[198] < 40.0
     # Ramp: starts about watchdog_timeout after the last command, 2 V steps down to exactly 0 V.
     volts = np.array([c.volts[0] for _, c in ramp])
-    assert timeout - 0.02 <= ramp[0][0] - last_cmd_t <= timeout + 0.25
+    assert timeout - 0.02 <= ramp[0][0] - last_cmd_t <= timeout + 0.5
     assert volts[0] == pytest.approx(38.0) and volts[-1] == 0.0
     assert np.all(np.diff(np.r_[40.0, volts]) >= -slew / ramp_rate - 1e-9)
     assert np.all(np.diff(volts) <= 0)
-    assert ramp[-1][0] - ramp[0][0] >= 0.8 * (38.0 / slew)                # real time, not a jump
+    # Real time, not a jump: ramp datagrams carry the node's clock at sending (arrival times
+    # would bunch if this test process stalls).
+    assert (ramp[-1][1].stamp_ns - ramp[0][1].stamp_ns) * 1e-9 >= 38.0 / slew * (1 - 1e-6)
     # The published stream has every command's reply except the 5 dropped, and no ramp samples.
     assert len(probe.deflection) == n - 5
     assert [m.effort[0] for m in probe.deflection] == [v for i, v in enumerate(sent)
