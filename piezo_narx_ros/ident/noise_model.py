@@ -92,17 +92,21 @@ def fit_ar_noise_model(residuals, max_order: int = 20, criterion: str = 'bic') -
     X, t = _lagged(e, max_order, max_order)
     n = t.size
     penalty = np.log(n) if criterion == 'bic' else 2.0
-    best = (n * np.log(np.mean(t * t)) if np.any(t) else -np.inf, np.zeros(0))
-    for p in range(1, max_order + 1):
-        coef, *_ = np.linalg.lstsq(X[:, :p], t, rcond=None)
-        r = t - X[:, :p] @ coef
-        mse = float(np.mean(r * r))
-        if mse <= 0.0:
-            break
-        score = n * np.log(mse) + p * penalty
-        if score < best[0]:
-            best = (score, coef)
-    coef = best[1]
-    r = t - X[:, :coef.size] @ coef if coef.size else t
-    return ARNoiseModel(coef=np.asarray(coef, dtype=np.float64), residual_std=float(np.std(r)),
-                        input_std=float(np.std(e)))
+    # Nested least squares from one QR: with X = QR and z = Q^T t, the residual sum of squares of
+    # the first p columns is |t|^2 - sum(z[:p]^2), and their coefficients solve R[:p,:p] c = z[:p].
+    q, r = np.linalg.qr(X) if max_order else (np.zeros((n, 0)), np.zeros((0, 0)))
+    z = q.T @ t
+    rss = float(np.sum(t * t)) - np.concatenate([[0.0], np.cumsum(z * z)])
+    orders = np.arange(max_order + 1)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        score = n * np.log(np.maximum(rss, 0.0) / n) + orders * penalty
+    score[~np.isfinite(score)] = np.inf
+    p = int(np.argmin(score)) if np.any(np.isfinite(score)) else 0
+    diag = np.abs(np.diag(r)[:p])
+    while p and diag.min() <= 1e-12 * max(diag.max(), 1e-300):   # rank-deficient: drop terms
+        p -= 1
+        diag = diag[:p]
+    coef = np.linalg.solve(r[:p, :p], z[:p]) if p else np.zeros(0)
+    resid = t - X[:, :p] @ coef if p else t
+    return ARNoiseModel(coef=np.asarray(coef, dtype=np.float64),
+                        residual_std=float(np.std(resid)), input_std=float(np.std(e)))
