@@ -1,6 +1,6 @@
 """Shared pytest fixtures.
 
-DDS isolation: every test session gets its own ROS_DOMAIN_ID (derived from the process id, so that
+DDS isolation: every test session gets its own ROS_DOMAIN_ID (claimed with a lock file, so that
 parallel runs on one machine do not see each other) and discovery limited to localhost. Child
 processes started by tests inherit these variables.
 """
@@ -14,7 +14,31 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get('PIEZO_NARX_SHARED', REPO.parent / 'shared'))
 BOUCWEN = SHARED / 'data' / 'boucwen'
 
-os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 100))
+
+
+def _claim_domain_id() -> str:
+    """Claim a ROS domain id no other test run on this machine holds (flock on a file per id).
+
+    A pid-derived id collided between concurrent runs: one run's command node fed another's driver.
+    The lock is held (file kept open) for the life of this pytest process and released by the OS.
+    """
+    import fcntl
+    import tempfile
+    for domain in range(1, 101):
+        path = Path(tempfile.gettempdir()) / f'piezo_narx_ros_domain_{domain}.lock'
+        handle = open(path, 'a')
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.close()
+            continue
+        _claim_domain_id.handle = handle  # keep the lock for the whole session
+        return str(domain)
+    return str(1 + os.getpid() % 100)
+
+
+if 'ROS_DOMAIN_ID' not in os.environ:
+    os.environ['ROS_DOMAIN_ID'] = _claim_domain_id()
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ.setdefault('MPLBACKEND', 'Agg')
 # numpy's OpenBLAS spins one thread per core; on a busy 2-core box that made ARX fits 20x slower.
