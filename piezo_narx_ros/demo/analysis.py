@@ -106,20 +106,22 @@ def percentiles_us(delays_ns: np.ndarray) -> dict:
     return {'p50': float(p50), 'p99': float(p99), 'max': float(mx), 'n': int(d.size)}
 
 
-def live_figures(run: LiveRun, skip: int = 0) -> dict:
+def live_figures(run: LiveRun, skip: int = 0, input_range: tuple | None = None) -> dict:
     """Free-run accuracy and latency of a live run.
 
     skip: paired samples left out of R²/RMSE at the start (the estimator's first n0 outputs are
     copies of the measurement when it initialises from it). Returns a JSON-ready dict: r2, rmse_m,
     rmse_nm, max_abs_error_nm, n_scored, latency_us (estimate receive time minus command receive
     time, same stamp, both at the recorder), lateness_us (estimate receive time minus the stamp,
-    i.e. including the command node's timer lateness), lost samples.
+    i.e. including the command node's timer lateness), lost samples. With input_range (V, the
+    model's training range): how many scored commands lie outside it and the R²/RMSE of the
+    samples inside it (a fresh excitation can reach voltages the model never saw).
     """
     if run.y.size - skip < 2:
         raise DataError(f'too few paired samples to score ({run.y.size}, skipping {skip})')
     y, y_hat = run.y[skip:], run.y_hat[skip:]
     err = y_hat - y
-    return {
+    out = {
         'n_paired': int(run.y.size),
         'n_scored': int(y.size),
         'skipped_at_start': int(skip),
@@ -134,6 +136,15 @@ def live_figures(run: LiveRun, skip: int = 0) -> dict:
         'lost': dict(run.lost),
         'fs': run.fs,
     }
+    if input_range is not None:
+        lo, hi = input_range
+        inside = (run.u[skip:] >= lo) & (run.u[skip:] <= hi)
+        out['input_range_V'] = [float(lo), float(hi)]
+        out['outside_input_range'] = int(np.count_nonzero(~inside))
+        if np.count_nonzero(inside) >= 2:
+            out['r2_inside_input_range'] = metrics.r2(y[inside], y_hat[inside])
+            out['rmse_nm_inside_input_range'] = metrics.rmse(y[inside], y_hat[inside]) * 1e9
+    return out
 
 
 def offline_difference(run: LiveRun, model, skip: int) -> float | None:
@@ -180,17 +191,26 @@ def plot_tracking(run: LiveRun, skip: int, zoom_s: float = 0.25):
     return fig
 
 
-def plot_hysteresis(run: LiveRun, skip: int):
-    """Deflection against command voltage, measured and estimated."""
+def plot_hysteresis(run: LiveRun, skip: int, input_range: tuple | None = None):
+    """Deflection against command voltage, measured and estimated, and the estimate's error
+    against voltage (the model's training input range shaded)."""
     plt = _pyplot()
-    fig, ax = plt.subplots(1, 2, figsize=(11, 4.5), constrained_layout=True, sharey=True)
+    fig, ax = plt.subplots(1, 2, figsize=(12, 4.8), constrained_layout=True)
     u = run.u[skip:]
-    for a, y, label, color in ((ax[0], run.y[skip:], 'measured', 'C0'),
-                               (ax[1], run.y_hat[skip:], 'estimated (free run)', 'C1')):
-        a.plot(u, y * 1e6, lw=0.3, color=color)
-        a.set_title(label)
-        a.set_xlabel('voltage command [V]')
+    ax[0].plot(u, run.y[skip:] * 1e6, lw=0.4, color='C0', label='measured')
+    ax[0].plot(u, run.y_hat[skip:] * 1e6, lw=0.4, ls='--', color='C1',
+               label='estimated (free run)')
+    ax[0].set_xlabel('voltage command [V]')
     ax[0].set_ylabel('deflection [µm]')
+    ax[0].set_title('hysteresis: deflection vs voltage')
+    ax[0].legend(loc='upper left')
+    ax[1].plot(u, (run.y_hat[skip:] - run.y[skip:]) * 1e9, '.', ms=1.5, color='C3')
+    if input_range is not None:
+        ax[1].axvspan(*input_range, color='0.9', zorder=0, label='training input range')
+        ax[1].legend(loc='upper left')
+    ax[1].set_xlabel('voltage command [V]')
+    ax[1].set_ylabel('estimate - measured [nm]')
+    ax[1].set_title('free-run error vs voltage')
     return fig
 
 
@@ -213,15 +233,17 @@ def plot_latency(run: LiveRun):
     return fig
 
 
-def write_figures(run: LiveRun, skip: int, out_dir) -> dict[str, Path]:
-    """tracking.png, hysteresis.png, latency.png in out_dir; returns {name: path}."""
+def write_figures(run: LiveRun, skip: int, out_dir,
+                  input_range: tuple | None = None) -> dict[str, Path]:
+    """live_tracking.png, live_hysteresis.png, live_latency.png in out_dir; returns
+    {name: path}."""
     plt = _pyplot()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {}
     try:
         for name, fig in (('tracking', plot_tracking(run, skip)),
-                          ('hysteresis', plot_hysteresis(run, skip)),
+                          ('hysteresis', plot_hysteresis(run, skip, input_range)),
                           ('latency', plot_latency(run))):
             paths[name] = out_dir / f'live_{name}.png'
             fig.savefig(paths[name], dpi=110)

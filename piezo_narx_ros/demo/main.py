@@ -101,12 +101,15 @@ def analyse(out: Path, live: dict, model_doc: dict, est_diag) -> dict:
     model = load_model(out / 'fit' / 'model.json')
     run = load_live_run(out / 'live', expected=live['published'])
     skip = int(model.n0)   # first n0 estimates are copies of the measurement (init from it)
-    figures = live_figures(run, skip)
+    in_range = getattr(model, 'input_range', None)
+    in_range = None if in_range is None else tuple(float(v) for v in in_range)
+    figures = live_figures(run, skip, in_range)
     diff = offline_difference(run, model, skip)
-    paths = write_figures(run, skip, out / 'figures')
-    init = est_diag[1].get('init') if est_diag else None
+    paths = write_figures(run, skip, out / 'figures', in_range)
+    diag = dict(est_diag[1]) if est_diag else {}
     return {'live': {'bag': str(out / 'live'), 'published': live['published'],
-                     'estimator_init': init, **figures,
+                     'estimator_init': diag.get('init'), 'estimator_diagnostics': diag,
+                     **figures,
                      'live_vs_offline_simulate_max_nm': None if diff is None else diff * 1e9,
                      'latency_source': 'recorder_node receive times: estimate minus command '
                                        'of the same stamp (one process, one clock)',
@@ -120,6 +123,10 @@ def _fmt(v, spec: str) -> str:
     return 'n/a' if v is None else format(v, spec)
 
 
+def _range(r) -> str:
+    return 'n/a' if r is None else f'[{r[0]:.1f}, {r[1]:.1f}] V'
+
+
 def print_table(summary: dict) -> None:
     """The final summary table on stdout."""
     live, w = summary['live'], summary['wall_seconds']
@@ -130,6 +137,11 @@ def print_table(summary: dict) -> None:
         ('offline validation R² (sim)',
          _fmt(summary['fit']['offline_validation']['simulation']['r2'], '.6f')),
         ('live free-run R²', f'{live["r2"]:.6f}  ({live["n_scored"]} samples)'),
+        ('  inside training input range',
+         f'R² {_fmt(live.get("r2_inside_input_range"), ".6f")}, RMSE '
+         f'{_fmt(live.get("rmse_nm_inside_input_range"), ".1f")} nm '
+         f'({live.get("outside_input_range", "n/a")} samples outside '
+         f'{_range(live.get("input_range_V"))})'),
         ('live RMSE', f'{live["rmse_nm"]:.1f} nm  (max |error| {live["max_abs_error_nm"]:.0f} nm,'
                       f' span {live["y_span_um"]:.1f} µm)'),
         ('live vs offline simulate', f'{_fmt(live["live_vs_offline_simulate_max_nm"], ".2e")} nm'
