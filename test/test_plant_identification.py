@@ -8,7 +8,7 @@ What holds, measured (docs/validation.md "The plant"):
 * every ARX(na, nb), 1..10 x 1..10, fails: the hysteresis leaves φu²'ε² at >= 17 x the band;
 * NARX 1/1 fails: φuε ~19 x the band (missing input dynamics);
 * NARX 4/4 reaches free-run R² ~0.9999 (ARX 0.995), but does NOT pass: its own error (69 nm RMS
-  against the noise-free sensor output) is twice the 33 nm sensor noise, so at N = 12,500 the
+  against the noise-free sensor output) is twice the 33 nm sensor noise, so at N = 25,000 the
   tests resolve it (φu²'ε² 18 x the band: the error grows with |u|; φuε 4 x). The paper's
   "NARX passes" needs a model error well below the noise; the last test checks that cause, and
   would have to be turned into a pass test if a process model ever closes that gap.

@@ -9,7 +9,8 @@ residuals themselves, and the JSON says so. Prints a short summary, or with --js
 
     {"model": ..., "inputs": [...], "n": ..., "prediction": {"r2", "rmse", "nrmse", "fit_percent"},
      "simulation": {...}, "tests": {name: true|false}, "tests_passed": bool,
-     "tests_residuals": "simulation", "tests_noise_model": {"kind", "order", "coef", "source"} | null,
+     "tests_residuals": "simulation",
+     "tests_noise_model": {"kind", "order", "coef", "source"} | null,
      "tests_raw": {name: true|false}, "tests_detail": {...}}
 
 Never imports torch.
