@@ -1,5 +1,6 @@
 """Billings residual correlation tests: white residuals pass, residuals that keep dynamics fail;
 the AR noise model whitens what noise colours and hides nothing the input explains."""
+import json
 from math import comb
 
 import numpy as np
@@ -8,7 +9,7 @@ import pytest
 from piezo_narx_ros.errors import DataError
 from piezo_narx_ros.ident.arx import ARXModel
 from piezo_narx_ros.ident.correlation import TEST_NAMES, correlation_tests, cross_correlation
-from piezo_narx_ros.ident.noise_model import fit_ar_noise_model
+from piezo_narx_ros.ident.noise_model import ARNoiseModel, fit_ar_noise_model
 
 
 def chance_pass_probability(n_tested, fraction=0.05):
@@ -220,6 +221,19 @@ def test_noise_model_cannot_absorb_an_input_leak():
     nm = fit_ar_noise_model(e[:n // 2], 20)
     res = correlation_tests(nm.whiten(e[n // 2:]), u[n // 2 + nm.order:])
     assert not res.tests['phi_ue'].passed
+
+
+def test_noise_model_round_trips_through_its_json_description():
+    u, y = _oe_system(4000, seed=3)
+    nm = fit_ar_noise_model((y - _true_one_step(u, y))[1:], 10)
+    back = ARNoiseModel.from_dict(json.loads(json.dumps(nm.to_dict())))
+    np.testing.assert_array_equal(back.coef, nm.coef)
+    x = np.random.default_rng(0).standard_normal(100)
+    np.testing.assert_array_equal(back.whiten(x), nm.whiten(x))
+    for bad in ({**nm.to_dict(), 'order': nm.order + 1}, {**nm.to_dict(), 'coef': ['os']},
+                {**nm.to_dict(), 'kind': 'ma'}, [1, 2]):
+        with pytest.raises(DataError, match='malformed'):
+            ARNoiseModel.from_dict(bad)
 
 
 @pytest.mark.parametrize('e, kwargs, match', [

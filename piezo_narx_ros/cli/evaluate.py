@@ -51,25 +51,20 @@ def stored_noise_models(model) -> dict:
 
     Only numbers are read (coefficients as a float list); anything malformed is a ModelFileError.
     """
-    import numpy as np
-
-    from piezo_narx_ros.errors import ModelFileError
+    from piezo_narx_ros.errors import DataError, ModelFileError
     from piezo_narx_ros.ident.noise_model import ARNoiseModel
 
     tests = (getattr(model, 'metadata', None) or {}).get('tests') or {}
+    if not isinstance(tests, dict):
+        raise ModelFileError(f'{getattr(model, "source", "model")}: tests must be a mapping')
     out = {}
     for mode in ('prediction', 'simulation'):
         doc = tests.get(mode, {}).get('noise_model') if isinstance(tests.get(mode), dict) else None
         if doc is None:
             continue
         try:
-            coef = np.asarray(doc['coef'], dtype=np.float64).reshape(-1)
-            if doc.get('kind') != 'ar' or coef.size != int(doc['order']) \
-                    or not np.all(np.isfinite(coef)):
-                raise ValueError
-            out[mode] = ARNoiseModel(coef=coef, residual_std=float(doc['residual_std']),
-                                     input_std=float(doc['input_std']))
-        except (KeyError, TypeError, ValueError):
+            out[mode] = ARNoiseModel.from_dict(doc)
+        except DataError:
             raise ModelFileError(f'{getattr(model, "source", "model")}: tests.{mode}.noise_model '
                                  f'is malformed') from None
     return out

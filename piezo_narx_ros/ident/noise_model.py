@@ -61,6 +61,20 @@ class ARNoiseModel:
         return {'kind': 'ar', 'order': self.order, 'coef': self.coef.tolist(),
                 'residual_std': self.residual_std, 'input_std': self.input_std}
 
+    @classmethod
+    def from_dict(cls, doc) -> 'ARNoiseModel':
+        """Inverse of to_dict (numbers only are read); DataError when malformed."""
+        try:
+            coef = np.asarray(doc['coef'], dtype=np.float64).reshape(-1)
+            if doc.get('kind') != 'ar' or coef.size != int(doc['order']) \
+                    or not np.all(np.isfinite(coef)):
+                raise ValueError
+            return cls(coef=coef, residual_std=float(doc['residual_std']),
+                       input_std=float(doc['input_std']))
+        except (AttributeError, KeyError, TypeError, ValueError):
+            raise DataError('noise model: malformed description (need kind ar, order, coef, '
+                            'residual_std, input_std)') from None
+
 
 def _lagged(e: np.ndarray, p: int, start: int) -> tuple[np.ndarray, np.ndarray]:
     """Regressors [ε(k-1) .. ε(k-p)] and targets ε(k) for k = start..N-1."""
