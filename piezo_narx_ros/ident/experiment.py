@@ -221,7 +221,7 @@ def _concat(records: list[Record]) -> tuple[np.ndarray, np.ndarray]:
     return (np.concatenate([r.u for r in records]), np.concatenate([r.y for r in records]))
 
 
-def _outputs_by_record(model, records: list[Record]) -> list[dict[str, np.ndarray]]:
+def outputs_by_record(model, records: list[Record]) -> list[dict[str, np.ndarray]]:
     """Per record, samples k >= n0: 'u' (V), 'y' (m), 'prediction', 'simulation' (m)."""
     n0 = model.n0
     parts = []
@@ -239,7 +239,7 @@ def model_outputs(model, records: list[Record]) -> dict[str, np.ndarray]:
 
     Each record is predicted from its measured past and simulated from its first n0 outputs.
     """
-    parts = _outputs_by_record(model, records)
+    parts = outputs_by_record(model, records)
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
@@ -251,7 +251,7 @@ def fit_noise_models(model, records: list[Record], max_order: int = 20,
     and 4 * max_lag samples left per record after whitening). None for a kind whose output is not
     finite (a diverged free run).
     """
-    parts = _outputs_by_record(model, records)
+    parts = outputs_by_record(model, records)
     shortest = min(p['y'].size for p in parts)
     result = {}
     for mode in RESIDUAL_KINDS:
@@ -310,7 +310,7 @@ def evaluate_model(model, records: list[Record], max_lag: int = 20,
     Without noise models, tests[mode] are the raw verdicts (and tests['raw'] repeats them).
     A non-finite simulation (diverged network) gets scores of None and failing tests.
     """
-    parts = _outputs_by_record(model, records)
+    parts = outputs_by_record(model, records)
     result = _scores(parts)
     if not with_tests:
         return result
