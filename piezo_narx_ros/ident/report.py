@@ -17,9 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
-from piezo_narx_ros.ident.correlation import TEST_LABELS, TEST_NAMES, correlation_tests
+from piezo_narx_ros.ident.correlation import TEST_LABELS, TEST_NAMES
 from piezo_narx_ros.ident.data import Record
-from piezo_narx_ros.ident.experiment import ExperimentResult, model_outputs
+from piezo_narx_ros.ident.experiment import (ExperimentResult, model_outputs, outputs_by_record,
+                                             residual_correlations)
+from piezo_narx_ros.ident.noise_model import ARNoiseModel
 
 UM = 1e6  # metres -> micrometres for plots
 
@@ -52,16 +54,17 @@ def write_json(obj, path) -> Path:
 
 
 def selected_correlations(result: ExperimentResult, validation: list[Record]) -> dict:
-    """Correlation functions of the selected model on the validation data, per residual kind."""
-    model = result.best.model
-    out = model_outputs(model, validation)
+    """Correlation functions of the selected model on the validation data, per residual kind,
+    whitened by the same noise model as the verdicts (so Fig. 7 shows what was judged)."""
+    parts = outputs_by_record(result.best.model, validation)
     cfg = result.config
     corr = {}
     for mode in ('prediction', 'simulation'):
-        resid = out['y'] - out[mode]
-        if np.all(np.isfinite(resid)):
-            corr[mode] = correlation_tests(resid, out['u'], cfg.max_lag,
-                                           cfg.max_outside_fraction)
+        doc = result.best.tests.get(mode, {}).get('noise_model')
+        noise = ARNoiseModel.from_dict(doc) if doc else None
+        c = residual_correlations(parts, mode, cfg.max_lag, cfg.max_outside_fraction, noise)
+        if c is not None:
+            corr[mode] = (c, noise)
     return corr
 
 
@@ -75,7 +78,9 @@ def write_report(result: ExperimentResult, validation: list[Record], out_dir) ->
     out_dir.mkdir(parents=True, exist_ok=True)
     corr = selected_correlations(result, validation)
     summary = result.to_dict()
-    summary['selected_correlation'] = {mode: c.to_dict() for mode, c in corr.items()}
+    summary['selected_correlation'] = {
+        mode: {**c.to_dict(), 'noise_model': noise.to_dict() if noise else None}
+        for mode, (c, noise) in corr.items()}
     paths = {'metrics': write_json(summary, out_dir / 'metrics.json')}
     plt = _pyplot()
     try:
@@ -85,8 +90,9 @@ def write_report(result: ExperimentResult, validation: list[Record], out_dir) ->
                 paths[f'r2_grid_{kind}'] = _save(fig, out_dir / name)
         mode = result.config.residuals
         if mode in corr:
-            paths['correlation'] = _save(plot_correlation(corr[mode], result.best.spec.label,
-                                                          mode), out_dir / 'fig7_correlation.png')
+            c, noise = corr[mode]
+            paths['correlation'] = _save(plot_correlation(c, result.best.spec.label, mode, noise),
+                                         out_dir / 'fig7_correlation.png')
         rec = validation[0]
         model = result.best.model
         with np.errstate(all='ignore'):
@@ -180,8 +186,10 @@ def plot_r2_grid(result: ExperimentResult, kind: str = 'narx'):
     return fig
 
 
-def plot_correlation(corr, label: str, mode: str):
-    """Fig. 7: the five correlation functions with the ±1.96/sqrt(N) band; returns the Figure."""
+def plot_correlation(corr, label: str, mode: str, noise=None):
+    """Fig. 7: the five correlation functions with the ±1.96/sqrt(N) band; returns the Figure.
+
+    `noise` is the AR noise model that whitened the residuals (None: raw residuals)."""
     plt = _pyplot()
     fig, axes = plt.subplots(3, 2, figsize=(10, 8.4), constrained_layout=True)
     flat = axes.ravel()
@@ -205,8 +213,10 @@ def plot_correlation(corr, label: str, mode: str):
                      color='black' if test.passed else 'tab:red')
         ax.set_xlabel('lag τ (samples)')
     flat[-1].axis('off')
+    whitening = (f'after the AR({noise.order}) noise model' if noise is not None and noise.order
+                 else 'raw (no noise model)')
     flat[-1].text(0.02, 0.5,
-                  f'{label}\n{mode} residuals, validation data\nN = {corr.n}, '
+                  f'{label}\n{mode} residuals, validation data\n{whitening}\nN = {corr.n}, '
                   f'band ±1.96/√N = ±{corr.band:.4f}\nlag 0 (grey) not tested\n'
                   f'overall: {"PASS" if corr.passed else "FAIL"}',
                   va='center', fontsize=10, transform=flat[-1].transAxes)
