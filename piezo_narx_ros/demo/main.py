@@ -66,7 +66,7 @@ def run_demo(settings: dict, out: Path) -> int:
             live = demo.stream('live', out / 'live', s['validation_seconds'],
                                s['validation_seed'], model=out / 'fit' / 'model.json')
             demo.times.add('live', t0)
-            est_diag = demo.probe.status(demo._fq('estimator_node'))
+            est_diag = demo.probe.status(demo.fq('estimator_node'))
 
         _header(4, 'analysis')
         t0 = time.monotonic()

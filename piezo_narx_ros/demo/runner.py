@@ -204,7 +204,8 @@ class Demo:
                                          sort_keys=False))
         return path
 
-    def _fq(self, name: str) -> str:
+    def fq(self, name: str) -> str:
+        """Fully qualified name of a node of this demo's namespace."""
         return f'/{self.ns}/{name}' if self.ns else f'/{name}'
 
     def stream(self, phase: str, bag: Path, seconds: float, seed: int, model: Path | None = None,
@@ -248,10 +249,10 @@ class Demo:
     def _wait_up(self, phase: str, names: list[str]) -> None:
         """Until every listed node publishes diagnostics (it is constructed and spinning)."""
         t0 = time.monotonic()
-        while not all(self.probe.status(self._fq(n)) for n in names):
+        while not all(self.probe.status(self.fq(n)) for n in names):
             self.check_alive(phase)
             if time.monotonic() - t0 > self.s['startup_timeout_s']:
-                missing = [n for n in names if not self.probe.status(self._fq(n))]
+                missing = [n for n in names if not self.probe.status(self.fq(n))]
                 raise PhaseFailed(f'{phase}: {", ".join(missing)} did not come up within '
                                   f'{self.s["startup_timeout_s"]:g} s')
             self.wait(0.2)
@@ -261,7 +262,7 @@ class Demo:
         """Until the command node has finished and the recorder has everything (or nothing new
         arrived for settle_s). Prints a progress line every few seconds."""
         fs, n_total = self.s['fs'], int(round(seconds * self.s['fs']))
-        cmd, sim, est, rec = (self._fq(n) for n in ('command_node', 'simulator_node',
+        cmd, sim, est, rec = (self.fq(n) for n in ('command_node', 'simulator_node',
                                                     'estimator_node', 'recorder_node'))
         deadline = time.monotonic() + self.s['startup_timeout_s'] + 3 * seconds + 30
         last_line = last_change = time.monotonic()
