@@ -57,6 +57,7 @@ def make_sample_bags(settings: dict, dest: Path, bags=SAMPLE_BAGS) -> int:
             for suffix in ('.json', '.npz'):
                 shutil.copy(work / 'fit' / f'model{suffix}', dest / f'model{suffix}')
         score = evaluate(dest / 'model.json', dest / 'validation')
+        sine_loop_figure(dest / 'model.json', dest / 'sine', dest / 'sine_loop.png')
         print(f'model on {dest / "validation"} (held out): free-run R² '
               f'{score["simulation"]["r2"]:.6f}, RMSE {score["simulation"]["rmse"] * 1e9:.1f} '
               f'nm; done in {time.monotonic() - t0:.0f} s', flush=True)
@@ -74,3 +75,31 @@ def evaluate(model_path: Path, bag: Path) -> dict:
     from piezo_narx_ros.ident.model_io import load_model
     return json.loads(json.dumps(evaluate_model(load_model(model_path),
                                                 load_records([bag])), default=float))
+
+
+def sine_loop_figure(model_path: Path, bag: Path, png: Path) -> Path:
+    """The hysteresis loop of the sine bag, measured and the model's free run (from the first n0
+    measured outputs), with the error in nm; saved to png."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    from piezo_narx_ros.bag.reader import read_uy
+    from piezo_narx_ros.ident.model_io import load_model
+    model = load_model(model_path)
+    rec = read_uy(bag)
+    sim = model.simulate(rec.u, rec.y[:model.n0])
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4.5), constrained_layout=True)
+    ax[0].plot(rec.u, rec.y * 1e6, lw=1.0, label='measured (simulator_node)')
+    ax[0].plot(rec.u, sim * 1e6, lw=1.0, ls='--', label=f'model free run ({model_path.name})')
+    ax[0].set_xlabel('voltage command [V]')
+    ax[0].set_ylabel('deflection [µm]')
+    ax[0].set_title(f'{bag.name}: one period of a 0.5 Hz sine')
+    ax[0].legend(loc='upper left')
+    ax[1].plot(rec.t, (sim - rec.y) * 1e9, lw=0.5, color='C3')
+    ax[1].set_xlabel('time [s]')
+    ax[1].set_ylabel('free run - measured [nm]')
+    ax[1].set_title('error')
+    fig.savefig(png, dpi=100)
+    plt.close(fig)
+    return Path(png)
