@@ -11,7 +11,6 @@ Writes everything to --out (default reports/demo-YYYYmmdd-HHMMSS). Every child p
 on success, on error and on Ctrl-C/SIGTERM (SIGINT, then SIGTERM, then SIGKILL).
 `--make-sample-bags DIR` records the repository's sample bags instead (bags/README.md).
 """
-import argparse
 
 
 def add_parser(subparsers):
