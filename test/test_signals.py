@@ -39,7 +39,9 @@ def test_multisine_lines_in_band_flat_and_periodic():
     f = np.fft.rfftfreq(4000, 1 / FS)
     on = (f >= 1.0) & (f <= 50.0) & (np.abs(f / 0.5 - np.round(f / 0.5)) < 1e-9)
     assert np.count_nonzero(on) == 99
-    assert np.all(spec[~on] < 1e-9 * spec.max())
+    # Off-band lines are empty; DC holds only the offset that span scaling adds.
+    assert np.all(spec[~on & (f > 0)] < 1e-9 * spec.max())
+    assert u.min() == pytest.approx(-1.0, abs=1e-12) and u.max() == pytest.approx(1.0, abs=1e-12)
     assert np.allclose(spec[on], spec[on].mean(), rtol=1e-9)  # flat
     assert np.allclose(u[:4000], u[4000:8000])  # periodic
     pink = generate('multisine', FS, 2.0, 1.0, f_min=1.0, f_max=100.0, spectrum='pink')
@@ -52,7 +54,7 @@ def test_multisine_default_resolution_is_one_record():
     u = generate('multisine', FS, 25.0, 100.0, seed=1)
     spec = np.abs(np.fft.rfft(u))
     f = np.fft.rfftfreq(u.size, 1 / FS)
-    on = spec > 1e-6 * spec.max()
+    on = (spec > 1e-6 * spec.max()) & (f > 0)  # DC: the span-scaling offset
     assert f[on].min() == pytest.approx(0.12) and f[on].max() == pytest.approx(100.0)
 
 

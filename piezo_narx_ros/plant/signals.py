@@ -124,7 +124,13 @@ def _triangle(t, fs, opt, rng):
 
 
 def _multisine(t, fs, opt, rng):
-    """Random-phase multisine on the lines k*f_res inside [f_min, f_max], scaled to peak 1."""
+    """Random-phase multisine on the lines k*f_res inside [f_min, f_max], spanning exactly [-1, 1].
+
+    Scaled by its span rather than its peak so that BOTH extremes reach the amplitude: a model
+    identified on it has then seen the whole commanded range (peak scaling left one side at ~84 %,
+    and a fresh multisine of the same amplitude then drove the model outside what it was fitted on).
+    The price is a small DC offset, (max + min) / (max - min) of the amplitude.
+    """
     n = t.size
     f_min = _check_freq('f_min', opt['f_min'], fs)
     f_max = _check_freq('f_max', opt['f_max'], fs)
@@ -145,8 +151,8 @@ def _multisine(t, fs, opt, rng):
     phases = rng.uniform(0.0, 2.0 * np.pi, size=lines.size)
     one = np.fft.irfft(mag * np.exp(1j * phases), n=period)
     x = np.resize(one, n)  # repeats the period to n samples
-    peak = np.max(np.abs(x))
-    return x / peak
+    lo, hi = np.min(x), np.max(x)
+    return (2.0 * x - (hi + lo)) / (hi - lo)
 
 
 def _chirp(t, fs, opt, rng):
