@@ -47,7 +47,7 @@ def data_dir(tmp_path_factory):
     np.savetxt(d / 'rec.csv', np.column_stack([t, u, y]), delimiter=',', header='t,u,y',
                comments='')
     np.savetxt(d / 'noheader.csv', np.column_stack([u, y]), delimiter=',')
-    (d / 'fast.yaml').write_text(yaml.safe_dump({'training': FAST_TRAINING}))
+    (d / 'fast.yaml').write_text(yaml.safe_dump({'training': FAST_TRAINING, 'final_training': {}}))
     return d
 
 

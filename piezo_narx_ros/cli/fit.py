@@ -13,7 +13,7 @@ import contextlib
 # Keys a --config YAML file may hold (config/fit.yaml lists them all with their defaults).
 CONFIG_KEYS = ('ny', 'nu', 'hidden', 'seed', 'arx_na', 'arx_nb', 'arx', 'split', 'max_lag',
                'max_outside_fraction', 'residuals', 'noise_model', 'noise_order', 'jobs',
-               'training', 'command_topic', 'deflection_topic')
+               'training', 'final_training', 'command_topic', 'deflection_topic')
 
 
 def add_parser(subparsers):
@@ -89,11 +89,13 @@ def parse_range(text, name: str) -> tuple:
 def load_settings(args) -> dict:
     """Merged settings dict: defaults < --config file < command-line options."""
     from piezo_narx_ros.errors import ConfigError
+    from piezo_narx_ros.ident.experiment import FINAL_TRAINING
     settings = {'ny': '1-4', 'nu': '1-4', 'hidden': 10, 'seed': 0, 'arx_na': '1-10',
                 'arx_nb': '1-10', 'arx': True, 'split': 0.5, 'max_lag': 20,
                 'max_outside_fraction': 0.05, 'residuals': 'simulation', 'noise_model': 'ar',
                 'noise_order': 20, 'jobs': 2,
-                'training': {}, 'command_topic': 'piezo/voltage_command',
+                'training': {}, 'final_training': dict(FINAL_TRAINING),
+                'command_topic': 'piezo/voltage_command',
                 'deflection_topic': 'piezo/deflection'}
     if args.config:
         import yaml
@@ -121,8 +123,9 @@ def load_settings(args) -> dict:
             settings[key] = value
     if args.no_arx:
         settings['arx'] = False
-    if not isinstance(settings['training'], dict):
-        raise ConfigError('training: must be a mapping of NARX training options')
+    for key in ('training', 'final_training'):
+        if not isinstance(settings[key], dict):
+            raise ConfigError(f'{key}: must be a mapping of NARX training options')
     return settings
 
 
@@ -140,7 +143,8 @@ def experiment_config(settings: dict, progress: bool):
             max_outside_fraction=float(settings['max_outside_fraction']),
             residuals=str(settings['residuals']), noise_model=str(settings['noise_model']),
             noise_order=int(settings['noise_order']), jobs=int(settings['jobs']),
-            progress=None if progress else False, training=dict(settings['training']))
+            progress=None if progress else False, training=dict(settings['training']),
+            final_training=dict(settings['final_training']))
     except (TypeError, ValueError) as exc:
         raise ConfigError(f'invalid setting: {exc}') from None
     cfg.validate()
