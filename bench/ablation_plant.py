@@ -258,6 +258,21 @@ def capacity_probe(params, record_seed: int) -> list[tuple[str, float]]:
     return out
 
 
+def white_noise_pass_rate(record_seed: int = 0, draws: int = 200) -> tuple[int, dict]:
+    """How often white residuals pass against the validation half of the default multisine:
+    (all five passed, {test: passes}) over `draws` seeded draws (chance-rate rule, L = 20)."""
+    from piezo_narx_ros.ident.correlation import correlation_tests
+    u = generate('multisine', FS, SECONDS, AMPLITUDE, seed=record_seed)[int(SECONDS * FS) // 2:]
+    rng = np.random.default_rng(123)
+    all_five, per_test = 0, dict.fromkeys(TEST_NAMES, 0)
+    for _ in range(draws):
+        result = correlation_tests(rng.standard_normal(u.size), u, 20, 0.05)
+        all_five += result.passed
+        for name, ok in result.verdicts().items():
+            per_test[name] += ok
+    return all_five, per_test
+
+
 def row(variant, rseed, label, res, seconds=None) -> str:
     tests = ' '.join(f'{v:5.1f}{" " if ok else "x"}' for v, ok in res['tests'].values())
     r2 = f'{res["r2"]:.6f}' if 'r2' in res else ' ' * 8
@@ -292,6 +307,8 @@ def main(argv=None) -> int:
     ap.add_argument('--capacity', action='store_true',
                     help='also the one-step error a 2x64 MLP reaches on noise-free data with '
                          '4/4, 8/8, 4/4 + true Bouc-Wen state, full plant state regressors')
+    ap.add_argument('--white', action='store_true',
+                    help='only: pass rate of 200 white residual draws against the multisine')
     ap.add_argument('--set', nargs='*', default=[], metavar='FIELD=VALUE',
                     help='extra PlantParams changes applied to every variant (floats)')
     args = ap.parse_args(argv)
@@ -299,6 +316,12 @@ def main(argv=None) -> int:
     if unknown:
         print(f'ablation_plant: unknown variant {unknown[0]!r}', file=sys.stderr)
         return 2
+    if args.white:
+        for rseed in args.record_seeds:
+            all_five, per_test = white_noise_pass_rate(rseed)
+            print(f'record seed {rseed}: white residuals pass all five tests {all_five}/200; per test '
+                  + ', '.join(f'{k} {v}/200' for k, v in per_test.items()))
+        return 0
     extra = {}
     for item in args.set:
         key, _, value = item.partition('=')
