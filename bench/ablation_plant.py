@@ -300,7 +300,7 @@ def main(argv=None) -> int:
     ap.add_argument('--lags', type=int, default=4, help='NARX nu = ny')
     ap.add_argument('--no-arx', action='store_true', help='skip ARX 4/4')
     ap.add_argument('--arx-all', action='store_true',
-                    help='also ARX 1..10 x 1..10: print how many pass and the smallest max φu²\'ε²')
+                    help='also ARX 1..10 x 1..10: how many pass, smallest max phi_u2e2/band')
     ap.add_argument('--calibrate', action='store_true',
                     help='also judge each network with its free-run error scaled by '
                          f'{", ".join(map(str, CAL_SCALES))}')
@@ -319,8 +319,8 @@ def main(argv=None) -> int:
     if args.white:
         for rseed in args.record_seeds:
             all_five, per_test = white_noise_pass_rate(rseed)
-            print(f'record seed {rseed}: white residuals pass all five tests {all_five}/200; per test '
-                  + ', '.join(f'{k} {v}/200' for k, v in per_test.items()))
+            print(f'record seed {rseed}: white residuals pass all five tests {all_five}/200; '
+                  'per test ' + ', '.join(f'{k} {v}/200' for k, v in per_test.items()))
         return 0
     extra = {}
     for item in args.set:
@@ -375,7 +375,8 @@ def main(argv=None) -> int:
                       f'smallest max phi_u2e2/band {worst:.1f}', flush=True)
     print('\nsummary: fits passing (default pipeline / burn-in noise model), median error nm')
     for (variant, model), (n, ok, ok_burn, errs) in tally.items():
-        print(f'{variant:16s} {model:8s} {ok}/{n} / {ok_burn}/{n}   err {np.median(errs) * 1e9:6.1f}')
+        print(f'{variant:16s} {model:8s} {ok}/{n} / {ok_burn}/{n}   '
+              f'err {np.median(errs) * 1e9:6.1f}')
     return 0
 
 
