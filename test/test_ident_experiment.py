@@ -205,3 +205,21 @@ def test_selected_network_is_trained_again_and_kept_only_if_no_worse():
     assert info['kept'] and final.best.r2() > screened.best.r2()
     assert final.best.r2() == pytest.approx(info['final']['r2_validation_simulation'])
     assert json.loads(json.dumps(final.to_dict()))['candidates'][final.selected]['final_fit'] == info
+
+
+def test_free_run_start_up_transient_is_not_taken_for_noise():
+    """The true model of an output-error system: its free-run residual is the white sensor noise
+    plus a start-up transient (the lags start from noisy measurements). The noise model must see
+    white residuals, not fit the transient."""
+    from piezo_narx_ros.ident.arx import ARXModel
+    from piezo_narx_ros.ident.experiment import fit_noise_models
+    rng = np.random.default_rng(3)
+    n, a, b = 6000, [-1.6, 0.8], [0.0, 0.5, 0.3]
+    true = ARXModel(2, 2, fit_intercept=False).set_coefficients(a, b)
+    u = rng.uniform(-1, 1, n)
+    y_clean = true.simulate(u)
+    # A large initial deflection makes the transient from the noisy first samples visible.
+    y = y_clean + 0.02 * rng.standard_normal(n)
+    y[:2] += 3.0
+    noise = fit_noise_models(true, [Record(u=u, y=y, fs=1000.0, source='oe')])
+    assert noise['simulation'].order == 0
