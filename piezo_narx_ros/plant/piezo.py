@@ -23,6 +23,8 @@ from piezo_narx_ros.errors import ConfigError, DataError
 from piezo_narx_ros.plant import kernels
 from piezo_narx_ros.plant.params import PlantParams, load_plant_params
 
+_NOISE_STREAM = 0x5E50  # tags the sensor-noise seed sequence (see reset())
+
 _NOISE_BLOCK = 4096  # standard normals drawn at a time by step(); the stream is block-size independent
 
 
@@ -121,7 +123,9 @@ class PiezoCantilever:
     def reset(self) -> None:
         """Back to rest (all states zero, amplifier at 0 V) and the noise generator re-seeded."""
         self._state[:] = 0.0
-        self._rng = np.random.Generator(np.random.PCG64(self.seed))
+        # Its own stream: seeding PCG64 with the bare seed would replay the bits that generate()
+        # turns into multisine phases for the same seed, correlating noise with the input.
+        self._rng = np.random.Generator(np.random.PCG64([self.seed, _NOISE_STREAM]))
         self._noise = np.empty(0)
         self._noise_pos = 0
 
