@@ -118,6 +118,9 @@ class EstimatorNode(PiezoNode):
         values = {k: getattr(st, k) for k in (
             'commands', 'estimates', 'rejected_nonfinite', 'rejected_range', 'gaps', 'filled',
             'out_of_order', 'resets', 'out_of_range', 'reanchors', 'init')}
+        # Matched deflection publishers: a launcher waits for 1 before streaming, so that the
+        # first measured samples (the initial values) are not published before this matches.
+        values['measurement_publishers'] = self.sub_meas.get_publisher_count()
         if n >= 2 and not math.isnan(rms):
             values.update(rms_error_m=rms, r2=r2, error_window=n)
         return (DIAG_WARN if warn else DIAG_OK), msg, values
