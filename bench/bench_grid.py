@@ -80,7 +80,7 @@ def main(argv=None):
           f'best ARX: {max(c.r2() for c in arx):.6f}')
     print(f'selected: {best.spec.label}, validation simulation R2 {best.r2():.6f}, '
           f'validated={result.validated} ({sum(c.validated for c in result.candidates)} '
-          f'candidates pass the strict tests)')
+          f'candidates pass the correlation tests)')
 
 
 if __name__ == '__main__':
