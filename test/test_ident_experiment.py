@@ -26,11 +26,12 @@ def arx_record(n=4000, seed=0, noise=0.05):
     return Record(u=u, y=y * 1e-6, fs=1000.0, source=f'arx-{seed}')
 
 
-def _cand(kind, nu, ny, n_params, r2, validated, error=None):
+def _cand(kind, nu, ny, n_params, r2, validated, error=None, r2_est=1.0):
     c = CandidateResult(spec=CandidateSpec(kind, nu=nu, ny=ny), n_params=n_params,
                         validated=validated, error=error)
     if error is None:
-        c.scores = {'validation': {'simulation': {'r2': r2}}}
+        c.scores = {'validation': {'simulation': {'r2': r2}},
+                    'estimation': {'simulation': {'r2': r2_est}}}
     return c
 
 
@@ -50,6 +51,17 @@ def test_selection_without_passing_model_takes_best_r2_not_validated():
     cands = [_cand('arx', 1, 1, 4, 0.9, False), _cand('narx', 1, 1, 51, None, False),
              _cand('narx', 2, 2, 71, 0.99, False), _cand('arx', 2, 2, 6, 0.0, False, 'bad')]
     assert select(cands) == (2, False)
+
+
+def test_selection_rejects_a_network_unstable_on_the_estimation_start():
+    # Best on validation, but its free run falls into a limit cycle at the record's start.
+    cands = [_cand('narx', 3, 4, 81, 0.99993, False, r2_est=-119.0),
+             _cand('narx', 2, 4, 71, 0.99990, False, r2_est=0.99995),
+             _cand('arx', 4, 4, 10, 0.995, False)]
+    assert select(cands) == (1, False)
+    passing = [_cand('arx', 3, 2, 7, 0.999, True, r2_est=0.5),
+               _cand('arx', 2, 3, 7, 0.998, True)]
+    assert select(passing) == (1, True)   # tie on size broken by the worse half
 
 
 def test_selection_when_nothing_fitted_raises():

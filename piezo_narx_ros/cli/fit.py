@@ -220,8 +220,8 @@ def _run(args) -> int:
         n_pass = sum(c.validated for c in result.candidates)
         print(f'{n_pass} of {len(result.candidates)} candidates pass all five tests')
         if not result.validated:
-            print('warning: no candidate passed all correlation tests; selected by validation '
-                  'simulation R² (not validated)')
+            print('warning: no candidate passed all correlation tests; selected by free-run R² '
+                  '(the worse of estimation and validation; not validated)')
         print(f'model: {model_path}')
         print(f'candidates: {out / "candidates.json"}')
         if paths:

@@ -12,7 +12,9 @@ Both stages are Levenberg-Marquardt as MATLAB's trainlm does it: exact Jacobian,
 * Stage 2 minimises the free-run (parallel) error on many segments started from measured outputs,
   with the exact recursive sensitivity
       dy(k)/dtheta = df/dtheta + sum_j df/dy(k-j) * dy(k-j)/dtheta,
-  and keeps the iterate with the lowest free-run error on the held-out tail.
+  and keeps the iterate with the lowest free-run error on the held-out tail, or on the whole record
+  from its start when that is worse (a stability guard: the start, where the excitation switches
+  on, is where an over-refined network can fall into a limit cycle).
 
 The Jacobian rows are sequential recursions, so they are numba kernels (like the free-run kernel);
 the (N, P) x (N, P) normal equations and the Cholesky solves are torch (float64, single thread by
@@ -282,7 +284,12 @@ def train_narx(un, yn, nu, ny, hidden, seed, restarts=3, restart_iter=8, restart
         k_val = k_split if n_val > 2 * n0 else n0
 
         def score_freerun(th):
-            return _freerun_mse(th, H, un, yn, nu, ny, k_val)
+            # The held-out free run judges accuracy; the free run over the whole record from its
+            # first samples guards stability: the record starts with the excitation switching on,
+            # which the held-out tail never shows, and long refinement once produced a network
+            # accurate on the tail that fell into a limit cycle there (R² -119).
+            return max(_freerun_mse(th, H, un, yn, nu, ny, k_val),
+                       _freerun_mse(th, H, un, yn, nu, ny, n0))
 
         stage1_score = score_freerun(theta)
         info['holdout_mse_freerun_stage1'] = stage1_score
