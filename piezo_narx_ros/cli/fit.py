@@ -98,22 +98,8 @@ def load_settings(args) -> dict:
                 'command_topic': 'piezo/voltage_command',
                 'deflection_topic': 'piezo/deflection'}
     if args.config:
-        import yaml
-        try:
-            with open(args.config) as f:
-                doc = yaml.safe_load(f) or {}
-        except OSError as exc:
-            raise ConfigError(f'{args.config}: cannot read settings file ({exc.strerror})') \
-                from None
-        except yaml.YAMLError as exc:
-            raise ConfigError(f'{args.config}: not valid YAML ({str(exc).splitlines()[0]})') \
-                from None
-        if not isinstance(doc, dict):
-            raise ConfigError(f'{args.config}: settings must be a mapping of key: value')
-        unknown = sorted(set(doc) - set(CONFIG_KEYS))
-        if unknown:
-            raise ConfigError(f'{args.config}: unknown setting(s) {", ".join(unknown)}; '
-                              f'known: {", ".join(CONFIG_KEYS)}')
+        from piezo_narx_ros.settings import read_yaml_mapping
+        doc = read_yaml_mapping(args.config, 'settings', known=CONFIG_KEYS)
         settings.update(doc)
     for key in ('ny', 'nu', 'hidden', 'seed', 'arx_na', 'arx_nb', 'max_lag',
                 'max_outside_fraction', 'residuals', 'noise_model', 'noise_order', 'jobs',

@@ -18,6 +18,7 @@ import numpy as np
 
 from piezo_narx_ros.cli.bringup import Bringup, NodeSpec, load_config
 from piezo_narx_ros.errors import ConfigError, PiezoNarxError
+from piezo_narx_ros.settings import check_known, read_yaml_mapping
 
 DEFAULTS = {
     'namespace': 'piezo', 'fs': 2000.0, 'seconds': 25.0, 'seed': 0, 'kind': 'multisine',
@@ -61,19 +62,7 @@ def load_settings(path=None, quick: bool = False, **overrides) -> dict:
     ConfigError names an unknown key or a bad value."""
     settings = copy.deepcopy(DEFAULTS)
     if path is not None:
-        import yaml
-        try:
-            doc = yaml.safe_load(Path(path).read_text()) or {}
-        except OSError as exc:
-            raise ConfigError(f'{path}: cannot read demo settings ({exc.strerror})') from None
-        except yaml.YAMLError as exc:
-            raise ConfigError(f'{path}: not valid YAML ({str(exc).splitlines()[0]})') from None
-        if not isinstance(doc, dict):
-            raise ConfigError(f'{path}: demo settings must be a mapping of key: value')
-        unknown = sorted(set(doc) - set(DEFAULTS))
-        if unknown:
-            raise ConfigError(f'{path}: unknown setting(s) {", ".join(unknown)}; known: '
-                              f'{", ".join(DEFAULTS)}')
+        doc = read_yaml_mapping(path, 'demo settings', known=DEFAULTS)
         settings = _merge(settings, doc)
     if quick:
         settings = _merge(settings, settings.get('quick') or {})
@@ -91,9 +80,7 @@ def load_settings(path=None, quick: bool = False, **overrides) -> dict:
     if not isinstance(settings['fit'], dict):
         raise ConfigError('fit must be a mapping of `piezo-narx fit` settings')
     from piezo_narx_ros.cli.fit import CONFIG_KEYS
-    unknown = sorted(set(settings['fit']) - set(CONFIG_KEYS))
-    if unknown:
-        raise ConfigError(f'fit: unknown setting(s) {", ".join(unknown)}')
+    check_known(settings['fit'], CONFIG_KEYS, 'fit')
     if settings['fs'] * min(settings['seconds'], settings['validation_seconds']) < 500:
         raise ConfigError('seconds x fs must give at least 500 samples per phase')
     return settings
