@@ -58,12 +58,14 @@ CANDIDATES = {
     'multisine flat (today)': lambda s: generate('multisine', FS, SECONDS, AMP, seed=s),
     'multisine pink': lambda s: generate('multisine', FS, SECONDS, AMP, seed=s, spectrum='pink'),
     'multisine brown': lambda s: generate('multisine', FS, SECONDS, AMP, seed=s, spectrum='brown'),
+    'ms + tri 0.2 Hz 10/90': lambda s: with_sweep(s, 0.1, 0.2),
+    'ms + tri 0.2 Hz 20/80': lambda s: with_sweep(s, 0.2, 0.2),
     'ms + tri 0.2 Hz 30/70': lambda s: with_sweep(s, 0.3, 0.2),
     'ms + tri 0.2 Hz 50/50': lambda s: with_sweep(s, 0.5, 0.2),
     'ms + tri 0.2 Hz 70/30': lambda s: with_sweep(s, 0.7, 0.2),
     'ms + sine 0.2 Hz 50/50': lambda s: with_sweep(s, 0.5, 0.2, shape='sine'),
     'ms + tri 0.1 Hz 50/50': lambda s: with_sweep(s, 0.5, 0.1),
-    'aprbs': lambda s: generate('aprbs', FS, SECONDS, AMP, seed=s),
+    'aprbs': lambda s: span_to(generate('aprbs', FS, SECONDS, AMP, seed=s)),
     'half ms, half triangles': concat_sweeps,
 }
 
@@ -153,7 +155,9 @@ def main(argv=None):
                            statistics.median(s[t][1] for s in per_seed)) for t in tests}
         print(f'\n== {name}: ' + '; '.join(labels), flush=True)
         for t, (r2, nm) in table[name].items():
-            print(f'   {t:<16} R2 {r2:10.6f}  RMSE {nm:9.1f} nm', flush=True)
+            seeds = ' '.join(f'{s[t][0]:10.6f}' for s in per_seed)
+            print(f'   {t:<16} R2 {r2:10.6f}  RMSE {nm:9.1f} nm   (R2 per seed: {seeds})',
+                  flush=True)
     print(f'\nsummary (R2, median over seeds{"; --quick" if args.quick else ""}):')
     print(f'{"excitation":<26}' + ''.join(f'{t[:14]:>15}' for t in tests))
     for name, row in table.items():
