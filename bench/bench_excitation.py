@@ -139,6 +139,7 @@ def main(argv=None):
           f'nu in {list(nu)}, H=10) + final fit; free run on {len(tests)} test signals of '
           f'{TEST_SECONDS:g} s (median over seeds)', flush=True)
     table = {}
+    tally = {}  # name -> (diverged free runs on the slow battery, runs, worst fresh-multisine R²)
     t_start = time.perf_counter()
     for name in names:
         per_seed = []
@@ -153,6 +154,8 @@ def main(argv=None):
                           f'{time.perf_counter() - t0:.0f}s')
         table[name] = {t: (statistics.median(s[t][0] for s in per_seed),
                            statistics.median(s[t][1] for s in per_seed)) for t in tests}
+        slow = [s[t][0] for s in per_seed for t in tests if t != 'ms seed1']
+        tally[name] = (sum(r < 0.5 for r in slow), len(slow), min(s['ms seed1'][0] for s in per_seed))
         print(f'\n== {name}: ' + '; '.join(labels), flush=True)
         for t, (r2, nm) in table[name].items():
             seeds = ' '.join(f'{s[t][0]:10.6f}' for s in per_seed)
@@ -165,6 +168,10 @@ def main(argv=None):
     print('\nsummary (RMSE nm, median over seeds):')
     for name, row in table.items():
         print(f'{name:<26}' + ''.join(f'{row[t][1]:15.1f}' for t in tests))
+    print('\nrobustness over seeds (a free run with R2 < 0.5 has left the output range):')
+    for name, (bad, runs, worst) in tally.items():
+        print(f'{name:<26} {bad:3d}/{runs} slow-battery runs with R2 < 0.5; '
+              f'worst fresh-multisine R2 {worst:.6f}')
     print(f'\nbench wall time {time.perf_counter() - t_start:.0f} s')
 
 
