@@ -8,11 +8,14 @@ its winner), and the selected network's free run (initialised from the first n0 
 model.simulate(u, y[:n0])) is scored on a FIXED test battery recorded with other noise seeds:
 the demo's live multisine (seed 1, 10 s), slow sines 0.1 / 0.5 / 2 Hz at +-100 V and +-50 V, a
 0.5 Hz +-100 V triangle, an APRBS and a step sequence. Prints R² and RMSE (nm) per test signal and
-excitation, the median over the identification seeds (plant noise seed = excitation seed).
+excitation, the median over the identification seeds (plant noise seed = excitation seed), the
+per-seed R², and a tally of diverged free runs: five seeds by default because two (0 and 2) hid that
+the seed-0 network, the demo's, leaves the output range on slow inputs. Results: docs/excitation.md.
 
-Run: python bench/bench_excitation.py [--quick] [--seeds 0 2] [--only NAME ...] [--jobs 2]
+Run: python bench/bench_excitation.py [--quick] [--seeds 0 2 4 6 8] [--only NAME ...] [--jobs 2]
 --quick: NARX(4,3,10) only (the demo's selection), the full battery. Accuracy figures are
-deterministic (seeded plant, signals, training); run time depends on load.
+deterministic (seeded plant, signals, training); run time depends on load (full run: 342 s on the
+shared 2-core box).
 """
 import argparse
 import statistics
@@ -70,7 +73,7 @@ CANDIDATES = {
 }
 
 TEST_SECONDS = 10.0
-# name -> (kind, amplitude V, options); seeds of the random ones differ from every identification seed.
+# name -> (kind, amplitude V, options); the random ones use seeds no default identification uses.
 BATTERY = {
     'ms seed1': ('multisine', 100.0, {'seed': 1}),
     'sin 0.1Hz 100V': ('sine', 100.0, {'freq': 0.1}),
@@ -124,7 +127,7 @@ def score(model, tests):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--quick', action='store_true', help='NARX(4,3,10) only')
-    ap.add_argument('--seeds', type=int, nargs='+', default=[0, 2],
+    ap.add_argument('--seeds', type=int, nargs='+', default=[0, 2, 4, 6, 8],
                     help='identification seeds (excitation and plant noise)')
     ap.add_argument('--only', nargs='+', help='candidate names (substring match)')
     ap.add_argument('--jobs', type=int, default=2)
