@@ -102,12 +102,13 @@ def battery():
     return out
 
 
-def identify(u, seed, nu, jobs):
-    """Selected model of run_experiment on the plant's answer to u (noise seed = seed)."""
+def identify(u, seed, nu, jobs, net_seed=0):
+    """Selected model of run_experiment on the plant's answer to u (noise seed = seed); net_seed
+    seeds the networks' initial weights (the demo's: 0)."""
     y = PiezoCantilever(fs=FS, seed=seed).run(u).y
     rec = Record(u=u, y=y, fs=FS, source=f'bench seed {seed}')
     cfg = ExperimentConfig(ny=(4,), nu=tuple(nu), hidden=10, arx_na=(), arx_nb=(), jobs=jobs,
-                           progress=False)
+                           progress=False, seed=net_seed)
     return run_experiment([rec], cfg).best
 
 
@@ -132,6 +133,8 @@ def main(argv=None):
                     help='identification seeds (excitation and plant noise)')
     ap.add_argument('--only', nargs='+', help='candidate names (substring match)')
     ap.add_argument('--jobs', type=int, default=2)
+    ap.add_argument('--net-seed', type=int, default=0,
+                    help='seed of the networks\' initial weights (the demo uses 0)')
     args = ap.parse_args(argv)
     nu = (3,) if args.quick else (3, 4)
     names = [n for n in CANDIDATES
@@ -141,7 +144,7 @@ def main(argv=None):
     tests = battery()
     print(f'identification: 25 s at 2 kHz, +-100 V, seeds {args.seeds}; models NARX(ny=4, '
           f'nu in {list(nu)}, H=10) + final fit; free run on {len(tests)} test signals of '
-          f'{TEST_SECONDS:g} s (median over seeds)', flush=True)
+          f'{TEST_SECONDS:g} s (median over seeds); network seed {args.net_seed}', flush=True)
     table = {}
     tally = {}  # name -> (diverged free runs on the slow battery, runs, worst fresh-multisine R²)
     t_start = time.perf_counter()
@@ -152,7 +155,7 @@ def main(argv=None):
             u = CANDIDATES[name](seed)
             assert abs(u.max() - AMP) < 1e-9 and abs(u.min() + AMP) < 1e-9, name
             t0 = time.perf_counter()
-            best = identify(u, seed, nu, args.jobs)
+            best = identify(u, seed, nu, args.jobs, args.net_seed)
             per_seed.append(score(best.model, tests))
             labels.append(f'{best.spec.label.replace(", H=10", "")} val {best.r2():.6f} '
                           f'{time.perf_counter() - t0:.0f}s')
