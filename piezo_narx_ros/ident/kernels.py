@@ -156,6 +156,14 @@ class Stepper:
         return self._ubuf[1:].copy()
 
 
+def _finite_input(u_k) -> float:
+    """u_k as a float (V); DataError when it is NaN or infinite (the histories stay untouched)."""
+    u = float(u_k)
+    if not math.isfinite(u):
+        raise DataError(f'stepper input must be a finite voltage, got {u_k!r}')
+    return u
+
+
 class NARXStepper(Stepper):
     """Stepper of a NARXNetwork (see Stepper)."""
 
@@ -163,9 +171,7 @@ class NARXStepper(Stepper):
         """Feed one input sample u_k (V); returns the free-run output y(k) (m).
 
         A non-finite u_k raises DataError and leaves the histories untouched."""
-        u = float(u_k)
-        if not math.isfinite(u):
-            raise DataError(f'stepper input must be a finite voltage, got {u_k!r}')
+        u = _finite_input(u_k)
         Wu, Wy, b1, w2, b2 = self._params
         return narx_step(u, self._ubuf, self._ybuf, Wu, Wy, b1, w2, b2)
 
@@ -177,8 +183,6 @@ class ARXStepper(Stepper):
         """Feed one input sample u_k (V); returns the free-run output y(k) (m).
 
         A non-finite u_k raises DataError and leaves the histories untouched."""
-        u = float(u_k)
-        if not math.isfinite(u):
-            raise DataError(f'stepper input must be a finite voltage, got {u_k!r}')
+        u = _finite_input(u_k)
         bu, ay, c = self._params
         return arx_step(u, self._ubuf, self._ybuf, bu, ay, c)
