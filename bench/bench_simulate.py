@@ -17,6 +17,7 @@ import numpy as np
 from scipy import signal
 
 from piezo_narx_ros.ident.arx import ARXModel
+from piezo_narx_ros.ident.metrics import r2
 from piezo_narx_ros.ident.narx import NARXNetwork
 
 FS = 2000.0
@@ -61,10 +62,6 @@ def piezo_data(n=50000, seed=0):
         noisy = y + 1e-7 * np.random.default_rng(seed + 1).standard_normal(n)
         return u_cmd, noisy, y, f'stand-in plant (noise 1e-7 m; project plant unavailable: ' \
                                  f'{type(exc).__name__})'
-
-
-def r2(y, yhat):
-    return 1.0 - np.sum((y - yhat) ** 2) / np.sum((y - y.mean()) ** 2)
 
 
 def median_time(f, repeats):

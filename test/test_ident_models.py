@@ -5,15 +5,12 @@ from scipy import signal
 
 from piezo_narx_ros.errors import ConfigError, DataError
 from piezo_narx_ros.ident.arx import ARXModel
+from piezo_narx_ros.ident.metrics import r2
 from piezo_narx_ros.ident.narx import NARXNetwork
 from piezo_narx_ros.ident.regressors import lagged_regressors
 
 # Light training budget: enough for the behaviours asserted here, a few seconds in all.
 FAST = dict(restarts=2, restart_iter=5, max_iter=15, refine_iter=10, n_segments=20)
-
-
-def r2(y, yhat):
-    return 1.0 - np.sum((y - yhat) ** 2) / np.sum((y - y.mean()) ** 2)
 
 
 def multisine(n, fs, f_lo, f_hi, n_lines, seed):
