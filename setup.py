@@ -17,6 +17,7 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/config', glob('config/*.yaml')),
+        ('share/' + package_name + '/launch', glob('launch/*.launch.yaml')),
     ],
     include_package_data=True,
     # Runtime libraries. The ROS 2 client libraries are not listed: in a ROS install they come from

@@ -12,9 +12,6 @@ from pathlib import Path
 
 from piezo_narx_ros.errors import ConfigError
 
-DEFAULT_PATH = Path(__file__).resolve().parents[2] / 'config' / 'plant.yaml'
-
-
 @dataclass(frozen=True)
 class PlantParams:
     """Parameters of the plant; SI units (V, m, s, Hz).
@@ -112,7 +109,11 @@ def load_plant_params(path=None) -> PlantParams:
     """
     import yaml
 
-    path = Path(path) if path is not None else DEFAULT_PATH
+    if path is None:
+        # config/plant.yaml of this copy: share/piezo_narx_ros when installed, else the source tree
+        from piezo_narx_ros.share import config_path
+        path = config_path('plant.yaml')
+    path = Path(path)
     try:
         text = path.read_text()
     except OSError as exc:

@@ -1,0 +1,103 @@
+"""An installed (not editable) copy works: it finds its config in share/piezo_narx_ros.
+
+The package is installed from a copy of its own files into a temporary prefix, the way colcon
+(`setup.py install`, scripts in lib/piezo_narx_ros) and pip (`pip install --prefix`, scripts in
+bin/) do, and the installed simulator_node and fake_rig are started from there with the source
+tree out of reach (another working directory, PYTHONPATH on the prefix only).
+"""
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import sysconfig
+import time
+
+import pytest
+
+from conftest import REPO
+
+FILES = ('setup.py', 'setup.cfg', 'package.xml', 'resource', 'config', 'launch', 'piezo_narx_ros')
+
+
+def _install(tmp_path, how):
+    src, prefix = tmp_path / 'src', tmp_path / 'prefix'
+    src.mkdir()
+    for name in FILES:
+        if (REPO / name).is_dir():
+            shutil.copytree(REPO / name, src / name,
+                            ignore=shutil.ignore_patterns('__pycache__', '*.pyc'))
+        elif (REPO / name).exists():
+            shutil.copy2(REPO / name, src / name)
+    if how == 'setup.py':   # what colcon's ament_python build does
+        cmd = [sys.executable, 'setup.py', '-q', 'install', '--prefix', str(prefix),
+               '--single-version-externally-managed', '--record', str(tmp_path / 'files.txt')]
+        scripts = prefix / 'lib' / 'piezo_narx_ros'
+    else:
+        cmd = [sys.executable, '-m', 'pip', 'install', '-q', '--prefix', str(prefix),
+               '--ignore-installed', '--no-deps', '--no-build-isolation', '.']
+        scripts = prefix / 'bin'
+    done = subprocess.run(cmd, cwd=src, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stdout + done.stderr
+    shutil.rmtree(src)   # nothing left to fall back on
+    site = sysconfig.get_path('purelib', vars={'base': str(prefix), 'platbase': str(prefix)})
+    env = dict(os.environ, PYTHONPATH=site, PYTHONUNBUFFERED='1')
+    env.pop('AMENT_PREFIX_PATH', None)
+    return prefix, scripts, env
+
+
+def _run_until(argv, env, cwd, marker, timeout=60.0):
+    """Start argv, wait for `marker` in its output, SIGINT it; returns (exit code, output)."""
+    proc = subprocess.Popen(argv, env=env, cwd=cwd, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    lines, deadline = [], time.monotonic() + timeout
+    try:
+        while time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            if marker in line:
+                break
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    return proc.returncode, ''.join(lines) + out
+
+
+@pytest.mark.parametrize('how', ['setup.py', 'pip'])
+def test_installed_copy_finds_its_config_and_runs_simulator_and_fake_rig(tmp_path, how):
+    prefix, scripts, env = _install(tmp_path, how)
+    work = tmp_path / 'elsewhere'
+    work.mkdir()
+    where = subprocess.run(
+        [sys.executable, '-c', 'import piezo_narx_ros.share as s; print(s.__file__); '
+         'print(s.share_dir()); print(s.config_path("plant.yaml"))'],
+        env=env, cwd=work, capture_output=True, text=True, timeout=60)
+    assert where.returncode == 0, where.stderr
+    module, share, plant = where.stdout.split()
+    assert module.startswith(str(prefix)) and share == str(prefix / 'share' / 'piezo_narx_ros')
+    assert plant == str(prefix / 'share' / 'piezo_narx_ros' / 'config' / 'plant.yaml')
+
+    code, out = _run_until([str(scripts / 'simulator_node'), '--ros-args', '-r',
+                            f'__ns:=/install{os.getpid()}'], env, work, 'simulating')
+    assert 'simulating' in out and code == 0, out
+    code, out = _run_until([str(scripts / 'fake_rig'), '--port', '0'], env, work, 'listening')
+    assert 'listening on 127.0.0.1:' in out and code == 0, out
+
+
+def test_ament_index_finds_the_installed_prefix(tmp_path):
+    """With the prefix on AMENT_PREFIX_PATH (a sourced workspace), `ros2 run`'s lookup resolves
+    the package there, and share_dir() agrees."""
+    prefix, scripts, env = _install(tmp_path, 'setup.py')
+    env['AMENT_PREFIX_PATH'] = str(prefix)
+    done = subprocess.run(
+        [sys.executable, '-c', 'from ament_index_python.packages import get_package_prefix as p; '
+         'import piezo_narx_ros.share as s; print(p("piezo_narx_ros")); print(s._ament_index())'],
+        env=env, cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == [str(prefix), str(prefix / 'share' / 'piezo_narx_ros')]
+    assert (scripts / 'simulator_node').is_file()   # where `ros2 run` looks: lib/<package>
