@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError, ModelFileError
+from ..npzfile import read_npz
 from .arx import ARXModel
 from .narx import NARXNetwork
 
@@ -130,9 +131,17 @@ def _range(doc, key, name):
     if v is None:
         return None
     if (not isinstance(v, list) or len(v) != 2
-            or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)):
-        raise ModelFileError(f'{name}: key {key!r} must be [min, max] or null')
+            or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
+            or not all(math.isfinite(x) for x in v) or v[0] > v[1]):
+        raise ModelFileError(f'{name}: key {key!r} must be [min, max] (finite, min <= max) or '
+                             f'null, got {v!r}')
     return (float(v[0]), float(v[1]))
+
+
+def _refuse_constant(token):
+    # save_model writes finite numbers only (allow_nan=False); NaN or Infinity in a model file
+    # would pass every range and rate check silently.
+    raise ValueError(f'{token} is not allowed in a model file (finite numbers only)')
 
 
 def _read_json(path):
@@ -140,8 +149,10 @@ def _read_json(path):
     if not path.is_file():
         raise ModelFileError(f'model file not found: {name}')
     try:
-        doc = json.loads(path.read_text(encoding='utf-8'))
-    except json.JSONDecodeError as exc:
+        doc = json.loads(path.read_text(encoding='utf-8'), parse_constant=_refuse_constant)
+    except ValueError as exc:
+        if not isinstance(exc, json.JSONDecodeError):   # from _refuse_constant
+            raise ModelFileError(f'{name}: {exc}') from None
         raise ModelFileError(f'{name}: not valid JSON ({exc.msg} at line {exc.lineno} column '
                              f'{exc.colno})') from None
     except (OSError, UnicodeDecodeError) as exc:
@@ -173,13 +184,7 @@ def _read_weights(path, doc):
     if digest is not None and hashlib.sha256(raw).hexdigest() != digest:
         raise ModelFileError(f'{wpath}: contents do not match the SHA-256 recorded in {name} '
                              f'(changed or truncated)')
-    try:
-        with np.load(wpath, allow_pickle=False) as npz:
-            arrays = {k: npz[k] for k in npz.files}
-    except Exception as exc:  # zipfile/ValueError/OSError: all mean an unreadable file
-        raise ModelFileError(f'{wpath}: not a readable .npz weights file '
-                             f'({type(exc).__name__}: {exc})'.splitlines()[0]) from None
-    return wpath, arrays
+    return wpath, read_npz(wpath, error=ModelFileError)
 
 
 def _array(arrays, key, shape, wpath):
@@ -208,7 +213,8 @@ def load_model(path):
     if kind not in ('narx', 'arx'):
         raise ModelFileError(f'{name}: unknown model kind {kind!r} (expected narx or arx)')
     fs = doc.get('fs')
-    if fs is not None and (not isinstance(fs, (int, float)) or isinstance(fs, bool) or fs <= 0):
+    if fs is not None and (not isinstance(fs, (int, float)) or isinstance(fs, bool)
+                           or not math.isfinite(fs) or fs <= 0):
         raise ModelFileError(f'{name}: fs must be a positive number of Hz or null, got {fs!r}')
     units = doc.get('units')
     if units is not None and (not isinstance(units, dict) or units.get('input', 'V') != 'V'

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from piezo_narx_ros.errors import ConfigError
+from piezo_narx_ros.npzfile import read_npz
 
 COMMON = {'u_min': -200.0, 'u_max': 200.0, 'slew_rate': math.inf}
 OPTIONS = {
@@ -99,12 +100,24 @@ def apply_limits(u, fs, u_min=-200.0, u_max=200.0, slew_rate=math.inf) -> np.nda
     return u
 
 
+# Longest signal generated at once (400 MB of float64): a typo such as --seconds 1e7 must end in
+# one line, not in a MemoryError after minutes of swapping.
+MAX_SAMPLES = 50_000_000
+
+
 def _n_samples(seconds, fs):
     seconds = _num('seconds', seconds, 0.0, lo_open=True)
+    _check_size(seconds * fs, seconds, fs)
     n = int(round(seconds * fs))
     if n < 1:
         raise ConfigError(f'signal parameter seconds ({seconds:g}) gives no sample at fs = {fs:g} Hz')
     return n
+
+
+def _check_size(n, seconds, fs):
+    if n > MAX_SAMPLES:
+        raise ConfigError(f'{seconds:g} s at {fs:g} Hz is {n:.3g} samples, more than the '
+                          f'{MAX_SAMPLES:.0e} one signal may hold; shorten it or lower fs')
 
 
 def _check_freq(name, f, fs):
@@ -205,15 +218,19 @@ def _playback(fs, n, opt):
     path = Path(path)
     file_fs = None
     if path.suffix == '.npz':
+        data = read_npz(path, error=ConfigError)
+        if opt['key'] not in data:
+            raise ConfigError(f'playback file {path} has no key {opt["key"]!r} '
+                              f'(keys: {", ".join(data)})')
         try:
-            with np.load(path, allow_pickle=False) as data:
-                if opt['key'] not in data.files:
-                    raise ConfigError(f'playback file {path} has no key {opt["key"]!r} (keys: {", ".join(data.files)})')
-                u = np.asarray(data[opt['key']], dtype=float)
-                if 'fs' in data.files:
-                    file_fs = float(data['fs'])
-        except (OSError, ValueError) as exc:
-            raise ConfigError(f'cannot read playback file {path}: {exc}') from None
+            u = np.asarray(data[opt['key']], dtype=float)
+        except (TypeError, ValueError):
+            raise ConfigError(f'playback file {path}: key {opt["key"]!r} is not numeric') from None
+        if 'fs' in data:
+            try:
+                file_fs = float(data['fs'])
+            except (TypeError, ValueError):
+                raise ConfigError(f'playback file {path}: fs is not a number') from None
     elif path.suffix == '.csv':
         u = _csv_column(path, opt['column'])
     else:
@@ -227,6 +244,7 @@ def _playback(fs, n, opt):
     if file_fs is not None and abs(file_fs - fs) > 1e-9 * fs:
         # Linear resampling onto the output rate.
         t_file = np.arange(u.size) / file_fs
+        _check_size(t_file[-1] * fs, t_file[-1], fs)
         u = np.interp(np.arange(int(round(t_file[-1] * fs)) + 1) / fs, t_file, u)
     if n is None:
         return u
@@ -235,10 +253,11 @@ def _playback(fs, n, opt):
 
 def _csv_column(path, column):
     try:
-        with open(path) as fh:
+        with open(path, encoding='utf-8-sig') as fh:   # -sig: a spreadsheet's byte-order mark
             header = fh.readline().strip().split(',')
         has_header = any(not _is_float(h) for h in header)
-        data = np.loadtxt(path, delimiter=',', skiprows=1 if has_header else 0, ndmin=2)
+        data = np.loadtxt(path, delimiter=',', skiprows=1 if has_header else 0, ndmin=2,
+                          encoding='utf-8-sig')
     except (OSError, ValueError) as exc:
         raise ConfigError(f'cannot read playback file {path}: {exc}') from None
     names = [h.strip() for h in header] if has_header else []
