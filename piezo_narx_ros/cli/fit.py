@@ -26,6 +26,8 @@ def add_parser(subparsers):
     p.add_argument('inputs', nargs='+', metavar='INPUT',
                    help='.npz (u, y, fs), .csv (t,u,y or u,y), .mcap or rosbag2 directory')
     p.add_argument('--out', required=True, metavar='DIR', help='output directory')
+    p.add_argument('--force', action='store_true',
+                   help='overwrite the model, candidates and report already in DIR')
     p.add_argument('--config', metavar='YAML', help='settings file (see config/fit.yaml)')
     p.add_argument('--ny', metavar='RANGE', help='NARX output lags, e.g. 1-4 or 2 or 1,3 '
                                                  '(default 1-4)')
@@ -36,6 +38,8 @@ def add_parser(subparsers):
     p.add_argument('--no-arx', action='store_true', help='skip the ARX baseline')
     p.add_argument('--fs', type=float, metavar='HZ', help='sample rate for inputs without one')
     p.add_argument('--seed', type=int, help='training seed (default 0)')
+    p.add_argument('--split', type=float, metavar='FRACTION',
+                   help='fraction of each input that estimates; the rest validates (default 0.5)')
     p.add_argument('--jobs', type=int, help='worker processes (default 2)')
     p.add_argument('--max-lag', type=int, metavar='L', help='correlation test lags (default 20)')
     p.add_argument('--max-outside', type=float, metavar='FRACTION', dest='max_outside_fraction',
@@ -101,7 +105,7 @@ def load_settings(args) -> dict:
         from piezo_narx_ros.settings import read_yaml_mapping
         doc = read_yaml_mapping(args.config, 'settings', known=CONFIG_KEYS)
         settings.update(doc)
-    for key in ('ny', 'nu', 'hidden', 'seed', 'arx_na', 'arx_nb', 'max_lag',
+    for key in ('ny', 'nu', 'hidden', 'seed', 'split', 'arx_na', 'arx_nb', 'max_lag',
                 'max_outside_fraction', 'residuals', 'noise_model', 'noise_order', 'jobs',
                 'command_topic', 'deflection_topic'):
         value = getattr(args, key, None)
@@ -158,7 +162,9 @@ def _run(args) -> int:
     from pathlib import Path
 
     from piezo_narx_ros.errors import ConfigError
-    from piezo_narx_ros.ident.data import load_records
+    import warnings
+
+    from piezo_narx_ros.ident.data import check_identifiable, load_records
     from piezo_narx_ros.ident.experiment import run_experiment, split_records
     from piezo_narx_ros.ident.model_io import save_model
     from piezo_narx_ros.ident.report import write_json, write_report
@@ -167,11 +173,17 @@ def _run(args) -> int:
     config = experiment_config(settings, progress=not args.quiet)
     if args.fs is not None and not args.fs > 0:
         raise ConfigError(f'--fs must be a positive number of Hz, got {args.fs}')
-    records = load_records(args.inputs, fs=args.fs, command_topic=settings['command_topic'],
-                           deflection_topic=settings['deflection_topic'])
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f'--out {out}: exists and is not a directory')
+    if (out / 'model.json').exists() and not args.force:
+        raise ConfigError(f'--out {out} already holds a model ({out / "model.json"}); choose '
+                          'another directory or pass --force to overwrite it')
+    records = load_records(args.inputs, fs=args.fs, command_topic=settings['command_topic'],
+                           deflection_topic=settings['deflection_topic'])
+    for record in records:
+        for line in check_identifiable(record, config.split):
+            warnings.warn(line)
     result = run_experiment(records, config)
     out.mkdir(parents=True, exist_ok=True)
     best = result.best

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from piezo_narx_ros.errors import BagError, DataError
+from piezo_narx_ros.npzfile import read_npz
 
 # Fewest samples a record may have: below this neither a 50/50 split nor the correlation tests
 # (20 lags) mean anything. `check_length` applies the stricter bound for given lags.
@@ -92,20 +93,13 @@ def load_npz(path, fs: float | None = None) -> Record:
     """Record from an .npz with keys u, y, fs (optional t, y_true); `fs` fills a missing fs key."""
     path = Path(path)
     source = str(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            keys = set(z.files)
-            missing = [k for k in ('u', 'y') if k not in keys]
-            if missing:
-                raise DataError(f'{source}: missing key(s) {", ".join(missing)} '
-                                f'(has {", ".join(sorted(keys)) or "none"}; need u, y, fs)')
-            if 'fs' not in keys and fs is None:
-                raise DataError(f'{source}: no fs key; pass the sample rate with --fs')
-            data = {k: z[k] for k in ('u', 'y', 't', 'y_true', 'fs') if k in keys}
-    except DataError:
-        raise
-    except (ValueError, OSError, EOFError) as exc:
-        raise DataError(f'{source}: not a readable .npz file ({exc})') from None
+    data = read_npz(path)
+    missing = [k for k in ('u', 'y') if k not in data]
+    if missing:
+        raise DataError(f'{source}: missing key(s) {", ".join(missing)} '
+                        f'(has {", ".join(sorted(data)) or "none"}; need u, y, fs)')
+    if 'fs' not in data and fs is None:
+        raise DataError(f'{source}: no fs key; pass the sample rate with --fs')
     file_fs = _fs_value(data['fs'], source) if 'fs' in data else None
     if file_fs is not None and fs is not None and not np.isclose(file_fs, fs, rtol=1e-9):
         raise DataError(f'{source}: file says fs = {file_fs} Hz but --fs = {fs} Hz')
@@ -122,7 +116,9 @@ def load_csv(path, fs: float | None = None) -> Record:
     path = Path(path)
     source = str(path)
     try:
-        with open(path, newline='') as f:
+        # utf-8-sig: spreadsheets start CSV files with a byte-order mark, which is not part of
+        # the first column's name.
+        with open(path, newline='', encoding='utf-8-sig') as f:
             rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
     except UnicodeDecodeError:
         raise DataError(f'{source}: not a text CSV file') from None
@@ -136,6 +132,8 @@ def load_csv(path, fs: float | None = None) -> Record:
         has_header = True
     if has_header:
         names, body = header, rows[1:]
+        if not body:
+            raise DataError(f'{source}: only a header row ({", ".join(names)}), no data rows')
         missing = [k for k in ('u', 'y') if k not in names]
         if missing:
             raise DataError(f'{source}: missing column(s) {", ".join(missing)} '
@@ -229,3 +227,38 @@ def check_length(record: Record, n0: int, max_lag: int = 20, what: str = 'lags')
     if len(record) < need:
         raise DataError(f'{record.source}: {len(record)} samples are too few for {what} up to '
                         f'{n0} (need at least {need})')
+
+
+def _constant(x: np.ndarray) -> bool:
+    """True when x does not vary beyond float rounding (relative spread <= 1e-9)."""
+    return bool(np.ptp(x) <= 1e-9 * np.max(np.abs(x)))
+
+
+def check_identifiable(record: Record, split: float = 0.5) -> list[str]:
+    """Refuse a record from which nothing can be identified; warn about a weak one.
+
+    The first `split` of the samples estimates, the rest validates. Raises DataError when the
+    estimation input is constant (an idle rig excites nothing: any model fits it) or the output of
+    either part is constant to float rounding (a flat channel gives R² 1 or NaN, not a model).
+    Returns warning lines when the estimation input moves much less than the validation input.
+    Every message says how to fix the record.
+    """
+    est, val = record.split(split)
+    fix = ('trim the idle part of the record or move the split (fit --split, now '
+           f'{split:g})')
+    for part, name in ((est, 'estimation'), (val, 'validation')):
+        if len(part) and _constant(part.y):
+            raise DataError(f'{record.source}: the output is constant in the {name} part '
+                            f'(y = {part.y[0]:.6g} m, spread {np.ptp(part.y):.3g} m): nothing to '
+                            'identify; check that y is the measured deflection')
+    if _constant(est.u):
+        raise DataError(f'{record.source}: the input is constant over the estimation part '
+                        f'(first {len(est)} samples, u = {est.u[0]:.6g} V): it excites nothing, '
+                        f'so no model can be identified from it; {fix}')
+    warnings = []
+    s_est, s_val = float(np.std(est.u)), float(np.std(val.u))
+    if s_est < 0.1 * s_val:
+        warnings.append(f'{record.source}: the estimation part moves little (input std '
+                        f'{s_est:.3g} V against {s_val:.3g} V in the validation part): the model '
+                        f'will extrapolate; {fix}')
+    return warnings
