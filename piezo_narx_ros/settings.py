@@ -18,9 +18,11 @@ def read_yaml_mapping(path, what: str = 'settings', known=None) -> dict:
     """
     import yaml
     try:
-        doc = yaml.safe_load(Path(path).read_text())
+        doc = yaml.safe_load(Path(path).read_text(encoding='utf-8'))
     except OSError as exc:
         raise ConfigError(f'{path}: cannot read {what} ({exc.strerror or exc})') from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f'{path}: {what} must be UTF-8 text (byte {exc.start} is not)') from None
     except yaml.YAMLError as exc:
         raise ConfigError(f'{path}: not valid YAML ({str(exc).splitlines()[0]})') from None
     doc = {} if doc is None else doc

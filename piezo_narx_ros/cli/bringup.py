@@ -89,9 +89,14 @@ def load_config(path, overrides: dict[str, dict] | None = None) -> list[NodeSpec
     import yaml
     path = Path(path)
     try:
-        doc = yaml.safe_load(path.read_text())
+        doc = yaml.safe_load(path.read_text(encoding='utf-8'))
     except FileNotFoundError:
         raise ConfigError(f'bringup file not found: {path}') from None
+    except OSError as exc:
+        raise ConfigError(f'{path}: cannot read bringup file ({exc.strerror or exc})') from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f'{path}: bringup file must be UTF-8 text (byte {exc.start} is '
+                          'not)') from None
     except yaml.YAMLError as exc:
         raise ConfigError(f'{path}: not valid YAML ({" ".join(str(exc).split())})') from None
     if not isinstance(doc, dict) or not isinstance(doc.get('nodes'), list) or not doc['nodes']:

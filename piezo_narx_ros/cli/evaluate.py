@@ -11,7 +11,7 @@ residuals themselves, and the JSON says so. Prints a short summary, or with --js
      "simulation": {...}, "tests": {name: true|false}, "tests_passed": bool,
      "tests_residuals": "simulation",
      "tests_noise_model": {"kind", "order", "coef", "source"} | null,
-     "tests_raw": {name: true|false}, "tests_detail": {...}}
+     "tests_raw": {name: true|false}, "tests_detail": {...}, "warnings": [...]}
 
 Never imports torch.
 """
@@ -70,9 +70,32 @@ def stored_noise_models(model) -> dict:
     return out
 
 
+def range_warnings(model, records, margin: float = 0.1) -> list[str]:
+    """One line per record whose input leaves the model's trained input range (V) by more than
+    `margin` times its span: the scores then measure extrapolation, not the model."""
+    rng = getattr(model, 'input_range', None)
+    if rng is None:
+        return []
+    lo, hi = rng
+    pad = margin * (hi - lo)
+    out = []
+    for r in records:
+        u_lo, u_hi = float(r.u.min()), float(r.u.max())
+        if u_lo < lo - pad or u_hi > hi + pad:
+            out.append(f'{r.source}: input spans [{u_lo:.4g}, {u_hi:.4g}] V, outside the '
+                       f'[{lo:.4g}, {hi:.4g}] V the model was trained on: its scores measure '
+                       'extrapolation')
+    return out
+
+
 def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='simulation',
              noise_model='stored', noise_order=20):
     """JSON-ready dict of scores and verdicts of a fitted model on records (all samples)."""
+    import math
+    import warnings
+
+    import numpy as np
+
     from piezo_narx_ros.errors import ConfigError, DataError
     from piezo_narx_ros.ident.experiment import evaluate_model, fit_noise_models
 
@@ -100,7 +123,17 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
         # In-sample: slightly favourable to the model, hence said in the output.
         noise = fit_noise_models(model, records, noise_order, max_lag)
         source = 'fitted on the evaluated residuals'
-    scores = evaluate_model(model, records, max_lag, max_outside_fraction, noise_models=noise)
+    notes = range_warnings(model, records)
+    for line in notes:
+        warnings.warn(line)
+    with np.errstate(all='ignore'):   # overflow far outside the range: reported below instead
+        scores = evaluate_model(model, records, max_lag, max_outside_fraction,
+                                noise_models=noise)
+    r2 = scores['prediction']['r2']
+    if r2 is None or not math.isfinite(r2):
+        raise DataError(f'the model\'s one-step predictions are not finite on '
+                        f'{", ".join(r.source for r in records)}: no score can be computed'
+                        + (' (input far outside the trained range)' if notes else ''))
     tests = scores.pop('tests')
     chosen = tests[residuals]
     nm = chosen.get('noise_model')
@@ -117,6 +150,7 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
         'tests_noise_model': None if nm is None else {**nm, 'source': source},
         'tests_raw': {k: v['passed'] for k, v in tests['raw'][residuals].get('tests', {}).items()},
         'tests_detail': tests,
+        'warnings': notes,
     }
 
 

@@ -61,6 +61,17 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print('piezo-narx: interrupted', file=sys.stderr)
         code = 130
+    except MemoryError:
+        print('piezo-narx: error: out of memory (is an input or a length far too large?)',
+              file=sys.stderr)
+        code = 2
+    except Exception as exc:  # noqa: BLE001 - last resort: a bug must still end in one line
+        if os.environ.get('PIEZO_NARX_DEBUG'):
+            raise
+        text = ' '.join(str(exc).split())
+        print(f'piezo-narx: error: unexpected {type(exc).__name__}: {text} (this is a bug; '
+              'PIEZO_NARX_DEBUG=1 shows the traceback)', file=sys.stderr)
+        code = 1
     sys.exit(code or 0)
 
 

@@ -115,9 +115,12 @@ def load_plant_params(path=None) -> PlantParams:
         path = config_path('plant.yaml')
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding='utf-8')
     except OSError as exc:
         raise ConfigError(f'cannot read plant config {path}: {exc.strerror or exc}') from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f'plant config {path} must be UTF-8 text (byte {exc.start} is '
+                          'not)') from None
     try:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as exc:
