@@ -36,10 +36,10 @@ def _make(ctx, **overrides):
                                                    for k, v in overrides.items()])
 
 
-def test_sample_qos_reliable_by_default_best_effort_on_request():
+def test_sample_qos_is_reliable_keep_last_10000():
     q = common.sample_qos()
-    assert q.reliability == ReliabilityPolicy.RELIABLE and q.depth >= 100
-    assert common.sample_qos(best_effort=True).reliability == ReliabilityPolicy.BEST_EFFORT
+    assert q.reliability == ReliabilityPolicy.RELIABLE and q.depth == 10000
+    assert common.sample_qos(depth=5).depth == 5
     with pytest.raises(ConfigError):
         common.sample_qos(depth=0)
 

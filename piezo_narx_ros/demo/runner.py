@@ -207,10 +207,7 @@ class Demo:
             listeners.append({'executable': 'estimator_node',
                               'parameters': {'model': str(model), 'fs': float(s['fs'])}})
         listeners.append({'executable': 'recorder_node',
-                          # depth as the sample streams' (10000 = 5 s at 2 kHz): at the
-                          # default 1000 a 0.46 s stall of the loaded box lost 19 commands.
-                          'parameters': {'output': str(bag), 'topics': topics,
-                                         'depth': 10000}})
+                          'parameters': {'output': str(bag), 'topics': topics}})
         command = {'executable': 'command_node', 'parameters': {
             'fs': float(s['fs']), 'kind': kind or s['kind'], 'amplitude': float(s['amplitude']),
             'seconds': float(seconds), 'seed': int(seed), 'loop': False,

@@ -10,13 +10,10 @@ from __future__ import annotations
 
 import time
 
-from sensor_msgs.msg import JointState
-
 from piezo_narx_ros.command.stream import CommandStreamer, make_signal
 from piezo_narx_ros.errors import ConfigError
 from piezo_narx_ros.nodes.common import (DIAG_OK, DIAG_WARN, TOPIC_COMMAND, Diagnostics,
-                                         ParamSpec, PiezoNode, encode_joint_state, main_for,
-                                         sample_qos)
+                                         ParamSpec, PiezoNode, encode_joint_state, main_for)
 from piezo_narx_ros.plant.signals import KINDS
 
 _nonempty = (lambda v: len(v) > 0 and all(isinstance(a, str) and a.strip() for a in v),
@@ -68,9 +65,6 @@ class CommandNode(PiezoNode):
                   'publish the due samples in batches)', low=0.0, high=1.0, read_only=True),
         ParamSpec('max_burst', 10000, 'most samples published in one tick (the rest follow on '
                   'the next ones; nothing is dropped)', low=1, high=10**7, read_only=True),
-        ParamSpec('best_effort', False, 'publish best effort instead of reliable', read_only=True),
-        ParamSpec('qos_depth', 10000, 'keep-last depth of voltage_command', low=1, high=100000,
-                  read_only=True),
     )
 
     def __init__(self, **kwargs):
@@ -91,8 +85,7 @@ class CommandNode(PiezoNode):
                                         slew_rate=p['slew_rate'] or float('inf'),
                                         max_burst=p['max_burst'])
         self.want_running = p['running']
-        self.pub = self.create_publisher(JointState, TOPIC_COMMAND,
-                                         sample_qos(p['best_effort'], p['qos_depth']))
+        self.pub = self.sample_publisher(TOPIC_COMMAND)
         self.add_post_set_parameters_callback(self._on_set)
         period = p['publish_period'] or 1.0 / p['fs']
         self.timer = self.create_timer(period, self.on_tick)

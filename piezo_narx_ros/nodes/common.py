@@ -10,6 +10,7 @@ and never accumulates float error over long runs.
 from __future__ import annotations
 
 import math
+import signal
 import struct
 import sys
 from dataclasses import dataclass
@@ -21,7 +22,10 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
                                 SetParametersResult)
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSCompatibility, QoSProfile,
+                       ReliabilityPolicy, qos_check_compatible)
+from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import JointState
 
 from piezo_narx_ros.errors import ConfigError, DataError, PiezoNarxError
@@ -38,23 +42,93 @@ EXIT_OK = 0
 EXIT_FAILURE = 1       # unexpected exception
 EXIT_CONFIG = 2        # refused to start: bad parameter, missing model file, ...
 
+# Signals that stop a node cleanly (SIGHUP: its terminal was closed).
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
 DIAG_OK = DiagnosticStatus.OK
 DIAG_WARN = DiagnosticStatus.WARN
 DIAG_ERROR = DiagnosticStatus.ERROR
 
 
 # --------------------------------------------------------------------------------------------- QoS
-def sample_qos(best_effort: bool = False, depth: int = 100) -> QoSProfile:
-    """QoS of the per-sample streams: reliable keep-last(depth) by default (identification must lose
-    nothing); best effort when asked (a live display that prefers fresh data to complete data)."""
+# Keep-last depth of the per-sample streams: 5 s at 2 kHz, so a stalled subscriber loses nothing
+# (memory is used only while it is behind). With 1000, a CPU-starved estimator lost commands.
+SAMPLE_DEPTH = 10000
+
+
+def sample_qos(depth: int = SAMPLE_DEPTH) -> QoSProfile:
+    """QoS of the per-sample streams: reliable, keep-last `depth`, volatile (identification must
+    lose nothing). Users change it with the standard QoS overrides (see `qos_overriding`), not
+    with per-node parameters."""
     if depth < 1:
         raise ConfigError(f'qos depth must be >= 1, got {depth}')
     return QoSProfile(
         history=HistoryPolicy.KEEP_LAST,
         depth=int(depth),
-        reliability=ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE,
+        reliability=ReliabilityPolicy.RELIABLE,
         durability=DurabilityPolicy.VOLATILE,
     )
+
+
+def qos_overriding() -> QoSOverridingOptions:
+    """rclpy's standard QoS overrides (history, depth, reliability) for one publisher or
+    subscription: read-only parameters `qos_overrides./TOPIC.publisher.reliability` etc., set with
+    `-p` or a params file like any parameter (docs/nodes.md)."""
+    return QoSOverridingOptions.with_default_policies()
+
+
+class QosWatch:
+    """Incompatible QoS between a node's sample streams and their peers, for /diagnostics.
+
+    Endpoints registered with `add` get rclpy's incompatible-QoS event callback, which logs the
+    moment it happens, and are checked against the ROS graph at every diagnostics tick
+    (`problems`), so the warning lasts as long as the incompatible peer exists rather than one
+    tick: a best-effort publisher leaves a reliable subscriber with nothing, and only the graph
+    says so while it lasts.
+    """
+
+    def __init__(self, node: Node):
+        self._node = node
+        self._endpoints: list[tuple[str, Any]] = []   # ('publisher' | 'subscription', entity)
+        self.events = 0
+
+    def callbacks(self, kind: str, topic: str):
+        """The event callbacks to pass to create_publisher / create_subscription."""
+        def on_incompatible(status) -> None:
+            self.events += 1
+            policy = getattr(status.last_policy_kind, 'name', str(status.last_policy_kind))
+            self._node.get_logger().warning(
+                f'incompatible QoS on {self._node.resolve_topic_name(topic)} ({kind}, policy '
+                f'{policy.replace("RMW_QOS_POLICY_", "").lower()}): no messages flow between '
+                'this node and that peer; set the qos_overrides parameters of one side')
+        if kind == 'publisher':
+            return PublisherEventCallbacks(incompatible_qos=on_incompatible)
+        return SubscriptionEventCallbacks(incompatible_qos=on_incompatible)
+
+    def add(self, kind: str, entity) -> None:
+        """Watch a publisher or subscription (kind 'publisher' or 'subscription')."""
+        self._endpoints.append((kind, entity))
+
+    def problems(self) -> list[str]:
+        """One line per (own endpoint, peer) pair whose QoS cannot match, from the graph now."""
+        node, out = self._node, []
+        me = (node.get_namespace(), node.get_name())
+        for kind, ent in self._endpoints:
+            topic = ent.topic_name
+            if kind == 'subscription':
+                peers = node.get_publishers_info_by_topic(topic)
+            else:
+                peers = node.get_subscriptions_info_by_topic(topic)
+            for info in peers:
+                if (info.node_namespace, info.node_name) == me:
+                    continue
+                pub, sub = ((info.qos_profile, ent.qos_profile) if kind == 'subscription' else
+                            (ent.qos_profile, info.qos_profile))
+                compat, reason = qos_check_compatible(pub, sub)
+                if compat == QoSCompatibility.ERROR:
+                    peer = f'{info.node_namespace.rstrip("/")}/{info.node_name}'
+                    out.append(f'{topic}: {peer} cannot match this {kind} ({reason.strip()})')
+        return out
 
 
 # ------------------------------------------------------------------------------------- parameters
@@ -108,6 +182,9 @@ class ParamSpec:
 
     def validate(self, value: Any) -> str | None:
         """Reason why `value` is refused, or None when it is acceptable."""
+        if value is None:
+            return (f'{self.name} has no value (`[]` has no type in ROS 2; give at least one '
+                    f'element, default {self.default!r})')
         if self.is_float and (isinstance(value, bool) or not isinstance(value, (int, float))):
             return f'{self.name} must be a number, got {value!r}'
         if isinstance(value, float) and not math.isfinite(value):
@@ -119,8 +196,13 @@ class ParamSpec:
                 return f'{self.name} must be <= {self.high}, got {value}'
         if self.choices is not None and value not in self.choices:
             return f'{self.name} must be one of {list(self.choices)}, got {value!r}'
-        if self.check is not None and not self.check[0](value):
-            return f'{self.name} {self.check[1]}, got {value!r}'
+        if self.check is not None:
+            try:
+                ok = self.check[0](value)
+            except (TypeError, ValueError, AttributeError):   # e.g. len() of a number
+                ok = False
+            if not ok:
+                return f'{self.name} {self.check[1]}, got {value!r}'
         return None
 
 
@@ -307,8 +389,16 @@ class Diagnostics:
         self._timer = node.create_timer(period, self.publish)
 
     def build(self) -> DiagnosticArray:
-        """The DiagnosticArray that would be published now."""
+        """The DiagnosticArray that would be published now (the provider's status, raised to
+        WARN while a QoS incompatibility with a peer lasts, see QosWatch)."""
         level, message, values = self._provider()
+        watch = getattr(self._node, 'qos_watch', None)
+        problems = watch.problems() if watch is not None else []
+        if problems:
+            level = max(level, DIAG_WARN)
+            more = f' (+{len(problems) - 1} more)' if len(problems) > 1 else ''
+            message = f'incompatible QoS: {problems[0]}{more}; ' + message
+            values = {**values, 'incompatible_qos': len(problems)}
         status = DiagnosticStatus(level=level, name=self._node.get_fully_qualified_name(),
                                   message=message, hardware_id=self._hardware_id,
                                   values=[KeyValue(key=str(k), value=_fmt(v))
@@ -350,13 +440,13 @@ def run_node(node_cls: Callable[..., Node], args: list[str] | None = None,
              executor: str | None = None) -> int:
     """Main of a node process: init, construct, spin, clean shutdown. Returns the exit code.
 
-    SIGINT/SIGTERM stop the spin and exit 0; a node that refuses to start (ConfigError or any
+    SIGINT/SIGTERM/SIGHUP stop the spin and exit 0 (SIGHUP: the terminal was closed; a recorder
+    must close its bag then, not die); a node that refuses to start (ConfigError or any
     PiezoNarxError from its constructor) prints one line `NAME: error: reason` and exits 2; any
     other exception exits 1. The executor is EventsExecutor unless PIEZO_NARX_EXECUTOR=single or
     `executor` says otherwise.
     """
     import os
-    import signal
     import threading
 
     from rclpy.executors import ExternalShutdownException
@@ -370,7 +460,7 @@ def run_node(node_cls: Callable[..., Node], args: list[str] | None = None,
     # Our own handlers only set a flag: the spin loop then ends between callbacks, so no callback
     # ever runs on a context that a signal has already shut down (rclpy's handlers do that, and
     # publish() in a running callback then fails). EventsExecutor.spin() also ignores shutdown.
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in STOP_SIGNALS:
         signal.signal(sig, lambda *_: stop.set())
     code = EXIT_OK
     node = None
@@ -378,6 +468,7 @@ def run_node(node_cls: Callable[..., Node], args: list[str] | None = None,
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = node_cls()
+        check_overrides(node)
         ex = make_executor(kind)
         ex.add_node(node)
         while not stop.is_set() and rclpy.ok():
@@ -404,6 +495,29 @@ def run_node(node_cls: Callable[..., Node], args: list[str] | None = None,
     return code
 
 
+# Parameters replaced by the standard QoS overrides (issue 10): refused with the new name rather
+# than silently ignored, since a user who sets them expects a QoS change.
+RETIRED_QOS_PARAMETERS = ('best_effort', 'qos_depth', 'depth')
+
+
+def check_overrides(node: Node) -> None:
+    """Refuse retired QoS parameters with a hint; warn about other parameters that were given
+    but that `node` does not declare (ROS 2 ignores them silently; a typo then looks like a
+    setting that took effect)."""
+    given = set(getattr(node, '_parameter_overrides', {}))   # rclpy keeps no public copy
+    declared = {name for name in given if node.has_parameter(name)}
+    pending = node.pending_parameter_prefixes() if hasattr(
+        node, 'pending_parameter_prefixes') else []
+    unknown = sorted(n for n in given - declared if not any(n.startswith(p) for p in pending))
+    retired = [n for n in unknown if n in RETIRED_QOS_PARAMETERS]
+    if retired:
+        raise ConfigError(f'parameter {retired[0]} no longer exists: QoS is set with the standard '
+                          'overrides, e.g. -p qos_overrides./piezo/deflection.publisher.'
+                          'reliability:=best_effort or ...depth:=20000 (docs/nodes.md)')
+    if unknown:
+        node.get_logger().warning(f'ignoring unknown parameter(s): {", ".join(unknown)}')
+
+
 def main_for(node_cls) -> Callable[[list[str] | None], None]:
     """`main` for a console script: exits the process with run_node's code."""
     def main(args: list[str] | None = None) -> None:
@@ -421,7 +535,33 @@ class PiezoNode(Node):
     def __init__(self, **kwargs):
         kwargs.setdefault('namespace', DEFAULT_NAMESPACE)
         super().__init__(self.NODE_NAME, **kwargs)
+        self.qos_watch = QosWatch(self)
         self.params = declare_parameters(self, self.PARAMS)
+
+    def sample_publisher(self, topic: str, msg_type=JointState, depth: int = SAMPLE_DEPTH):
+        """Publisher of a per-sample stream: `sample_qos`, the standard QoS overrides, and
+        incompatible-QoS reporting (QosWatch)."""
+        pub = self.create_publisher(msg_type, topic, sample_qos(depth),
+                                    qos_overriding_options=qos_overriding(),
+                                    event_callbacks=self.qos_watch.callbacks('publisher', topic))
+        self.qos_watch.add('publisher', pub)
+        return pub
+
+    def sample_subscription(self, topic: str, callback, msg_type=JointState, raw: bool = True,
+                            depth: int = SAMPLE_DEPTH):
+        """Subscription to a per-sample stream (raw CDR bytes by default), with the same QoS
+        handling as `sample_publisher`."""
+        sub = self.create_subscription(
+            msg_type, topic, callback, sample_qos(depth), raw=raw,
+            qos_overriding_options=qos_overriding(),
+            event_callbacks=self.qos_watch.callbacks('subscription', topic))
+        self.qos_watch.add('subscription', sub)
+        return sub
+
+    def pending_parameter_prefixes(self) -> list[str]:
+        """Prefixes of parameters declared later than construction (QoS overrides of
+        subscriptions made on demand); run_node does not call them unknown."""
+        return []
 
     def close(self) -> None:
         """Release resources (files, sockets); called once by run_node before destroy_node."""

@@ -16,8 +16,7 @@ from sensor_msgs.msg import JointState
 
 from piezo_narx_ros.errors import ConfigError, DataError
 from piezo_narx_ros.nodes.common import (TOPIC_COMMAND, TOPIC_DEFLECTION, Diagnostics, ParamSpec,
-                                         PiezoNode, main_for, make_joint_state, parse_joint_state,
-                                         sample_qos)
+                                         PiezoNode, main_for, make_joint_state, parse_joint_state)
 from piezo_narx_ros.rig.client import RigClient
 from piezo_narx_ros.rig.driver import STATE_RAMPING, DriverConfig, RigDriver
 
@@ -60,10 +59,6 @@ class DriverNode(PiezoNode):
                   high=20000.0, read_only=True),
         ParamSpec('reply_timeout', 0.01, 'time after which an unanswered command counts as a reply '
                   'timeout, s', low=1e-5, high=10.0, read_only=True),
-        ParamSpec('best_effort', False, 'publish deflection best effort instead of reliable',
-                  read_only=True),
-        ParamSpec('qos_depth', 1000, 'keep-last depth of voltage_command and deflection', low=1,
-                  high=100000, read_only=True),
     )
 
     def __init__(self, **kwargs):
@@ -80,8 +75,7 @@ class DriverNode(PiezoNode):
         self.driver = RigDriver(config, self.client.send)
         self.axis = p['axis']
         self._closing = False  # set on shutdown: replies are still counted, no longer published
-        qos = sample_qos(best_effort=p['best_effort'], depth=p['qos_depth'])
-        self.pub = self.create_publisher(JointState, TOPIC_DEFLECTION, qos)
+        self.pub = self.sample_publisher(TOPIC_DEFLECTION)
         self.sub = None  # created once the target answers (on_tick)
         self._last_ping = -math.inf
         # A slow supervision tick notices the watchdog; the fast ramp timer runs only while
@@ -133,12 +127,16 @@ class DriverNode(PiezoNode):
 
     def _connect(self, now: float) -> None:
         if self.driver.connected:
-            self.sub = self.create_subscription(JointState, TOPIC_COMMAND, self.on_command,
-                                                sample_qos(depth=self.params['qos_depth']))
+            self.sub = self.sample_subscription(TOPIC_COMMAND, self.on_command, raw=False)
             self.get_logger().info('target answered; subscribed to voltage_command')
         elif now - self._last_ping >= _PING_PERIOD_S:
             self._last_ping = now
             self.driver.ping(now, self.get_clock().now().nanoseconds)
+
+    def pending_parameter_prefixes(self) -> list[str]:
+        """voltage_command is subscribed once the target answers: its QoS overrides are
+        declared then."""
+        return [f'qos_overrides.{self.resolve_topic_name(TOPIC_COMMAND)}.subscription.']
 
     def provide_diagnostics(self):
         level, message, values = self.driver.report(time.monotonic())

@@ -10,13 +10,10 @@ from __future__ import annotations
 
 import math
 
-from sensor_msgs.msg import JointState
-
 from piezo_narx_ros.estimator.free_run import INIT_MODES, FreeRunEstimator
 from piezo_narx_ros.nodes.common import (DIAG_OK, DIAG_WARN, TOPIC_COMMAND, TOPIC_DEFLECTION,
                                          TOPIC_ESTIMATE, Diagnostics, ParamSpec, PiezoNode,
-                                         decode_joint_state, encode_joint_state, main_for,
-                                         sample_qos)
+                                         decode_joint_state, encode_joint_state, main_for)
 
 
 class EstimatorNode(PiezoNode):
@@ -47,10 +44,6 @@ class EstimatorNode(PiezoNode):
                   read_only=True),
         ParamSpec('reanchor_every', 0, 're-anchor the recursion to the measurement every that '
                   'many samples (0: never)', low=0, high=10**9, read_only=True),
-        ParamSpec('best_effort', False, 'publish deflection_estimate best effort',
-                  read_only=True),
-        ParamSpec('qos_depth', 10000, 'keep-last depth of the sample streams', low=1, high=100000,
-                  read_only=True),
     )
 
     def __init__(self, **kwargs):
@@ -64,14 +57,10 @@ class EstimatorNode(PiezoNode):
             reanchor_every=p['reanchor_every'], init_timeout=p['init_timeout'])
         self.est.model.stepper().step(0.0)   # compile/load the kernel before the first sample
         self.axis = p['axis']
-        qos = sample_qos(False, p['qos_depth'])
-        self.pub = self.create_publisher(JointState, TOPIC_ESTIMATE,
-                                         sample_qos(p['best_effort'], p['qos_depth']))
-        # raw=True: the callbacks get CDR bytes (see common.decode_joint_state: 8x cheaper).
-        self.sub_cmd = self.create_subscription(JointState, TOPIC_COMMAND, self.on_command, qos,
-                                                raw=True)
-        self.sub_meas = self.create_subscription(JointState, TOPIC_DEFLECTION,
-                                                 self.on_measurement, qos, raw=True)
+        self.pub = self.sample_publisher(TOPIC_ESTIMATE)
+        # The callbacks get CDR bytes (see common.decode_joint_state: 8x cheaper).
+        self.sub_cmd = self.sample_subscription(TOPIC_COMMAND, self.on_command)
+        self.sub_meas = self.sample_subscription(TOPIC_DEFLECTION, self.on_measurement)
         self._names = [self.axis]
         self._rejected_reported = 0
         self.diagnostics = Diagnostics(self, self.status)

@@ -16,7 +16,7 @@ import rclpy
 from piezo_narx_ros.bag.player import BagSchedule, topic_types
 from piezo_narx_ros.errors import ConfigError
 from piezo_narx_ros.nodes.common import (DIAG_ERROR, DIAG_OK, Diagnostics, ParamSpec, PiezoNode,
-                                         main_for, sample_qos)
+                                         main_for)
 from piezo_narx_ros.nodes.recorder_node import message_class
 
 
@@ -38,10 +38,6 @@ class PlayerNode(PiezoNode):
                   low=0, high=1000, read_only=True),
         ParamSpec('exit_when_done', True, 'shut the node down after the last message',
                   read_only=True),
-        ParamSpec('best_effort', False, 'publish best effort instead of reliable',
-                  read_only=True),
-        ParamSpec('depth', 1000, 'publisher queue depth (keep last)', low=1, high=100000,
-                  read_only=True),
     )
 
     def __init__(self, **kwargs):
@@ -49,11 +45,10 @@ class PlayerNode(PiezoNode):
         p = self.params
         topics = [t for t in p['topics'] if t] or None
         types = topic_types(p['bag'], topics)  # BagError (one line) for a bad bag or topic
-        qos = sample_qos(p['best_effort'], p['depth'])
         self._pubs = {}
         for topic, kind in types.items():
             try:
-                self._pubs[topic] = self.create_publisher(message_class(kind), topic, qos)
+                self._pubs[topic] = self.sample_publisher(topic, message_class(kind))
             except ConfigError as exc:
                 self.get_logger().warning(f'skipping {topic}: {exc}')
         if not self._pubs:

@@ -15,11 +15,13 @@ import re
 import time
 from datetime import datetime
 
+from rclpy.qos import ReliabilityPolicy
+
 from piezo_narx_ros.bag.recorder import (AUTO_TYPE, BagRecorder, discovered_types,
                                          expand_types)
 from piezo_narx_ros.errors import BagError, ConfigError
 from piezo_narx_ros.nodes.common import (DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics, ParamSpec,
-                                         PiezoNode, main_for, sample_qos)
+                                         PiezoNode, main_for)
 
 _TYPE_NAME = re.compile(r'^([a-z][a-z0-9_]*)/msg/([A-Z][A-Za-z0-9]*)$')
 
@@ -62,10 +64,6 @@ class RecorderNode(PiezoNode):
         ParamSpec('types', ['sensor_msgs/msg/JointState'],
                   "message type of every topic (1 entry) or of each topic; 'auto' = discover",
                   read_only=True),
-        ParamSpec('best_effort', False, 'subscribe best effort instead of reliable',
-                  read_only=True),
-        ParamSpec('depth', 1000, 'subscription queue depth (keep last)', low=1, high=100000,
-                  read_only=True),
         ParamSpec('chunk_period_s', 0.5, 'longest time between writes to disk (bounds the loss '
                   'on SIGKILL), s', low=0.01, high=60.0, read_only=True),
         ParamSpec('discovery_period_s', 0.2, "how often 'auto' topics are looked up, s",
@@ -80,7 +78,6 @@ class RecorderNode(PiezoNode):
         for kind in set(self._wanted.values()) - {AUTO_TYPE}:
             message_class(kind)  # refuse unknown types at start-up
         output = p['output'] or datetime.now().strftime('bags/rec_%Y%m%d_%H%M%S')
-        self._qos = sample_qos(p['best_effort'], p['depth'])
         self.recorder = BagRecorder(output, chunk_period_s=p['chunk_period_s'],
                                     custom_data={'recorded_by': 'piezo_narx_ros recorder_node'})
         self._subs = {}
@@ -96,18 +93,28 @@ class RecorderNode(PiezoNode):
         graph = self.get_topic_names_and_types() if AUTO_TYPE in pending.values() else []
         for topic, kind in discovered_types(pending, graph).items():
             try:
-                name = self.recorder.add_topic(topic, kind, not self.params['best_effort'],
-                                               self.params['depth'])
                 cls = message_class(kind)
+                sub = self.sample_subscription(topic, _Sink(self.recorder, topic), cls)
+                qos = sub.qos_profile   # after the user's qos_overrides
+                try:
+                    self.recorder.add_topic(topic, kind,
+                                            qos.reliability == ReliabilityPolicy.RELIABLE,
+                                            qos.depth)
+                except BagError:
+                    self.destroy_subscription(sub)
+                    raise
             except (BagError, ConfigError) as exc:
                 self.get_logger().error(f'cannot record {topic}: {exc}')
                 self._wanted.pop(topic)
                 continue
-            self._subs[topic] = self.create_subscription(
-                cls, topic, _Sink(self.recorder, name), self._qos, raw=True)
+            self._subs[topic] = sub
             self.get_logger().info(f'subscribed {topic} [{kind}]')
         if self._discovery is not None and len(self._subs) == len(self._wanted):
             self._discovery.cancel()
+
+    def pending_parameter_prefixes(self) -> list[str]:
+        """QoS overrides of the topics whose type is not discovered yet (subscribed later)."""
+        return [f'qos_overrides.{t}.subscription.' for t in self._wanted if t not in self._subs]
 
     def _status(self):
         s = self.recorder.stats

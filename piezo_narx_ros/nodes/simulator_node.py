@@ -10,13 +10,10 @@ from __future__ import annotations
 
 import math
 
-from sensor_msgs.msg import JointState
-
 from piezo_narx_ros.errors import DataError
 from piezo_narx_ros.nodes.common import (DIAG_OK, DIAG_WARN, TOPIC_COMMAND, TOPIC_DEFLECTION,
                                          Diagnostics, ParamSpec, PiezoNode,
-                                         decode_joint_state, encode_joint_state, main_for,
-                                         sample_qos)
+                                         decode_joint_state, encode_joint_state, main_for)
 
 
 class PlantResponder:
@@ -90,9 +87,6 @@ class SimulatorNode(PiezoNode):
                   high=2**31 - 1, read_only=True),
         ParamSpec('max_fill', 20000, 'longest command gap bridged by holding the voltage, '
                   'samples', low=0, high=10**8, read_only=True),
-        ParamSpec('best_effort', False, 'publish deflection best effort', read_only=True),
-        ParamSpec('qos_depth', 10000, 'keep-last depth of voltage_command and deflection', low=1,
-                  high=100000, read_only=True),
     )
 
     def __init__(self, **kwargs):
@@ -106,11 +100,9 @@ class SimulatorNode(PiezoNode):
             plant.step(0.0)   # compile/load the numba kernel now, not on the first command
             plant.reset()
         self.responder = PlantResponder(plants, p['fs'], p['max_fill'])
-        qos = sample_qos(p['best_effort'], p['qos_depth'])
-        self.pub = self.create_publisher(JointState, TOPIC_DEFLECTION, qos)
-        # raw=True: CDR bytes in and out (see common.decode_joint_state: 8x cheaper).
-        self.sub = self.create_subscription(JointState, TOPIC_COMMAND, self.on_command,
-                                            sample_qos(False, p['qos_depth']), raw=True)
+        self.pub = self.sample_publisher(TOPIC_DEFLECTION)
+        # Raw CDR bytes in and out (see common.decode_joint_state: 8x cheaper).
+        self.sub = self.sample_subscription(TOPIC_COMMAND, self.on_command)
         self._names = list(p['axes'])
         self.diagnostics = Diagnostics(self, self.status)
         self.get_logger().info(f"simulating {p['axes']} at {p['fs']:g} Hz")

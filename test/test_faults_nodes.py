@@ -1,0 +1,180 @@
+"""Fault suite, node plumbing: incompatible QoS is reported while it lasts, QoS is changed with
+the standard overrides (retired per-node parameters refused with the new name), an empty-list
+parameter ends in one line, and SIGHUP closes a recording like SIGINT/SIGTERM.
+
+Covers issue 10 items 4, 5 and 6. DDS tests run in the session's isolated domain (conftest).
+"""
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import rclpy
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+
+from piezo_narx_ros.errors import ConfigError
+from piezo_narx_ros.nodes import common
+from piezo_narx_ros.nodes.common import DIAG_OK, DIAG_WARN, PiezoNode
+
+
+@pytest.fixture
+def ctx():
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    yield context
+    rclpy.try_shutdown(context=context)
+
+
+class _Listener(PiezoNode):
+    NODE_NAME = 'qos_listener'
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.got = []
+        self.sub = self.sample_subscription('stream', self.got.append)
+        self.diagnostics = common.Diagnostics(self, lambda: (DIAG_OK, 'ok', {}))
+
+
+def _wait(predicate, timeout=15.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def test_incompatible_publisher_is_warned_while_it_exists(ctx):
+    node = _Listener(context=ctx, namespace='/qos1')
+    other = Node('best_effort_talker', namespace='/qos1', context=ctx)
+    try:
+        pub = other.create_publisher(JointState, 'stream',
+                                     QoSProfile(depth=10,
+                                                reliability=ReliabilityPolicy.BEST_EFFORT))
+        assert _wait(lambda: node.qos_watch.problems()), 'incompatibility never seen'
+        status = node.diagnostics.build().status[0]
+        assert status.level == DIAG_WARN
+        assert status.message.startswith('incompatible QoS: /qos1/stream: '
+                                         '/qos1/best_effort_talker cannot match')
+        assert common.diagnostic_values(status)['incompatible_qos'] == '1'
+        other.destroy_publisher(pub)
+        assert _wait(lambda: not node.qos_watch.problems()), 'warning outlived the publisher'
+        assert node.diagnostics.build().status[0].level == DIAG_OK
+    finally:
+        other.destroy_node()
+        node.destroy_node()
+
+
+def test_compatible_peer_is_not_reported(ctx):
+    node = _Listener(context=ctx, namespace='/qos2')
+    other = Node('reliable_talker', namespace='/qos2', context=ctx)
+    try:
+        other.create_publisher(JointState, 'stream', common.sample_qos(10))
+        assert _wait(lambda: node.sub.get_publisher_count() == 1)
+        assert node.qos_watch.problems() == []
+    finally:
+        other.destroy_node()
+        node.destroy_node()
+
+
+def test_standard_qos_override_changes_the_stream(ctx):
+    node = _Listener(context=ctx, namespace='/qos3', parameter_overrides=[
+        Parameter('qos_overrides./qos3/stream.subscription.reliability', value='best_effort'),
+        Parameter('qos_overrides./qos3/stream.subscription.depth', value=7)])
+    try:
+        assert node.sub.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+        assert node.sub.qos_profile.depth == 7
+        common.check_overrides(node)   # declared by the subscription: known
+    finally:
+        node.destroy_node()
+
+
+@pytest.mark.parametrize('name', common.RETIRED_QOS_PARAMETERS)
+def test_retired_qos_parameter_is_refused_with_the_override_name(ctx, name):
+    node = _Listener(context=ctx, namespace='/qos4',
+                     parameter_overrides=[Parameter(name, value=True)])
+    try:
+        with pytest.raises(ConfigError, match=f'{name} no longer exists.*qos_overrides'):
+            common.check_overrides(node)
+    finally:
+        node.destroy_node()
+
+
+def test_unknown_parameter_is_only_warned(ctx):
+    node = _Listener(context=ctx, namespace='/qos5',
+                     parameter_overrides=[Parameter('gian', value=2.0)])
+    try:
+        common.check_overrides(node)   # logged, not fatal: wildcard params files are common
+    finally:
+        node.destroy_node()
+
+
+def test_empty_list_parameter_is_one_line_not_a_type_error():
+    spec = common.ParamSpec('axes', ['x'], 'axes', check=(lambda v: len(v) > 0, 'must not be '
+                                                                                'empty'))
+    assert 'has no value' in spec.validate(None)
+    assert spec.validate(5) == 'axes must not be empty, got 5'   # check raising TypeError
+    proc = subprocess.run([sys.executable, '-m', 'piezo_narx_ros.nodes.command_node',
+                           '--ros-args', '-p', 'axes:=[]', '-r', '__ns:=/empty'],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and proc.stderr.count('\n') == 1, proc.stderr
+    assert proc.stderr.startswith('command_node: error: parameter axes has no value')
+
+
+def test_retired_parameter_refused_by_a_real_node():
+    proc = subprocess.run([sys.executable, '-m', 'piezo_narx_ros.nodes.simulator_node',
+                           '--ros-args', '-p', 'best_effort:=true', '-r', '__ns:=/retired'],
+                          capture_output=True, text=True, timeout=60)
+    errors = [line for line in proc.stderr.splitlines() if 'error:' in line]
+    assert proc.returncode == 2 and len(errors) == 1, proc.stderr
+    assert errors[0].startswith('simulator_node: error: parameter best_effort no longer exists')
+    assert 'qos_overrides./piezo/deflection.publisher.reliability' in errors[0]
+
+
+def test_sighup_closes_the_recording_like_sigterm(tmp_path):
+    """A closed terminal (SIGHUP) must not cost the last chunk or leave the bag unreadable."""
+    from test_recorder_node import Publisher, start_recorder
+
+    from piezo_narx_ros.bag.reader import read_uy
+    ns, bag, n = '/hup', tmp_path / 'hup', 600
+    proc = start_recorder(bag, ns, '-p', 'chunk_period_s:=5.0')   # nothing flushed before HUP
+    pub = Publisher(ns)
+    try:
+        assert pub.wait_matched(), 'recorder never subscribed'
+        pub.publish_samples(0, n)
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGHUP)
+        code = proc.wait(20)
+    finally:
+        pub.close()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert code == 0, proc.stderr.read()
+    assert (bag / 'metadata.yaml').is_file()       # closed, no repair needed
+    rec = read_uy(bag, f'{ns}/voltage_command', f'{ns}/deflection')
+    assert len(rec.u) == n
+
+
+def test_every_node_stops_on_sighup():
+    env = dict(os.environ, PYTHONUNBUFFERED='1')
+    proc = subprocess.Popen([sys.executable, '-m', 'piezo_narx_ros.nodes.simulator_node',
+                             '--ros-args', '-r', '__ns:=/hup2'], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        for _ in range(10):   # its start-up log line: the handlers are installed by then
+            line = proc.stderr.readline()
+            if not line or 'simulating' in line:
+                break
+        assert 'simulating' in line
+        proc.send_signal(signal.SIGHUP)
+        assert proc.wait(20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
