@@ -87,7 +87,7 @@ class Probe:
                 break
 
     def _on_diag(self, msg):
-        self.status += [s for s in msg.status if s.name == f'/{NS}/driver_node']
+        self.status += [s for s in msg.status if s.name == f'{NS}/driver_node: rig link']
 
     def wait(self, predicate, timeout, what):
         deadline = time.monotonic() + timeout
@@ -181,6 +181,7 @@ def test_driver_with_fake_rig_reproduces_the_plant_stream(probe):
     expect = np.array([plant.step(v) for v in u])
     assert np.array_equal([m.position[0] for m in msgs], expect[:, 0])   # bit-identical
     assert np.array_equal([m.effort[0] for m in msgs], expect[:, 2])
+    assert probe.status[-1].hardware_id == f'udp://127.0.0.1:{rig_port}'   # the rig's address
     last = diagnostic_values(probe.status[-1])
     # (reply_timeouts may count start-up pings sent before fake_rig was listening)
     assert int(last['replies']) >= len(u) and last['replies_duplicate'] == '0'

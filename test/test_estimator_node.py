@@ -21,7 +21,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from piezo_narx_ros.nodes.common import (diagnostic_values, make_joint_state, sample_qos,
-                                         stamp_to_ns)
+                                         stamp_to_ns, status_node)
 
 FS = 2000.0
 P = 500_000  # ns
@@ -83,7 +83,7 @@ class Collector:
 
     def _on_diag(self, arr):
         for st in arr.status:
-            self.diag[st.name] = (st.level, st.message, diagnostic_values(st))
+            self.diag[status_node(st.name)] = (st.level, st.message, diagnostic_values(st))
 
     def _spin(self):
         while self._run and self.context.ok():

@@ -45,15 +45,27 @@ def test_sample_qos_is_reliable_keep_last_10000():
 
 
 def test_parameters_declared_with_descriptor_and_int_accepted_for_float(ctx):
-    node = _make(ctx, fs=500)
+    from rcl_interfaces.msg import ParameterType
+    node = _make(ctx, fs=500, gain=2)
     try:
         assert node.params == {'fs': 500.0, 'depth': 100, 'kind': 'sine', 'axis': 'x',
-                               'gain': 1.0}
+                               'gain': 2.0}
         assert isinstance(node.params['fs'], float)
+        # `-p fs:=500` is stored as the double 500.0, not as an integer (what `ros2 param get`
+        # and every parameter client see)
+        stored = node.get_parameter('fs')
+        assert stored.type_ == Parameter.Type.DOUBLE and stored.value == 500.0
+        assert node.get_parameter('gain').type_ == Parameter.Type.DOUBLE
         d = node.describe_parameter('fs')
-        assert d.description == 'sample rate, Hz'
+        assert d.description == 'sample rate, Hz' and d.type == ParameterType.PARAMETER_DOUBLE
+        assert not d.dynamic_typing
         assert d.floating_point_range[0].from_value == 1.0
         assert node.describe_parameter('depth').integer_range[0].to_value == 10000
+        # read-only parameters carry their range too
+        g = node.describe_parameter('gain')
+        assert g.read_only and g.type == ParameterType.PARAMETER_DOUBLE
+        assert (g.floating_point_range[0].from_value, g.floating_point_range[0].to_value) == \
+            (0.0, 10.0)
         assert node.get_namespace() == '/piezo'
     finally:
         node.destroy_node()
@@ -109,11 +121,15 @@ def test_diagnostics_status_carries_node_name_level_and_values(ctx):
     try:
         state = {'n': 3}
         diag = common.Diagnostics(node, lambda: (common.DIAG_WARN, 'late', {'count': state['n'],
-                                                                           'rms': 1.5e-7}))
+                                                                           'rms': 1.5e-7}),
+                                  task='sample stream', hardware_id='udp://10.0.0.2:50000')
         arr = diag.build()
         assert len(arr.status) == 1
         st = arr.status[0]
-        assert st.name == '/piezo/common_test' and st.level == common.DIAG_WARN
+        # diagnostic_updater's naming: fully qualified node name without the slash, ': ', task
+        assert st.name == 'piezo/common_test: sample stream' and st.level == common.DIAG_WARN
+        assert st.hardware_id == 'udp://10.0.0.2:50000'
+        assert common.status_node(st.name) == '/piezo/common_test'
         assert common.diagnostic_values(st) == {'count': '3', 'rms': '1.5e-07'}
         state['n'] = 4
         assert common.diagnostic_values(diag.build().status[0])['count'] == '4'

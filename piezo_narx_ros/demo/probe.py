@@ -28,9 +28,12 @@ class DiagnosticsProbe:
         self.executor.add_node(self.node)
 
     def _on_diag(self, arr) -> None:
+        from piezo_narx_ros.nodes.common import status_node
         now = time.monotonic()
         for st in arr.status:
-            self.latest[st.name] = (st.message, {kv.key: kv.value for kv in st.values}, now)
+            # Statuses are named 'ns/node: task'; the demo asks by fully qualified node name.
+            self.latest[status_node(st.name)] = (st.message,
+                                                 {kv.key: kv.value for kv in st.values}, now)
 
     def spin(self, seconds: float) -> None:
         """Process incoming diagnostics for about `seconds` s."""

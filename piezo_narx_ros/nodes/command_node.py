@@ -89,7 +89,7 @@ class CommandNode(PiezoNode):
         self.add_post_set_parameters_callback(self._on_set)
         period = p['publish_period'] or 1.0 / p['fs']
         self.timer = self.create_timer(period, self.on_tick)
-        self.diagnostics = Diagnostics(self, self.status)
+        self.diagnostics = Diagnostics(self, self.status, task='command stream')
         self.get_logger().info(
             f"{p['kind']} on {self.axes} at {p['fs']:g} Hz, {signal.shape[0]} samples per "
             f"{'loop' if p['loop'] else 'run'}, limits [{p['u_min']:g}, {p['u_max']:g}] V")

@@ -19,10 +19,11 @@ from typing import Any, Callable, Iterable, Sequence
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                SetParametersResult)
+                                ParameterType, SetParametersResult)
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+from rclpy.parameter import Parameter
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSCompatibility, QoSProfile,
                        ReliabilityPolicy, qos_check_compatible)
 from rclpy.qos_overriding_options import QoSOverridingOptions
@@ -153,18 +154,23 @@ class ParamSpec:
     def is_float(self) -> bool:
         return isinstance(self.default, float)
 
-    def descriptor(self, with_ranges: bool = True) -> ParameterDescriptor:
+    def descriptor(self, final: bool = True) -> ParameterDescriptor:
         """ParameterDescriptor carrying the description, the range and the read-only flag.
 
-        Float parameters use dynamic typing so that `-p fs:=500` (an integer) is accepted; their
-        type is then checked by `validate`."""
+        `final=False` is the descriptor used to declare the parameter: writable, no range, and
+        dynamically typed for floats, so that `-p fs:=500` (an integer) reaches our own check and
+        its one-line message. `declare_parameters` then applies the final descriptor, which fixes
+        the type (a float parameter holds 500.0), the range and the read-only flag."""
         d = ParameterDescriptor(name=self.name, description=self.description,
-                                read_only=self.read_only, dynamic_typing=self.is_float)
+                                read_only=self.read_only and final,
+                                dynamic_typing=self.is_float and not final)
+        if self.is_float and final:
+            d.type = ParameterType.PARAMETER_DOUBLE
         notes = []
         if self.choices is not None:
             notes.append('one of: ' + ', '.join(map(str, self.choices)))
         numeric = isinstance(self.default, (int, float)) and not isinstance(self.default, bool)
-        if numeric and self.low is not None and self.high is not None and with_ranges:
+        if numeric and self.low is not None and self.high is not None and final:
             if self.is_float:
                 d.floating_point_range = [FloatingPointRange(
                     from_value=float(self.low), to_value=float(self.high), step=0.0)]
@@ -214,8 +220,8 @@ def declare_parameters(node: Node, specs: Iterable[ParamSpec]) -> dict[str, Any]
     values: dict[str, Any] = {}
     for spec in specs:
         try:
-            # Ranges are attached after our own check, so a bad value is refused with our message.
-            param = node.declare_parameter(spec.name, spec.default, spec.descriptor(False))
+            # Declared loosely first (see ParamSpec.descriptor), so a bad value gets our message.
+            param = node.declare_parameter(spec.name, spec.default, spec.descriptor(final=False))
         except ParameterException as exc:  # wrong type
             raise ConfigError(f'parameter {spec.name}: {_one_line(exc)}') from None
         value = param.value
@@ -224,12 +230,13 @@ def declare_parameters(node: Node, specs: Iterable[ParamSpec]) -> dict[str, Any]
             raise ConfigError(f'parameter {reason}')
         if spec.is_float:
             value = float(value)
-        if not spec.read_only:
-            # A read-only parameter refuses set_descriptor; it keeps its bounds in the text of
-            # additional_constraints, and nothing can change it after this check anyway.
-            full = spec.descriptor(True)
-            full.type = node.describe_parameter(spec.name).type  # set_descriptor insists on it
-            node.set_descriptor(spec.name, full)
+        final = spec.descriptor(final=True)
+        if not spec.is_float:
+            final.type = node.describe_parameter(spec.name).type  # set_descriptor insists on it
+        # The stored value becomes the checked one (500 -> 500.0 for a float), then the range and
+        # read-only flag apply: `ros2 param describe` shows the bounds of read-only ones too.
+        node.set_descriptor(spec.name, final,
+                            Parameter(spec.name, value=value).get_parameter_value())
         values[spec.name] = value
 
     def on_set(params) -> SetParametersResult:
@@ -378,13 +385,20 @@ class Diagnostics:
 
     `provider()` returns (level, message, {key: value}); level is DIAG_OK/WARN/ERROR. The provider
     is read only at publication time, so the nodes' hot paths just bump counters.
+
+    The status is named `NODE: TASK` as ros/diagnostics' diagnostic_updater names it (NODE is the
+    fully qualified node name without its leading slash, e.g. `piezo/driver_node: rig link`), so
+    aggregators and rqt_robot_monitor group it like any other node's. `hardware_id` names the
+    device the status is about (the rig address for the driver); 'none' when there is none, as
+    diagnostic_updater asks.
     """
 
     def __init__(self, node: Node, provider: Callable[[], tuple[bytes, str, dict]],
-                 period: float = 1.0, hardware_id: str = 'piezo'):
+                 task: str, hardware_id: str = 'none', period: float = 1.0):
         self._node = node
         self._provider = provider
-        self._hardware_id = hardware_id
+        self.name = status_name(node.get_fully_qualified_name(), task)
+        self.hardware_id = hardware_id
         self._pub = node.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, 10)
         self._timer = node.create_timer(period, self.publish)
 
@@ -399,8 +413,8 @@ class Diagnostics:
             more = f' (+{len(problems) - 1} more)' if len(problems) > 1 else ''
             message = f'incompatible QoS: {problems[0]}{more}; ' + message
             values = {**values, 'incompatible_qos': len(problems)}
-        status = DiagnosticStatus(level=level, name=self._node.get_fully_qualified_name(),
-                                  message=message, hardware_id=self._hardware_id,
+        status = DiagnosticStatus(level=level, name=self.name,
+                                  message=message, hardware_id=self.hardware_id,
                                   values=[KeyValue(key=str(k), value=_fmt(v))
                                           for k, v in values.items()])
         arr = DiagnosticArray(status=[status])
@@ -410,6 +424,17 @@ class Diagnostics:
     def publish(self) -> None:
         """Publish one status now (also called by the timer)."""
         self._pub.publish(self.build())
+
+
+def status_name(node_fqn: str, task: str) -> str:
+    """'/piezo/driver_node', 'rig link' -> 'piezo/driver_node: rig link' (diagnostic_updater's
+    naming)."""
+    return f'{node_fqn.lstrip("/")}: {task}'
+
+
+def status_node(name: str) -> str:
+    """The fully qualified node name of a status named by `status_name` ('/piezo/driver_node')."""
+    return '/' + name.split(': ', 1)[0].lstrip('/')
 
 
 def _fmt(v: Any) -> str:

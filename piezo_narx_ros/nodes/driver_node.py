@@ -84,7 +84,9 @@ class DriverNode(PiezoNode):
         self.timer = self.create_timer(supervision, self.on_tick)
         self.ramp_timer = self.create_timer(1.0 / p['ramp_rate'], self.on_tick)
         self.ramp_timer.cancel()
-        self.diagnostics = Diagnostics(self, self.provide_diagnostics)
+        self.diagnostics = Diagnostics(
+            self, self.provide_diagnostics, task='rig link',
+            hardware_id=f"udp://{p['target_host']}:{p['target_port']}")
         self.client.start(self.on_datagram)
         self.get_logger().info(
             f"driving axis {self.axis!r} on {p['target_host']}:{p['target_port']} from UDP port "

@@ -63,7 +63,8 @@ class EstimatorNode(PiezoNode):
         self.sub_meas = self.sample_subscription(TOPIC_DEFLECTION, self.on_measurement)
         self._names = [self.axis]
         self._rejected_reported = 0
-        self.diagnostics = Diagnostics(self, self.status)
+        self.diagnostics = Diagnostics(self, self.status, task='free-run estimate',
+                                       hardware_id=f"model {p['model']}")
         self.get_logger().info(
             f"model {p['model']} ({type(self.model).__name__} nu={self.model.nu} "
             f"ny={self.model.ny}) at {self.est.fs:g} Hz, init {p['init']}")

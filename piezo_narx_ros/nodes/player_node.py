@@ -60,7 +60,7 @@ class PlayerNode(PiezoNode):
         self.done = False
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._play, name='bag-player', daemon=True)
-        self._diag = Diagnostics(self, self._status)
+        self._diag = Diagnostics(self, self._status, task='bag playback')
         if p['exit_when_done']:
             self._exit_timer = self.create_timer(0.25, self._exit_if_done)
         self._thread.start()

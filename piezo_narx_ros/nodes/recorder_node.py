@@ -85,7 +85,7 @@ class RecorderNode(PiezoNode):
         self._subscribe_known()
         if len(self._subs) < len(self._wanted):
             self._discovery = self.create_timer(p['discovery_period_s'], self._subscribe_known)
-        self._diag = Diagnostics(self, self._status)
+        self._diag = Diagnostics(self, self._status, task='bag recording')
         self.get_logger().info(f'recording {len(self._wanted)} topic(s) to {output}')
 
     def _subscribe_known(self) -> None:

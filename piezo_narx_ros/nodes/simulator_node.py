@@ -104,7 +104,9 @@ class SimulatorNode(PiezoNode):
         # Raw CDR bytes in and out (see common.decode_joint_state: 8x cheaper).
         self.sub = self.sample_subscription(TOPIC_COMMAND, self.on_command)
         self._names = list(p['axes'])
-        self.diagnostics = Diagnostics(self, self.status)
+        self.diagnostics = Diagnostics(
+            self, self.status, task='plant simulation',
+            hardware_id=f"simulated cantilever (seed {p['seed']})")
         self.get_logger().info(f"simulating {p['axes']} at {p['fs']:g} Hz")
 
     def on_command(self, msg: bytes) -> None:
