@@ -61,3 +61,52 @@ def test_running_parameter_pauses_and_resumes_the_stream():
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)
+
+
+def test_set_running_service_pauses_resumes_and_keeps_the_parameter_in_step():
+    """~/set_running (std_srvs/SetBool) over a real service round trip, in one process."""
+    import time
+
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from std_srvs.srv import SetBool
+
+    from piezo_narx_ros.nodes.command_node import CommandNode
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        node = CommandNode(context=ctx, namespace='/svc_cmd', parameter_overrides=[
+            Parameter('fs', value=1000.0), Parameter('kind', value='sine'),
+            Parameter('seconds', value=1.0), Parameter('publish_period', value=0.005)])
+        client_node = rclpy.create_node('svc_client', context=ctx)
+        client = client_node.create_client(SetBool, '/svc_cmd/command_node/set_running')
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(client_node)
+        ex.add_node(node)
+
+        def call(data):
+            future = client.call_async(SetBool.Request(data=data))
+            ex.spin_until_future_complete(future, timeout_sec=10.0)
+            return future.result()
+
+        def spin(seconds):
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                ex.spin_once(timeout_sec=0.01)
+
+        assert client.wait_for_service(timeout_sec=10.0)
+        reply = call(False)
+        assert reply.success and reply.message == 'paused'
+        assert node.get_parameter('running').value is False
+        n = node.streamer.published
+        spin(0.1)
+        assert node.streamer.published == n
+        reply = call(True)
+        assert reply.success and node.get_parameter('running').value is True
+        spin(0.1)
+        assert node.streamer.published >= n + 20 and node.status()[1] == 'running'
+        client_node.destroy_node()
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)

@@ -167,3 +167,26 @@ def test_bad_configuration_refused(model):
     m.fs = None
     with pytest.raises(ConfigError, match='sample rate'):
         FreeRunEstimator(m)
+
+
+def test_requested_restart_from_rest_and_from_measurement(model):
+    """The ~/reset and ~/reinitialize services: the run after the request equals an offline
+    simulate of the later commands alone, from rest or from the measured outputs there."""
+    u = _u(1200, 21)
+    y_meas = model.simulate(u) + 2e-8
+    est = FreeRunEstimator(model, init='auto')
+    est.start(measurement_available=True)
+    _feed(est, u[:400], meas=y_meas[:400])
+    est.request_restart(from_measurement=False)
+    out = _feed(est, u[400:800], t0=400 * P, meas=y_meas[400:800])
+    assert est.stats.init == 'rest' and est.stats.requested_restarts == 1
+    assert [t for t, _ in out] == [k * P for k in range(400, 800)]
+    assert np.max(np.abs(np.array([y for _, y in out]) - model.simulate(u[400:800]))) <= 1e-12
+    est.request_restart(from_measurement=True)
+    out = _feed(est, u[800:], t0=800 * P, meas=y_meas[800:])
+    assert est.stats.init == 'measurement' and est.stats.requested_restarts == 2
+    ref = model.simulate(u[800:], y_meas[800:800 + model.n0])
+    assert np.max(np.abs(np.array([y for _, y in out]) - ref)) <= 1e-12
+    rest_only = FreeRunEstimator(model, init='rest')
+    with pytest.raises(ConfigError, match="init is 'rest'"):
+        rest_only.request_restart(from_measurement=True)

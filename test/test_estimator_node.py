@@ -209,3 +209,50 @@ def test_nan_range_and_gap_injection_counted_and_survived(toy_model_file):
         codes = stop([est])
         col.close()
     assert codes == [0]
+
+
+def test_reset_and_reinitialize_services(toy_model_file):
+    """~/reset restarts the free run from rest at the next command (estimates then equal an
+    offline simulate of the later commands alone); ~/reinitialize is refused without a
+    deflection publisher, with a reason."""
+    from std_srvs.srv import Trigger
+
+    from piezo_narx_ros.ident.model_io import load_model
+    model = load_model(toy_model_file)
+    col = Collector('/svc', ('deflection_estimate',))
+    est = start_node('estimator_node', '-p', f'model:={toy_model_file}', '-p', 'init:=auto',
+                     ns='/svc')
+    reset = col.node.create_client(Trigger, '/svc/estimator_node/reset')
+    reinit = col.node.create_client(Trigger, '/svc/estimator_node/reinitialize')
+
+    def call(client):
+        assert client.wait_for_service(timeout_sec=30.0)
+        future = client.call_async(Trigger.Request())
+        assert col.wait_for(future.done, 10.0)
+        return future.result()
+
+    try:
+        assert col.wait_for(lambda: col.pub.get_subscription_count() >= 1, 30.0)
+        u = np.random.default_rng(8).uniform(-100, 100, 600)
+        t0 = 10**18
+        for k in range(300):
+            col.pub.publish(make_joint_state(t0 + k * P, ['x'], effort=[u[k]]))
+            time.sleep(0.0005)
+        assert col.wait_for(lambda: len(col.data['deflection_estimate']) >= 300, 20.0)
+        refused = call(reinit)
+        assert not refused.success and 'no deflection publisher' in refused.message
+        done = call(reset)
+        assert done.success and 'from rest' in done.message
+        for k in range(300, 600):
+            col.pub.publish(make_joint_state(t0 + k * P, ['x'], effort=[u[k]]))
+            time.sleep(0.0005)
+        assert col.wait_for(lambda: len(col.data['deflection_estimate']) >= 600, 20.0)
+    finally:
+        codes = stop([est])
+        col.close()
+    assert codes == [0]
+    t, y_hat = col.arrays('deflection_estimate')
+    assert np.array_equal(t, t0 + P * np.arange(600))
+    assert np.max(np.abs(y_hat[:300] - model.simulate(u[:300]))) <= 1e-12
+    assert np.max(np.abs(y_hat[300:] - model.simulate(u[300:]))) <= 1e-12   # restarted
+    assert np.max(np.abs(y_hat[300:] - model.simulate(u)[300:])) > 1e-9     # not a no-op

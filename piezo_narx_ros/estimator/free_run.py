@@ -38,6 +38,7 @@ class EstimatorStats:
     out_of_range: int = 0      # estimates outside the model's trained output range (+ margin)
     reanchors: int = 0
     unestimated: int = 0       # commands before the first n0 measured ones (init from measurement)
+    requested_restarts: int = 0   # restarts asked for (reset / reinitialize services)
     init: str = 'waiting'      # 'waiting', 'rest', 'measurement', 'rest (no measurement)'
 
 
@@ -116,6 +117,17 @@ class FreeRunEstimator:
         if not self._decided:
             self._wait = bool(measurement_available)
             self._decided = True
+
+    def request_restart(self, from_measurement: bool) -> None:
+        """Restart the free run at the next command: from rest (all past u, y = 0), or from the
+        next n0 measured samples (`from_measurement`; still from rest after init_timeout without
+        them). The estimator node's ~/reset and ~/reinitialize services."""
+        if from_measurement and self.init_mode == 'rest':
+            raise ConfigError("init is 'rest': this estimator never initialises from measurement")
+        self.restart(from_measurement)
+        self._wait = bool(from_measurement)
+        self._decided = True
+        self.stats.requested_restarts += 1
 
     @property
     def initialised(self) -> bool:

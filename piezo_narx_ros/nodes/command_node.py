@@ -3,12 +3,16 @@
 The excitation comes from piezo_narx_ros.plant.signals.generate (kind and options from
 parameters); the clock, catch-up, limits and looping live in command.stream.CommandStreamer. The
 node only turns timer ticks into `poll()` calls and samples into messages. `running` can be set at
-run time to pause/resume; `wait_for_subscribers` holds the first sample until the listeners are
-matched, so that a recording or an estimator sees sample 0.
+run time to pause/resume, directly or through the ~/set_running service (std_srvs/SetBool);
+`wait_for_subscribers` holds the first sample until the listeners are matched, so that a
+recording or an estimator sees sample 0.
 """
 from __future__ import annotations
 
 import time
+
+from rclpy.parameter import Parameter
+from std_srvs.srv import SetBool
 
 from piezo_narx_ros.command.stream import CommandStreamer, make_signal
 from piezo_narx_ros.errors import ConfigError
@@ -87,6 +91,7 @@ class CommandNode(PiezoNode):
         self.want_running = p['running']
         self.pub = self.sample_publisher(TOPIC_COMMAND)
         self.add_post_set_parameters_callback(self._on_set)
+        self.srv_running = self.create_service(SetBool, '~/set_running', self.on_set_running)
         period = p['publish_period'] or 1.0 / p['fs']
         self.timer = self.create_timer(period, self.on_tick)
         self.diagnostics = Diagnostics(self, self.status, task='command stream')
@@ -100,6 +105,14 @@ class CommandNode(PiezoNode):
                 self.want_running = bool(q.value)
                 if not self.want_running:
                     self.streamer.stop()
+
+    def on_set_running(self, request, response):
+        """~/set_running (std_srvs/SetBool): the same as setting the `running` parameter, so the
+        parameter always tells the state."""
+        result = self.set_parameters([Parameter('running', value=bool(request.data))])[0]
+        response.success = result.successful
+        response.message = self.status()[1] if result.successful else result.reason
+        return response
 
     def on_tick(self) -> None:
         """Publish every sample due now (several after a late tick)."""

@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import math
 
+from std_srvs.srv import Trigger
+
+from piezo_narx_ros.errors import ConfigError
 from piezo_narx_ros.estimator.free_run import INIT_MODES, FreeRunEstimator
 from piezo_narx_ros.nodes.common import (DIAG_OK, DIAG_WARN, TOPIC_COMMAND, TOPIC_DEFLECTION,
                                          TOPIC_ESTIMATE, Diagnostics, ParamSpec, PiezoNode,
@@ -63,11 +66,40 @@ class EstimatorNode(PiezoNode):
         self.sub_meas = self.sample_subscription(TOPIC_DEFLECTION, self.on_measurement)
         self._names = [self.axis]
         self._rejected_reported = 0
+        self.srv_reset = self.create_service(Trigger, '~/reset', self.on_reset)
+        self.srv_reinitialize = self.create_service(Trigger, '~/reinitialize',
+                                                    self.on_reinitialize)
         self.diagnostics = Diagnostics(self, self.status, task='free-run estimate',
                                        hardware_id=f"model {p['model']}")
         self.get_logger().info(
             f"model {p['model']} ({type(self.model).__name__} nu={self.model.nu} "
             f"ny={self.model.ny}) at {self.est.fs:g} Hz, init {p['init']}")
+
+    def on_reset(self, _request, response):
+        """~/reset (std_srvs/Trigger): the free run restarts from rest at the next command."""
+        self.est.request_restart(from_measurement=False)
+        response.success = True
+        response.message = 'free run restarts from rest at the next command'
+        self.get_logger().info(response.message)
+        return response
+
+    def on_reinitialize(self, _request, response):
+        """~/reinitialize (std_srvs/Trigger): restart from the next n0 measured samples; refused
+        when nothing publishes deflection."""
+        if self.sub_meas.get_publisher_count() == 0:
+            response.success = False
+            response.message = 'no deflection publisher to initialise from (~/reset restarts ' \
+                               'from rest)'
+            return response
+        try:
+            self.est.request_restart(from_measurement=True)
+        except ConfigError as exc:
+            response.success, response.message = False, str(exc)
+            return response
+        response.success = True
+        response.message = f'free run restarts from the next {self.model.n0} measured samples'
+        self.get_logger().info(response.message)
+        return response
 
     def _value(self, msg: bytes, field: str) -> tuple[int, float] | None:
         try:
