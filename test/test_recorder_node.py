@@ -10,12 +10,15 @@ import time
 import numpy as np
 import pytest
 import rclpy
+import yaml
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 
 from piezo_narx_ros.bag.reader import bag_info, iter_raw, read_uy
 from piezo_narx_ros.bag.repair import repair_bag
+from piezo_narx_ros.bag.writer import typestore
 from piezo_narx_ros.nodes.common import make_joint_state, sample_qos
 
 T0 = 1_700_000_000_000_000_000
@@ -37,8 +40,13 @@ class Publisher:
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
         self.node = Node('test_pub', namespace=ns, context=self.context)
-        self.pubs = {t: self.node.create_publisher(JointState, t, sample_qos(depth=1000))
-                     for t in TOPICS}
+        # deflection_estimate offers transient_local: a recorder that stored its own
+        # subscription's QoS (volatile) instead of the publisher's would be caught by the test.
+        latched = sample_qos(depth=1000)
+        latched.durability = DurabilityPolicy.TRANSIENT_LOCAL
+        self.pubs = {t: self.node.create_publisher(
+            JointState, t, latched if t == 'deflection_estimate' else sample_qos(depth=1000))
+            for t in TOPICS}
 
     def wait_matched(self, timeout=20.0):
         end = time.monotonic() + timeout
@@ -102,6 +110,25 @@ def test_records_everything_and_closes_on_sigterm(tmp_path):
         assert got[topic] == sent[topic], topic   # nothing lost or reordered, same content
     rec = read_uy(bag, f'{ns}/voltage_command', f'{ns}/deflection')
     assert rec.fs == 2000.0 and len(rec.u) == n
+    # Each topic carries its publisher's offered QoS, the type hash and the distro, in the MCAP
+    # channel metadata as rosbag2_storage_mcap writes them, and in metadata.yaml.
+    from mcap.reader import make_reader
+    with open(bag / 'run.mcap', 'rb') as f:
+        summary = make_reader(f).get_summary()
+    chans = {c.topic: c.metadata for c in summary.channels.values()}
+    expect_hash = typestore().hash_rihs01('sensor_msgs/msg/JointState')
+    for topic in TOPICS:
+        meta = chans[f'{ns}/{topic}']
+        assert meta['topic_type_hash'] == expect_hash
+        offered = yaml.safe_load(meta['offered_qos_profiles'])
+        assert len(offered) == 1 and offered[0]['reliability'] == 'reliable'
+        assert offered[0]['durability'] == ('transient_local' if topic == 'deflection_estimate'
+                                            else 'volatile'), topic
+    info = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    assert info['ros_distro'] == 'kilted'
+    durability = {t['topic_metadata']['name']: t['topic_metadata']['offered_qos_profiles'][0]
+                  ['durability'] for t in info['topics_with_message_count']}
+    assert durability[f'{ns}/deflection_estimate'] == 'transient_local'
     np.testing.assert_allclose(rec.u, 0.01 * np.arange(n))
     np.testing.assert_allclose(rec.y, 1e-9 * np.arange(n))
 

@@ -53,10 +53,11 @@ class BagRecorder:
         with self._lock:
             return self._bag.topics
 
-    def add_topic(self, topic: str, msgtype: str, reliable: bool = True, depth: int = 100) -> str:
+    def add_topic(self, topic: str, msgtype: str, reliable: bool = True, depth: int = 100,
+                  offered: list | None = None) -> str:
         """Register a topic (see BagWriter.add_topic); returns its absolute name."""
         with self._lock:
-            return self._bag.add_topic(topic, msgtype, reliable, depth)
+            return self._bag.add_topic(topic, msgtype, reliable, depth, offered)
 
     def put(self, topic: str, log_time_ns: int, data: bytes) -> None:
         """Queue one serialized message of a registered topic (absolute name) received at

@@ -1,14 +1,16 @@
 """Write rosbag2 bags (MCAP storage, metadata version 9) with `rosbags`.
 
 A bag written here is a directory `NAME/` holding `NAME.mcap` (profile `ros2`, `ros2msg` schemas,
-`cdr` messages, offered QoS in the channel metadata) and `metadata.yaml`, which is what
-`ros2 bag record -s mcap` produces, so `ros2 bag info/play`, Foxglove and PlotJuggler open it.
+`cdr` messages, channel metadata `offered_qos_profiles` and `topic_type_hash`, a `rosbag2`
+metadata record) and `metadata.yaml` (version 9, `ros_distro` of the recording), the layout of
+`ros2 bag record -s mcap` (rosbag2_storage_mcap). docs/bags.md says which readers were checked.
 
 Message definitions come from the `rosbags` built-in type store of the ROS 2 Kilted distribution:
 only types it knows can be recorded (every std/sensor/diagnostic message is there).
 """
 from __future__ import annotations
 
+import os
 import time
 from functools import lru_cache
 from pathlib import Path
@@ -39,6 +41,21 @@ def absolute_topic(name: str) -> str:
     if not stripped:
         raise BagError(f'empty topic name {name!r}')
     return '/' + stripped
+
+
+def check_type(msgtype: str, topic: str = '') -> None:
+    """BagError unless `msgtype` is a built-in ROS 2 Kilted type (the only ones a bag here can
+    carry: their definitions are embedded, never taken from elsewhere)."""
+    if msgtype not in typestore().fielddefs:
+        where = f' for topic {topic}' if topic else ''
+        raise BagError(f'unknown message type {msgtype!r}{where} '
+                       '(only ROS 2 Kilted built-in types can be recorded)')
+
+
+def ros_distro() -> str:
+    """The distribution written in a bag's metadata: $ROS_DISTRO as rosbag2 does, else 'kilted',
+    the distribution of the rclpy wheels and of the message definitions this writer embeds."""
+    return os.environ.get('ROS_DISTRO', '').strip() or 'kilted'
 
 
 def offered_qos(reliable: bool = True, depth: int = 100):
@@ -77,6 +94,7 @@ class BagWriter:
             self._writer.open()
         except (WriterError, OSError) as exc:
             raise BagError(f'cannot create bag {self.path}: {exc}') from None
+        _write_type_hash_in_channels(self._writer.storage)
         self._connections: dict[str, object] = {}
         self._last_flush = time.monotonic()
         self.closed = False
@@ -87,22 +105,24 @@ class BagWriter:
         """{absolute topic name: message type} of the topics added so far."""
         return {name: conn.msgtype for name, conn in self._connections.items()}
 
-    def add_topic(self, topic: str, msgtype: str, reliable: bool = True, depth: int = 100) -> str:
-        """Register `topic` of ROS 2 type `msgtype` (e.g. 'sensor_msgs/msg/JointState') with its
-        offered QoS; returns the absolute topic name. Raises BagError for an unknown type or a
-        topic already added with another type."""
+    def add_topic(self, topic: str, msgtype: str, reliable: bool = True, depth: int = 100,
+                  offered: list | None = None) -> str:
+        """Register `topic` of ROS 2 type `msgtype` (e.g. 'sensor_msgs/msg/JointState'); returns
+        the absolute topic name. `offered`: the QoS profiles its publishers offer (rosbags `Qos`,
+        see `qos_from_rclpy`), as `ros2 bag record` stores them; None: one reliable/best-effort
+        keep-last `depth` profile. Raises BagError for an unknown type or a topic already added
+        with another type."""
         name = absolute_topic(topic)
         if name in self._connections:
             if self._connections[name].msgtype != msgtype:
                 raise BagError(f'topic {name} already recorded as '
                                f'{self._connections[name].msgtype}, not {msgtype}')
             return name
+        check_type(msgtype, name)
         store = typestore()
-        if msgtype not in store.fielddefs:
-            raise BagError(f'unknown message type {msgtype!r} for topic {name} '
-                           '(only ROS 2 Kilted built-in types can be recorded)')
         self._connections[name] = self._writer.add_connection(
-            name, msgtype, typestore=store, offered_qos_profiles=[offered_qos(reliable, depth)])
+            name, msgtype, typestore=store,
+            offered_qos_profiles=[offered_qos(reliable, depth)] if offered is None else offered)
         return name
 
     # ---------------------------------------------------------------------------------- messages
@@ -142,7 +162,18 @@ class BagWriter:
         if self.closed:
             return
         self.closed = True
+        # rosbags writes `ros_distro: rosbags` in both copies of the metadata (the MCAP's rosbag2
+        # record and metadata.yaml); rosbag2 writes the distribution there.
+        storage, distro = self._writer.storage, ros_distro()
+        close_storage = storage.close
+
+        def close_with_distro(version, metadata: str):
+            return close_storage(version, _set_distro(metadata, distro))
+
+        storage.close = close_with_distro
         self._writer.close()
+        meta = self._writer.metapath
+        meta.write_text(_set_distro(meta.read_text(), distro))
 
     def __enter__(self) -> 'BagWriter':
         return self
@@ -150,6 +181,55 @@ class BagWriter:
     def __exit__(self, exc_type, exc, tb) -> bool:
         self.close()  # even after an error: what was written stays readable
         return False
+
+
+def _set_distro(metadata_yaml: str, distro: str) -> str:
+    import re
+    return re.sub(r'^(\s*ros_distro:) rosbags$', lambda m: f'{m.group(1)} {distro}',
+                  metadata_yaml, count=1, flags=re.M)
+
+
+def _write_type_hash_in_channels(storage) -> None:
+    """Make this rosbags MCAP storage write `topic_type_hash` (the RIHS01 hash of the type) next to
+    `offered_qos_profiles` in each channel's metadata, as rosbag2_storage_mcap does; rosbags 0.11
+    writes only the QoS. Same record layout as rosbags' own add_connection (pinned version; the
+    bag tests read both keys back)."""
+    from io import BytesIO
+
+    from rosbags.rosbag2 import storage_mcap as mcap_storage
+
+    def add_connection(connection, offered_qos_profiles: str) -> None:
+        meta = BytesIO()
+        for key, value in (('offered_qos_profiles', offered_qos_profiles),
+                           ('topic_type_hash', connection.digest)):
+            mcap_storage.write_string(meta, key)
+            mcap_storage.write_string(meta, value)
+        channel = mcap_storage.Channel(connection.id, connection.msgtype, connection.topic,
+                                       connection.ext.serialization_format, meta.getvalue())
+        storage.channels.append(channel)
+        storage.channel_stats[connection.id] = 0
+        mcap_storage.write_channel(storage.chunk.bio, channel, storage.schemas)
+
+    storage.add_connection = add_connection
+
+
+def qos_from_rclpy(profile):
+    """rclpy QoSProfile (e.g. a publisher's, from Node.get_publishers_info_by_topic) -> rosbags
+    `Qos` for `BagWriter.add_topic(offered=...)`. Durations are kept as the middleware reports
+    them (sec, nsec; infinite ones as its largest value, like rosbag2)."""
+    from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
+                                    QosReliability, QosTime)
+
+    def duration(d) -> QosTime:
+        sec, nsec = divmod(int(d.nanoseconds), 1_000_000_000)
+        return QosTime(sec, nsec)
+
+    return Qos(QosHistory(int(profile.history)), int(profile.depth),
+               QosReliability(int(profile.reliability)), QosDurability(int(profile.durability)),
+               duration(profile.deadline), duration(profile.lifespan),
+               QosLiveliness(int(profile.liveliness)),
+               duration(profile.liveliness_lease_duration),
+               bool(profile.avoid_ros_namespace_conventions))
 
 
 # ----------------------------------------------------------------------------- JointState helpers

@@ -1,7 +1,9 @@
 """recorder_node: record topics to a rosbag2 MCAP bag (like `ros2 bag record -s mcap`).
 
 Subscriptions are raw (serialized CDR, never decoded); each message is stamped with its receive
-time (system clock, ns) and handed to a BagRecorder, whose writer thread does the file work.
+time (system clock, ns) and handed to a BagRecorder, whose writer thread does the file work. A
+topic enters the bag at its first message, with the QoS profiles its publishers offer (from the
+ROS graph, as `ros2 bag record` stores them) so that a player can republish with the same QoS.
 SIGINT/SIGTERM close the bag (summary and metadata.yaml); after SIGKILL,
 `piezo-narx bag repair BAG` restores it.
 
@@ -14,11 +16,12 @@ import importlib
 import re
 import time
 from datetime import datetime
+from functools import partial
 
-from rclpy.qos import ReliabilityPolicy
 
 from piezo_narx_ros.bag.recorder import (AUTO_TYPE, BagRecorder, discovered_types,
                                          expand_types)
+from piezo_narx_ros.bag.writer import check_type, qos_from_rclpy, typestore
 from piezo_narx_ros.errors import BagError, ConfigError
 from piezo_narx_ros.nodes.common import (DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics, ParamSpec,
                                          PiezoNode, main_for)
@@ -41,14 +44,19 @@ def message_class(msgtype: str):
 class _Sink:
     """Raw subscription callback for one topic: bytes -> recorder queue, stamped on receipt.
 
-    The receive time is taken here, not from MessageInfo: callbacks taking MessageInfo fail with
-    a SystemError under the EventsExecutor of these rclpy wheels."""
+    The first message registers the topic in the bag (`register()` -> its bag name): by then its
+    publisher has been discovered, so its offered QoS is known. The receive time is taken here,
+    not from MessageInfo: callbacks taking MessageInfo fail with a SystemError under the
+    EventsExecutor of these rclpy wheels."""
 
-    def __init__(self, recorder: BagRecorder, topic: str):
-        self.recorder, self.topic = recorder, topic
+    def __init__(self, recorder: BagRecorder, register):
+        self.recorder, self.register, self.name = recorder, register, None
 
     def __call__(self, data: bytes) -> None:
-        self.recorder.put(self.topic, time.time_ns(), data)
+        t_ns = time.time_ns()
+        if self.name is None:
+            self.name = self.register()
+        self.recorder.put(self.name, t_ns, data)
 
 
 class RecorderNode(PiezoNode):
@@ -81,6 +89,7 @@ class RecorderNode(PiezoNode):
         self.recorder = BagRecorder(output, chunk_period_s=p['chunk_period_s'],
                                     custom_data={'recorded_by': 'piezo_narx_ros recorder_node'})
         self._subs = {}
+        self._sinks: dict[str, _Sink] = {}
         self._discovery = None
         self._subscribe_known()
         if len(self._subs) < len(self._wanted):
@@ -93,21 +102,15 @@ class RecorderNode(PiezoNode):
         graph = self.get_topic_names_and_types() if AUTO_TYPE in pending.values() else []
         for topic, kind in discovered_types(pending, graph).items():
             try:
+                check_type(kind)
                 cls = message_class(kind)
-                sub = self.sample_subscription(topic, _Sink(self.recorder, topic), cls)
-                qos = sub.qos_profile   # after the user's qos_overrides
-                try:
-                    self.recorder.add_topic(topic, kind,
-                                            qos.reliability == ReliabilityPolicy.RELIABLE,
-                                            qos.depth)
-                except BagError:
-                    self.destroy_subscription(sub)
-                    raise
             except (BagError, ConfigError) as exc:
                 self.get_logger().error(f'cannot record {topic}: {exc}')
                 self._wanted.pop(topic)
                 continue
-            self._subs[topic] = sub
+            # The topic enters the bag at its first message (see _Sink, _register).
+            self._sinks[topic] = _Sink(self.recorder, partial(self._register, topic, kind))
+            self._subs[topic] = self.sample_subscription(topic, self._sinks[topic], cls)
             self.get_logger().info(f'subscribed {topic} [{kind}]')
         if self._discovery is not None and len(self._subs) == len(self._wanted):
             self._discovery.cancel()
@@ -115,6 +118,21 @@ class RecorderNode(PiezoNode):
     def pending_parameter_prefixes(self) -> list[str]:
         """QoS overrides of the topics whose type is not discovered yet (subscribed later)."""
         return [f'qos_overrides.{t}.subscription.' for t in self._wanted if t not in self._subs]
+
+    def _register(self, topic: str, kind: str) -> str:
+        """Add `topic` to the bag with the QoS its publishers offer now; returns its bag name."""
+        infos = self.get_publishers_info_by_topic(topic)
+        expected = typestore().hash_rihs01(kind)
+        for info in infos:
+            advertised = str(info.topic_type_hash)
+            if advertised not in (expected, 'INVALID'):
+                # The bag embeds the Kilted definition; a publisher built from another one
+                # writes bytes that definition may not decode.
+                self.get_logger().warning(
+                    f'{topic}: publisher {info.node_namespace}/{info.node_name} has type hash '
+                    f'{advertised}, the recorded definition has {expected}')
+        return self.recorder.add_topic(topic, kind, offered=[qos_from_rclpy(i.qos_profile)
+                                                             for i in infos])
 
     def _status(self):
         s = self.recorder.stats
@@ -131,6 +149,9 @@ class RecorderNode(PiezoNode):
         """Stop recording: write the queue, the MCAP summary and metadata.yaml."""
         for sub in self._subs.values():
             self.destroy_subscription(sub)
+        for sink in self._sinks.values():   # subscribed, never received: in the bag, empty
+            if sink.name is None:
+                sink.name = sink.register()
         stats = self.recorder.close()
         print(f'recorder_node: wrote {stats.written} message(s) to {self.recorder.path}',
               flush=True)
