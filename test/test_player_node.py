@@ -107,3 +107,95 @@ def test_bad_bag_exits_2_with_one_line(tmp_path):
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 2
     assert err.strip() == f'player_node: error: bag not found: {tmp_path / "missing"}'
+
+
+def _qos(reliability, durability, depth=0, history=3):
+    from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
+                                    QosReliability, QosTime)
+    inf = QosTime(9223372036, 854775807)
+    return Qos(QosHistory(history), depth, QosReliability(reliability), QosDurability(durability),
+               inf, inf, QosLiveliness.AUTOMATIC, inf, False)
+
+
+def test_replay_qos_follows_ros2_bag_play_rules():
+    from piezo_narx_ros.bag.player import ReplayQos, replay_qos
+    # one offer (depth unknown, as rmw reports remote publishers): its policies, fallback depth
+    assert replay_qos([_qos(1, 1)], False, 77) == ReplayQos(1, 1, 77, True)
+    assert replay_qos([_qos(2, 2), _qos(2, 2)], True, 5) == ReplayQos(2, 2, 5, True)
+    assert replay_qos([_qos(1, 2, depth=300, history=1)], False, 5) == ReplayQos(1, 2, 300, True)
+    # publishers disagreed, or nothing recorded: the fallback
+    assert replay_qos([_qos(1, 2), _qos(2, 2)], True, 9) == ReplayQos(1, 2, 9, False)
+    assert replay_qos([], False, 9) == ReplayQos(2, 2, 9, False)
+
+
+def test_playback_clock_holds_then_follows_the_recorded_time():
+    from piezo_narx_ros.bag.player import PlaybackClock
+    c = PlaybackClock(start_ns=10**18, rate=2.0)
+    assert c.now(123.0) == 10**18                       # before the first message
+    c.anchor(5.0, 10**18 + 1000)
+    assert c.now(5.5) == 10**18 + 1000 + 10**9           # 0.5 s wall at rate 2 = 1 s recorded
+    c.anchor(6.0, 10**18)                                 # a loop starts over
+    assert c.now(6.25) == 10**18 + 5 * 10**8
+    c.finish()
+    assert c.now(100.0) == 10**18                        # held after the end
+
+
+def test_republishes_with_recorded_qos_and_publishes_clock(tmp_path):
+    """A bag whose command publisher offered reliable + transient_local and whose deflection
+    publisher offered best effort is replayed with exactly those; clock:=true publishes the
+    recorded time on /clock at clock_rate."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from rosgraph_msgs.msg import Clock
+
+    from piezo_narx_ros.bag.writer import JOINT_STATE, BagWriter, joint_state_cdr
+    t0, n = 1_700_000_000_000_000_000, 400
+    with BagWriter(tmp_path / 'q') as bag:
+        cmd = bag.add_topic('/play3/voltage_command', JOINT_STATE, offered=[_qos(1, 1)])
+        dfl = bag.add_topic('/play3/deflection', JOINT_STATE, offered=[_qos(2, 2)])
+        for k in range(n):
+            t = t0 + k * 500_000
+            bag.write(cmd, t, joint_state_cdr(t, effort=(1.0,)))
+            bag.write(dfl, t, joint_state_cdr(t, position=(1e-6,)))
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = Node('clock_probe', context=ctx)
+    clocks = []
+    node.create_subscription(Clock, '/clock', lambda m: clocks.append(
+        (time.monotonic(), m.clock.sec * 10**9 + m.clock.nanosec)),
+        QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
+    from rclpy.executors import SingleThreadedExecutor
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    proc = subprocess.Popen(
+        [sys.executable, '-m', 'piezo_narx_ros.nodes.player_node', '--ros-args',
+         '-p', f'bag:={tmp_path / "q"}', '-p', 'loop:=true', '-p', 'rate:=0.25',
+         '-p', 'clock:=true', '-p', 'clock_rate:=50.0', '-p', 'start_delay_s:=0.0'],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        end = time.monotonic() + 30
+        while time.monotonic() < end and not (
+                len(clocks) >= 60 and node.get_publishers_info_by_topic('/play3/deflection')):
+            ex.spin_once(timeout_sec=0.05)
+        info = {t: node.get_publishers_info_by_topic(t)[0].qos_profile
+                for t in ('/play3/voltage_command', '/play3/deflection')}
+    finally:
+        proc.terminate()
+        code = proc.wait(20)
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+    assert code == 0, proc.stderr.read()
+    cmd_qos, dfl_qos = info['/play3/voltage_command'], info['/play3/deflection']
+    assert (cmd_qos.reliability, cmd_qos.durability) == (ReliabilityPolicy.RELIABLE,
+                                                         DurabilityPolicy.TRANSIENT_LOCAL)
+    assert (dfl_qos.reliability, dfl_qos.durability) == (ReliabilityPolicy.BEST_EFFORT,
+                                                         DurabilityPolicy.VOLATILE)
+    times = np.array([c for _, c in clocks])
+    last = t0 + (n - 1) * 500_000
+    assert times.min() >= t0 and times.max() <= last + 30_000_000   # inside the recording
+    assert np.any(np.diff(times) > 0) and np.any(np.diff(times) < 0)   # advances, loops back
+    wall = clocks[-1][0] - clocks[0][0]
+    assert 20.0 < (len(clocks) - 1) / wall < 80.0                      # ~clock_rate
+    # while playing, recorded time advances at `rate` recorded seconds per wall second
+    steps = [(b[1] - a[1]) / 1e9 / (b[0] - a[0]) for a, b in zip(clocks, clocks[1:])
+             if 0 < b[1] - a[1] and b[0] - a[0] > 0.01]
+    assert 0.15 < float(np.median(steps)) < 0.4

@@ -5,6 +5,7 @@ starts over one mean message period after its last message.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
@@ -28,6 +29,7 @@ class BagSchedule:
         self.rate = float(rate)
         self.loop = bool(loop)
         self.passes = 0   # completed passes through the bag
+        self.current_ns: int | None = None   # recorded time (ns) of the message last yielded
 
     def __iter__(self) -> Iterator[tuple[float, str, str, bytes]]:
         offset_s = 0.0
@@ -39,6 +41,7 @@ class BagSchedule:
                     first = t_ns
                 last = t_ns
                 count += 1
+                self.current_ns = t_ns
                 yield offset_s + (t_ns - first) * 1e-9 / self.rate, topic, msgtype, data
             self.passes += 1
             if count == 0:
@@ -58,3 +61,71 @@ def topic_types(path: str | Path, topics: list[str] | None = None) -> dict[str, 
         if topics:
             conns = [c for t in topics for c in find_topic(reader, t, None, path)]
         return {absolute_topic(c.topic): c.msgtype for c in conns}
+
+
+def topic_offered_qos(path: str | Path, topics: list[str] | None = None) -> dict[str, list]:
+    """{absolute topic: [rosbags Qos, ...]} as recorded (the publishers' offered profiles; an
+    empty list when the bag has none)."""
+    from piezo_narx_ros.bag.reader import find_topic, open_bag
+    from piezo_narx_ros.bag.writer import absolute_topic
+    out: dict[str, list] = {}
+    with open_bag(path) as reader:
+        conns = reader.connections
+        if topics:
+            conns = [c for t in topics for c in find_topic(reader, t, None, path)]
+        for c in conns:
+            profiles = getattr(c.ext, 'offered_qos_profiles', None) or []
+            out.setdefault(absolute_topic(c.topic), []).extend(profiles)
+    return out
+
+
+@dataclass(frozen=True)
+class ReplayQos:
+    """The QoS to republish a topic with (rclpy-free numbers: rmw enum values, depth)."""
+    reliability: int     # rmw value: 1 reliable, 2 best effort
+    durability: int      # rmw value: 1 transient local, 2 volatile
+    depth: int
+    recorded: bool       # False: no usable recorded profile, the fallback was used
+
+
+def replay_qos(offered: list, fallback_reliable: bool, fallback_depth: int) -> ReplayQos:
+    """What `ros2 bag play` does with the recorded offers: when every publisher offered the same
+    reliability and durability, republish with them; otherwise (several different offers, or
+    none recorded) use the fallback. rmw does not report a remote publisher's history depth, so
+    the depth is the recorded one only when it is known (> 0), else `fallback_depth`."""
+    known = [q for q in offered if q.reliability.value in (1, 2) and q.durability.value in (1, 2)]
+    if not known or len({(q.reliability, q.durability) for q in known}) != 1:
+        return ReplayQos(1 if fallback_reliable else 2, 2, int(fallback_depth), False)
+    depths = [q.depth for q in known if q.history.value == 1 and q.depth > 0]
+    return ReplayQos(known[0].reliability.value, known[0].durability.value,
+                     max(depths) if depths else int(fallback_depth), True)
+
+
+class PlaybackClock:
+    """The recorded time (ns) that playback has reached, for /clock (`ros2 bag play --clock`).
+
+    `anchor(mono_s, bag_ns)` when the message recorded at bag_ns goes out at monotonic mono_s;
+    `now(mono_s)` extrapolates at `rate` recorded seconds per second; before the first anchor it
+    holds `start_ns`, after `finish()` the last anchored time."""
+
+    def __init__(self, start_ns: int, rate: float = 1.0):
+        self.rate = float(rate)
+        self._anchor: tuple[float, int] | None = None
+        self._held: int | None = int(start_ns)
+
+    def anchor(self, mono_s: float, bag_ns: int) -> None:
+        """The message recorded at bag_ns (ns) is published at monotonic mono_s (s)."""
+        self._anchor = (float(mono_s), int(bag_ns))
+        self._held = None
+
+    def finish(self) -> None:
+        """Playback ended: hold the last anchored time."""
+        if self._anchor is not None:
+            self._held = self._anchor[1]
+
+    def now(self, mono_s: float) -> int:
+        """Recorded time (ns) reached at monotonic mono_s (s)."""
+        if self._held is not None or self._anchor is None:
+            return int(self._held)
+        t0, ns0 = self._anchor
+        return ns0 + max(0, int(round((mono_s - t0) * self.rate * 1e9)))

@@ -563,10 +563,11 @@ class PiezoNode(Node):
         self.qos_watch = QosWatch(self)
         self.params = declare_parameters(self, self.PARAMS)
 
-    def sample_publisher(self, topic: str, msg_type=JointState, depth: int = SAMPLE_DEPTH):
-        """Publisher of a per-sample stream: `sample_qos`, the standard QoS overrides, and
-        incompatible-QoS reporting (QosWatch)."""
-        pub = self.create_publisher(msg_type, topic, sample_qos(depth),
+    def sample_publisher(self, topic: str, msg_type=JointState, depth: int = SAMPLE_DEPTH,
+                         qos: QoSProfile | None = None):
+        """Publisher of a per-sample stream: `sample_qos` (or `qos`, e.g. a bag's recorded
+        profile), the standard QoS overrides, and incompatible-QoS reporting (QosWatch)."""
+        pub = self.create_publisher(msg_type, topic, qos or sample_qos(depth),
                                     qos_overriding_options=qos_overriding(),
                                     event_callbacks=self.qos_watch.callbacks('publisher', topic))
         self.qos_watch.add('publisher', pub)

@@ -2,6 +2,11 @@
 
 Messages are published serialized, exactly as recorded, from a pacing thread that sleeps until
 each message is due (recorded receive-time spacing / rate). Remap topics with --ros-args -r.
+Each topic is republished with the QoS its publishers offered when it was recorded (reliability,
+durability, depth when known), as `ros2 bag play` does, with the default sample QoS for topics
+recorded without a single one; qos_overrides (docs/nodes.md) apply on top. `clock:=true` publishes the recorded time reached on /clock
+(rosgraph_msgs/Clock, `clock_rate` Hz), like `ros2 bag play --clock`, so nodes started with
+use_sim_time:=true run on the bag's time.
 
     player_node --ros-args -p bag:=bags/run1 -p rate:=2.0 -p loop:=true \
         -p topics:="[/piezo/voltage_command]"
@@ -12,11 +17,15 @@ import threading
 import time
 
 import rclpy
+from rclpy.clock import Clock, ClockType
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock as ClockMsg
 
-from piezo_narx_ros.bag.player import BagSchedule, topic_types
+from piezo_narx_ros.bag.player import (BagSchedule, PlaybackClock, replay_qos, topic_offered_qos,
+                                       topic_types)
 from piezo_narx_ros.errors import ConfigError
-from piezo_narx_ros.nodes.common import (DIAG_ERROR, DIAG_OK, Diagnostics, ParamSpec, PiezoNode,
-                                         main_for)
+from piezo_narx_ros.nodes.common import (DIAG_ERROR, DIAG_OK, SAMPLE_DEPTH, Diagnostics,
+                                         ParamSpec, PiezoNode, main_for, sample_qos)
 from piezo_narx_ros.nodes.recorder_node import message_class
 
 
@@ -38,6 +47,10 @@ class PlayerNode(PiezoNode):
                   low=0, high=1000, read_only=True),
         ParamSpec('exit_when_done', True, 'shut the node down after the last message',
                   read_only=True),
+        ParamSpec('clock', False, 'publish the recorded time reached on /clock (like ros2 bag '
+                  'play --clock)', read_only=True),
+        ParamSpec('clock_rate', 40.0, '/clock publication rate, Hz', low=0.1, high=10000.0,
+                  read_only=True),
     )
 
     def __init__(self, **kwargs):
@@ -45,15 +58,38 @@ class PlayerNode(PiezoNode):
         p = self.params
         topics = [t for t in p['topics'] if t] or None
         types = topic_types(p['bag'], topics)  # BagError (one line) for a bad bag or topic
+        offered = topic_offered_qos(p['bag'], topics)
         self._pubs = {}
+        self.replay_qos = {}
         for topic, kind in types.items():
-            try:
-                self._pubs[topic] = self.sample_publisher(topic, message_class(kind))
+            rq = replay_qos(offered.get(topic, []), True, SAMPLE_DEPTH)
+            qos = sample_qos(rq.depth)
+            qos.reliability = ReliabilityPolicy(rq.reliability)
+            qos.durability = DurabilityPolicy(rq.durability)
+            try:   # the user's qos_overrides still apply on top of the recorded profile
+                self._pubs[topic] = self.sample_publisher(topic, message_class(kind), qos=qos)
             except ConfigError as exc:
                 self.get_logger().warning(f'skipping {topic}: {exc}')
+                continue
+            self.replay_qos[topic] = rq
+            if not rq.recorded:
+                self.get_logger().info(f'{topic}: no single recorded QoS, publishing with the '
+                                       'default sample QoS')
         if not self._pubs:
             raise ConfigError(f'no playable topic in {p["bag"]}')
         self.schedule = BagSchedule(p['bag'], list(self._pubs), p['rate'], p['loop'])
+        self.clock = None
+        if p['clock']:
+            from piezo_narx_ros.bag.reader import open_bag
+            with open_bag(p['bag']) as reader:
+                start_ns = reader.start_time
+            self.clock = PlaybackClock(start_ns, p['rate'])
+            # /clock QoS as rclcpp's ClockQoS (keep last 1, best effort); the timer runs on the
+            # steady clock, so a player started with use_sim_time does not wait for itself.
+            self._clock_pub = self.create_publisher(
+                ClockMsg, '/clock', QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+            self._clock_timer = self.create_timer(1.0 / p['clock_rate'], self._publish_clock,
+                                                  clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.published = 0
         self.late_max_s = 0.0
         self.error = ''
@@ -83,13 +119,23 @@ class PlayerNode(PiezoNode):
                     self.late_max_s = max(self.late_max_s, -wait)
                 if self._stop.is_set():
                     return
+                if self.clock is not None:
+                    self.clock.anchor(start + due, self.schedule.current_ns)
                 self._pubs[topic].publish(data)
                 self.published += 1
         except Exception as exc:  # noqa: BLE001 - reported on /diagnostics and in the log
             self.error = str(exc)
             self.get_logger().error(f'playback stopped: {exc}')
         self.get_logger().info(f'played {self.published} message(s)')
+        if self.clock is not None:
+            self.clock.finish()
         self.done = True
+
+    def _publish_clock(self) -> None:
+        msg = ClockMsg()
+        sec, nsec = divmod(self.clock.now(time.monotonic()), 1_000_000_000)
+        msg.clock.sec, msg.clock.nanosec = sec, nsec
+        self._clock_pub.publish(msg)
 
     def _exit_if_done(self) -> None:
         # Shut down from an executor callback: doing it from the pacing thread deadlocks the
