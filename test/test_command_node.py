@@ -110,3 +110,67 @@ def test_set_running_service_pauses_resumes_and_keeps_the_parameter_in_step():
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)
+
+
+def test_use_sim_time_paces_on_clock_waits_for_it_stops_with_it_and_follows_a_jump_back():
+    """With use_sim_time:=true the stream follows /clock, not the wall clock (in one process:
+    a /clock publisher, the command node and a subscriber on one executor)."""
+    import time
+
+    import numpy as np
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import JointState
+
+    from piezo_narx_ros.nodes.command_node import CommandNode
+    from piezo_narx_ros.nodes.common import sample_qos, stamp_to_ns
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        node = CommandNode(context=ctx, namespace='/simtime', parameter_overrides=[
+            Parameter('fs', value=1000.0), Parameter('kind', value='sine'),
+            Parameter('seconds', value=1.0), Parameter('use_sim_time', value=True)])
+        other = rclpy.create_node('sim_clock', context=ctx)
+        clock_pub = other.create_publisher(Clock, '/clock', 10)
+        got = []
+        other.create_subscription(JointState, '/simtime/voltage_command',
+                                  lambda m: got.append(stamp_to_ns(m.header.stamp)),
+                                  sample_qos(depth=10000))
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        ex.add_node(other)
+
+        def spin(seconds):
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                ex.spin_once(timeout_sec=0.005)
+
+        def set_clock(t_ns):
+            msg = Clock()
+            msg.clock.sec, msg.clock.nanosec = divmod(t_ns, 10**9)
+            clock_pub.publish(msg)
+            spin(0.3)
+
+        spin(0.3)
+        assert got == [] and node.status()[1] == 'waiting for /clock'
+        t0 = 1_000 * 10**9
+        set_clock(t0)
+        set_clock(t0 + 100_000_000)                       # +0.1 s of simulated time
+        assert got[0] == t0 and len(got) == 101           # k = 0..100 due by then
+        assert np.all(np.diff(got) == 1_000_000)
+        spin(0.3)                                          # the clock stands still
+        assert len(got) == 101                             # (wall pacing would add ~300)
+        set_clock(t0 + 50_000_000)                         # a looping bag: time jumps back
+        set_clock(t0 + 60_000_000)
+        # restarted where the node next ticked (timers fire on the new time), then paced on
+        restart = got[101]
+        assert t0 + 50_000_000 <= restart <= t0 + 60_000_000 and got[-1] == t0 + 60_000_000
+        assert np.all(np.diff(got[101:]) == 1_000_000)
+        status = node.status()[2]
+        assert status['clock'] == 'sim' and status['clock_jumps'] == 1
+        other.destroy_node()
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)

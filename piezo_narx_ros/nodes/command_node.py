@@ -6,6 +6,11 @@ node only turns timer ticks into `poll()` calls and samples into messages. `runn
 run time to pause/resume, directly or through the ~/set_running service (std_srvs/SetBool);
 `wait_for_subscribers` holds the first sample until the listeners are matched, so that a
 recording or an estimator sees sample 0.
+
+Time: stamps come from the node clock. With use_sim_time:=true the samples are also paced on it
+(the /clock of a simulator or of `player_node clock:=true`): none is published before the first
+/clock message, a frozen clock stops the stream, and a clock that jumps back (a looping bag)
+restarts the sample clock there. Otherwise they are paced on the monotonic clock.
 """
 from __future__ import annotations
 
@@ -89,6 +94,9 @@ class CommandNode(PiezoNode):
                                         slew_rate=p['slew_rate'] or float('inf'),
                                         max_burst=p['max_burst'])
         self.want_running = p['running']
+        self.sim_time = bool(self.get_parameter('use_sim_time').value)
+        self.clock_jumps = 0
+        self._last_pace: int | None = None
         self.pub = self.sample_publisher(TOPIC_COMMAND)
         self.add_post_set_parameters_callback(self._on_set)
         self.srv_running = self.create_service(SetBool, '~/set_running', self.on_set_running)
@@ -114,16 +122,34 @@ class CommandNode(PiezoNode):
         response.message = self.status()[1] if result.successful else result.reason
         return response
 
+    def _pace_ns(self) -> int | None:
+        """The clock the samples are due on (ns): the node clock under use_sim_time (None until
+        the first /clock), else the monotonic clock."""
+        if not self.sim_time:
+            return time.monotonic_ns()
+        now = self.get_clock().now().nanoseconds
+        return now if now > 0 else None
+
     def on_tick(self) -> None:
         """Publish every sample due now (several after a late tick)."""
         s = self.streamer
+        pace = self._pace_ns()
+        if pace is None:
+            return   # use_sim_time and no /clock yet
+        if self.sim_time and self._last_pace is not None and pace < self._last_pace and s.running:
+            self.clock_jumps += 1
+            back = (self._last_pace - pace) * 1e-9
+            self.get_logger().warning(f'/clock jumped back by {back:.3f} s: the sample clock '
+                                      'restarts there')
+            s.start(pace, pace)
+        self._last_pace = pace
         if not s.running:
             if not self.want_running or s.finished:
                 return
             if self.pub.get_subscription_count() < self.params['wait_for_subscribers']:
                 return
-            s.start(self.get_clock().now().nanoseconds, time.monotonic_ns())
-        stamps, volts = s.poll(time.monotonic_ns())
+            s.start(self.get_clock().now().nanoseconds, pace)
+        stamps, volts = s.poll(pace)
         names, pub = self.axes, self.pub
         for t, u in zip(stamps.tolist(), volts.tolist()):
             pub.publish(encode_joint_state(t, names, effort=u))   # CDR bytes: 2x cheaper
@@ -133,11 +159,14 @@ class CommandNode(PiezoNode):
     def status(self):
         s = self.streamer
         state = ('finished' if s.finished else 'running' if s.running else
-                 'waiting for subscribers' if self.want_running else 'paused')
-        level = DIAG_OK if state != 'waiting for subscribers' else DIAG_WARN
+                 'paused' if not self.want_running else
+                 'waiting for /clock' if self._pace_ns() is None else 'waiting for subscribers')
+        level = DIAG_WARN if state.startswith('waiting') else DIAG_OK
         return level, state, {'published': s.published, 'position': s.position,
                               'late_ticks': s.late_polls, 'max_batch': s.max_batch,
-                              'fs': s.fs, 'subscribers': self.pub.get_subscription_count()}
+                              'fs': s.fs, 'subscribers': self.pub.get_subscription_count(),
+                              'clock': 'sim' if self.sim_time else 'steady',
+                              'clock_jumps': self.clock_jumps}
 
 
 main = main_for(CommandNode)
