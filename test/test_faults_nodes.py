@@ -37,7 +37,7 @@ class _Listener(PiezoNode):
         super().__init__(**kwargs)
         self.got = []
         self.sub = self.sample_subscription('stream', self.got.append)
-        self.diagnostics = common.Diagnostics(self, lambda: (DIAG_OK, 'ok', {}))
+        self.diagnostics = common.Diagnostics(self, lambda: (DIAG_OK, 'ok', {}), task='qos test')
 
 
 def _wait(predicate, timeout=15.0):
