@@ -1,4 +1,5 @@
-"""piezo-narx bringup: config parsing, prefixed logs, clean stop on SIGTERM, failing node."""
+"""piezo-narx bringup: ROS 2 YAML launch files (the subset it reads, the command lines launch_ros
+would build), prefixed logs, clean stop on SIGTERM, failing node."""
 import os
 import re
 import signal
@@ -8,8 +9,7 @@ import time
 
 import pytest
 
-from conftest import REPO
-from piezo_narx_ros.cli.bringup import Bringup, NodeSpec, load_config
+from piezo_narx_ros.cli.bringup import Bringup, NodeSpec, load_launch
 from piezo_narx_ros.errors import ConfigError
 
 
@@ -28,45 +28,90 @@ def _alive(pid):
         return f.read().split()[2] != 'Z'
 
 
-def test_config_becomes_ros_arguments(tmp_path):
+def test_launch_file_becomes_the_command_lines_launch_ros_builds(tmp_path):
     (tmp_path / 'sim.yaml').write_text('/**:\n  ros__parameters:\n    seed: 3\n')
-    cfg = tmp_path / 'b.yaml'
-    cfg.write_text('namespace: rig2\nnodes:\n'
-                   '  - {executable: simulator_node, params_file: sim.yaml,\n'
-                   '     parameters: {axes: [x, y], fs: 5000.0}, remap: {deflection: /d}}\n'
-                   '  - {executable: command_node, name: cmd}\n')
-    specs = load_config(cfg, {'cmd': {'kind': 'sine'}})
-    assert [s.name for s in specs] == ['simulator_node', 'cmd']
+    launch = tmp_path / 'b.launch.yaml'
+    launch.write_text(
+        'launch:\n'
+        '- arg: {name: ns, default: rig2}\n'
+        '- arg: {name: fs, default: "5000"}\n'
+        '- arg: {name: with_cmd, default: "true"}\n'
+        '- let: {name: out, value: $(var ns)_d}\n'
+        '- node:\n'
+        '    pkg: piezo_narx_ros\n'
+        '    exec: simulator_node\n'
+        '    namespace: $(var ns)\n'
+        '    output: screen\n'
+        '    param:\n'
+        '    - from: $(dirname)/sim.yaml\n'
+        '    - {name: axes, value: [x, y]}\n'
+        '    - {name: fs, value: $(var fs)}\n'
+        '    - {name: plant_params, value: ""}\n'
+        '    remap: [{from: deflection, to: /$(var out)}]\n'
+        '- node: {pkg: piezo_narx_ros, exec: command_node, name: cmd, if: $(var with_cmd),\n'
+        '         env: [{name: PIEZO_NARX_EXECUTOR, value: single}]}\n'
+        '- node: {pkg: piezo_narx_ros, exec: estimator_node, unless: $(var with_cmd)}\n'
+        '- executable: {cmd: "$(exec-in-pkg fake_rig piezo_narx_ros) --port 5", name: rig}\n')
+    specs = load_launch(launch, {'fs': '2000.0'}, {'cmd': {'kind': 'sine'}})
+    assert [s.name for s in specs] == ['simulator_node', 'cmd', 'rig']
     a = specs[0].argv
-    i = a.index('--ros-args')
-    assert a[i + 1:] == ['-r', '__ns:=/rig2', '--params-file', str(tmp_path / 'sim.yaml'),
-                         '-p', 'axes:=[x, y]', '-p', 'fs:=5000.0', '-r', 'deflection:=/d']
+    assert a[3] == 'piezo_narx_ros.nodes.simulator_node'
+    assert a[4:] == ['--ros-args', '-r', '__ns:=/rig2',
+                     '--params-file', str(tmp_path / 'sim.yaml'),
+                     '-p', 'axes:=[x, y]', '-p', 'fs:=2000.0', '-p', "plant_params:=''",
+                     '-r', 'deflection:=/rig2_d']
     b = specs[1].argv
-    assert b[b.index('--ros-args') + 1:] == ['-r', '__ns:=/rig2', '-r', '__node:=cmd',
-                                             '-p', 'kind:=sine']
+    assert b[4:] == ['--ros-args', '-r', '__node:=cmd', '-p', 'kind:=sine']
+    assert specs[1].env == {'PIEZO_NARX_EXECUTOR': 'single'}
+    assert specs[2].argv[3:] == ['piezo_narx_ros.rig.fake_rig', '--port', '5']
 
 
-@pytest.mark.parametrize('text, fragment', [
-    ('nodes: []', 'non-empty list'),
-    ('nodes:\n  - {executable: rm}', 'executable must be one of'),
-    ('nodes:\n  - {executable: command_node, colour: red}', 'unknown key(s) colour'),
-    ('nodes:\n  - {executable: command_node, params_file: none.yaml}', 'params_file not found'),
-    ('nodes:\n  - {executable: command_node}\n  - {executable: command_node}', 'two nodes named'),
-    ('nodes: [', 'not valid YAML'),
+def test_package_launch_files_are_found_by_name_and_take_arguments():
+    specs = load_launch('estimate.launch.yaml', {'model': 'm.json', 'namespace': 'other'})
+    assert [s.name for s in specs] == ['simulator_node', 'estimator_node', 'command_node']
+    est = specs[1].argv
+    assert '-p' in est and 'model:=m.json' in est and '__ns:=/other' in est
+    assert any(a.endswith('config/estimator_node.yaml') for a in est)
+    rig = load_launch('rig.launch.yaml', {'fake_rig': 'false', 'target_host': '10.1.2.3'})
+    assert [s.name for s in rig] == ['driver_node', 'command_node']
+    assert 'target_host:=10.1.2.3' in rig[0].argv
+
+
+BASE = 'launch:\n- node: {pkg: piezo_narx_ros, exec: command_node}\n'
+
+
+@pytest.mark.parametrize('text, args, fragment', [
+    ('nodes: []', {}, 'one key `launch:`'),
+    ('launch:\n- node: {pkg: piezo_narx_ros, exec: rm}', {}, 'exec must be one of'),
+    ('launch:\n- node: {pkg: other_pkg, exec: talker}', {}, 'only piezo_narx_ros nodes'),
+    ('launch:\n- node: {pkg: piezo_narx_ros, exec: command_node, colour: red}', {},
+     'unknown attribute(s) colour'),
+    ('launch:\n- include: {file: x.launch.yaml}', {}, "action 'include' is not supported"),
+    ('launch:\n- node: {pkg: piezo_narx_ros, exec: command_node, param: [{from: none.yaml}]}',
+     {}, 'parameter file not found'),
+    ('launch:\n- node: {pkg: piezo_narx_ros, exec: command_node, namespace: $(var ns)}', {},
+     '$(var ns) is not defined'),
+    ('launch:\n- node: {pkg: piezo_narx_ros, exec: command_node, name: $(anon x)}', {},
+     'substitution $(anon x) is not supported'),
+    ('launch:\n- arg: {name: model}\n', {}, "launch argument 'model' is required"),
+    (BASE, {'modle': 'x'}, 'no launch argument modle'),
+    (BASE + BASE[8:], {}, 'two processes named'),
+    ('launch:\n- node: {pkg: piezo_narx_ros, exec: fake_rig}', {}, 'executable action'),
+    ('launch: [', {}, 'not valid YAML'),
 ])
-def test_bad_config_refused_with_one_line(tmp_path, text, fragment):
-    cfg = tmp_path / 'b.yaml'
-    cfg.write_text(text)
+def test_bad_launch_file_refused_with_one_line(tmp_path, text, args, fragment):
+    launch = tmp_path / 'b.launch.yaml'
+    launch.write_text(text)
     with pytest.raises(ConfigError) as info:
-        load_config(cfg)
+        load_launch(launch, args)
     assert fragment in str(info.value) and '\n' not in str(info.value)
 
 
 def test_unknown_override_and_missing_file_exit_2():
-    p = _bringup(str(REPO / 'config' / 'bringup_sim.yaml'), '--param', 'nobody.x=1')
+    p = _bringup('sim.launch.yaml', '--param', 'nobody.x=1')
     _, err = p.communicate(timeout=60)
     assert p.returncode == 2 and 'nobody' in err and len(err.strip().splitlines()) == 1
-    p = _bringup('/nonexistent/b.yaml')
+    p = _bringup('/nonexistent/b.launch.yaml')
     _, err = p.communicate(timeout=60)
     assert p.returncode == 2 and 'not found' in err
 
@@ -97,8 +142,7 @@ def test_sim_bringup_runs_prefixes_logs_and_stops_all_on_sigterm(tmp_path):
     from piezo_narx_ros.estimator.toy import toy_narx
     from piezo_narx_ros.ident.model_io import save_model
     model = save_model(toy_narx(), tmp_path / 'toy.json')
-    p = _bringup(str(REPO / 'config' / 'bringup_sim.yaml'), '--param',
-                 f'estimator_node.model={model}')
+    p = _bringup('estimate.launch.yaml', f'model:={model}')
     lines = []
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
@@ -122,8 +166,8 @@ def test_sim_bringup_runs_prefixes_logs_and_stops_all_on_sigterm(tmp_path):
 
 
 def test_node_dying_stops_the_rest_and_exits_nonzero(tmp_path):
-    p = _bringup(str(REPO / 'config' / 'bringup_sim.yaml'), '--param',
-                 f'estimator_node.model={tmp_path / "missing.json"}', '--duration', '60')
+    p = _bringup('estimate.launch.yaml', f'model:={tmp_path / "missing.json"}', '--duration',
+                 '60')
     out, err = p.communicate(timeout=90)
     assert p.returncode == 1
     assert 'estimator_node exited unexpectedly with code 2' in err

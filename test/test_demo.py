@@ -197,7 +197,10 @@ def test_quick_demo_end_to_end(tmp_path):
         assert png.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n' and png.stat().st_size > 10_000
     assert (out / 'fit' / 'model.json').is_file()
     assert (out / 'fit' / 'report' / 'metrics.json').is_file()
-    assert (out / 'bringup_live.yaml').is_file()
+    # the live phase as a ROS 2 YAML launch file, readable again by bringup
+    from piezo_narx_ros.cli.bringup import load_launch
+    names = [spec.name for spec in load_launch(out / 'live.launch.yaml')]
+    assert names == ['simulator_node', 'estimator_node', 'recorder_node', 'command_node']
 
 
 def test_sigterm_stops_every_child(tmp_path):

@@ -330,11 +330,9 @@ def test_bad_parameters_are_refused_with_a_reason(params, reason):
     assert reason in lines[0], out
 
 
-def test_bringup_rig_file_starts_fake_rig_then_driver_then_command_node():
-    from pathlib import Path
-    from piezo_narx_ros.cli.bringup import load_config
-    repo = Path(__file__).resolve().parents[1]
-    specs = load_config(repo / 'config' / 'bringup_rig.yaml')
+def test_rig_launch_file_starts_fake_rig_then_driver_then_command_node():
+    from piezo_narx_ros.cli.bringup import load_launch
+    specs = load_launch('rig.launch.yaml')
     assert [s.name for s in specs] == ['fake_rig', 'driver_node', 'command_node']
     rig, driver, command = (s.argv for s in specs)
     assert 'piezo_narx_ros.rig.fake_rig' in rig and '--ros-args' not in rig

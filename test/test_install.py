@@ -82,6 +82,16 @@ def test_installed_copy_finds_its_config_and_runs_simulator_and_fake_rig(tmp_pat
     assert module.startswith(str(prefix)) and share == str(prefix / 'share' / 'piezo_narx_ros')
     assert plant == str(prefix / 'share' / 'piezo_narx_ros' / 'config' / 'plant.yaml')
 
+    # launch files are installed too, and resolve $(find-pkg-share) to this prefix
+    launch = subprocess.run(
+        [sys.executable, '-c', 'from piezo_narx_ros.cli.bringup import load_launch; '
+         'a = load_launch("sim.launch.yaml")[0].argv; print(a[a.index("--params-file") + 1])'],
+        env=env, cwd=work, capture_output=True, text=True, timeout=60)
+    assert launch.returncode == 0, launch.stderr
+    assert launch.stdout.strip() == str(prefix / 'share' / 'piezo_narx_ros' / 'config' /
+                                        'simulator_node.yaml')
+    assert (prefix / 'share' / 'piezo_narx_ros' / 'launch' / 'rig.launch.yaml').is_file()
+
     code, out = _run_until([str(scripts / 'simulator_node'), '--ros-args', '-r',
                             f'__ns:=/install{os.getpid()}'], env, work, 'simulating')
     assert 'simulating' in out and code == 0, out

@@ -1,16 +1,11 @@
-"""`piezo-narx bringup CONFIG.yaml`: start a set of nodes as processes (no ros2 launch here).
+"""`piezo-narx bringup LAUNCH [NAME:=VALUE ...]`: start the nodes of a ROS 2 YAML launch file as
+processes (ros2 launch does not exist here; in a ROS install `ros2 launch piezo_narx_ros LAUNCH`
+reads the same file).
 
-CONFIG (YAML):
-
-    namespace: piezo                      # default namespace of every node
-    nodes:
-      - executable: simulator_node        # a node of this package (see NODES)
-        name: simulator_node              # optional: log prefix and node name (__node remap)
-        params_file: simulator_node.yaml  # optional, relative to CONFIG's folder
-        parameters: {seed: 1}             # optional, override the file (-p name:=value)
-        remap: {deflection: /other/deflection}   # optional, topic remaps (-r from:=to)
-
-Each node is started as `python -m MODULE --ros-args -r __ns:=/NS --params-file F -p k:=v -r a:=b`,
+LAUNCH is a path, or the name of a launch file of this package (share/piezo_narx_ros/launch, e.g.
+`sim.launch.yaml`). NAME:=VALUE sets launch arguments as with ros2 launch; `--param
+NODE.NAME=VALUE` adds a parameter to one node. The subset of the format read is documented in
+piezo_narx_ros/demo/launch_file.py. Each node is started as `python -m MODULE ARGS --ros-args ...`,
 its output is forwarded line by line with a `[name]` prefix, and all are stopped on Ctrl-C/SIGTERM
 (SIGINT, then SIGTERM, then SIGKILL after timeouts). A node that exits while the others run is a
 failure: the rest are stopped and bringup exits 1.
@@ -38,7 +33,7 @@ NODES = {
     'player_node': 'piezo_narx_ros.nodes.player_node',
     'fake_rig': 'piezo_narx_ros.rig.fake_rig',
 }
-_KEYS = {'executable', 'name', 'params_file', 'parameters', 'remap', 'arguments'}
+_NOT_ROS = {'fake_rig'}   # plain command-line programs: an `executable` action, not a `node`
 
 
 @dataclass
@@ -50,12 +45,15 @@ class NodeSpec:
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    p = subparsers.add_parser('bringup', help='start a set of nodes (command, simulator, '
-                              'estimator, ...) as processes and stop them together',
+    p = subparsers.add_parser('bringup', help='start the nodes of a ROS 2 YAML launch file as '
+                              'processes and stop them together',
                               description=__doc__.split('\n\n')[0])
-    p.add_argument('config', help='bringup YAML, e.g. config/bringup_sim.yaml')
+    p.add_argument('launch', help='launch file: a path, or a name in share/piezo_narx_ros/launch '
+                   '(sim.launch.yaml, rig.launch.yaml, record.launch.yaml, estimate.launch.yaml)')
+    p.add_argument('arguments', nargs='*', metavar='NAME:=VALUE',
+                   help='launch arguments, as with ros2 launch (e.g. model:=fit/model.json)')
     p.add_argument('--param', '-p', action='append', default=[], metavar='NODE.NAME=VALUE',
-                   help='override a parameter of one node, e.g. estimator_node.model=m.json')
+                   help='add a parameter to one node, e.g. command_node.amplitude=50.0')
     p.add_argument('--duration', type=float, default=None, metavar='S',
                    help='stop everything after S seconds (default: run until Ctrl-C)')
     p.add_argument('--sigint-timeout', type=float, default=5.0, metavar='S',
@@ -65,11 +63,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return p
 
 
-def _yaml_scalar(value) -> str:
-    """A value in ROS 2 `-p name:=value` syntax (YAML)."""
-    import yaml
-    text = yaml.safe_dump(value, default_flow_style=True).strip()
-    return text[:-4].strip() if text.endswith('\n...') or text.endswith(' ...') else text
+def _launch_arguments(items: list[str]) -> dict[str, str]:
+    out = {}
+    for item in items:
+        name, sep, value = item.partition(':=')
+        if not sep or not name:
+            raise ConfigError(f'launch arguments look like NAME:=VALUE, got {item!r}')
+        out[name] = value
+    return out
 
 
 def _overrides(items: list[str]) -> dict[str, dict]:
@@ -84,66 +85,41 @@ def _overrides(items: list[str]) -> dict[str, dict]:
     return out
 
 
-def load_config(path, overrides: dict[str, dict] | None = None) -> list[NodeSpec]:
-    """Read a bringup YAML; returns the processes to start, in order. ConfigError on a bad file."""
-    import yaml
-    path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text(encoding='utf-8'))
-    except FileNotFoundError:
-        raise ConfigError(f'bringup file not found: {path}') from None
-    except OSError as exc:
-        raise ConfigError(f'{path}: cannot read bringup file ({exc.strerror or exc})') from None
-    except UnicodeDecodeError as exc:
-        raise ConfigError(f'{path}: bringup file must be UTF-8 text (byte {exc.start} is '
-                          'not)') from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f'{path}: not valid YAML ({" ".join(str(exc).split())})') from None
-    if not isinstance(doc, dict) or not isinstance(doc.get('nodes'), list) or not doc['nodes']:
-        raise ConfigError(f'{path}: needs a non-empty list `nodes`')
-    ns = str(doc.get('namespace', 'piezo')).strip('/')
+def resolve_launch(name) -> Path:
+    """A launch file path as given, or NAME in this package's share/piezo_narx_ros/launch."""
+    path = Path(name)
+    if path.exists() or os.sep in str(name):
+        return path
+    from piezo_narx_ros.share import launch_path
+    return launch_path(str(name))
+
+
+def load_launch(path, arguments: dict[str, str] | None = None,
+                overrides: dict[str, dict] | None = None) -> list[NodeSpec]:
+    """Read a YAML launch file; returns the processes to start, in order. `arguments`: launch
+    arguments {name: value}; `overrides`: {node name: {parameter: value}} added last (so they
+    win). ConfigError (one line) on a bad file, argument or override."""
+    from piezo_narx_ros.demo.launch_file import LaunchFile, _yaml_flow
+    launch = LaunchFile(resolve_launch(path), arguments, NODES)
     overrides = dict(overrides or {})
     specs, names = [], set()
-    for i, entry in enumerate(doc['nodes']):
-        where = f'{path}: nodes[{i}]'
-        if not isinstance(entry, dict):
-            raise ConfigError(f'{where} must be a mapping')
-        unknown = set(entry) - _KEYS
-        if unknown:
-            raise ConfigError(f'{where}: unknown key(s) {", ".join(sorted(unknown))}')
-        exe = entry.get('executable')
-        if exe not in NODES:
-            raise ConfigError(f'{where}: executable must be one of {", ".join(NODES)}, got {exe!r}')
-        name = str(entry.get('name', exe))
-        if name in names:
-            raise ConfigError(f'{where}: two nodes named {name!r} (set `name`)')
-        names.add(name)
-        argv = [sys.executable, '-m', __name__, NODES[exe]]   # see _child_main
-        argv += [str(a) for a in entry.get('arguments', [])]
-        if exe == 'fake_rig':   # not a ROS node: plain command-line arguments only
-            specs.append(NodeSpec(name, argv))
-            continue
-        argv += ['--ros-args', '-r', f'__ns:=/{ns}' if ns else '__ns:=/']
-        if 'name' in entry:
-            argv += ['-r', f'__node:={name}']
-        if entry.get('params_file'):
-            pf = Path(entry['params_file'])
-            pf = pf if pf.is_absolute() else path.parent / pf
-            if not pf.is_file():
-                raise ConfigError(f'{where}: params_file not found: {pf}')
-            argv += ['--params-file', str(pf)]
-        params = dict(entry.get('parameters') or {})
-        params.update(overrides.pop(name, {}))
-        for k, v in params.items():
-            argv += ['-p', f'{k}:={_yaml_scalar(v)}']
-        remap = entry.get('remap') or {}
-        if not isinstance(remap, dict):
-            raise ConfigError(f'{where}: remap must be a mapping from:to')
-        for a, b in remap.items():
-            argv += ['-r', f'{a}:={b}']
-        specs.append(NodeSpec(name, argv))
+    for proc in launch.processes:
+        if proc.name in names:
+            raise ConfigError(f'{launch.path}: two processes named {proc.name!r} (set name)')
+        names.add(proc.name)
+        if proc.ros == (proc.executable in _NOT_ROS):
+            raise ConfigError(f'{launch.path}: {proc.executable} must be started with '
+                              f'{"an executable" if proc.ros else "a node"} action')
+        argv = list(proc.argv)
+        for k, v in overrides.pop(proc.name, {}).items():
+            if not proc.ros:
+                raise ConfigError(f'--param {proc.name}.{k}: {proc.name} takes no parameters')
+            argv += ['-p', f'{k}:={_yaml_flow(v)}']
+        # python -m this module MODULE ...: see _child_main
+        specs.append(NodeSpec(proc.name, [sys.executable, '-m', __name__,
+                                          NODES[proc.executable], *argv], proc.env))
     if overrides:
-        raise ConfigError(f'--param names node(s) not in {path}: {", ".join(overrides)}')
+        raise ConfigError(f'--param names node(s) not in {launch.path}: {", ".join(overrides)}')
     return specs
 
 
@@ -223,7 +199,7 @@ class Bringup:
 
 
 def run(args) -> int:
-    specs = load_config(args.config, _overrides(args.param))
+    specs = load_launch(args.launch, _launch_arguments(args.arguments), _overrides(args.param))
     if args.duration is not None and not args.duration > 0:
         raise ConfigError(f'--duration must be > 0 s, got {args.duration}')
     bringup = Bringup(specs, sigint_timeout=args.sigint_timeout,

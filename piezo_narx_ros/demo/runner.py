@@ -1,7 +1,8 @@
 """The demo's phases: record (nodes over DDS), fit (`piezo-narx fit`), live (estimator over DDS),
-analysis. Processes are started and stopped with the bringup machinery (cli/bringup.py): a
-bringup YAML per phase is written to the output folder and loaded with `load_config`, so every
-phase can be rerun by hand with `piezo-narx bringup OUT/bringup_<phase>.yaml`.
+analysis. Processes are started and stopped with the bringup machinery (cli/bringup.py): a ROS 2
+YAML launch file per phase is written to the output folder and loaded with `load_launch`, so every
+phase can be rerun by hand with `piezo-narx bringup OUT/<phase>.launch.yaml` (or `ros2 launch` in
+a ROS install).
 """
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from piezo_narx_ros.cli.bringup import Bringup, NodeSpec, load_config
+from piezo_narx_ros.cli.bringup import Bringup, NodeSpec, load_launch
 from piezo_narx_ros.errors import ConfigError, PiezoNarxError
 from piezo_narx_ros.settings import check_known, read_yaml_mapping
 
@@ -123,7 +124,7 @@ class Demo:
     def __init__(self, settings: dict, out: Path, say=print, work: Path | None = None):
         self.s = settings
         self.out = Path(out)
-        self.work = Path(work) if work is not None else self.out   # bringup YAMLs and the log
+        self.work = Path(work) if work is not None else self.out   # launch files and the log
         self.say = say
         self.ns = str(settings['namespace']).strip('/')
         self.groups: list[_Group] = []
@@ -183,12 +184,16 @@ class Demo:
                 time.sleep(min(left, 0.1))
 
     # ----------------------------------------------------------------------------- node phases
-    def _bringup_yaml(self, phase: str, nodes: list[dict]) -> Path:
+    def _launch_yaml(self, phase: str, nodes: list[dict]) -> Path:
+        """Write the phase's nodes ({'executable', 'parameters'}) as a ROS 2 YAML launch file."""
         import yaml
-        path = self.work / f'bringup_{phase}.yaml'
+        path = self.work / f'{phase}.launch.yaml'
+        actions = [{'node': {'pkg': 'piezo_narx_ros', 'exec': n['executable'],
+                             'name': n['executable'], 'namespace': self.ns, 'output': 'screen',
+                             'param': [{'name': k, 'value': v}
+                                       for k, v in n['parameters'].items()]}} for n in nodes]
         path.write_text(f'# Written by piezo-narx demo; rerun with: piezo-narx bringup {path}\n'
-                        + yaml.safe_dump({'namespace': self.ns, 'nodes': nodes},
-                                         sort_keys=False))
+                        + yaml.safe_dump({'launch': actions}, sort_keys=False))
         return path
 
     def fq(self, name: str) -> str:
@@ -212,7 +217,7 @@ class Demo:
             'fs': float(s['fs']), 'kind': kind or s['kind'], 'amplitude': float(s['amplitude']),
             'seconds': float(seconds), 'seed': int(seed), 'loop': False,
             'wait_for_subscribers': len(listeners), **(extra_command or {})}}
-        specs = load_config(self._bringup_yaml(phase, listeners + [command]))
+        specs = load_launch(self._launch_yaml(phase, listeners + [command]))
         names = [n['executable'] for n in listeners]
         self.wait(0.3)
         self.probe.latest.clear()   # statuses of an earlier phase's nodes (same names) are stale
