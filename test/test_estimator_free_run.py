@@ -97,13 +97,17 @@ def test_gaps_and_bad_commands_are_filled_by_holding_and_counted(model):
     assert s.commands == 596
 
 
-def test_out_of_order_dropped_and_long_gap_restarts(model):
+def test_stale_stamps_refused_and_long_jump_restarts_once_confirmed(model):
     est = FreeRunEstimator(model, init='rest', max_fill=10)
     est.on_command(10 * P, 1.0)
     assert est.on_command(10 * P, 2.0) == [] and est.on_command(9 * P, 2.0) == []
-    assert est.stats.out_of_order == 2
-    out = est.on_command(100 * P, 5.0)          # 89 missing > max_fill: restart from rest
-    assert len(out) == 1 and est.stats.resets == 1 and est.stats.filled == 0
+    assert len(est.on_command(11 * P, 1.0)) == 1       # the stream goes on: both were outliers
+    assert est.stats.stamp_outliers == 2
+    out = []
+    for k in range(100, 103):                  # 88 missing > max_fill: a new stream, 3 agree
+        out += est.on_command(k * P, 5.0)
+    assert [t for t, _ in out] == [100 * P, 101 * P, 102 * P]
+    assert est.stats.stream_restarts == 1 and est.stats.filled == 0
     assert out[0][1] == pytest.approx(model.simulate(np.array([5.0]))[0], abs=1e-15)
 
 

@@ -178,3 +178,53 @@ def test_every_node_stops_on_sighup():
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def _status_of(col, node_name):
+    """(level, message, values) of the status whose name mentions node_name, or None."""
+    for name, status in col.diag.items():
+        if node_name in name:
+            return status
+    return None
+
+
+def test_live_estimator_refuses_outliers_and_reports_a_second_writer(tmp_path):
+    """Over DDS: a future-stamped command and a second command writer. The estimate follows
+    the first writer exactly and /diagnostics says what happened (items 1 and 3)."""
+    import numpy as np
+    from test_estimator_node import Collector, start_node, stop
+
+    from piezo_narx_ros.estimator.toy import toy_narx
+    from piezo_narx_ros.ident.model_io import save_model
+    from piezo_narx_ros.nodes.common import make_joint_state, sample_qos
+    model = toy_narx(fs=2000.0)
+    save_model(model, tmp_path / 'toy.json')
+    col = Collector('/twowriters', ('deflection_estimate',), diagnostics=True)
+    second = col.node.create_publisher(JointState, 'voltage_command', sample_qos(1000))
+    est = start_node('estimator_node', '-p', f'model:={tmp_path / "toy.json"}', '-p',
+                     'init:=rest', ns='/twowriters')
+    p, t0, n = 500_000, 10**18, 600
+    try:
+        assert col.wait_for(lambda: col.pub.get_subscription_count() >= 1, 30.0)
+        u = np.random.default_rng(3).uniform(-100, 100, n)
+        for k in range(n):
+            col.pub.publish(make_joint_state(t0 + k * p, ['x'], effort=[u[k]]))
+            if k == 100:       # one command an hour in the future
+                col.pub.publish(make_joint_state(t0 + 3600 * 10**9, ['x'], effort=[0.0]))
+            if k >= 300:       # a second writer, off the first one's grid
+                second.publish(make_joint_state(t0 + 123_000 + k * p, ['x'], effort=[-u[k]]))
+            time.sleep(0.0005)
+        assert col.wait_for(lambda: len(col.data['deflection_estimate']) >= n, 20.0)
+        assert col.wait_for(lambda: (_status_of(col, 'estimator_node') or (0, '', {}))[2]
+                            .get('commands') == str(n + 1 + n - 300), 5.0)
+        t, y_hat = col.arrays('deflection_estimate')
+        assert np.array_equal(t, t0 + p * np.arange(n))        # every first-writer sample
+        assert np.max(np.abs(y_hat - model.simulate(u))) <= 1e-12
+        level, message, values = _status_of(col, 'estimator_node')
+        assert int(values['stamp_outliers']) == 1 + (n - 300)
+        assert int(values['command_publishers']) == 2
+        assert level == DIAG_WARN and 'publishers on the command topic' in message
+    finally:
+        codes = stop([est])
+        col.close()
+    assert codes == [0]

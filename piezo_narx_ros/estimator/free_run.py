@@ -10,6 +10,11 @@ Conventions (so that the live estimate equals offline `model.simulate` to roundi
 - from measurement: the first n0 estimates are the measured outputs, as `simulate(u, y[:n0])`.
 A missing sample (stamp gap) or a rejected command (NaN/inf or outside [u_min, u_max]) is replaced
 by the last good command (the amplifier holds its output), estimated, published and counted.
+
+Stamps go through a `command.stamps.StampGate`: an isolated outlier stamp (future, past,
+duplicate, a second writer's interleaved one) is refused (`stamp_outliers`), a gap of at most
+`max_fill` samples is filled, and a real new stream (a player loop, a new run, a longer jump)
+restarts the free run there (`stream_restarts`) once `confirm` commands agree.
 """
 from __future__ import annotations
 
@@ -19,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from piezo_narx_ros.command.stamps import SAMPLE, StampGate
 from piezo_narx_ros.errors import ConfigError
 
 INIT_MODES = ('auto', 'rest', 'measurement')
@@ -33,8 +39,9 @@ class EstimatorStats:
     rejected_range: int = 0
     gaps: int = 0              # stamp gaps detected (events)
     filled: int = 0            # samples estimated from a held command (gaps + rejected)
-    out_of_order: int = 0      # commands with a stamp not after the previous one (dropped)
-    resets: int = 0            # restarts after a gap longer than max_fill
+    stamp_outliers: int = 0    # commands refused: their stamp continues neither the running
+                               # stream nor a new one (future/past/duplicate/interleaved)
+    stream_restarts: int = 0   # new streams recognised (loop, new run, jump beyond max_fill)
     out_of_range: int = 0      # estimates outside the model's trained output range (+ margin)
     reanchors: int = 0
     unestimated: int = 0       # commands before the first n0 measured ones (init from measurement)
@@ -52,11 +59,14 @@ class FreeRunEstimator:
     range_margin: fraction of the trained output span allowed beyond it before an estimate is
     flagged. window: samples in the running error (RMS, R²). reanchor_every: every that many
     samples, restart the recursion from the latest measured outputs (0 = never, the default).
+    confirm: consecutive commands that must agree before a jump in the stamps (other than a gap
+    of at most max_fill) is taken as a new stream rather than an outlier (module docstring).
     """
 
     def __init__(self, model, fs: float | None = None, init: str = 'auto', u_min: float = -200.0,
                  u_max: float = 200.0, max_fill: int = 2000, range_margin: float = 0.1,
-                 window: int = 2000, reanchor_every: int = 0, init_timeout: float = 0.5):
+                 window: int = 2000, reanchor_every: int = 0, init_timeout: float = 0.5,
+                 confirm: int = 3):
         for attr in ('nu', 'ny', 'n0', 'stepper'):
             if not hasattr(model, attr):
                 raise ConfigError(f'model has no {attr!r}: not a NARX/ARX model')
@@ -67,14 +77,16 @@ class FreeRunEstimator:
             raise ConfigError(f'init must be one of {list(INIT_MODES)}, got {init!r}')
         if not u_min < u_max:
             raise ConfigError(f'u_min ({u_min:g} V) must be below u_max ({u_max:g} V)')
-        if max_fill < 0 or window < 2 or reanchor_every < 0 or init_timeout < 0:
-            raise ConfigError('max_fill, reanchor_every, init_timeout must be >= 0 and window >= 2')
+        if max_fill < 0 or window < 2 or reanchor_every < 0 or init_timeout < 0 or confirm < 1:
+            raise ConfigError('max_fill, reanchor_every, init_timeout must be >= 0, window >= 2 '
+                              'and confirm >= 1')
         self.model = model
         self.fs = float(fs)
         self.period_ns = 1e9 / self.fs
         self.init_mode = init
         self.u_min, self.u_max = float(u_min), float(u_max)
         self.max_fill = int(max_fill)
+        self.confirm = int(confirm)
         self.window = int(window)
         self.reanchor_every = int(reanchor_every)
         self.init_timeout_samples = max(int(round(init_timeout * self.fs)), model.n0)
@@ -87,6 +99,8 @@ class FreeRunEstimator:
         else:
             self.y_lo, self.y_hi = -math.inf, math.inf
         self.stats = EstimatorStats()
+        self.excursion = 0.0      # largest distance beyond the range (m) since take_excursion()
+        self.gate = StampGate(self.period_ns, self.max_fill, confirm)
         self._hist = max(self.n0, 1) + 64 + self.reanchor_every  # u/t history kept for re-anchoring
         self._err = deque(maxlen=self.window)
         self._ymeas = deque(maxlen=self.window)
@@ -95,6 +109,10 @@ class FreeRunEstimator:
     # -------------------------------------------------------------------------------- state
     def restart(self, wait_for_measurement: bool | None = None) -> None:
         """Forget the past; the next command starts a new run (initialised per `init`)."""
+        self.gate.reset()
+        self._new_run(wait_for_measurement)
+
+    def _new_run(self, wait_for_measurement: bool | None) -> None:
         if wait_for_measurement is None:
             wait_for_measurement = self.init_mode == 'measurement'
         self._wait = bool(wait_for_measurement) and self.init_mode != 'rest'
@@ -136,12 +154,49 @@ class FreeRunEstimator:
     # ------------------------------------------------------------------------------- inputs
     def on_command(self, t_ns: int, u: float) -> list[tuple[int, float]]:
         """One command (stamp ns, volts) -> estimates to publish [(t_ns, y_hat m), ...]."""
-        st = self.stats
-        st.commands += 1
+        self.stats.commands += 1
         if not self._decided:
             self._decided = True
             self._wait = self.init_mode == 'measurement'
         out: list[tuple[int, float]] = []
+        self._apply(self.gate.push(t_ns, u), out)
+        return out
+
+    @property
+    def holding(self) -> int:
+        """Commands held back while their stamps are ambiguous (see module docstring)."""
+        return self.gate.holding
+
+    def flush(self) -> list[tuple[int, float]]:
+        """Decide on held commands when no more commands come (the stream stopped): a gap
+        within max_fill is estimated, anything else refused as outliers. Returns the estimates
+        that became ready. The node calls it when commands have stopped for a while."""
+        out: list[tuple[int, float]] = []
+        self._apply(self.gate.flush(), out)
+        return out
+
+    def take_excursion(self) -> float:
+        """Largest distance (m) of an estimate beyond the flagged range since the last call;
+        resets it (read once per diagnostics tick)."""
+        value, self.excursion = self.excursion, 0.0
+        return value
+
+    def _apply(self, events, out: list) -> None:
+        """Estimate the commands the stamp gate let through; restart on a new stream."""
+        for kind, t, item in events:
+            if kind == SAMPLE:
+                self._accept(t, item, out)
+            else:   # RESTART: item lists the new stream's stamps seen so far
+                keep = {s: self._meas[s] for s in item if s in self._meas}
+                self._new_run(self._wait)
+                self._meas.update(keep)      # its measurements that arrived while it was held
+        self.stats.stamp_outliers = self.gate.outliers
+        self.stats.stream_restarts = self.gate.restarts
+
+    def _accept(self, t_ns: int, u: float, out: list) -> None:
+        """Estimate one command whose stamp is known to be on the stream (after _last_t, or
+        the first), filling any gap by holding the last good command."""
+        st = self.stats
         good = True
         if not math.isfinite(u):
             st.rejected_nonfinite += 1
@@ -151,24 +206,14 @@ class FreeRunEstimator:
             good = False
         last = self._last_t
         if last is not None:
-            if t_ns <= last:
-                st.out_of_order += 1
-                return out
             missing = int(round((t_ns - last) / self.period_ns)) - 1
             if missing > 0:
                 st.gaps += 1
-                if missing > self.max_fill:
-                    st.resets += 1
-                    wait = self._wait
-                    self.restart(wait)
-                    self._decided = True
-                else:
-                    step = (t_ns - last) / (missing + 1)
-                    for i in range(1, missing + 1):
-                        self._advance(last + int(round(i * step)), self._last_u, True, out)
+                step = (t_ns - last) / (missing + 1)
+                for i in range(1, missing + 1):
+                    self._advance(last + int(round(i * step)), self._last_u, True, out)
         u_eff = u if good else self._last_u
         self._advance(t_ns, u_eff, not good, out)
-        return out
 
     def on_measurement(self, t_ns: int, y: float) -> list[tuple[int, float]]:
         """One measured deflection (stamp ns, m) for initialisation, running error and
@@ -232,6 +277,9 @@ class FreeRunEstimator:
         self.out_of_range_now = oor
         if oor:
             self.stats.out_of_range += 1
+            beyond = self.y_lo - y_hat if y_hat < self.y_lo else y_hat - self.y_hi
+            if not beyond <= self.excursion:   # also NaN: a diverged estimate
+                self.excursion = beyond
         y = self._meas.get(t_ns)   # kept: re-anchoring reads it
         if y is not None:
             self._record_error(y, y_hat)

@@ -14,9 +14,10 @@ from std_srvs.srv import Trigger
 
 from piezo_narx_ros.errors import ConfigError
 from piezo_narx_ros.estimator.free_run import INIT_MODES, FreeRunEstimator
-from piezo_narx_ros.nodes.common import (DIAG_OK, DIAG_WARN, TOPIC_COMMAND, TOPIC_DEFLECTION,
-                                         TOPIC_ESTIMATE, Diagnostics, ParamSpec, PiezoNode,
-                                         decode_joint_state, encode_joint_state, main_for)
+from piezo_narx_ros.estimator.health import EstimatorHealth
+from piezo_narx_ros.nodes.common import (TOPIC_COMMAND, TOPIC_DEFLECTION, TOPIC_ESTIMATE,
+                                         Diagnostics, ParamSpec, PiezoNode, decode_joint_state,
+                                         encode_joint_state, main_for)
 
 
 class EstimatorNode(PiezoNode):
@@ -65,7 +66,11 @@ class EstimatorNode(PiezoNode):
         self.sub_cmd = self.sample_subscription(TOPIC_COMMAND, self.on_command)
         self.sub_meas = self.sample_subscription(TOPIC_DEFLECTION, self.on_measurement)
         self._names = [self.axis]
-        self._rejected_reported = 0
+        self.health = EstimatorHealth(self.est)
+        # A command held back for its ambiguous stamp is decided when commands stop (the stream
+        # ended right after a gap); checked a few times a second, nothing to do otherwise.
+        self._commands_at_last_check = 0
+        self.flush_timer = self.create_timer(0.2, self.on_idle_check)
         self.srv_reset = self.create_service(Trigger, '~/reset', self.on_reset)
         self.srv_reinitialize = self.create_service(Trigger, '~/reinitialize',
                                                     self.on_reinitialize)
@@ -124,28 +129,28 @@ class EstimatorNode(PiezoNode):
         if got is not None:
             self.publish(self.est.on_measurement(*got))
 
+    def on_idle_check(self) -> None:
+        """Commands stopped while one was held back: decide on it now."""
+        n = self.est.stats.commands
+        if n == self._commands_at_last_check and self.est.holding:
+            self.publish(self.est.flush())
+        self._commands_at_last_check = n
+
     def publish(self, estimates) -> None:
         names, pub = self._names, self.pub
         for t, y in estimates:
             pub.publish(encode_joint_state(t, names, position=(y,)))
 
     def status(self):
-        st = self.est.stats
+        """Everything since the previous tick (EstimatorHealth), plus the running error."""
+        level, msg, values = self.health.tick(self.sub_cmd.get_publisher_count())
         rms, r2, n = self.est.running_error()
-        rejected = st.rejected_nonfinite + st.rejected_range
-        warn = self.est.out_of_range_now or rejected > self._rejected_reported
-        self._rejected_reported = rejected
-        msg = ('estimate outside the trained output range' if self.est.out_of_range_now else
-               'rejecting commands' if warn else f'ok (init {st.init})')
-        values = {k: getattr(st, k) for k in (
-            'commands', 'estimates', 'rejected_nonfinite', 'rejected_range', 'gaps', 'filled',
-            'out_of_order', 'resets', 'out_of_range', 'reanchors', 'init')}
         # Matched deflection publishers: a launcher waits for 1 before streaming, so that the
         # first measured samples (the initial values) are not published before this matches.
         values['measurement_publishers'] = self.sub_meas.get_publisher_count()
         if n >= 2 and not math.isnan(rms):
             values.update(rms_error_m=rms, r2=r2, error_window=n)
-        return (DIAG_WARN if warn else DIAG_OK), msg, values
+        return bytes([level]), msg, values
 
 
 main = main_for(EstimatorNode)

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import math
 
+from piezo_narx_ros.command.stamps import RESTART, StampGate
+from piezo_narx_ros.counters import Since
 from piezo_narx_ros.errors import DataError
 from piezo_narx_ros.nodes.common import (DIAG_OK, DIAG_WARN, TOPIC_COMMAND, TOPIC_DEFLECTION,
                                          Diagnostics, ParamSpec, PiezoNode,
@@ -20,7 +22,10 @@ class PlantResponder:
     """Plants (one per axis) driven by stamped commands; ROS-free.
 
     plants: {axis: PiezoCantilever}; fs: command rate, Hz; max_fill: longest gap (samples)
-    bridged by holding the command (a longer one is not simulated: the plant just continues).
+    bridged by holding the command. Stamps go through a `command.stamps.StampGate`: an isolated
+    outlier stamp is refused (`stamp_outliers`) instead of making every later command look stale,
+    and a new stream (a loop, a new run, a jump beyond max_fill) is followed: the plant just
+    continues from its state, as a real one would (`stream_restarts`).
     """
 
     def __init__(self, plants: dict, fs: float, max_fill: int = 20000):
@@ -28,17 +33,29 @@ class PlantResponder:
         self.axes = list(plants)
         self.period_ns = 1e9 / fs
         self.max_fill = max_fill
+        self.gate = StampGate(self.period_ns, max_fill)
         self.last_t: int | None = None
         self.last_u = {a: 0.0 for a in self.axes}
+        self.received = 0
         self.answered = 0
         self.rejected = 0
         self.filled = 0
         self.gaps = 0
-        self.out_of_order = 0
 
-    def on_command(self, t_ns: int, volts: dict) -> tuple[list[float], list[float]] | None:
-        """Apply {axis: V} at stamp t_ns; returns (y_meas m per axis, u_applied V per axis) in
-        self.axes order, or None when the sample is refused (non-finite, missing axis, stale)."""
+    @property
+    def stamp_outliers(self) -> int:
+        return self.gate.outliers
+
+    @property
+    def stream_restarts(self) -> int:
+        return self.gate.restarts
+
+    def on_command(self, t_ns: int, volts: dict) -> list[tuple[int, list[float], list[float]]]:
+        """Apply {axis: V} at stamp t_ns; returns the answers now due, [(stamp, y_meas m per
+        axis, u_applied V per axis)] in self.axes order: usually one, none while the stamp is
+        held (see StampGate), several when held commands are released. Raises DataError for a
+        non-finite command or a missing axis (the plant is not touched)."""
+        self.received += 1
         try:
             u = [float(volts[a]) for a in self.axes]
         except KeyError as exc:
@@ -47,28 +64,38 @@ class PlantResponder:
         if not all(math.isfinite(x) for x in u):
             self.rejected += 1
             raise DataError(f'command is not finite: {u}')
-        if self.last_t is not None:
-            if t_ns <= self.last_t:
-                self.out_of_order += 1
-                raise DataError(f'command stamp {t_ns} ns is not after the previous one')
-            missing = int(round((t_ns - self.last_t) / self.period_ns)) - 1
-            if missing > 0:
-                self.gaps += 1
-                n = min(missing, self.max_fill)
-                self.filled += n
-                for a in self.axes:
-                    plant, held = self.plants[a], self.last_u[a]
-                    for _ in range(n):
-                        plant.step(held)
-        y_out, u_out = [], []
-        for a, x in zip(self.axes, u):
-            y_meas, _, u_app = self.plants[a].step(x)
-            y_out.append(y_meas)
-            u_out.append(u_app)
-            self.last_u[a] = x
-        self.last_t = t_ns
-        self.answered += 1
-        return y_out, u_out
+        return self.answer(self.gate.push(t_ns, u))
+
+    def flush(self) -> list[tuple[int, list[float], list[float]]]:
+        """Answers of held commands once commands have stopped (StampGate.flush)."""
+        return self.answer(self.gate.flush())
+
+    def answer(self, events) -> list[tuple[int, list[float], list[float]]]:
+        """Step the plants for the commands the stamp gate let through."""
+        out = []
+        for kind, t_ns, u in events:
+            if kind == RESTART:
+                self.last_t = None      # no gap to bridge into a new stream
+                continue
+            if self.last_t is not None:
+                missing = int(round((t_ns - self.last_t) / self.period_ns)) - 1
+                if missing > 0:
+                    self.gaps += 1
+                    self.filled += missing
+                    for a in self.axes:
+                        plant, held = self.plants[a], self.last_u[a]
+                        for _ in range(missing):
+                            plant.step(held)
+            y_out, u_out = [], []
+            for a, x in zip(self.axes, u):
+                y_meas, _, u_app = self.plants[a].step(x)
+                y_out.append(y_meas)
+                u_out.append(u_app)
+                self.last_u[a] = x
+            self.last_t = t_ns
+            self.answered += 1
+            out.append((t_ns, y_out, u_out))
+        return out
 
 
 class SimulatorNode(PiezoNode):
@@ -104,6 +131,12 @@ class SimulatorNode(PiezoNode):
         # Raw CDR bytes in and out (see common.decode_joint_state: 8x cheaper).
         self.sub = self.sample_subscription(TOPIC_COMMAND, self.on_command)
         self._names = list(p['axes'])
+        self._seen = 0
+        self.flush_timer = self.create_timer(0.2, self.on_idle_check)
+        r = self.responder
+        self._since = Since(lambda: {'rejected': r.rejected, 'stamp_outliers': r.stamp_outliers,
+                                     'stream_restarts': r.stream_restarts},
+                            ('rejected', 'stamp_outliers', 'stream_restarts'))
         self.diagnostics = Diagnostics(
             self, self.status, task='plant simulation',
             hardware_id=f"simulated cantilever (seed {p['seed']})")
@@ -121,18 +154,37 @@ class SimulatorNode(PiezoNode):
         else:  # an unnamed message drives the first axis
             volts = {self.responder.axes[0]: sample.effort[0]} if sample.effort else {}
         try:
-            y, u = self.responder.on_command(sample.t_ns, volts)
+            answers = self.responder.on_command(sample.t_ns, volts)
         except DataError as exc:
             self.get_logger().warning(f'command refused: {exc}', throttle_duration_sec=1.0)
             return
-        self.pub.publish(encode_joint_state(sample.t_ns, self._names, y, u))
+        self.publish(answers)
+
+    def publish(self, answers) -> None:
+        for t_ns, y, u in answers:
+            self.pub.publish(encode_joint_state(t_ns, self._names, y, u))
+
+    def on_idle_check(self) -> None:
+        """Commands stopped while one was held back for its stamp: decide on it now."""
+        n = self.responder.received
+        if n == self._seen and self.responder.gate.holding:
+            self.publish(self.responder.flush())
+        self._seen = n
 
     def status(self):
+        """WARN when commands were refused since the previous tick (not forever after one)."""
         r = self.responder
-        bad = r.rejected + r.out_of_order
-        return (DIAG_WARN if bad else DIAG_OK, 'refusing commands' if bad else 'ok',
-                {'answered': r.answered, 'rejected': r.rejected, 'gaps': r.gaps,
-                 'filled': r.filled, 'out_of_order': r.out_of_order})
+        d = self._since.tick()
+        problems = [f'{n} {what}' for n, what in (
+            (d['rejected'], 'command(s) refused (not finite or missing axis)'),
+            (d['stamp_outliers'], 'command stamp(s) refused as outliers'),
+            (d['stream_restarts'], 'command stream restart(s) followed')) if n]
+        values = {'answered': r.answered, 'rejected': r.rejected, 'gaps': r.gaps,
+                  'filled': r.filled, 'stamp_outliers': r.stamp_outliers,
+                  'stream_restarts': r.stream_restarts, 'holding': r.gate.holding}
+        if problems:
+            return DIAG_WARN, '; '.join(problems) + ' since the last report', values
+        return DIAG_OK, 'ok', values
 
 
 main = main_for(SimulatorNode)

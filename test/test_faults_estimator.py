@@ -1,0 +1,156 @@
+"""Fault suite, estimator (ROS-free): stamp outliers against real stream restarts, interleaved
+writers, and a /diagnostics level that reflects everything since the previous tick.
+
+Covers issue 10 items 1-3. The estimates are compared with offline `simulate` of the commands the
+estimator should have used, so a fault that silently corrupts the estimate fails here.
+"""
+import math
+
+import numpy as np
+import pytest
+
+from piezo_narx_ros.counters import OK, WARN
+from piezo_narx_ros.estimator.free_run import FreeRunEstimator
+from piezo_narx_ros.estimator.health import EstimatorHealth
+from piezo_narx_ros.estimator.toy import toy_narx
+
+P = 500_000            # ns, 2 kHz
+T0 = 1_700_000_000_000_000_000
+
+
+@pytest.fixture(scope='module')
+def model():
+    return toy_narx(nu=3, ny=2, hidden=6, fs=2000.0, seed=4)
+
+
+def _u(n, seed=0):
+    return np.random.default_rng(seed).uniform(-100.0, 100.0, n)
+
+
+def _run(est, commands):
+    out = []
+    for t, u in commands:
+        out += est.on_command(t, float(u))
+    return out
+
+
+def _check(out, stamps, ref):
+    assert [t for t, _ in out] == list(stamps)
+    assert np.max(np.abs(np.array([y for _, y in out]) - ref)) <= 1e-12
+
+
+@pytest.mark.parametrize('offset_ns', [500_000_000, 3_600_000_000_000, -250_000_000,
+                                       -3_600_000_000_000, 0, 123_457])
+def test_one_outlier_stamp_is_refused_and_the_stream_goes_on(model, offset_ns):
+    """+0.5 s, +1 h, past, duplicate, off-grid: one bad stamp must not stop the estimates."""
+    u = _u(4000)
+    stream = [(T0 + k * P, u[k]) for k in range(4000)]
+    bad = stream[:1000] + [(T0 + 999 * P + offset_ns, 55.0)] + stream[1000:]
+    est = FreeRunEstimator(model, init='rest')
+    health = EstimatorHealth(est)
+    out = _run(est, bad)
+    _check(out, [t for t, _ in stream], model.simulate(u))
+    assert est.stats.stamp_outliers == 1 and est.stats.stream_restarts == 0
+    level, message, values = health.tick()
+    assert level == WARN and '1 command stamp(s) refused as outliers' in message
+    assert values['stamp_outliers_since_last'] == 1
+    assert health.tick()[0] == OK                  # the next quiet tick is OK again
+
+
+def test_player_loop_restarts_the_free_run_and_estimates_every_sample(model):
+    u = _u(1000, 1)
+    one_pass = [(T0 + k * P, u[k]) for k in range(1000)]
+    est = FreeRunEstimator(model, init='rest')
+    health = EstimatorHealth(est)
+    out = _run(est, one_pass + one_pass)          # player_node loop:=true replays the stamps
+    assert est.stats.stream_restarts == 1 and est.stats.stamp_outliers == 0
+    _check(out[:1000], [t for t, _ in one_pass], model.simulate(u))
+    _check(out[1000:], [t for t, _ in one_pass], model.simulate(u))   # from rest again
+    level, message, _ = health.tick()
+    assert level == WARN and 'restart' in message
+
+
+def test_a_new_run_an_hour_later_restarts(model):
+    u = _u(600, 2)
+    first = [(T0 + k * P, u[k]) for k in range(300)]
+    later = [(T0 + 3_600_000_000_000 + k * P, u[300 + k]) for k in range(300)]
+    est = FreeRunEstimator(model, init='rest')
+    out = _run(est, first + later)
+    assert est.stats.stream_restarts == 1 and est.stats.stamp_outliers == 0
+    _check(out[300:], [t for t, _ in later], model.simulate(u[300:]))
+
+
+def test_a_gap_within_max_fill_is_filled_after_one_confirming_command(model):
+    u = _u(200, 3)
+    est = FreeRunEstimator(model, init='rest')
+    cmds = [(T0 + k * P, u[k]) for k in range(200) if not 50 <= k < 60]
+    out = _run(est, cmds[:50])
+    assert est.on_command(*cmds[50]) == [] and est.holding == 1   # k=60 after a gap: held
+    out += _run(est, cmds[51:])
+    held = u.copy()
+    held[50:60] = u[49]
+    _check(out, [T0 + k * P for k in range(200)], model.simulate(held))
+    assert est.stats.gaps == 1 and est.stats.filled == 10 and est.stats.stamp_outliers == 0
+
+
+def test_two_interleaved_writers_keep_one_stream_and_are_reported(model):
+    """A second command node started by mistake: its stamps are off the first one's grid."""
+    ua, ub = _u(2000, 4), _u(2000, 5)
+    a = [(T0 + k * P, ua[k]) for k in range(2000)]
+    b = [(T0 + 150_000 + k * P, ub[k]) for k in range(2000)]
+    mixed = [m for pair in zip(a, b) for m in pair]
+    est = FreeRunEstimator(model, init='rest')
+    health = EstimatorHealth(est)
+    out = _run(est, mixed)
+    _check(out, [t for t, _ in a], model.simulate(ua))     # the first writer, untouched
+    assert est.stats.stamp_outliers >= 1999
+    level, message, values = health.tick(command_publishers=2)
+    assert level == WARN and message.startswith('2 publishers on the command topic')
+    assert values['command_publishers'] == 2
+
+
+def test_burst_of_nan_and_outlier_stamps(model):
+    u = _u(3000, 6)
+    stream = [(T0 + k * P, u[k]) for k in range(3000)]
+    rng = np.random.default_rng(7)
+    burst = [(int(T0 + rng.integers(-10**12, 10**12)), math.nan if i % 2 else 1e6)
+             for i in range(40)]
+    sent = stream[:1500] + burst + stream[1500:]
+    sent[1600] = (sent[1600][0], math.nan)             # and a NaN on the stream itself
+    est = FreeRunEstimator(model, init='rest')
+    out = _run(est, sent)
+    held = u.copy()
+    held[1560] = held[1559]                            # index 1600 in `sent` is sample 1560
+    _check(out, [t for t, _ in stream], model.simulate(held))
+    assert est.stats.stamp_outliers == 40 and est.stats.rejected_nonfinite == 1
+
+
+def test_flush_decides_when_the_stream_stops(model):
+    est = FreeRunEstimator(model, init='rest')
+    _run(est, [(T0 + k * P, 1.0) for k in range(10)])
+    assert est.on_command(T0 + 15 * P, 2.0) == [] and est.holding == 1
+    out = est.flush()                                  # the last sample came after a gap
+    assert [t for t, _ in out] == [T0 + k * P for k in range(10, 16)]
+    assert est.on_command(T0 + 3 * P, 2.0) == [] and est.holding == 1
+    assert est.flush() == [] and est.stats.stamp_outliers == 1 and est.holding == 0
+
+
+def test_runaway_between_ticks_is_a_warn_tick_even_if_the_last_sample_is_fine():
+    """0.5 Hz ±200 V on a model trained on ±50 V: thousands of flagged estimates between two
+    ticks used to leave the level OK when the sample at the tick was back in range."""
+    from piezo_narx_ros.ident.arx import ARXModel
+    m = ARXModel(na=1, nb=0).set_coefficients(a=[-0.5], b=[1e-8])   # 2e-8 m/V static gain
+    m.fs, m.output_range = 2000.0, (-1e-6, 1e-6)
+    est = FreeRunEstimator(m, init='rest', u_min=-300, u_max=300)
+    health = EstimatorHealth(est)
+    t = np.arange(4000) / 2000.0
+    u = 200.0 * np.sin(2 * np.pi * 0.5 * t)
+    u[-200:] = 0.0                                      # back in range when the tick comes
+    _run(est, [(T0 + k * P, x) for k, x in enumerate(u)])
+    assert not est.out_of_range_now
+    level, message, values = health.tick()
+    flagged = values['out_of_range_since_last']
+    assert level == WARN and flagged > 2000 and message.startswith(f'{flagged} of 4000')
+    assert 'up to 2.8e-06 m beyond' in message          # 4e-6 m peak - 1.2e-6 m bound
+    _run(est, [(T0 + (4000 + k) * P, 0.0) for k in range(100)])
+    assert health.tick()[0] == OK
