@@ -215,8 +215,11 @@ def test_live_estimator_refuses_outliers_and_reports_a_second_writer(tmp_path):
                 second.publish(make_joint_state(t0 + 123_000 + k * p, ['x'], effort=[-u[k]]))
             time.sleep(0.0005)
         assert col.wait_for(lambda: len(col.data['deflection_estimate']) >= n, 20.0)
+        # Every command counted, and the last second-writer stamp decided (held until the
+        # stream stops, then refused by the idle check).
         assert col.wait_for(lambda: (_status_of(col, 'estimator_node') or (0, '', {}))[2]
-                            .get('commands') == str(n + 1 + n - 300), 5.0)
+                            .get('commands') == str(n + 1 + n - 300) and
+                            _status_of(col, 'estimator_node')[2].get('holding') == '0', 5.0)
         t, y_hat = col.arrays('deflection_estimate')
         assert np.array_equal(t, t0 + p * np.arange(n))        # every first-writer sample
         assert np.max(np.abs(y_hat - model.simulate(u))) <= 1e-12
