@@ -15,6 +15,11 @@ from piezo_narx_ros.errors import BagError
 GAP_FACTOR = 1.5
 # Periods (gaps excluded) varying by more than this fraction of the nominal period: irregular rate.
 JITTER_TOLERANCE = 0.05
+# Command samples before the first or after the last paired one, beyond this fraction of the
+# command stream and this count, are reported: a deflection that stops halfway must not be trimmed
+# silently (a few samples at the ends are the usual discovery race of a recorder).
+END_TRIM_TOLERANCE = 0.01
+END_TRIM_SAMPLES = 20
 
 
 @dataclass
@@ -36,7 +41,11 @@ class PairingReport:
     unmatched_command: int = 0        # command samples without a deflection of the same stamp
     unmatched_deflection: int = 0     # and the reverse
     interior_unmatched: int = 0       # of those, inside the paired time span (not at its ends)
-    fs: float = 0.0                   # Hz, from the median stamp period
+    command_samples: int = 0          # command samples after cleaning
+    dropped_deflection: int = 0       # command samples inside the paired span without deflection
+    head_trimmed: int = 0             # command samples before the first paired one
+    tail_trimmed: int = 0             # command samples after the last paired one
+    fs: float = 0.0                   # Hz, the command stream's rate (median command period)
     gaps: list[tuple[float, int]] = field(default_factory=list)  # (time s from start, missing)
     jitter: float = 0.0               # max |period - 1/fs| * fs over periods that are not gaps
     t0_ns: int = 0                    # stamp of the first paired sample, ns since the epoch
@@ -57,10 +66,20 @@ class PairingReport:
             if s.duplicates:
                 extra = f' ({s.conflicting} with a different value)' if s.conflicting else ''
                 out.append(f'{name}: {s.duplicates} duplicate stamp(s) dropped{extra}')
-        if self.interior_unmatched:
-            out.append(f'{self.unmatched_command} command and {self.unmatched_deflection} '
-                       'deflection sample(s) have no partner with the same stamp, dropped '
-                       f'({self.interior_unmatched} inside the record, the rest at its ends)')
+        if self.dropped_deflection:
+            share = 100.0 * self.dropped_deflection / max(1, self.command_samples)
+            out.append(f'deflection misses {self.dropped_deflection} of {self.command_samples} '
+                       f'command samples inside the record ({share:.3g} %); the record keeps '
+                       f'the command rate {self.fs:.6g} Hz and has gaps there')
+        if self.interior_unmatched > self.dropped_deflection:
+            out.append(f'{self.interior_unmatched - self.dropped_deflection} deflection '
+                       'sample(s) inside the record have no command with the same stamp, dropped')
+        limit = max(END_TRIM_SAMPLES, END_TRIM_TOLERANCE * self.command_samples)
+        for n, where in ((self.head_trimmed, 'starts'), (self.tail_trimmed, 'ends')):
+            if n > limit:
+                out.append(f'deflection {where} {n / self.fs:.6g} s ({n} command samples) '
+                           f'{"after" if where == "starts" else "before"} the command stream: '
+                           'the record is trimmed to the paired part')
         if self.gaps:
             first_t, first_n = self.gaps[0]
             out.append(f'{len(self.gaps)} gap(s), {self.missing_samples} missing sample(s) in the '
@@ -97,16 +116,18 @@ def clean_stream(stamps_ns: np.ndarray, values: np.ndarray) -> tuple[np.ndarray,
     return s[~repeat], v[~repeat], check
 
 
-def sample_clock(stamps_ns: np.ndarray) -> tuple[float, list[tuple[float, int]], float]:
+def sample_clock(stamps_ns: np.ndarray, period_ns: float | None = None
+                 ) -> tuple[float, list[tuple[float, int]], float]:
     """Nominal rate, gaps and jitter of a strictly increasing stamp sequence (int64 ns, n >= 2).
 
-    Returns (fs Hz = 1 / median period, [(t s from the first stamp, missing samples)], jitter =
-    max |period - T| / T over the periods that are not gaps).
+    period_ns: the nominal period (ns) when known (e.g. the command stream's); by default the
+    median period of these stamps. Returns (fs Hz = 1 / period, [(t s from the first stamp,
+    missing samples)], jitter = max |period - T| / T over the periods that are not gaps).
     """
     d = np.diff(np.asarray(stamps_ns, dtype=np.int64))
     if d.size == 0:
         raise BagError('need at least 2 samples to infer the sample rate')
-    period = float(np.median(d))
+    period = float(np.median(d)) if period_ns is None else float(period_ns)
     if period <= 0:
         raise BagError('stamps do not increase: cannot infer the sample rate')
     is_gap = d > GAP_FACTOR * period
@@ -122,7 +143,9 @@ def pair_by_stamp(t_u_ns: np.ndarray, u: np.ndarray, t_y_ns: np.ndarray, y: np.n
     """Match command samples u (V) and deflection samples y (m) with equal header stamps.
 
     Inputs are in arrival order (int64 ns stamps, float64 values). Returns (t_ns (N,) int64 sorted,
-    u (N,), y (N,), PairingReport). Raises BagError when fewer than 2 samples pair up.
+    u (N,), y (N,), PairingReport). The rate is the command stream's (the clock every node copies),
+    so a deflection that lost every other sample gives a record at the command rate with gaps,
+    not a record at half the rate. Raises BagError when fewer than 2 samples pair up.
     """
     tu, uu, cu = clean_stream(t_u_ns, u)
     ty, yy, cy = clean_stream(t_y_ns, y)
@@ -140,6 +163,11 @@ def pair_by_stamp(t_u_ns: np.ndarray, u: np.ndarray, t_y_ns: np.ndarray, y: np.n
     report.unmatched_deflection = int(ty.size - t.size)
     inside = ((tu > t[0]) & (tu < t[-1])).sum() + ((ty > t[0]) & (ty < t[-1])).sum()
     report.interior_unmatched = int(inside - 2 * (t.size - 2))
-    report.fs, report.gaps, report.jitter = sample_clock(t)
+    report.command_samples = int(tu.size)
+    report.dropped_deflection = int(((tu > t[0]) & (tu < t[-1])).sum() - (t.size - 2))
+    report.head_trimmed = int((tu < t[0]).sum())
+    report.tail_trimmed = int((tu > t[-1]).sum())
+    period = float(np.median(np.diff(tu))) if tu.size >= 2 else None
+    report.fs, report.gaps, report.jitter = sample_clock(t, period)
     report.t0_ns = int(t[0])
     return t, uu[iu], yy[iy], report

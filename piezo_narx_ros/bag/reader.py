@@ -18,7 +18,7 @@ import numpy as np
 from piezo_narx_ros.bag.pairing import (StreamCheck, clean_stream, pair_by_stamp,
                                         sample_clock)
 from piezo_narx_ros.bag.writer import (COMMAND_TOPIC, DEFLECTION_TOPIC, JOINT_STATE,
-                                       absolute_topic, typestore)
+                                       absolute_topic, is_being_recorded, typestore)
 from piezo_narx_ros.errors import BagError
 
 _FILE_SUFFIXES = ('.mcap', '.db3')
@@ -52,8 +52,13 @@ def open_bag(path: str | Path):
     elif path.is_file() and path.suffix not in _FILE_SUFFIXES:
         raise BagError(f'{path}: not a bag (expected a bag directory, .mcap or .db3 file)')
     hint = ''
-    if target.suffix == '.mcap' or (target.is_dir() and any(target.glob('*.mcap'))):
-        hint = f' (interrupted recording? try: piezo-narx bag repair {path})'
+    mcaps = [target] if target.suffix == '.mcap' else sorted(target.glob('*.mcap')) \
+        if target.is_dir() else []
+    if any(is_being_recorded(m) for m in mcaps):
+        hint = ' (it is being recorded right now: read it once the recorder has stopped)'
+    elif mcaps:
+        hint = (f' (interrupted recording or unreadable metadata.yaml? try: piezo-narx bag repair '
+                f'{path})')
     try:
         reader = Reader(target)
         reader.open()
@@ -254,30 +259,30 @@ def bag_info(path: str | Path) -> BagInfo:
     store = typestore()
     path = Path(path)
     with open_bag(path) as reader:
-        stamps: dict[int, list[int]] = {c.id: [] for c in reader.connections}
+        # Receive times of every message (the count) and header stamps while they decode; a
+        # topic with an undecodable message falls back to receive times, and loses no count.
+        logs: dict[int, list[int]] = {c.id: [] for c in reader.connections}
+        headers: dict[int, list[int]] = {c.id: [] for c in reader.connections}
         decodable = {c.id for c in reader.connections
                      if c.msgtype == JOINT_STATE and not (
                          c.digest and c.digest.startswith('RIHS01_')
                          and c.digest != store.hash_rihs01(JOINT_STATE))}
         for conn, log_ns, raw in _messages(reader, reader.connections, path):
+            logs[conn.id].append(log_ns)
             if conn.id in decodable:
                 try:
                     st = decode_cdr(raw, JOINT_STATE).header.stamp
-                    stamps[conn.id].append(st.sec * 1_000_000_000 + st.nanosec)
-                    continue
+                    headers[conn.id].append(st.sec * 1_000_000_000 + st.nanosec)
                 except Exception:  # noqa: BLE001 - fall back to receive times for this topic
                     decodable.discard(conn.id)
-                    stamps[conn.id] = []
-                    continue
-            if conn.id not in decodable:
-                stamps[conn.id].append(log_ns)
+        stamps = {cid: headers[cid] if cid in decodable else logs[cid] for cid in logs}
         subs = getattr(reader.storage, 'storages', None) or [reader.storage]
         storage = 'sqlite3' if any('Sqlite3' in type(s).__name__ for s in subs) else 'mcap'
         topics = []
         for conn in reader.connections:
             s, _, check = clean_stream(np.asarray(stamps[conn.id], np.int64),
                                        np.zeros(len(stamps[conn.id])))
-            info = TopicInfo(absolute_topic(conn.topic), conn.msgtype, len(stamps[conn.id]),
+            info = TopicInfo(absolute_topic(conn.topic), conn.msgtype, len(logs[conn.id]),
                              check=check if conn.id in decodable else None)
             if s.size:
                 info.first_ns, info.last_ns = int(s[0]), int(s[-1])

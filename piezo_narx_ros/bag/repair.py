@@ -4,7 +4,9 @@ A recorder killed with SIGKILL leaves `NAME.mcap` without its summary and footer
 without metadata.yaml); only the chunks completed before the kill are in the file. `repair_bag`
 reads the file sequentially with the `mcap` library up to the first damaged record, writes the
 recovered schemas, channels and messages (bytes, times and sequence numbers unchanged) into a new
-MCAP file with the `mcap` writer, and rebuilds metadata.yaml. Nothing in the file is executed.
+MCAP file with the `mcap` writer, and rebuilds metadata.yaml. A complete file whose metadata.yaml
+is missing or unreadable gets only a new metadata.yaml. A bag that is still being recorded (its
+recorder holds a lock on the file) is refused. Nothing in the file is executed.
 """
 from __future__ import annotations
 
@@ -15,7 +17,7 @@ from pathlib import Path
 
 import yaml
 
-from piezo_narx_ros.bag.writer import typestore
+from piezo_narx_ros.bag.writer import lock_recording, typestore
 from piezo_narx_ros.errors import BagError
 
 
@@ -31,6 +33,8 @@ class RepairReport:
     stop_reason: str = ''          # why reading stopped ('' when the file was complete)
     orphans: int = 0               # messages of a channel whose definition was lost
     intact: bool = False           # nothing was wrong; the bag was left untouched
+    metadata_problem: str = ''     # what was wrong with metadata.yaml ('' when nothing)
+    metadata_only: bool = False    # the MCAP file was complete: only metadata.yaml was rebuilt
 
 
 def _locate(path: Path) -> tuple[Path, Path]:
@@ -99,36 +103,94 @@ def _type_hash(msgtype: str) -> str:
     return store.hash_rihs01(msgtype) if msgtype in store.fielddefs else ''
 
 
+def _metadata_problem(bag_dir: Path) -> str:
+    """Why metadata.yaml of a bag directory cannot be read as rosbag2 metadata ('' when it
+    can): missing, not UTF-8, not YAML, or without the rosbag2 keys a reader needs."""
+    from rosbags.rosbag2 import Reader, ReaderError
+    meta = bag_dir / 'metadata.yaml'
+    if not meta.is_file():
+        return 'metadata.yaml is missing'
+    try:
+        reader = Reader(bag_dir)   # the reader every tool here uses decides what is readable
+        reader.open()
+        reader.close()
+    except (ReaderError, OSError, ValueError, KeyError, TypeError) as exc:
+        return 'metadata.yaml is not valid rosbag2 metadata (' + ' '.join(str(exc).split()) + ')'
+    return ''
+
+
 def repair_bag(path: str | Path, backup: bool = True) -> RepairReport:
-    """Rebuild an MCAP bag (directory or lone .mcap) whose recording was interrupted.
+    """Rebuild an MCAP bag (directory or lone .mcap) whose recording was interrupted, or whose
+    metadata.yaml is missing or unreadable.
 
-    An intact bag (footer present, metadata.yaml present) is left untouched (`intact`). Otherwise
-    the recovered messages replace the file in place; with `backup` the damaged original is kept
-    beside it as `NAME.mcap.damaged`. metadata.yaml is (re)written for a bag directory. Raises
-    BagError when the file is not MCAP or holds no complete schema/channel record.
+    An intact bag (footer present, metadata.yaml readable) is left untouched (`intact`). A
+    truncated file is replaced by the recovered messages; with `backup` the damaged original is
+    kept beside it as `NAME.mcap.damaged`. metadata.yaml is (re)written for a bag directory (an
+    unreadable one kept as metadata.yaml.damaged with `backup`); when only it was wrong, the MCAP
+    file is not touched (`metadata_only`). Raises BagError while the bag is being recorded (a
+    live recorder holds its lock), when the file is not MCAP, or holds no complete
+    schema/channel record.
     """
-    from mcap.writer import CompressionType, Writer
-
     path = Path(path)
     bag_dir, mcap_path = _locate(path)
     with mcap_path.open('rb') as f:
         if f.read(8) != b'\x89MCAP0\r\n':
             raise BagError(f'{mcap_path}: not an MCAP file (bad magic)')
+    lock = lock_recording(mcap_path)   # refuses a live recording; keeps a recorder out meanwhile
+    try:
+        return _repair(path, bag_dir, mcap_path, backup)
+    finally:
+        if lock is not None:
+            lock.close()
+
+
+def _repair(path: Path, bag_dir: Path, mcap_path: Path, backup: bool) -> RepairReport:
     schemas, channels, messages, meta, good_end, reason = _scan(mcap_path)
     if not channels:
         raise BagError(f'{mcap_path}: no complete chunk was written before the recording stopped;'
                        ' nothing to recover')
-
     report = RepairReport(bag_dir if path.is_dir() else path, mcap_path, None,
                           dropped_bytes=max(0, mcap_path.stat().st_size - good_end),
                           stop_reason=reason)
-    if not reason and (path.is_file() or (bag_dir / 'metadata.yaml').is_file()):
+    report.metadata_problem = _metadata_problem(bag_dir) if path.is_dir() else ''
+    if not reason and not report.metadata_problem:
         report.intact = True
         report.messages = len(messages)
         return report
-    tmp = mcap_path.with_name(mcap_path.name + '.repairing')
     counts = {cid: 0 for cid in channels}
     t_min, t_max = 2**63 - 1, 0
+    for m in messages:
+        if m.channel_id not in channels:
+            report.orphans += 1
+            continue
+        counts[m.channel_id] += 1
+        t_min, t_max = min(t_min, m.log_time), max(t_max, m.log_time)
+    report.messages = sum(counts.values())
+    report.topics = {channels[c].topic: n for c, n in counts.items()}
+    types = {cid: schemas[c.schema_id].name if c.schema_id in schemas else ''
+             for cid, c in channels.items()}
+    info = _metadata(mcap_path.name, channels, types, counts, t_min, t_max, meta)
+    if reason:
+        _rewrite_mcap(mcap_path, schemas, channels, messages, info, report, backup)
+    else:
+        report.metadata_only = True
+    if path.is_dir():
+        old = bag_dir / 'metadata.yaml'
+        if backup and old.is_file():
+            os.replace(old, bag_dir / 'metadata.yaml.damaged')
+        meta_tmp = bag_dir / 'metadata.yaml.tmp'
+        meta_tmp.write_text(yaml.safe_dump({'rosbag2_bagfile_information': info},
+                                           default_flow_style=False), encoding='utf8')
+        os.replace(meta_tmp, old)
+    return report
+
+
+def _rewrite_mcap(mcap_path: Path, schemas: dict, channels: dict, messages: list, info: dict,
+                  report: RepairReport, backup: bool) -> None:
+    """Write the recovered records (bytes, times and sequence numbers unchanged) into a new
+    complete MCAP file that replaces `mcap_path`."""
+    from mcap.writer import CompressionType, Writer
+    tmp = mcap_path.with_name(mcap_path.name + '.repairing')
     with tmp.open('wb') as out:
         writer = Writer(out, compression=CompressionType.NONE)
         writer.start(profile='ros2', library='piezo_narx_ros bag repair')
@@ -140,30 +202,15 @@ def repair_bag(path: str | Path, backup: bool = True) -> RepairReport:
                                                     schema_ids.get(c.schema_id, 0), c.metadata)
         for m in messages:
             new = chan_ids.get(m.channel_id)
-            if new is None:
-                report.orphans += 1
-                continue
-            writer.add_message(new, m.log_time, m.data, m.publish_time, m.sequence)
-            counts[m.channel_id] += 1
-            t_min, t_max = min(t_min, m.log_time), max(t_max, m.log_time)
-        report.messages = sum(counts.values())
-        types = {cid: schemas[c.schema_id].name if c.schema_id in schemas else ''
-                 for cid, c in channels.items()}
-        info = _metadata(mcap_path.name, channels, types, counts, t_min, t_max, meta)
+            if new is not None:
+                writer.add_message(new, m.log_time, m.data, m.publish_time, m.sequence)
         writer.add_metadata('rosbag2', {'serialized_metadata': yaml.safe_dump(
             info, default_flow_style=False).strip()})
         writer.finish()
-    report.topics = {channels[c].topic: n for c, n in counts.items()}
     if backup:
         report.backup = mcap_path.with_name(mcap_path.name + '.damaged')
         os.replace(mcap_path, report.backup)
     os.replace(tmp, mcap_path)
-    if path.is_dir():
-        meta_tmp = bag_dir / 'metadata.yaml.tmp'
-        meta_tmp.write_text(yaml.safe_dump({'rosbag2_bagfile_information': info},
-                                           default_flow_style=False), encoding='utf8')
-        os.replace(meta_tmp, bag_dir / 'metadata.yaml')
-    return report
 
 
 def _metadata(file_name: str, channels: dict, types: dict, counts: dict, t_min: int, t_max: int,

@@ -69,6 +69,37 @@ def offered_qos(reliable: bool = True, depth: int = 100):
                QosDurability.VOLATILE, zero, zero, QosLiveliness.AUTOMATIC, zero, False)
 
 
+def lock_recording(mcap_path: Path):
+    """An open handle holding an exclusive flock on `mcap_path` (released when closed or when
+    the process dies), or None where flock is unavailable. Raises BagError when another process
+    holds it: the file is being recorded (or repaired) right now."""
+    try:
+        import fcntl
+    except ImportError:   # not POSIX: no live-recording protection
+        return None
+    handle = open(mcap_path, 'rb')
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.close()
+        raise BagError(f'{mcap_path} is being recorded right now (another process holds its '
+                       'lock); stop the recorder first') from None
+    return handle
+
+
+def is_being_recorded(mcap_path: Path) -> bool:
+    """True while a BagWriter (in any process) has `mcap_path` open for recording."""
+    try:
+        handle = lock_recording(mcap_path)
+    except BagError:
+        return True
+    except OSError:
+        return False
+    if handle is not None:
+        handle.close()
+    return False
+
+
 class BagWriter:
     """rosbag2 bag writer (MCAP, version 9) taking already-serialized CDR messages.
 
@@ -95,6 +126,9 @@ class BagWriter:
         except (WriterError, OSError) as exc:
             raise BagError(f'cannot create bag {self.path}: {exc}') from None
         _write_type_hash_in_channels(self._writer.storage)
+        # Held until close(): `bag repair` refuses a bag whose lock is taken (a live recording);
+        # the OS drops it when the process dies, even by SIGKILL.
+        self._lock = lock_recording(next(self.path.glob('*.mcap')))
         self._connections: dict[str, object] = {}
         self._last_flush = time.monotonic()
         self.closed = False
@@ -171,9 +205,13 @@ class BagWriter:
             return close_storage(version, _set_distro(metadata, distro))
 
         storage.close = close_with_distro
-        self._writer.close()
-        meta = self._writer.metapath
-        meta.write_text(_set_distro(meta.read_text(), distro))
+        try:
+            self._writer.close()
+            meta = self._writer.metapath
+            meta.write_text(_set_distro(meta.read_text(), distro))
+        finally:
+            if self._lock is not None:
+                self._lock.close()   # releases the flock
 
     def __enter__(self) -> 'BagWriter':
         return self

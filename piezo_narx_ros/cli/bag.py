@@ -24,7 +24,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
     export = actions.add_parser('export', help='paired u (V), y (m), t (s), fs (Hz) to .npz')
     export.add_argument('bag', help='bag directory, .mcap or .db3 file')
-    export.add_argument('--out', required=True, help='output .npz file')
+    export.add_argument('--out', required=True,
+                        help='output file: .npz (u, y, t, fs) or .csv (columns t,u,y)')
     export.add_argument('--command-topic', default='piezo/voltage_command')
     export.add_argument('--deflection-topic', default='piezo/deflection')
     export.add_argument('--axis', type=int, default=0, help='JointState array index (default 0)')
@@ -65,6 +66,10 @@ def _repair(args) -> int:
     if rep.intact:
         print(f'{rep.bag} is intact ({rep.messages} messages): nothing to repair')
         return 0
+    if rep.metadata_only:
+        print(f'rebuilt {rep.bag}/metadata.yaml from {rep.mcap.name} ({rep.messages} messages, '
+              f'file intact): {rep.metadata_problem}')
+        return 0
     print(f'repaired {rep.bag}: {rep.messages} message(s) recovered'
           + (f', damaged original kept as {rep.backup}' if rep.backup else ''))
     for topic, n in rep.topics.items():
@@ -75,12 +80,23 @@ def _repair(args) -> int:
 
 
 def _export(args) -> int:
+    from pathlib import Path
+
     import numpy as np
 
     from piezo_narx_ros.bag.reader import read_uy_report
+    from piezo_narx_ros.errors import ConfigError
+    out = Path(args.out)
+    # np.savez appends .npz to any other name: 'e.csv' became 'e.csv.npz' while we said 'e.csv'.
+    if out.suffix.lower() not in ('.npz', '.csv'):
+        raise ConfigError(f'--out must end in .npz or .csv, got {out}')
     rec, report = read_uy_report(args.bag, args.command_topic, args.deflection_topic, args.axis)
     for line in report.issues():
         print(f'piezo-narx: warning: {line}', file=sys.stderr)
-    np.savez(args.out, u=rec.u, y=rec.y, t=rec.t, fs=np.float64(rec.fs))
-    print(f'wrote {args.out}: {len(rec.u)} samples at {rec.fs:.6g} Hz')
+    if out.suffix.lower() == '.npz':
+        np.savez(out, u=rec.u, y=rec.y, t=rec.t, fs=np.float64(rec.fs))
+    else:   # what `fit` reads back: t,u,y with a header, exact to the last bit (%.17g)
+        np.savetxt(out, np.column_stack([rec.t, rec.u, rec.y]), delimiter=',', fmt='%.17g',
+                   header='t,u,y', comments='')
+    print(f'wrote {out}: {len(rec.u)} samples at {rec.fs:.6g} Hz')
     return 0
