@@ -340,3 +340,124 @@ def test_rig_launch_file_starts_fake_rig_then_driver_then_command_node():
     assert 'piezo_narx_ros.nodes.driver_node' in driver and 'target_port:=50000' in driver
     assert any(a.endswith('driver_node.yaml') for a in driver)
     assert 'wait_for_subscribers:=1' in command
+
+
+class RecordingRig:
+    """fake_rig in this process (a thread), logging every command datagram it handles."""
+
+    def __init__(self, port):
+        from piezo_narx_ros.rig.fake_rig import FakeRig
+
+        class _Rig(FakeRig):
+            def handle(inner, data):
+                try:
+                    self.log.append(p.unpack_command(data))
+                except p.DatagramError:
+                    pass
+                return FakeRig.handle(inner, data)
+
+        self.log = []
+        self.rig = _Rig(port=port, seed=3)
+        self.thread = self.rig.start()
+
+    def commands(self):
+        return [c for c in self.log if not c.flags]
+
+    def ramps(self):
+        return [c for c in self.log if c.flags & p.FLAG_RAMP]
+
+    def close(self):
+        self.rig.stop()
+        self.thread.join(2)
+        self.rig.close()
+
+
+def test_lifecycle_transitions_estop_and_arm_against_the_fake_rig(probe):
+    """autostart:=false: each transition does what it says, checked on the rig's side (the
+    datagrams it receives) and on the ROS side (subscription, deflection, /diagnostics)."""
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState, GetState
+    from std_srvs.srv import Trigger
+    rig_port = free_udp_port()
+    slew, ramp_rate = 400.0, 200.0      # 0.2 V per command at 2 kHz, 2 V per ramp datagram
+    driver = start_driver(target_port=rig_port, local_port=0, autostart='false',
+                          connect_timeout=0.3, max_slew_rate=slew, ramp_rate=ramp_rate,
+                          watchdog_timeout=30.0, reply_timeout=0.5)
+    node = probe.node
+    change = node.create_client(ChangeState, f'/{NS}/driver_node/change_state')
+    get = node.create_client(GetState, f'/{NS}/driver_node/get_state')
+    arm = node.create_client(Trigger, f'/{NS}/driver_node/arm')
+    estop = node.create_client(Trigger, f'/{NS}/driver_node/estop')
+
+    def call(client, request):
+        assert client.wait_for_service(timeout_sec=30.0)
+        future = client.call_async(request)
+        probe.wait(future.done, 20.0, 'a service reply')
+        return future.result()
+
+    def transition(tid):
+        return call(change, ChangeState.Request(transition=Transition(id=tid))).success
+
+    def state():
+        return call(get, GetState.Request()).current_state.label
+
+    def diag(key):
+        return diagnostic_values(probe.status[-1]).get(key) if probe.status else None
+
+    rig = None
+    try:
+        assert state() == 'unconfigured'
+        # configure fails while nothing answers: still unconfigured, reason on /diagnostics
+        assert not transition(Transition.TRANSITION_CONFIGURE)
+        assert state() == 'unconfigured'
+        probe.wait(lambda: probe.status and probe.status[-1].level == DIAG_ERROR
+                   and 'did not answer' in probe.status[-1].message, 5.0, 'configure error')
+        rig = RecordingRig(rig_port)
+        # configure: pings the target, subscribes nothing, sends no command
+        assert transition(Transition.TRANSITION_CONFIGURE) and state() == 'inactive'
+        assert rig.rig.pings >= 1 and rig.commands() == []
+        probe.send([50.0] * 20)
+        time.sleep(0.3)
+        assert probe.pub.get_subscription_count() == 0 and rig.commands() == []
+        # activate: subscribes, commands reach the rig (slew-limited) and come back
+        assert transition(Transition.TRANSITION_ACTIVATE) and state() == 'active'
+        probe.wait(lambda: probe.pub.get_subscription_count() == 1, 10.0, 'subscription')
+        time.sleep(0.3)
+        probe.send([100.0] * 300)
+        probe.wait(lambda: len(probe.deflection) >= 300, 20.0, 'deflection while active')
+        sent = [c.volts[0] for c in rig.commands()]
+        assert len(sent) == 300 and sent[-1] == pytest.approx(60.0)
+        # e-stop: ramps to 0 V at the slew limit, then commands are blocked until arm
+        assert call(estop, Trigger.Request()).success
+        probe.wait(lambda: rig.ramps() and rig.ramps()[-1].volts == (0.0,), 10.0, 'e-stop ramp')
+        ramp = [c.volts[0] for c in rig.ramps()]
+        assert ramp[0] == pytest.approx(58.0) and 30 <= len(ramp) <= 45   # <= 2 V per datagram
+        assert np.all(np.diff(np.r_[60.0, ramp]) >= -slew / ramp_rate - 1e-9)
+        probe.send([100.0] * 50)
+        probe.wait(lambda: diag('commands_blocked') == '50', 10.0, 'blocked commands')
+        assert len(rig.commands()) == 300 and diag('estop') == 'True'
+        assert probe.status[-1].level == DIAG_WARN and 'e-stop' in probe.status[-1].message
+        assert call(arm, Trigger.Request()).success
+        probe.send([100.0] * 20)
+        probe.wait(lambda: len(rig.commands()) == 320, 10.0, 'commands after arm')
+        after = [c.volts[0] for c in rig.commands()[300:]]
+        assert after[0] == pytest.approx(0.2) and after[-1] == pytest.approx(4.0)   # from 0 V
+        # deactivate: unsubscribes and ramps the 4 V to 0 V at the slew limit
+        n_ramps = len(rig.ramps())
+        assert transition(Transition.TRANSITION_DEACTIVATE) and state() == 'inactive'
+        ramp = [c.volts[0] for c in rig.ramps()[n_ramps:]]
+        assert ramp == pytest.approx([2.0, 0.0])
+        probe.wait(lambda: probe.pub.get_subscription_count() == 0, 10.0, 'unsubscribed')
+        probe.send([100.0] * 20)
+        time.sleep(0.3)
+        assert len(rig.commands()) == 320
+        # cleanup: the socket is closed, nothing more reaches the rig
+        assert transition(Transition.TRANSITION_CLEANUP) and state() == 'unconfigured'
+        n = len(rig.log)
+        time.sleep(0.3)
+        assert len(rig.log) == n
+    finally:
+        out = stop(driver)
+        if rig is not None:
+            rig.close()
+    assert driver.returncode == 0, out

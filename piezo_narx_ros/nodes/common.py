@@ -110,6 +110,10 @@ class QosWatch:
         """Watch a publisher or subscription (kind 'publisher' or 'subscription')."""
         self._endpoints.append((kind, entity))
 
+    def remove(self, entity) -> None:
+        """Stop watching an endpoint (before it is destroyed)."""
+        self._endpoints = [(k, e) for k, e in self._endpoints if e is not entity]
+
     def problems(self) -> list[str]:
         """One line per (own endpoint, peer) pair whose QoS cannot match, from the graph now."""
         node, out = self._node, []

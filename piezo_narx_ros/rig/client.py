@@ -21,11 +21,7 @@ class RigClient:
 
     def __init__(self, target_host: str, target_port: int, local_port: int = 0,
                  local_host: str = '0.0.0.0'):
-        try:
-            infos = socket.getaddrinfo(target_host, target_port, socket.AF_INET, socket.SOCK_DGRAM)
-        except (socket.gaierror, UnicodeError) as exc:
-            raise ConfigError(f'target_host {target_host!r} cannot be resolved: {exc}') from None
-        self.target = infos[0][4]
+        self.target = resolve_target(target_host, target_port)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         # Room for a burst of replies while the receive thread waits for the GIL.
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 21)
@@ -87,6 +83,15 @@ class RigClient:
         if self._thread is not None:
             self._thread.join(timeout=1.0)
         self.sock.close()
+
+
+def resolve_target(host: str, port: int) -> tuple[str, int]:
+    """(IPv4 address, port) of the target; ConfigError (one line) when `host` does not resolve."""
+    try:
+        infos = socket.getaddrinfo(host, port, socket.AF_INET, socket.SOCK_DGRAM)
+    except (socket.gaierror, UnicodeError) as exc:
+        raise ConfigError(f'target_host {host!r} cannot be resolved: {exc}') from None
+    return infos[0][4]
 
 
 def _both_loopback(a: str, b: str) -> bool:

@@ -98,6 +98,7 @@ COUNTERS = (
     'commands_rejected',   # commands refused (wrong axis count, NaN/inf)
     'commands_clamped',    # commands changed by the voltage window
     'commands_slewed',     # commands changed by the slew limit
+    'commands_blocked',    # commands ignored while the output is stopped (deactivated, e-stop)
     'datagrams_sent',
     'send_errors',         # the socket refused a datagram (target unreachable, ...)
     'replies',             # replies matched to a command within reply_timeout
@@ -144,6 +145,7 @@ class RigDriver:
         v = np.asarray(volts, dtype=float).ravel()
         with self._lock:
             if self._stopping:
+                self.counts['commands_blocked'] += 1
                 return self.limiter.output.copy()
             if v.size != self.config.n_axes:
                 self.counts['commands_rejected'] += 1
@@ -179,10 +181,22 @@ class RigDriver:
             self.counts['commands_rejected'] += 1
 
     def stop_output(self) -> None:
-        """Shutting down: from now on tick() ramps to 0 V as if the watchdog had tripped, and
-        commands are ignored. `parked` tells when the output has reached 0 V."""
+        """From now on tick() ramps to 0 V as if the watchdog had tripped, and commands are
+        ignored (counted in commands_blocked) until enable_output(). `parked` tells when the
+        output has reached 0 V."""
         with self._lock:
             self._stopping = True
+
+    def enable_output(self) -> None:
+        """Undo stop_output(): commands are applied again (from the output where it is, within
+        the slew limit)."""
+        with self._lock:
+            self._stopping = False
+
+    @property
+    def output_enabled(self) -> bool:
+        """False after stop_output() until enable_output()."""
+        return not self._stopping
 
     @property
     def parked(self) -> bool:
