@@ -231,3 +231,43 @@ def test_live_estimator_refuses_outliers_and_reports_a_second_writer(tmp_path):
         codes = stop([est])
         col.close()
     assert codes == [0]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f'/proc/{pid}/stat') as f:
+            return f.read().split()[2] != 'Z'      # a zombie has exited
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith('linux'), reason='PR_SET_PDEATHSIG is Linux')
+def test_bringup_children_die_with_it_on_kill_9(tmp_path):
+    """kill -9 of `piezo-narx bringup` left its nodes running (about 1.5 cores busy)."""
+    import re
+    launch = tmp_path / 'one.launch.yaml'
+    launch.write_text('launch:\n- node: {pkg: piezo_narx_ros, exec: simulator_node, '
+                      'namespace: orphan}\n')
+    proc = subprocess.Popen([sys.executable, '-m', 'piezo_narx_ros.cli.main', 'bringup',
+                             str(launch)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, env=dict(os.environ, PYTHONUNBUFFERED='1'))
+    child = None
+    try:
+        for _ in range(50):
+            line = proc.stdout.readline()
+            m = re.search(r'started \S+ \(pid (\d+)\)', line)
+            child = int(m.group(1)) if m else child
+            if not line or 'simulating' in line:
+                break
+        assert child is not None and 'simulating' in line, line
+        proc.kill()
+        proc.wait(10)
+        end = time.monotonic() + 15
+        while _alive(child) and time.monotonic() < end:
+            time.sleep(0.1)
+        assert not _alive(child), 'the node outlived bringup'
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        if child is not None and _alive(child):
+            os.kill(child, signal.SIGKILL)

@@ -148,7 +148,9 @@ class Bringup:
         stream.close()
 
     def start(self) -> None:
-        env = dict(os.environ, PYTHONUNBUFFERED='1')
+        """Start every process (from the thread that will outlive them: the children's
+        parent-death signal fires when the thread that forked them ends)."""
+        env = dict(os.environ, PYTHONUNBUFFERED='1', **{PARENT_PID_ENV: str(os.getpid())})
         for spec in self.specs:
             proc = subprocess.Popen(spec.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                     stdin=subprocess.DEVNULL, text=True, env={**env, **spec.env})
@@ -208,7 +210,7 @@ def run(args) -> int:
     def request_stop(signum, _frame):
         bringup.stop_requested.set()
 
-    old = {s: signal.signal(s, request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    old = {s: signal.signal(s, request_stop) for s in STOP_SIGNALS}
     try:
         bringup.start()
         died = bringup.watch(args.duration)
@@ -227,13 +229,37 @@ def run(args) -> int:
     return 0
 
 
+PARENT_PID_ENV = 'PIEZO_NARX_PARENT_PID'
+# Signals that stop bringup (and its children) cleanly; SIGHUP: the terminal was closed.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+_PR_SET_PDEATHSIG = 1   # linux/prctl.h
+
+
+def die_with_parent(parent_pid: str | None) -> None:
+    """Ask Linux to send this process SIGTERM when its parent dies (prctl PR_SET_PDEATHSIG),
+    so that `kill -9` of bringup does not leave its nodes running; then exit at once if the
+    parent (pid `parent_pid`, as a string) already died before the request. Elsewhere than
+    Linux this does nothing."""
+    if not sys.platform.startswith('linux'):
+        return
+    import ctypes
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0) != 0:
+        return   # not fatal: the node still stops on bringup's own signals
+    if parent_pid and os.getppid() != int(parent_pid):
+        sys.exit(143)   # orphaned between fork and prctl
+
+
 def _child_main(argv: list[str]) -> None:
     """`python -m piezo_narx_ros.cli.bringup MODULE ARGS...`: run MODULE.main() with ARGS.
 
     Importing a node takes a second or two (rclpy, numba); a stop request in that window would
     print a KeyboardInterrupt traceback from the middle of an import. This exits quietly (130).
+    The child first asks to be stopped (SIGTERM, a clean stop) when bringup dies, even by
+    SIGKILL, which no handler of bringup's can see: see `die_with_parent`.
     """
     import importlib
+    die_with_parent(os.environ.get(PARENT_PID_ENV))
     try:
         module = importlib.import_module(argv[0])
     except KeyboardInterrupt:

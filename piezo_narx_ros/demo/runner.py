@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from piezo_narx_ros.cli.bringup import Bringup, NodeSpec, load_launch
+from piezo_narx_ros.cli.bringup import STOP_SIGNALS, Bringup, NodeSpec, load_launch
 from piezo_narx_ros.errors import ConfigError, PiezoNarxError
 from piezo_narx_ros.settings import check_known, read_yaml_mapping
 
@@ -306,8 +306,10 @@ class Demo:
         settings_path = self.work / f'{out.name}_settings.yaml'
         settings_path.write_text('# piezo-narx fit settings written by piezo-narx demo\n'
                                  + yaml.safe_dump(dict(self.s['fit']), sort_keys=False))
-        argv = [sys.executable, '-m', 'piezo_narx_ros.cli.main', 'fit', str(bag), '--out',
-                str(out), '--config', str(settings_path)] + (['--no-report'] if no_report else [])
+        # Through bringup's child entry point, like the nodes: the fit dies with the demo.
+        argv = [sys.executable, '-m', 'piezo_narx_ros.cli.bringup', 'piezo_narx_ros.cli.main',
+                'fit', str(bag), '--out', str(out), '--config', str(settings_path)]
+        argv += ['--no-report'] if no_report else []
         group = self.start_group([NodeSpec('fit', argv)])
         t0 = last = time.monotonic()
         while group.exited() is None:
@@ -345,8 +347,8 @@ class Demo:
 
 
 def install_signal_handlers(demo: Demo) -> dict:
-    """Route SIGINT/SIGTERM to demo.request_stop; returns the previous handlers."""
-    return {s: signal.signal(s, demo.request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    """Route SIGINT/SIGTERM/SIGHUP to demo.request_stop; returns the previous handlers."""
+    return {s: signal.signal(s, demo.request_stop) for s in STOP_SIGNALS}
 
 
 def restore_signal_handlers(old: dict) -> None:
