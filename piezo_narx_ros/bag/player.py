@@ -88,17 +88,17 @@ class ReplayQos:
     recorded: bool       # False: no usable recorded profile, the fallback was used
 
 
-def replay_qos(offered: list, fallback_reliable: bool, fallback_depth: int) -> ReplayQos:
-    """What `ros2 bag play` does with the recorded offers: when every publisher offered the same
-    reliability and durability, republish with them; otherwise (several different offers, or
-    none recorded) use the fallback. rmw does not report a remote publisher's history depth, so
-    the depth is the recorded one only when it is known (> 0), else `fallback_depth`."""
+def replay_qos(offered: list, fallback_reliable: bool, depth: int) -> ReplayQos:
+    """What `ros2 bag play` does with the recorded offers (rosbag2_transport's
+    adapt_offer_to_recorded_offers): when every publisher offered the same reliability and
+    durability, republish with them; otherwise (different offers, or none recorded) reliable or
+    best effort per `fallback_reliable`, volatile. The depth is not taken from the recording (the
+    middleware does not report a remote publisher's depth, and a small recorded one would drop
+    samples for a slow subscriber): it is `depth`."""
     known = [q for q in offered if q.reliability.value in (1, 2) and q.durability.value in (1, 2)]
     if not known or len({(q.reliability, q.durability) for q in known}) != 1:
-        return ReplayQos(1 if fallback_reliable else 2, 2, int(fallback_depth), False)
-    depths = [q.depth for q in known if q.history.value == 1 and q.depth > 0]
-    return ReplayQos(known[0].reliability.value, known[0].durability.value,
-                     max(depths) if depths else int(fallback_depth), True)
+        return ReplayQos(1 if fallback_reliable else 2, 2, int(depth), False)
+    return ReplayQos(known[0].reliability.value, known[0].durability.value, int(depth), True)
 
 
 class PlaybackClock:

@@ -2,10 +2,11 @@
 
 Messages are published serialized, exactly as recorded, from a pacing thread that sleeps until
 each message is due (recorded receive-time spacing / rate). Remap topics with --ros-args -r.
-Each topic is republished with the QoS its publishers offered when it was recorded (reliability,
-durability, depth when known), as `ros2 bag play` does, with the default sample QoS for topics
-recorded without a single one; qos_overrides (docs/nodes.md) apply on top. `clock:=true` publishes the recorded time reached on /clock
-(rosgraph_msgs/Clock, `clock_rate` Hz), like `ros2 bag play --clock`, so nodes started with
+Each topic is republished with the reliability and durability its publishers offered when it was
+recorded, as `ros2 bag play` does (keep-last 10000, the sample streams' depth), and with the
+default sample QoS when the bag has no single offer for it; qos_overrides (docs/nodes.md) apply on
+top. `clock:=true` publishes the recorded time reached on /clock (rosgraph_msgs/Clock,
+`clock_rate` Hz), like `ros2 bag play --clock`, so nodes started with
 use_sim_time:=true run on the bag's time.
 
     player_node --ros-args -p bag:=bags/run1 -p rate:=2.0 -p loop:=true \
