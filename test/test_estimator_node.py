@@ -219,7 +219,7 @@ def test_reset_and_reinitialize_services(toy_model_file):
 
     from piezo_narx_ros.ident.model_io import load_model
     model = load_model(toy_model_file)
-    col = Collector('/svc', ('deflection_estimate',))
+    col = Collector('/svc', ('deflection_estimate',), diagnostics=True)
     est = start_node('estimator_node', '-p', f'model:={toy_model_file}', '-p', 'init:=auto',
                      ns='/svc')
     reset = col.node.create_client(Trigger, '/svc/estimator_node/reset')
@@ -247,6 +247,8 @@ def test_reset_and_reinitialize_services(toy_model_file):
             col.pub.publish(make_joint_state(t0 + k * P, ['x'], effort=[u[k]]))
             time.sleep(0.0005)
         assert col.wait_for(lambda: len(col.data['deflection_estimate']) >= 600, 20.0)
+        assert col.wait_for(lambda: col.diag.get('/svc/estimator_node', (0, '', {}))[2]
+                            .get('requested_restarts') == '1', 5.0)
     finally:
         codes = stop([est])
         col.close()

@@ -148,6 +148,7 @@ class EstimatorNode(PiezoNode):
         # Matched deflection publishers: a launcher waits for 1 before streaming, so that the
         # first measured samples (the initial values) are not published before this matches.
         values['measurement_publishers'] = self.sub_meas.get_publisher_count()
+        values['requested_restarts'] = self.est.stats.requested_restarts   # ~/reset, ~/reinit.
         if n >= 2 and not math.isnan(rms):
             values.update(rms_error_m=rms, r2=r2, error_window=n)
         return bytes([level]), msg, values
