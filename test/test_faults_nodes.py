@@ -14,7 +14,7 @@ import pytest
 import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 from piezo_narx_ros.errors import ConfigError
@@ -77,6 +77,34 @@ def test_compatible_peer_is_not_reported(ctx):
         other.create_publisher(JointState, 'stream', common.sample_qos(10))
         assert _wait(lambda: node.sub.get_publisher_count() == 1)
         assert node.qos_watch.problems() == []
+    finally:
+        other.destroy_node()
+        node.destroy_node()
+
+
+class _Talker(PiezoNode):
+    NODE_NAME = 'qos_talker'
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.pub = self.sample_publisher('stream')
+
+
+def test_compatible_subscriber_of_our_publisher_is_not_reported(ctx):
+    """The graph reports a peer's unset deadline/lease as Infinite, ours as 0: both mean
+    'none', and must not read as 'Subscription has a deadline, but publisher does not'."""
+    node = _Talker(context=ctx, namespace='/qos6')
+    other = Node('plain_listener', namespace='/qos6', context=ctx)
+    try:
+        other.create_subscription(JointState, 'stream', lambda m: None, common.sample_qos(10))
+        assert _wait(lambda: node.pub.get_subscription_count() == 1)
+        assert _wait(lambda: node.get_subscriptions_info_by_topic('/qos6/stream'))
+        assert node.qos_watch.problems() == []
+        other.create_subscription(JointState, 'stream', lambda m: None, QoSProfile(
+            depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL))   # a real mismatch
+        assert _wait(lambda: node.qos_watch.problems())
+        assert 'Volatile publisher and transient local subscription' in \
+            node.qos_watch.problems()[0]
     finally:
         other.destroy_node()
         node.destroy_node()

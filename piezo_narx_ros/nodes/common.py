@@ -9,6 +9,7 @@ and never accumulates float error over long runs.
 """
 from __future__ import annotations
 
+import copy
 import math
 import signal
 import struct
@@ -22,6 +23,7 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
                                 ParameterType, SetParametersResult)
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
+from rclpy.duration import Duration, Infinite
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.parameter import Parameter
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSCompatibility, QoSProfile,
@@ -78,6 +80,18 @@ def qos_overriding() -> QoSOverridingOptions:
     return QoSOverridingOptions.with_default_policies()
 
 
+def _unset_infinite(profile: QoSProfile) -> QoSProfile:
+    """A copy of `profile` with infinite deadline, lifespan and liveliness lease written as
+    unset (0). The graph reports a peer's unset durations as Infinite while our own profiles hold
+    0; both mean 'none', but rmw's compatibility check reads Infinite-against-0 as 'Subscription
+    has a deadline, but publisher does not'."""
+    out = copy.copy(profile)
+    for name in ('deadline', 'lifespan', 'liveliness_lease_duration'):
+        if getattr(out, name) == Infinite:
+            setattr(out, name, Duration())
+    return out
+
+
 class QosWatch:
     """Incompatible QoS between a node's sample streams and their peers, for /diagnostics.
 
@@ -127,8 +141,8 @@ class QosWatch:
             for info in peers:
                 if (info.node_namespace, info.node_name) == me:
                     continue
-                pub, sub = ((info.qos_profile, ent.qos_profile) if kind == 'subscription' else
-                            (ent.qos_profile, info.qos_profile))
+                mine, theirs = _unset_infinite(ent.qos_profile), _unset_infinite(info.qos_profile)
+                pub, sub = (theirs, mine) if kind == 'subscription' else (mine, theirs)
                 compat, reason = qos_check_compatible(pub, sub)
                 if compat == QoSCompatibility.ERROR:
                     peer = f'{info.node_namespace.rstrip("/")}/{info.node_name}'
