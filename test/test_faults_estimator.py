@@ -154,3 +154,16 @@ def test_runaway_between_ticks_is_a_warn_tick_even_if_the_last_sample_is_fine():
     assert 'up to 2.8e-06 m beyond' in message          # 4e-6 m peak - 1.2e-6 m bound
     _run(est, [(T0 + (4000 + k) * P, 0.0) for k in range(100)])
     assert health.tick()[0] == OK
+
+
+def test_commands_faster_than_fs_are_not_stepped_as_samples(model):
+    """4 kHz commands into a 2 kHz model: before, every command was stepped as one 2 kHz sample
+    (the estimate ran twice as fast, silently); now the in-between ones are refused and reported."""
+    u = _u(400, 8)
+    est = FreeRunEstimator(model, init='rest')
+    health = EstimatorHealth(est)
+    out = _run(est, [(T0 + k * P // 2, u[k]) for k in range(400)])
+    _check(out, [T0 + k * P for k in range(200)], model.simulate(u[0::2]))
+    assert est.stats.stamp_outliers == 199
+    level, message, _ = health.tick()
+    assert level == WARN and 'faster than fs' in message

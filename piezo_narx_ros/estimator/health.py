@@ -12,7 +12,7 @@ from piezo_narx_ros.counters import OK, WARN, Since
 _WARN_ON = (
     ('out_of_range', 'estimate(s) outside the trained output range'),
     ('stamp_outliers', 'command stamp(s) refused as outliers (out of order, future/past, '
-                       'duplicate or a second writer)'),
+                       'duplicate, a second writer, or commands faster than fs)'),
     ('stream_restarts', 'command stream restart(s) (a loop, a new run or a long jump): free '
                         'run restarted'),
     ('rejected_nonfinite', 'non-finite command(s) held'),

@@ -246,15 +246,15 @@ def check_identifiable(record: Record, split: float = 0.5) -> list[str]:
     est, val = record.split(split)
     fix = ('trim the idle part of the record or move the split (fit --split, now '
            f'{split:g})')
+    if _constant(est.u):
+        raise DataError(f'{record.source}: the input is constant over the estimation part '
+                        f'(first {len(est)} samples, u = {est.u[0]:.6g} V): it excites nothing, '
+                        f'so no model can be identified from it; {fix}')
     for part, name in ((est, 'estimation'), (val, 'validation')):
         if len(part) and _constant(part.y):
             raise DataError(f'{record.source}: the output is constant in the {name} part '
                             f'(y = {part.y[0]:.6g} m, spread {np.ptp(part.y):.3g} m): nothing to '
                             'identify; check that y is the measured deflection')
-    if _constant(est.u):
-        raise DataError(f'{record.source}: the input is constant over the estimation part '
-                        f'(first {len(est)} samples, u = {est.u[0]:.6g} V): it excites nothing, '
-                        f'so no model can be identified from it; {fix}')
     warnings = []
     s_est, s_val = float(np.std(est.u)), float(np.std(val.u))
     if s_est < 0.1 * s_val:
