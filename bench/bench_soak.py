@@ -10,21 +10,25 @@ Faults (at 20, 35, 50 and 70 % of the run):
   recorder   the recorder is killed (SIGKILL) and a new recorder started on a new bag; the
              killed bag is repaired with `repair_bag` after the run (not during it, so that the
              repair's CPU does not perturb the streams measured).
-A probe in this process records the stamp and wall-clock arrival of every voltage_command,
-deflection and deflection_estimate, and every /diagnostics status.
+The recorder is the observer: every sample's stamp and arrival time (the bag's receive time) come
+from its bags, so the run carries no extra subscriber on the 2 kHz streams; a probe in this
+process only listens to /diagnostics (and reads one command stamp for the burst).
 
 Printed:
 - samples lost per stream, outside the injected windows (target 0) and inside them. A stream's
-  window is the part of the run a fault could touch: every stream for sigstop and burst, the
-  estimate for the estimator restart, the bag for the recorder kill; expected samples are the
-  command node's grid t0 + k/fs from its first to its last stamp;
+  window is the part of the run a fault could touch (from 0.5 s before the injection to 0.5 s
+  after it ends): every stream for sigstop and burst, the estimate for the estimator restart
+  (until the new estimator's first estimate), every stream for the recorder kill (until the new
+  recorder's first message). Expected samples are the command node's grid t0 + k/fs from its
+  first to its last recorded stamp;
 - recovery after each fault: when every stream's lateness (arrival - stamp) is back under the
   quiet-period threshold for 200 consecutive samples, counted from the end of the injection
   (for the restarts, from the kill: it includes the new process's start-up), and when the
   estimator's /diagnostics level is OK again;
 - RSS of every node process after a 60 s warm-up and at its end, and the growth (target < 5 %),
   plus CPU per node;
-- the estimator's counters (stamp outliers, restarts, rejected) and the repair report.
+- each estimator's and the simulator's counters (stamp outliers, restarts, rejected, gaps) and
+  the repair report.
 
     python bench/bench_soak.py                 # 10 minutes at 2 kHz (the issue's run)
     python bench/bench_soak.py --minutes 2     # a shorter check of the same schedule
@@ -68,43 +72,26 @@ def rss_kib(pid: int) -> int | None:
 
 
 class Probe:
-    """Stamps and wall-clock arrivals of the three streams, /diagnostics, spun in a thread."""
+    """/diagnostics of every node (wall ns, name, level, message, values), spun in a thread."""
 
     def __init__(self, ns: str):
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.experimental import EventsExecutor
         from rclpy.node import Node
-        from sensor_msgs.msg import JointState
 
-        from piezo_narx_ros.nodes.common import diagnostic_values, sample_qos
+        from piezo_narx_ros.nodes.common import diagnostic_values
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
         self.node = Node('soak_probe', namespace=ns, context=self.context)
-        self.stamps = {t: array.array('q') for t in TOPICS}
-        self.arrivals = {t: array.array('q') for t in TOPICS}
-        self.diag: list[tuple[int, str, int, str, dict]] = []   # (wall ns, name, level, msg, kv)
-        head = struct.Struct('<iI')
-        wall = time.time_ns
-
-        def make_cb(topic):
-            stamps, arrivals = self.stamps[topic], self.arrivals[topic]
-
-            def cb(raw):   # only the stamp: the probe must stay cheap
-                sec, nsec = head.unpack_from(raw, 4)
-                stamps.append(sec * NS + nsec)
-                arrivals.append(wall())
-            return cb
+        self.diag: list[tuple[int, str, int, str, dict]] = []
 
         def on_diag(arr):
-            now = wall()
+            now = time.time_ns()
             for st in arr.status:
-                self.diag.append((now, st.name, st.level[0] if isinstance(st.level, bytes)
-                                  else int(st.level), st.message, diagnostic_values(st)))
+                level = st.level[0] if isinstance(st.level, bytes) else int(st.level)
+                self.diag.append((now, st.name, level, st.message, diagnostic_values(st)))
 
-        self.subs = {t: self.node.create_subscription(JointState, t, make_cb(t),
-                                                      sample_qos(100000), raw=True)
-                     for t in TOPICS}
         self.node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 1000)
         self.executor = EventsExecutor(context=self.context)
         self.executor.add_node(self.node)
@@ -123,6 +110,34 @@ class Probe:
                 return True
             time.sleep(0.05)
         return False
+
+    def status(self, role: str, after_ns: int = 0) -> dict | None:
+        """Values of the latest status of `role` (e.g. 'estimator') received after after_ns."""
+        for t, name, _, _, kv in reversed(self.diag):
+            if t <= after_ns:
+                return None
+            if role in name:
+                return kv
+        return None
+
+    def one_command_stamp(self, timeout: float = 10.0) -> int:
+        """The stamp of one voltage_command (a temporary raw subscription)."""
+        from sensor_msgs.msg import JointState
+
+        from piezo_narx_ros.nodes.common import sample_qos
+        got = []
+        head = struct.Struct('<iI')
+
+        def cb(raw):
+            sec, nsec = head.unpack_from(raw, 4)
+            got.append(sec * NS + nsec)
+        sub = self.node.create_subscription(JointState, 'voltage_command', cb, sample_qos(100),
+                                            raw=True)
+        self.wait_for(lambda: got, timeout)
+        self.node.destroy_subscription(sub)
+        if not got:
+            raise RuntimeError('no voltage_command seen')
+        return got[-1]
 
     def close(self):
         import rclpy
@@ -191,11 +206,11 @@ class Soak:
         from sensor_msgs.msg import JointState
 
         from piezo_narx_ros.nodes.common import encode_joint_state, sample_qos
+        last = probe.one_command_stamp()
         pub = probe.node.create_publisher(JointState, 'voltage_command', sample_qos(1000))
         probe.wait_for(lambda: pub.get_subscription_count() >= 3, 10.0)
         rng = np.random.default_rng(1)
         t0 = time.time_ns()
-        last = probe.stamps['voltage_command'][-1]
         offsets = [NS // 2, 3600 * NS, -NS // 4]
         for i in range(50):
             if i % 2:       # NaN value, random (odd: off-grid) stamp within +-1 h
@@ -217,13 +232,13 @@ class Soak:
         self.retire('estimator')
         old.send_signal(signal.SIGTERM)
         old.wait(20)
+        self.events['estimator'] = {'start': t0, 'end': None, 'streams': ('deflection_estimate',),
+                                    'code': old.returncode,
+                                    'last_status': probe.status('estimator')}
         self.start_estimator()
-        n = len(probe.stamps['deflection_estimate'])
-        probe.wait_for(lambda: len(probe.stamps['deflection_estimate']) > n, 60.0)
-        first = probe.arrivals['deflection_estimate'][n] if len(
-            probe.arrivals['deflection_estimate']) > n else time.time_ns()
-        self.events['estimator'] = {'start': t0, 'end': first, 'streams': ('deflection_estimate',),
-                                    'code': old.returncode}
+        # Back when the new estimator reports estimates (the exact first one: from the bag).
+        probe.wait_for(lambda: int((probe.status('estimator', t0) or {}).get('estimates', 0)) > 0,
+                       60.0)
 
     def fault_recorder(self) -> None:
         old = self.procs[self.live['recorder']]
@@ -232,7 +247,7 @@ class Soak:
         old.kill()
         old.wait(10)
         self.start_recorder()
-        self.events['recorder'] = {'start': t0, 'end': None, 'streams': ('bag',),
+        self.events['recorder'] = {'start': t0, 'end': None, 'streams': TOPICS,
                                    'killed_bag': self.bags[-2]}
 
     def repair_killed_bag(self) -> None:
@@ -252,16 +267,16 @@ class Soak:
         self.spawn('simulator', f'fs:={self.fs}')
         self.start_estimator()
         self.start_recorder()
-        if not probe.wait_for(lambda: all(probe.subs[t].get_publisher_count() >= 1
-                                          for t in TOPICS[1:]), 90.0):
-            raise RuntimeError('simulator/estimator did not come up')
+        if not probe.wait_for(lambda: all(probe.status(r) is not None for r in
+                                          ('simulator', 'estimator', 'recorder')), 90.0):
+            raise RuntimeError('simulator/estimator/recorder did not come up')
         time.sleep(2.0)   # recorder and estimator <-> simulator matching
         self.spawn('command', f'fs:={self.fs}', 'kind:=multisine', 'amplitude:=100.0',
-                   'seconds:=25.0', 'loop:=true', 'wait_for_subscribers:=4')
-        if not probe.wait_for(lambda: len(probe.stamps['voltage_command']) > 0, 60.0):
+                   'seconds:=25.0', 'loop:=true', 'wait_for_subscribers:=3')
+        if not probe.wait_for(lambda: int((probe.status('command') or {}).get('published', 0))
+                              > 0, 60.0):
             raise RuntimeError('command node did not start streaming')
         t_start = time.monotonic()
-        self.stream_start_ns = probe.stamps['voltage_command'][0]
         due = [(frac * seconds, name) for name, frac in SCHEDULE]
         next_rss = 0.0
         while (elapsed := time.monotonic() - t_start) < seconds:
@@ -280,6 +295,19 @@ class Soak:
                                        + self.procs[name].stderr.read()[-500:])
             time.sleep(0.05)
         self.sample_rss(time.monotonic() - t_start)
+        # Stop the commands first and let the pipeline drain, so that a backlog still in flight
+        # at the end is not counted as lost.
+        command = self.procs[self.live['command']]
+        self.retire('command')
+        stop([command])
+        t_drain = time.monotonic()
+        last, since = -1, time.monotonic()
+        while time.monotonic() - t_drain < 120.0 and time.monotonic() - since < 3.0:
+            received = int((probe.status('recorder') or {}).get('received', 0))
+            if received != last:
+                last, since = received, time.monotonic()
+            time.sleep(0.2)
+        self.drain_s = since - t_drain
         for role in list(self.live):
             self.retire(role)
         self.codes = dict(zip(self.procs, stop([self.procs[n] for n in self.procs])))
@@ -289,152 +317,142 @@ class Soak:
 
 
 # ------------------------------------------------------------------------------------ analysis
-def grid(stamps: np.ndarray, t0: int, period: int) -> np.ndarray:
-    """Sample indices k of the stamps on the command grid t0 + k * period (others dropped)."""
+def read_bags(bags) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """{topic without namespace: (header stamps ns, receive times ns)} over all bags, sorted by
+    receive time; one pass per bag, only the stamp decoded."""
+    from piezo_narx_ros.bag.reader import iter_raw
+    head = struct.Struct('<iI')
+    out = {t: (array.array('q'), array.array('q')) for t in TOPICS}
+    for bag in bags:
+        for topic, _, log_ns, raw in iter_raw(bag):
+            sec, nsec = head.unpack_from(raw, 4)
+            stamps, logs = out[topic.rsplit('/', 1)[-1]]
+            stamps.append(sec * NS + nsec)
+            logs.append(log_ns)
+    return {t: (np.frombuffer(s, np.int64), np.frombuffer(a, np.int64))
+            for t, (s, a) in out.items()}
+
+
+def on_grid(stamps: np.ndarray, t0: int, period: int) -> np.ndarray:
+    """Mask of the stamps on the command grid t0 + k * period, k >= 0."""
     d = stamps - t0
-    on = (d % period == 0) & (d >= 0)
-    return np.unique(d[on] // period)
+    return (d % period == 0) & (d >= 0)
 
 
-def in_windows(k: np.ndarray, t0: int, period: int, windows) -> np.ndarray:
-    t = t0 + k * period
-    mask = np.zeros(k.size, bool)
-    for a, b in windows:
-        mask |= (t >= a) & (t <= b)
-    return mask
-
-
-def recovery_ms(probe: Probe, start_ns: int, thr_ns: float, t0: int, period: int,
+def recovery_ms(data, start_ns: int, thr_ns: float, t0: int, period: int,
                 run: int = 200) -> float:
     """ms from start_ns until every stream's samples stamped after it arrive within thr_ns of
     their stamp for `run` consecutive samples (nan if never)."""
     worst = 0.0
-    for topic in TOPICS:
-        s = np.frombuffer(probe.stamps[topic], np.int64)
-        a = np.frombuffer(probe.arrivals[topic], np.int64)
-        on = ((s - t0) % period == 0) & (s >= start_ns)
-        s, late = s[on], (a[on] - s[on])
+    for stamps, logs in data.values():
+        sel = on_grid(stamps, t0, period) & (stamps >= start_ns)
+        s, late = stamps[sel], logs[sel] - stamps[sel]
         order = np.argsort(s, kind='stable')
         s, late = s[order], late[order]
-        ok = late <= thr_ns
-        # first index i with ok[i:i+run] all true
-        c = np.convolve(ok.astype(int), np.ones(run, int), 'valid')
-        hit = np.flatnonzero(c == run)
-        if hit.size == 0:
+        hits = np.convolve((late <= thr_ns).astype(int), np.ones(run, int), 'valid')
+        first = np.flatnonzero(hits == run)
+        if first.size == 0:
             return math.nan
-        worst = max(worst, (s[hit[0]] + late[hit[0]] - start_ns) / 1e6)
+        worst = max(worst, (s[first[0]] + late[first[0]] - start_ns) / 1e6)
     return worst
 
 
-def bag_stamps(bags) -> dict[str, np.ndarray]:
-    """{topic name without namespace: header stamps (ns)} over all bags, in one pass each."""
-    from piezo_narx_ros.bag.reader import iter_raw
-    head = struct.Struct('<iI')
-    out = {t: array.array('q') for t in TOPICS}
-    for bag in bags:
-        for topic, _, _, raw in iter_raw(bag):
-            sec, nsec = head.unpack_from(raw, 4)
-            out[topic.rsplit('/', 1)[-1]].append(sec * NS + nsec)
-    return {t: np.frombuffer(a, np.int64) for t, a in out.items()}
+def counters(kv: dict | None, keys) -> str:
+    return ', '.join(f'{k} {(kv or {}).get(k)}' for k in keys)
+
+
+ESTIMATOR_KEYS = ('commands', 'estimates', 'stamp_outliers', 'stream_restarts',
+                  'rejected_nonfinite', 'rejected_range', 'gaps', 'filled', 'out_of_range',
+                  'init')
 
 
 def analyse(soak: Soak, probe: Probe) -> None:
-    period = soak.period
-    cmd = np.frombuffer(probe.stamps['voltage_command'], np.int64)
-    arrived = np.frombuffer(probe.arrivals['voltage_command'], np.int64)
-    t0 = soak.stream_start_ns
-    # The command node's own samples: the burst's outlier stamps (+0.5 s, +1 h) are on the
+    period, ev, margin = soak.period, soak.events, NS // 2
+    data = read_bags(soak.bags)
+    cmd, cmd_log = data['voltage_command']
+    # The command node's own samples: the burst's outlier stamps (+0.5 s, +1 h) can be on the
     # grid too, but arrive far from their stamp.
-    k_cmd = grid(cmd[np.abs(arrived - cmd) < 30 * NS], t0, period)
-    k_all = np.arange(k_cmd.min(), k_cmd.max() + 1)
+    own = cmd[np.abs(cmd_log - cmd) < 30 * NS]
+    t0 = int(own.min())
+    k_own = (own[on_grid(own, t0, period)] - t0) // period
+    k_all = np.arange(0, int(k_own.max()) + 1)
     end_ns = t0 + int(k_all[-1]) * period
-    margin = NS // 2
-    ev = soak.events
-    in_bags = bag_stamps(soak.bags)
-    if 'recorder' in ev and ev['recorder']['end'] is None:
-        first = bag_stamps(soak.bags[-1:])['voltage_command']
+    if 'estimator' in ev:
+        s, logs = data['deflection_estimate']
+        later = logs[logs > ev['estimator']['start']]
+        ev['estimator']['end'] = int(later.min()) if later.size else end_ns
+    if 'recorder' in ev:
+        first = read_bags(soak.bags[-1:])['voltage_command'][1]
         ev['recorder']['end'] = int(first.min()) if first.size else end_ns
     print(f'\nstream: {k_all.size} command samples at {soak.fs:g} Hz over '
-          f'{k_all.size / soak.fs:.1f} s')
+          f'{k_all.size / soak.fs:.1f} s; the pipeline drained {soak.drain_s:.1f} s after the '
+          'command node stopped')
 
-    # Lateness threshold from the quiet part before the first fault.
     first_fault = min(e['start'] for e in ev.values())
-    quiet = []
-    for topic in TOPICS:
-        s = np.frombuffer(probe.stamps[topic], np.int64)
-        a = np.frombuffer(probe.arrivals[topic], np.int64)
-        sel = (s > t0 + 10 * NS) & (s < first_fault - NS)
-        quiet.append(a[sel] - s[sel])
-    quiet = np.concatenate(quiet)
-    p50, p99 = np.percentile(quiet, [50, 99])
+    quiet = np.concatenate([logs[(s > t0 + 10 * NS) & (s < first_fault - NS)] -
+                            s[(s > t0 + 10 * NS) & (s < first_fault - NS)]
+                            for s, logs in data.values()])
+    p50, p99, pmax = np.percentile(quiet, [50, 99, 100])
     thr = max(3 * p99, 5e6)
-    print(f'quiet-period lateness (arrival - stamp, all streams): p50 {p50 / 1e6:.2f} ms, '
-          f'p99 {p99 / 1e6:.2f} ms; recovered = {run_ms(thr)} for 200 samples')
+    print(f'quiet-period lateness (receive - stamp, all streams, before the first fault): '
+          f'p50 {p50 / 1e6:.2f} ms, p99 {p99 / 1e6:.2f} ms, max {pmax / 1e6:.1f} ms; recovered '
+          f'= lateness <= {thr / 1e6:.1f} ms for 200 consecutive samples of every stream')
 
     print('\nsamples lost (expected: the command grid from its first to its last stamp)')
     print(f'{"stream":<22} {"expected":>9} {"lost outside windows":>21} {"lost inside":>12}')
-    streams = {t: grid(np.frombuffer(probe.stamps[t], np.int64), t0, period) for t in TOPICS}
-    for topic in TOPICS:
-        streams[f'bag {topic}'] = grid(in_bags[topic], t0, period)
-    for name, k in streams.items():
+    for topic, (stamps, _) in data.items():
+        k = np.unique((stamps[on_grid(stamps, t0, period)] - t0) // period)
         missing = np.setdiff1d(k_all, k)
-        key = 'bag' if name.startswith('bag') else name
-        windows = [(e['start'] - margin, (e['end'] or end_ns) + margin) for e in ev.values()
-                   if key in e['streams'] or (key != 'bag' and e['streams'] == TOPICS)]
-        inside = in_windows(missing, t0, period, windows)
-        print(f'{name:<22} {k_all.size:>9} {int((~inside).sum()):>21} {int(inside.sum()):>12}')
+        windows = [(e['start'] - margin, e['end'] + margin) for e in ev.values()
+                   if topic in e['streams']]
+        t_missing = t0 + missing * period
+        inside = np.zeros(missing.size, bool)
+        for a, b in windows:
+            inside |= (t_missing >= a) & (t_missing <= b)
+        print(f'{topic:<22} {k_all.size:>9} {int((~inside).sum()):>21} {int(inside.sum()):>12}')
 
     print('\nrecovery after each fault')
     diag = [(t, lvl, msg) for t, name, lvl, msg, _ in probe.diag if 'estimator' in name]
     for name, e in ev.items():
-        ref = e['start'] if name in ('estimator', 'recorder') else e['end']
-        rec = recovery_ms(probe, ref, thr, t0, period)
+        restart = name in ('estimator', 'recorder')
+        rec = recovery_ms(data, e['start'] if restart else e['end'], thr, t0, period)
         ok_at = next((t for t, lvl, _ in diag if t > e['end'] and lvl == 0), None)
-        warn = [msg for t, lvl, msg in diag if e['start'] <= t <= (ok_at or end_ns) and lvl]
-        extra = ''
+        warn = next((msg for t, lvl, msg in diag if e['start'] <= t and lvl and
+                     (ok_at is None or t <= ok_at)), None)
+        text = (f'{name:<10} streams caught up {rec:7.0f} ms after '
+                f'{"the kill" if restart else "the injection"}; estimator /diagnostics ' +
+                (f'OK again {(ok_at - e["end"]) / 1e9:.1f} s after' if ok_at else 'not OK again'))
+        if warn:
+            text += f' (WARN meanwhile: {warn})'
         if name == 'estimator':
-            extra = (f'; new estimator\'s first estimate {(e["end"] - e["start"]) / 1e6:.0f} ms '
-                     f'after SIGTERM (old one exited {e["code"]})')
+            text += (f'; the new estimator\'s first estimate {(e["end"] - e["start"]) / 1e6:.0f} '
+                     f'ms after SIGTERM (old one exited {e["code"]})')
         if name == 'recorder':
-            extra = (f'; new recorder\'s first message {(e["end"] - e["start"]) / 1e6:.0f} ms '
-                     f'after SIGKILL; repair {e["repair_s"]:.2f} s, {e["repaired"]} messages '
+            text += (f'; the new recorder\'s first message {(e["end"] - e["start"]) / 1e6:.0f} ms'
+                     f' after SIGKILL; repair {e["repair_s"]:.2f} s, {e["repaired"]} messages '
                      f'recovered, {e["dropped_bytes"]} bytes dropped')
-        diag_text = (f'estimator /diagnostics OK again {(ok_at - e["end"]) / 1e9:.1f} s after'
-                     if ok_at else 'estimator /diagnostics not OK again')
-        print(f'{name:<10} streams caught up {rec:8.0f} ms after '
-              f'{"the kill" if ref == e["start"] else "the injection"}; {diag_text}'
-              f'{" (WARN: " + warn[0] + ")" if warn else ""}{extra}')
+        print(text)
 
-    print(f'\nRSS per node process (after {WARMUP_S:.0f} s warm-up -> end) and CPU')
+    print(f'\nRSS per node process ({WARMUP_S:.0f} s after its start -> its end) and CPU')
     print(f'{"process":<14} {"RSS start MiB":>13} {"end MiB":>8} {"growth %":>9} {"CPU %":>6}'
           f' {"exit":>5}')
     for name, samples in soak.rss.items():
+        wall, cpu = soak.cpu[name]
         t_first = samples[0][0] if samples else 0.0
         base = [kib for t, kib in samples if t >= t_first + WARMUP_S]
-        wall, cpu = soak.cpu[name]
         if len(base) >= 2:
             growth = 100.0 * (base[-1] - base[0]) / base[0]
-            print(f'{name:<14} {base[0] / 1024:>13.1f} {base[-1] / 1024:>8.1f} {growth:>9.2f} '
-                  f'{100 * cpu / wall:>6.0f} {soak.codes.get(name)!s:>5}')
+            cols = f'{base[0] / 1024:>13.1f} {base[-1] / 1024:>8.1f} {growth:>9.2f}'
         else:
-            print(f'{name:<14} {"(ran < warm-up)":>13} {"":>8} {"":>9} {100 * cpu / wall:>6.0f}'
-                  f' {soak.codes.get(name)!s:>5}')
+            cols = f'{"(ran < 60 s)":>13} {"":>8} {"":>9}'
+        print(f'{name:<14} {cols} {100 * cpu / wall:>6.0f} {soak.codes.get(name)!s:>5}')
 
-    last = {}
-    for t, name, lvl, msg, kv in probe.diag:
-        last[name] = kv
-    for name, kv in last.items():
-        if 'estimator' in name:
-            print(f'\n{name}: ' + ', '.join(f'{k} {kv.get(k)}' for k in (
-                'commands', 'estimates', 'stamp_outliers', 'stream_restarts',
-                'rejected_nonfinite', 'gaps', 'filled', 'out_of_range', 'init')))
-        if 'simulator' in name:
-            print(f'{name}: ' + ', '.join(f'{k} {kv.get(k)}' for k in (
-                'answered', 'rejected', 'stamp_outliers', 'stream_restarts', 'gaps')))
-
-
-def run_ms(thr: float) -> str:
-    return f'lateness <= {thr / 1e6:.1f} ms'
+    if 'estimator' in ev:
+        print('\nestimator#1 before its restart: ' + counters(ev['estimator']['last_status'],
+                                                           ESTIMATOR_KEYS))
+    print('estimator at the end: ' + counters(probe.status('estimator'), ESTIMATOR_KEYS))
+    print('simulator at the end: ' + counters(probe.status('simulator'), (
+        'answered', 'rejected', 'stamp_outliers', 'stream_restarts', 'gaps', 'filled')))
 
 
 def main(argv=None) -> int:
