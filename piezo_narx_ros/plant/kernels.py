@@ -1,7 +1,8 @@
 """Compiled per-sample kernels of the plant and of the amplifier limits (numba, cache=True).
 
-One kernel, `advance`, serves both PiezoCantilever.run() (loop over N samples inside numba) and
-PiezoCantilever.step() (N = 1), so both interfaces give bit-identical numbers.
+One kernel per hysteresis model, `advance` (Bouc-Wen) and `advance_preisach` (Preisach), serves
+both PiezoCantilever.run() (loop over N samples inside numba) and PiezoCantilever.step() (N = 1),
+so both interfaces give bit-identical numbers.
 """
 import math
 
@@ -122,6 +123,82 @@ def advance(u_cmd, noise, n_sub, consts, phi, g0, g1, state, work, y_meas, y_tru
             meas = quant * math.floor(meas / quant + 0.5)
         y_meas[k] = meas
         u_applied[k] = state[S_V]
+
+
+@njit(cache=True)
+def preisach_output(plays, weights, centres, spread):
+    """Irreversible Preisach deflection (m) from the play outputs (V) of every radius.
+
+    A relay of half-width r and centre c is up exactly when the play of radius r is above c, so a
+    Preisach operator is a sum over radii of a function of that radius' play (Krejci's
+    representation). With relay centres normally distributed (mean centres[i] V, std spread V)
+    and total weight weights[i] m per radius, that function is weights[i] * erf((p - c) / (s*sqrt2)).
+    """
+    acc = 0.0
+    k = 1.0 / (spread * math.sqrt(2.0))
+    for i in range(plays.shape[0]):
+        acc += weights[i] * math.erf((plays[i] - centres[i]) * k)
+    return acc
+
+
+@njit(cache=True)
+def advance_preisach(u_cmd, noise, n_sub, consts, phi, g0, g1, state, work, y_meas, y_true,
+                     u_applied, radii, weights, centres, creep_gains, creep_decay):
+    """Like `advance`, with a Preisach operator instead of Bouc-Wen and creep on the voltage.
+
+    The hysteresis input is the creeping drive v_c = v + sum_i creep_gains[i]*(x_i - v), where
+    x_i follow v through first-order lags (creep_decay[i] = exp(-h/tau_i) per sub-step): a voltage
+    step creeps on through the hysteresis nonlinearity instead of adding a linear drift after it.
+    Deflection w = d_rev*v_c + preisach_output(plays of v_c) - (its value at rest).
+    State: [v, x_1..x_m, plays (len(radii)), linear states (phi's size)]; consts as `advance`, with
+    C_DP = d_rev (m/V), C_A = rest offset (m), C_B = relay-centre spread (V).
+    """
+    n_lin = phi.shape[0]
+    n_cr = creep_gains.shape[0]
+    n_r = radii.shape[0]
+    vmin, vmax = consts[C_VMIN], consts[C_VMAX]
+    slew, w_a, h = consts[C_SLEW], consts[C_AMP_W], consts[C_H]
+    d_rev, rest, spread = consts[C_DP], consts[C_A], consts[C_B]
+    noise_std, quant = consts[C_NOISE], consts[C_QUANT]
+    xs = state[1:1 + n_cr]
+    plays = state[1 + n_cr:1 + n_cr + n_r]
+    lin = state[1 + n_cr + n_r:]
+    tmp = work
+    v_c0 = state[0]
+    for i in range(n_cr):
+        v_c0 += creep_gains[i] * (xs[i] - state[0])
+    w0 = d_rev * v_c0 + preisach_output(plays, weights, centres, spread) - rest
+    for k in range(u_cmd.shape[0]):
+        target = min(max(u_cmd[k], vmin), vmax)
+        for _ in range(n_sub):
+            v1 = amplifier_substep(state[0], target, w_a, slew, h)
+            v_c = v1
+            for i in range(n_cr):
+                xs[i] = v1 + (xs[i] - v1) * creep_decay[i]
+                v_c += creep_gains[i] * (xs[i] - v1)
+            for i in range(n_r):
+                lo = v_c - radii[i]
+                hi = v_c + radii[i]
+                if plays[i] < lo:
+                    plays[i] = lo
+                elif plays[i] > hi:
+                    plays[i] = hi
+            w1 = d_rev * v_c + preisach_output(plays, weights, centres, spread) - rest
+            for i in range(n_lin):
+                acc = g0[i] * w0 + g1[i] * (w1 - w0)
+                for j in range(n_lin):
+                    acc += phi[i, j] * lin[j]
+                tmp[i] = acc
+            for i in range(n_lin):
+                lin[i] = tmp[i]
+            state[0] = v1
+            w0 = w1
+        y_true[k] = lin[n_lin - 3]
+        meas = lin[n_lin - 1] + noise_std * noise[k]
+        if quant > 0.0:
+            meas = quant * math.floor(meas / quant + 0.5)
+        y_meas[k] = meas
+        u_applied[k] = state[0]
 
 
 @njit(cache=True)

@@ -18,9 +18,16 @@ class PlantParams:
 
     Amplifier: output clamped to [v_min, v_max] V, slew-limited to slew_rate V/s, first-order
     small-signal bandwidth amp_bandwidth Hz.
-    Hysteresis (Bouc-Wen, Rakotondrabe's form): w = d_p*v - h,
+    Hysteresis, `hysteresis` = 'bouc_wen' (Rakotondrabe's form): w = d_p*v - h,
     dh/dt = A*d_p*dv/dt - B*|dv/dt|*h - gamma*dv/dt*|h|; d_p in m/V, A dimensionless, B and gamma in 1/V.
-    Creep: z = w + sum_i creep_gains[i]*x_i with tau_i dx_i/dt = w - x_i (gains dimensionless, s).
+    Or 'preisach' (a structurally different plant for checking model families, docs/envelope.md):
+    w = preisach_d_rev*v + sum over preisach_radii relay half-widths r_i (uniform up to
+    preisach_r_max V) of weights_i*erf((play_r_i(v) - c_i)/(preisach_spread*sqrt2)), weights_i
+    proportional to exp(-r_i/preisach_r0) and summing to preisach_gain m, relay centres
+    c_i = preisach_centre + preisach_centre_slope*r_i V; zero at rest.
+    Creep: `creep_input` = 'hysteresis': z = w + sum_i creep_gains[i]*x_i with
+    tau_i dx_i/dt = w - x_i (gains dimensionless, s); 'voltage': the hysteresis is driven by
+    v + sum_i creep_gains[i]*(x_i - v) with tau_i dx_i/dt = v - x_i, so creep passes through it.
     Mode: tip deflection y obeys y'' + 2*zeta*wn*y' + wn^2*y = wn^2*z, wn = 2*pi*mode_frequency.
     Sensor: first-order low-pass sensor_bandwidth Hz, white noise noise_std m, quantisation step m.
     substeps: integration sub-steps per sample (linear parts are exact per sub-step).
@@ -33,6 +40,16 @@ class PlantParams:
     A: float = 0.30
     B: float = 0.011
     gamma: float = 0.004
+    hysteresis: str = 'bouc_wen'
+    preisach_d_rev: float = 2.0e-7
+    preisach_gain: float = 2.0e-5
+    preisach_radii: int = 48
+    preisach_r_max: float = 200.0
+    preisach_r0: float = 40.0
+    preisach_centre: float = 0.0
+    preisach_centre_slope: float = 0.0
+    preisach_spread: float = 120.0
+    creep_input: str = 'hysteresis'
     creep_gains: tuple = field(default=(0.008, 0.008, 0.008, 0.008))
     creep_time_constants: tuple = field(default=(0.1, 1.0, 10.0, 100.0))
     mode_frequency: float = 765.0
@@ -70,8 +87,29 @@ def _finite(name, value, lo=None, hi=None, lo_open=False):
     return value
 
 
+HYSTERESIS_KINDS = ('bouc_wen', 'preisach')
+CREEP_INPUTS = ('hysteresis', 'voltage')
+_STRING_FIELDS = ('hysteresis', 'creep_input')
+
+
 def validate(p: PlantParams) -> None:
     """Raise ConfigError naming the first invalid parameter."""
+    if p.hysteresis not in HYSTERESIS_KINDS:
+        raise ConfigError(f'plant parameter hysteresis must be one of {", ".join(HYSTERESIS_KINDS)}, '
+                          f'got {p.hysteresis!r}')
+    if p.creep_input not in CREEP_INPUTS:
+        raise ConfigError(f'plant parameter creep_input must be one of {", ".join(CREEP_INPUTS)}, '
+                          f'got {p.creep_input!r}')
+    _finite('preisach_d_rev', p.preisach_d_rev, 0.0)
+    _finite('preisach_gain', p.preisach_gain, 0.0)
+    for name in ('preisach_r_max', 'preisach_r0', 'preisach_spread'):
+        _finite(name, getattr(p, name), 0.0, lo_open=True)
+    _finite('preisach_centre', p.preisach_centre)
+    _finite('preisach_centre_slope', p.preisach_centre_slope)
+    if (isinstance(p.preisach_radii, bool) or not isinstance(p.preisach_radii, int)
+            or not 1 <= p.preisach_radii <= 1000):
+        raise ConfigError(f'plant parameter preisach_radii must be an integer in 1..1000, '
+                          f'got {p.preisach_radii!r}')
     for name in ('v_min', 'v_max', 'd_p', 'A', 'B', 'gamma'):
         _finite(name, getattr(p, name))
     if not p.v_min < p.v_max:
@@ -141,7 +179,7 @@ def load_plant_params(path=None) -> PlantParams:
             values[key] = tuple(values[key])
     for key, value in values.items():
         # YAML reads `1e5` (no dot) as a string; accept numeric strings for float fields.
-        if isinstance(value, str) and key != 'substeps':
+        if isinstance(value, str) and key not in ('substeps', 'preisach_radii') + _STRING_FIELDS:
             try:
                 values[key] = float(value)
             except ValueError:

@@ -38,21 +38,22 @@ class PlantRun(NamedTuple):
 def linear_system(p: PlantParams):
     """Continuous state-space (A, B) of the linear part, input w (m) from the hysteresis.
 
-    States: creep x_1..x_m (m), tip deflection y (m), tip velocity (m/s), sensor output (m).
+    States: creep x_1..x_m (m; none when creep acts on the voltage), tip deflection y (m), tip
+    velocity (m/s), sensor output (m).
     """
-    m = len(p.creep_gains)
+    m = len(p.creep_gains) if p.creep_input == 'hysteresis' else 0
     n = m + 3
     a = np.zeros((n, n))
     b = np.zeros(n)
     iy, iv, isens = m, m + 1, m + 2
     wn = 2.0 * math.pi * p.mode_frequency
     ws = 2.0 * math.pi * p.sensor_bandwidth
-    for i, tau in enumerate(p.creep_time_constants):
+    for i, tau in enumerate(p.creep_time_constants[:m]):
         a[i, i] = -1.0 / tau
         b[i] = 1.0 / tau
     # y'' = wn^2 * (w + sum k_i x_i - y) - 2 zeta wn y'
     a[iy, iv] = 1.0
-    a[iv, :m] = wn ** 2 * np.asarray(p.creep_gains, dtype=float)
+    a[iv, :m] = wn ** 2 * np.asarray(p.creep_gains, dtype=float)[:m]
     a[iv, iy] = -wn ** 2
     a[iv, iv] = -2.0 * p.mode_damping * wn
     b[iv] = wn ** 2
@@ -91,6 +92,10 @@ class PiezoCantilever:
             raise ConfigError(f'plant sample rate fs must be a positive number of Hz, got {fs!r}')
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ConfigError(f'plant seed must be a non-negative integer, got {seed!r}')
+        if (params.hysteresis == 'preisach') != (params.creep_input == 'voltage'):
+            raise ConfigError(f'creep_input: {params.creep_input} is not implemented for the '
+                              f'{params.hysteresis} plant (bouc_wen takes hysteresis, preisach '
+                              f'takes voltage)')
         self.params = params
         self.fs = float(fs)
         self.seed = int(seed)
@@ -110,7 +115,12 @@ class PiezoCantilever:
         consts[kernels.C_NOISE] = params.noise_std
         consts[kernels.C_QUANT] = params.quantisation
         self._consts = consts
-        self._state = np.zeros(kernels.S_LIN + self._phi.shape[0])
+        self._preisach = None
+        if params.hysteresis == 'preisach':
+            self._setup_preisach(params, h, consts)
+        n_hyst = (kernels.S_LIN if self._preisach is None
+                  else 1 + len(params.creep_gains) + params.preisach_radii)
+        self._state = np.zeros(n_hyst + self._phi.shape[0])
         self._work = np.zeros(self._phi.shape[0])
         # One-sample buffers reused by step() so that it allocates no arrays per call.
         self._u1 = np.zeros(1)
@@ -119,6 +129,29 @@ class PiezoCantilever:
         self._yt1 = np.zeros(1)
         self._ua1 = np.zeros(1)
         self.reset()
+
+    def _setup_preisach(self, p: PlantParams, h: float, consts: np.ndarray) -> None:
+        """Relay radii (V), weights (m) and centres (V) of the Preisach variant; see PlantParams."""
+        n = p.preisach_radii
+        radii = (np.arange(n) + 0.5) * (p.preisach_r_max / n)
+        weights = np.exp(-radii / p.preisach_r0)
+        weights *= p.preisach_gain / weights.sum()
+        centres = p.preisach_centre + p.preisach_centre_slope * radii
+        consts[kernels.C_DP] = p.preisach_d_rev
+        consts[kernels.C_B] = p.preisach_spread
+        consts[kernels.C_A] = kernels.preisach_output(np.zeros(n), weights, centres,
+                                                      p.preisach_spread)
+        gains = np.asarray(p.creep_gains, dtype=float)
+        decay = np.exp(-h / np.asarray(p.creep_time_constants, dtype=float))
+        self._preisach = (radii, weights, centres, gains, decay)
+
+    def _advance(self, u, noise, y, y_true, u_app) -> None:
+        args = (u, noise, self.params.substeps, self._consts, self._phi, self._g0, self._g1,
+                self._state, self._work, y, y_true, u_app)
+        if self._preisach is None:
+            kernels.advance(*args)
+        else:
+            kernels.advance_preisach(*args, *self._preisach)
 
     def reset(self) -> None:
         """Back to rest (all states zero, amplifier at 0 V) and the noise generator re-seeded."""
@@ -131,7 +164,8 @@ class PiezoCantilever:
 
     @property
     def state(self) -> np.ndarray:
-        """Copy of the state: [v (V), h (m), creep states (m)..., y (m), dy/dt (m/s), sensor (m)]."""
+        """Copy of the state. Bouc-Wen: [v (V), h (m), creep states (m)..., y (m), dy/dt (m/s),
+        sensor (m)]; Preisach: [v (V), voltage creep lags (V)..., plays (V)..., y, dy/dt, sensor]."""
         return self._state.copy()
 
     @property
@@ -167,8 +201,7 @@ class PiezoCantilever:
         self._u1[0] = u
         self._n1[0] = self._noise[self._noise_pos]
         self._noise_pos += 1
-        kernels.advance(self._u1, self._n1, self.params.substeps, self._consts, self._phi,
-                        self._g0, self._g1, self._state, self._work, self._y1, self._yt1, self._ua1)
+        self._advance(self._u1, self._n1, self._y1, self._yt1, self._ua1)
         return float(self._y1[0]), float(self._yt1[0]), float(self._ua1[0])
 
     def run(self, u_cmd) -> PlantRun:
@@ -190,6 +223,5 @@ class PiezoCantilever:
         y = np.empty(n)
         y_true = np.empty(n)
         u_app = np.empty(n)
-        kernels.advance(u, noise, self.params.substeps, self._consts, self._phi, self._g0, self._g1,
-                        self._state, self._work, y, y_true, u_app)
+        self._advance(u, noise, y, y_true, u_app)
         return PlantRun(u_applied=u_app, y=y, y_true=y_true)
