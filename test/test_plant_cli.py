@@ -64,3 +64,18 @@ def test_simulate_bad_input_exits_2_with_one_line(tmp_path, capsys, argv, words)
 def test_simulate_out_must_be_npz(tmp_path, capsys):
     assert run_cli(['simulate', '--seconds', '0.1', '--out', str(tmp_path / 'x.csv')]) == 2
     assert '.npz' in capsys.readouterr().err
+
+
+def test_cli_signal_kinds_match_the_generator():
+    from piezo_narx_ros.cli.simulate import KINDS as CLI_KINDS
+    from piezo_narx_ros.plant.signals import KINDS
+    assert set(CLI_KINDS) == set(KINDS)
+
+
+def test_simulate_protocol(tmp_path):
+    out = tmp_path / 'protocol.npz'
+    assert run_cli(['simulate', '--signal', 'protocol', '--seconds', '5', '--cycles', '1',
+                    '--out', str(out)]) == 0
+    with np.load(out, allow_pickle=False) as d:
+        assert d['u'].size == 10000 and np.max(np.abs(d['u'])) <= 100.0
+        assert json.loads(str(d['meta']))['options']['cycles'] == 1

@@ -134,3 +134,33 @@ def test_bad_common_parameters():
         generate('sine', 0.0, 1.0, 1.0)
     with pytest.raises(ConfigError, match='seed'):
         generate('sine', FS, 1.0, 1.0, seed=-2)
+
+
+def test_protocol_covers_the_envelope_in_each_half():
+    # 25 s at 2 kHz, two cycles: each half of a 50/50 split holds every kind of move.
+    u = generate('protocol', FS, 25.0, 100.0, seed=0)
+    assert u.size == 50000 and np.all(np.abs(u) <= 100.0 + 1e-9)
+    assert u[0] == 0.0
+    for half in (u[:25000], u[25000:]):
+        du = np.abs(np.diff(half))
+        assert half.max() > 90.0 and half.min() < -90.0          # full range
+        assert np.count_nonzero(du > 10.0) >= 5                   # steps (jumps > 10 V)
+        held = np.convolve(du == 0.0, np.ones(400), 'valid') == 400
+        assert np.count_nonzero(np.diff(held.astype(int)) == 1) >= 3   # holds >= 0.2 s
+        # slow moves: long monotonic stretches below 0.5 V per sample (< 1000 V/s)
+        slow = (du > 0) & (du < 0.5)
+        assert np.count_nonzero(slow) > 2000
+        spec = np.abs(np.fft.rfft(half))
+        f = np.fft.rfftfreq(half.size, 1 / FS)
+        assert spec[(f > 50) & (f < 100)].mean() > 20 * spec[(f > 200) & (f < 400)].mean()
+
+
+def test_protocol_seeds_and_options():
+    a = generate('protocol', FS, 4.0, 1.0, seed=1)
+    assert not np.allclose(a, generate('protocol', FS, 4.0, 1.0, seed=2))
+    one = generate('protocol', FS, 4.0, 1.0, seed=1, cycles=1)
+    assert not np.allclose(a, one)
+    with pytest.raises(ConfigError, match='cycles'):
+        generate('protocol', FS, 4.0, 1.0, cycles=0)
+    with pytest.raises(ConfigError, match='slow_freq'):
+        generate('protocol', FS, 4.0, 1.0, slow_freq=5000.0)

@@ -5,14 +5,15 @@ string with the signal and plant parameters). Imports nothing heavy until run().
 """
 import argparse
 
-KINDS = ('multisine', 'sine', 'triangle', 'chirp', 'aprbs', 'steps', 'playback')
+# Literal (importing plant.signals would load numba here); test_plant_cli checks it against KINDS.
+KINDS = ('multisine', 'sine', 'triangle', 'chirp', 'aprbs', 'steps', 'playback', 'protocol')
 # CLI flag -> generate() option name; None values are left to the generator's defaults.
 SIGNAL_FLAGS = {
     'freq': 'freq', 'phase': 'phase', 'f_min': 'f_min', 'f_max': 'f_max', 'f_res': 'f_res',
     'spectrum': 'spectrum', 'f0': 'f0', 'f1': 'f1', 'method': 'method', 'min_hold': 'min_hold',
     'max_hold': 'max_hold', 'levels': 'levels', 'hold': 'hold', 'file': 'path', 'key': 'key',
     'column': 'column', 'file_fs': 'file_fs', 'u_min': 'u_min', 'u_max': 'u_max',
-    'slew_rate': 'slew_rate',
+    'slew_rate': 'slew_rate', 'cycles': 'cycles', 'slow_freq': 'slow_freq',
 }
 
 
@@ -22,7 +23,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         'simulate', help='simulate the piezo cantilever under an excitation and write an .npz record',
         description='Simulate the piezo cantilever (config/plant.yaml) under an excitation signal and '
                     'write u, u_applied, y, y_true, t, fs to an .npz file. Units: V, m, s, Hz.')
-    p.add_argument('--signal', choices=KINDS, default='multisine', help='excitation kind (default multisine)')
+    p.add_argument('--signal', choices=KINDS, default='multisine',
+                   help='excitation kind (default multisine; protocol: the identification protocol '
+                        'covering fast, slow, step and hold moves, docs/envelope.md)')
     p.add_argument('--seconds', type=float, default=None,
                    help='duration, s (default 25; playback: the file length)')
     p.add_argument('--fs', type=float, default=2000.0, help='sample rate, Hz (default 2000)')
@@ -50,6 +53,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     g.add_argument('--key', help='playback .npz key (u)')
     g.add_argument('--column', help='playback .csv column name or index (u, else 0)')
     g.add_argument('--file-fs', type=float, help='playback file sample rate, Hz (its fs key, else --fs)')
+    g.add_argument('--cycles', type=int, help='protocol: repeats of the section sequence (2)')
+    g.add_argument('--slow-freq', type=float, help='protocol: slow-loop frequency, Hz (0.5)')
     g.add_argument('--u-min', type=float, help='command clamp, V (-200)')
     g.add_argument('--u-max', type=float, help='command clamp, V (200)')
     g.add_argument('--slew-rate', type=float, help='command slew limit, V/s (none)')

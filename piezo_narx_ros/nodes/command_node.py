@@ -60,6 +60,10 @@ class CommandNode(PiezoNode):
                   read_only=True),
         ParamSpec('max_hold', 0.5, 'APRBS longest hold, s', low=1e-6, high=3600.0, read_only=True),
         ParamSpec('path', '', 'playback: .npz/.csv file with the voltage record', read_only=True),
+        ParamSpec('cycles', 2, 'protocol: repeats of its section sequence', low=1, high=1000,
+                  read_only=True),
+        ParamSpec('slow_freq', 0.5, 'protocol: slow-loop frequency, Hz', low=1e-6, high=50000.0,
+                  read_only=True),
         ParamSpec('u_min', -200.0, 'lowest command, V (clamp)', low=-10000.0, high=10000.0,
                   read_only=True),
         ParamSpec('u_max', 200.0, 'highest command, V (clamp)', low=-10000.0, high=10000.0,
@@ -84,7 +88,7 @@ class CommandNode(PiezoNode):
                               f"({p['u_max']} V)")
         self.axes = list(p['axes'])
         options = {k: p[k] for k in ('freq', 'f_min', 'f_max', 'spectrum', 'f0', 'min_hold',
-                                     'max_hold', 'u_min', 'u_max')}
+                                     'max_hold', 'u_min', 'u_max', 'cycles', 'slow_freq')}
         options['f1'] = p['f1'] or None
         options['path'] = p['path'] or None
         signal = make_signal(p['kind'], p['fs'], p['seconds'], p['amplitude'], p['offset'],

@@ -26,6 +26,10 @@ OPTIONS = {
     'aprbs': {'min_hold': 0.01, 'max_hold': 0.5},                   # s
     'steps': {'levels': (0.0, 1.0, 0.0, -1.0, 0.0), 'hold': None},  # levels x amplitude; hold None: even split
     'playback': {'path': None, 'key': 'u', 'column': None, 'file_fs': None},
+    # The identification protocol (docs/envelope.md): `cycles` repeats of [hold, multisine up to
+    # f_max, slow sine at slow_freq decaying from full to a fifth of the amplitude, steps held
+    # 0.15-1 s, ramps at 0.2-30 amplitudes/s], each repeat with fresh random draws.
+    'protocol': {'cycles': 2, 'f_max': 100.0, 'slow_freq': 0.5},
 }
 KINDS = tuple(OPTIONS)
 SPECTRA = ('flat', 'pink', 'brown')
@@ -180,6 +184,73 @@ def _chirp(t, fs, opt, rng):
     return chirp(t, f0=f0, t1=duration, f1=f1, method=method, phi=-90.0)
 
 
+# Share of one protocol cycle taken by each section, in order.
+PROTOCOL_SECTIONS = (('hold', 0.02), ('multisine', 0.36), ('slow loops', 0.20), ('steps', 0.22),
+                     ('ramps', 0.20))
+
+
+def _protocol(t, fs, opt, rng):
+    """The operating envelope in one record, in units of the amplitude (within [-1, 1]).
+
+    A positioning stage sees fast small moves, slow full-range moves, nested minor loops, holds
+    and steps; a model identified on one kind only is not trustworthy on the others
+    (docs/excitation.md). Each cycle holds 0, then plays a random-phase multisine (the paper's fast
+    excitation), a slow sine whose amplitude decays linearly from 1 to 0.2 (nested loops at every
+    amplitude), random levels held 0.15-1 s (steps and creep), and ramps between random levels at
+    random rates (0.2-30 amplitudes/s, log-uniform) with random holds up to 0.3 s. Repeating the
+    cycle puts every kind of move in both halves of a 50/50 estimation/validation split.
+    """
+    cycles = opt['cycles']
+    if isinstance(cycles, bool) or not isinstance(cycles, (int, np.integer)) or cycles < 1:
+        raise ConfigError(f'signal parameter cycles must be an integer >= 1, got {cycles!r}')
+    slow = _check_freq('slow_freq', opt['slow_freq'], fs)
+    n = t.size
+    bounds = np.linspace(0, n, int(cycles) + 1).astype(int)
+    out = np.empty(n)
+    for c in range(int(cycles)):
+        m = bounds[c + 1] - bounds[c]
+        sizes = (np.array([f for _, f in PROTOCOL_SECTIONS]) * m).astype(int)
+        sizes[-1] = m - sizes[:-1].sum()
+        parts = [np.zeros(sizes[0])]
+        n_ms = sizes[1]
+        parts.append(_multisine(np.arange(n_ms) / fs, fs, {**OPTIONS['multisine'],
+                                'f_min': fs / max(n_ms, 2), 'f_max': opt['f_max']}, rng)
+                     if n_ms >= 4 else np.zeros(n_ms))
+        tt = np.arange(sizes[2]) / fs
+        parts.append(np.linspace(1.0, 0.2, tt.size) * np.sin(2.0 * np.pi * slow * tt))
+        parts.append(_random_holds(sizes[3], fs, rng))
+        parts.append(_random_ramps(sizes[4], fs, rng, parts[-1][-1] if sizes[3] else 0.0))
+        out[bounds[c]:bounds[c + 1]] = np.concatenate(parts)
+    return out
+
+
+def _random_holds(n, fs, rng):
+    """n samples of levels uniform in [-1, 1] held 0.15-1 s each."""
+    out = np.empty(n)
+    k = 0
+    while k < n:
+        hold = max(int(rng.uniform(0.15, 1.0) * fs), 1)
+        out[k:k + hold] = rng.uniform(-1.0, 1.0)
+        k += hold
+    return out
+
+
+def _random_ramps(n, fs, rng, start):
+    """n samples of ramps from `start` between random levels at random rates, random holds."""
+    out = np.empty(n)
+    k, cur = 0, start
+    while k < n:
+        level = rng.uniform(-1.0, 1.0)
+        rate = 10.0 ** rng.uniform(np.log10(0.2), np.log10(30.0))   # amplitudes per second
+        m = max(int(abs(level - cur) / rate * fs), 1)
+        seg = np.concatenate([np.linspace(cur, level, m + 1)[1:],
+                              np.full(int(rng.uniform(0.0, 0.3) * fs), level)])
+        out[k:k + seg.size] = seg[:n - k]
+        k += seg.size
+        cur = level
+    return out
+
+
 def _aprbs(t, fs, opt, rng):
     """Steps of random level (uniform in [-1, 1]) held for random times in [min_hold, max_hold] s."""
     lo = _num('min_hold', opt['min_hold'], 1.0 / fs)
@@ -283,4 +354,4 @@ def _is_float(text):
 
 
 _SHAPES = {'sine': _sine, 'triangle': _triangle, 'multisine': _multisine, 'chirp': _chirp,
-           'aprbs': _aprbs, 'steps': _steps}
+           'aprbs': _aprbs, 'steps': _steps, 'protocol': _protocol}
