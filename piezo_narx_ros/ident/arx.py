@@ -9,7 +9,8 @@ import numpy as np
 
 from ..errors import DataError
 from .kernels import ARXStepper, arx_predict, arx_simulate
-from .regressors import LaggedModel, as_signal, check_orders, lagged_regressors
+from .base import as_record_list
+from .regressors import LaggedModel, check_orders, lagged_regressors
 
 
 class ARXModel(LaggedModel):
@@ -37,10 +38,17 @@ class ARXModel(LaggedModel):
         return self.a is not None
 
     def fit(self, u, y, u_val=None, y_val=None, fs=None):
-        """Least-squares fit on estimation data u (V), y (m); u_val/y_val are unused (no tuning)."""
-        u = as_signal(u, 'u', min_len=self.n0 + self.n_params)
-        y = as_signal(y, 'y', n=u.size)
-        X, t = lagged_regressors(u, y, self.nu, self.ny)
+        """Least-squares fit on estimation data u (V), y (m): 1-D arrays, or lists of arrays for
+        several records (each record's regressor rows come from that record only); u_val/y_val
+        are unused (no tuning)."""
+        u_list, y_list = as_record_list(u, y, min_len=self.n0 + 1)
+        rows = [lagged_regressors(ur, yr, self.nu, self.ny) for ur, yr in zip(u_list, y_list)]
+        X = np.vstack([r[0] for r in rows])
+        t = np.concatenate([r[1] for r in rows])
+        if X.shape[0] < self.n_params:
+            raise DataError(f'ARX({self.na},{self.nb}) needs at least {self.n_params} regressor '
+                            f'rows, got {X.shape[0]}')
+        u, y = np.concatenate(u_list), np.concatenate(y_list)
         if self.fit_intercept:
             X = np.hstack([X, np.ones((X.shape[0], 1))])
         # Columns in V and m differ by orders of magnitude; scaling keeps lstsq well conditioned.

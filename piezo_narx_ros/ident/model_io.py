@@ -15,13 +15,20 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataError, ModelFileError
+from ..errors import ConfigError, DataError, ModelFileError
 from ..npzfile import read_npz
 from .arx import ARXModel
+from .base import check_parameters
+from .hysteresis import HysteresisNARX
 from .narx import NARXNetwork
 
 FORMAT = 'piezo_narx_ros/model'
-FORMAT_VERSION = 1
+#: Newest format this reader understands. Version 2 added the hysteresis_narx kind; NARX and ARX
+#: files are still written as version 1 so that older readers keep loading them.
+FORMAT_VERSION = 2
+_MODEL_TYPES = (NARXNetwork, ARXModel, HysteresisNARX)
+# Weight arrays of a HysteresisNARX, in the order of its parameter vector.
+_HNARX_PARTS = ('W1', 'b1', 'w2', 'c', 'duhem', 'g', 'a', 'b', 'y_off')
 UNITS = {'input': 'V', 'output': 'm', 'time': 's', 'fs': 'Hz'}
 
 
@@ -41,6 +48,15 @@ def _jsonable(x):
 
 
 def _weights_of(model):
+    if isinstance(model, HysteresisNARX):
+        from .hysteresis_kernels import layout
+        lay, _ = layout(model.hidden, model.n_inputs, model.n_duhem, len(model.creep_taus),
+                        model.na, model.nb)
+        out = {k: model.theta_[lo:hi] for k, (lo, hi) in lay.items()}
+        out['W1'] = out['W1'].reshape(model.hidden, model.n_inputs)
+        out['duhem'] = out['duhem'].reshape(model.n_duhem, 6)
+        out['radii'] = model.radii_
+        return out
     if isinstance(model, NARXNetwork):
         return {'W1': model.W1, 'b1': model.b1, 'w2': model.w2, 'b2': np.array([model.b2]),
                 'normalisation': model.normalisation}
@@ -48,6 +64,12 @@ def _weights_of(model):
 
 
 def _structure_of(model):
+    if isinstance(model, HysteresisNARX):
+        return {'kind': model.kind, 'hidden': model.hidden, 'n_plays': model.n_plays,
+                'n_duhem': model.n_duhem, 'n_lags': model.n_lags, 'na': model.na,
+                'nb': model.nb, 'creep_taus': list(model.creep_taus),
+                'activation': model.activation, 'nu': model.nu, 'ny': model.ny,
+                'n_params': model.n_params}
     if isinstance(model, NARXNetwork):
         return {'kind': 'narx', 'nu': model.nu, 'ny': model.ny, 'hidden': model.hidden,
                 'activation': model.activation, 'output': 'linear', 'n_params': model.n_params}
@@ -65,8 +87,9 @@ def save_model(model, path, data=None, metrics=None, tests=None):
     path = Path(path)
     if path.suffix != '.json':
         raise ModelFileError(f'model file name must end in .json: {path}')
-    if not isinstance(model, (NARXNetwork, ARXModel)):
-        raise ModelFileError(f'cannot save a {type(model).__name__}: not a NARXNetwork or ARXModel')
+    if not isinstance(model, _MODEL_TYPES):
+        raise ModelFileError(f'cannot save a {type(model).__name__}: not a NARXNetwork, '
+                             f'ARXModel or HysteresisNARX')
     if not model._is_fitted():
         raise ModelFileError(f'cannot save {model!r} to {path}: it has no weights (fit it first)')
     meta = dict(getattr(model, 'metadata', None) or {})
@@ -80,22 +103,34 @@ def save_model(model, path, data=None, metrics=None, tests=None):
     with open(tmp_w, 'wb') as fh:
         np.savez(fh, **_weights_of(model))
     digest = hashlib.sha256(tmp_w.read_bytes()).hexdigest()
+    hnarx = isinstance(model, HysteresisNARX)
+    if isinstance(model, NARXNetwork):
+        normalisation = dict(zip(('u_mean', 'u_std', 'y_mean', 'y_std'),
+                                 model.normalisation.tolist()))
+    elif hnarx:
+        normalisation = {'u_scale': model.u_scale_, 'y_scale': model.y_scale_}
+    else:
+        normalisation = None
+    if isinstance(model, NARXNetwork):
+        training = {'seed': model.seed, 'options': model.training_options,
+                    'info': model.training_info_}
+    elif hnarx:
+        training = {'seed': model.seed, 'options': model.params_dict(),
+                    'info': model.training_info_, 'method': 'output-error Levenberg-Marquardt'}
+    else:
+        training = {'method': 'least squares'}
     doc = {
         'format': FORMAT,
-        'format_version': FORMAT_VERSION,
+        'format_version': 2 if hnarx else 1,
         'structure': _structure_of(model),
-        'normalisation': (dict(zip(('u_mean', 'u_std', 'y_mean', 'y_std'),
-                                   model.normalisation.tolist()))
-                          if isinstance(model, NARXNetwork) else None),
+        'normalisation': normalisation,
         'fs': model.fs,
         'units': UNITS,
         'input_range': model.input_range,
         'output_range': model.output_range,
         'weights': {'file': wpath.name, 'sha256': digest,
                     'arrays': {k: list(np.shape(v)) for k, v in _weights_of(model).items()}},
-        'training': ({'seed': model.seed, 'options': model.training_options,
-                      'info': model.training_info_} if isinstance(model, NARXNetwork) else
-                     {'method': 'least squares'}),
+        'training': training,
         'data': meta.get('data'),
         'metrics': meta.get('metrics'),
         'tests': meta.get('tests'),
@@ -201,8 +236,49 @@ def _array(arrays, key, shape, wpath):
     return a
 
 
+def _load_hnarx(doc, name, arrays, wpath, fs):
+    """A HysteresisNARX from its JSON document and weight arrays (see save_model)."""
+    struct = _get(doc, 'structure', name, (dict,))
+    keys = ('hidden', 'n_plays', 'n_duhem', 'n_lags', 'na', 'nb', 'creep_taus')
+    missing = [k for k in keys if k not in struct]
+    if missing:
+        raise ModelFileError(f'{name}: missing key {"structure." + missing[0]!r}')
+    try:
+        values = check_parameters(HysteresisNARX, {k: struct[k] for k in keys})
+    except ConfigError as exc:
+        raise ModelFileError(f'{name}: structure.{exc}') from None
+    act = _get(doc, 'structure.activation', name, (str,))
+    if act != HysteresisNARX.activation:
+        raise ModelFileError(f'{name}: unsupported activation {act!r} (only logistic)')
+    if fs is None or not math.isfinite(fs):
+        raise ModelFileError(f'{name}: a hysteresis_narx model needs a finite fs (its creep '
+                             f'time constants are in seconds), got {fs!r}')
+    u_scale = _get(doc, 'normalisation.u_scale', name, (int, float))
+    y_scale = _get(doc, 'normalisation.y_scale', name, (int, float))
+    if not (math.isfinite(u_scale) and math.isfinite(y_scale) and u_scale > 0 and y_scale > 0):
+        raise ModelFileError(f'{name}: normalisation u_scale and y_scale must be finite and > 0')
+    training = doc.get('training') if isinstance(doc.get('training'), dict) else {}
+    seed = training.get('seed', 0)
+    model = HysteresisNARX(**values, seed=seed if isinstance(seed, int) and seed >= 0 else 0)
+    from .hysteresis_kernels import layout
+    lay, _ = layout(model.hidden, model.n_inputs, model.n_duhem, len(model.creep_taus),
+                    model.na, model.nb)
+    shapes = {k: (hi - lo,) for k, (lo, hi) in lay.items()}
+    shapes['W1'] = (model.hidden, model.n_inputs)
+    shapes['duhem'] = (model.n_duhem, 6)
+    theta = np.concatenate([_array(arrays, k, shapes[k], wpath).ravel() for k in _HNARX_PARTS])
+    radii = _array(arrays, 'radii', (model.n_plays,), wpath)
+    model.set_theta(theta, u_scale, y_scale, radii, fs)
+    if np.any(np.abs(model.output_poles) >= 1.0):
+        raise ModelFileError(f'{wpath}: the output dynamics are unstable (a root of A(q) has '
+                             f'modulus {np.max(np.abs(model.output_poles)):.4f} >= 1)')
+    model.training_info_ = training.get('info') or {}
+    return model
+
+
 def load_model(path):
-    """Load a model saved by save_model; returns a NARXNetwork or ARXModel ready to simulate.
+    """Load a model saved by save_model; returns a NARXNetwork, ARXModel or HysteresisNARX ready
+    to simulate.
 
     Raises ModelFileError (one line naming the file and the problem) on anything malformed.
     """
@@ -210,8 +286,9 @@ def load_model(path):
     name = str(path)
     doc = _read_json(path)
     kind = _get(doc, 'structure.kind', name, (str,))
-    if kind not in ('narx', 'arx'):
-        raise ModelFileError(f'{name}: unknown model kind {kind!r} (expected narx or arx)')
+    if kind not in ('narx', 'arx', HysteresisNARX.kind):
+        raise ModelFileError(f'{name}: unknown model kind {kind!r} (expected narx, arx or '
+                             f'{HysteresisNARX.kind})')
     fs = doc.get('fs')
     if fs is not None and (not isinstance(fs, (int, float)) or isinstance(fs, bool)
                            or not math.isfinite(fs) or fs <= 0):
@@ -223,7 +300,9 @@ def load_model(path):
     in_range, out_range = _range(doc, 'input_range', name), _range(doc, 'output_range', name)
     wpath, arrays = _read_weights(path, doc)
     try:
-        if kind == 'narx':
+        if kind == HysteresisNARX.kind:
+            model = _load_hnarx(doc, name, arrays, wpath, fs)
+        elif kind == 'narx':
             nu = _get_int(doc, 'structure.nu', name, 0)
             ny = _get_int(doc, 'structure.ny', name, 1)
             hidden = _get_int(doc, 'structure.hidden', name, 1)

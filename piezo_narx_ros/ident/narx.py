@@ -11,6 +11,7 @@ import time
 import numpy as np
 
 from ..errors import ConfigError, DataError
+from .base import as_record_list
 from .kernels import NARXStepper, narx_predict, narx_simulate
 from .regressors import LaggedModel, as_signal, check_orders
 
@@ -136,7 +137,8 @@ class NARXNetwork(LaggedModel):
 
     # ---------------------------------------------------------------- training
     def fit(self, u, y, u_val=None, y_val=None, fs=None):
-        """Train on estimation data u (V), y (m); returns self.
+        """Train on estimation data u (V), y (m): 1-D arrays, or lists of arrays for several
+        records (no regressor row or free-run segment spans two records); returns self.
 
         Stage 1: Levenberg-Marquardt on the one-step error (seeded restarts, early stopping on a
         held-out tail). Stage 2: simulation-error LM on free-run segments, kept only if the held-out
@@ -148,16 +150,18 @@ class NARXNetwork(LaggedModel):
         opts = self.training_options
         if (u_val is None) != (y_val is None):
             raise DataError('give both u_val and y_val, or neither')
-        u = as_signal(u, 'u', min_len=self.n0 + 20)
-        y = as_signal(y, 'y', n=u.size)
+        u_list, y_list = as_record_list(u, y, min_len=self.n0 + 20)
+        u, y = np.concatenate(u_list), np.concatenate(y_list)
         us, ys = float(u.std()), float(y.std())
         if us == 0 or ys == 0:
             raise DataError('estimation data is constant (zero variance in u or y); cannot fit')
         norm = np.array([u.mean(), us, y.mean(), ys])
         t0 = time.perf_counter()
+        un = [(x - norm[0]) / norm[1] for x in u_list]
+        yn = [(x - norm[2]) / norm[3] for x in y_list]
         W1, b1, w2, b2, info = training.train_narx(
-            (u - norm[0]) / norm[1], (y - norm[2]) / norm[3], self.nu, self.ny, self.hidden,
-            self.seed, **opts)
+            un if len(un) > 1 else un[0], yn if len(yn) > 1 else yn[0], self.nu, self.ny,
+            self.hidden, self.seed, **opts)
         self.set_weights(W1, b1, w2, b2, norm)
         self._record_ranges(u, y, fs)
         info['fit_seconds'] = time.perf_counter() - t0

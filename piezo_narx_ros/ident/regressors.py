@@ -8,6 +8,7 @@ samples have no full row and are skipped.
 import numpy as np
 
 from ..errors import DataError
+from .base import DynamicModel
 
 
 def check_orders(nu, ny):
@@ -65,36 +66,14 @@ def lagged_regressors(u, y, nu, ny):
     return X, y[n0:].copy()
 
 
-class LaggedModel:
+class LaggedModel(DynamicModel):
     """Shared predict/simulate/stepper plumbing of ARXModel and NARXNetwork.
 
     Subclasses set ``nu``, ``ny`` and implement ``_one_step(u, y, start)`` (one-step outputs),
     ``_simulate_inplace(u, y, start)`` (free run filling y[start:]) and ``_make_stepper(u_past,
-    y_past)``; ``_is_fitted()`` tells whether weights exist.
+    y_past)``; ``_is_fitted()`` tells whether weights exist. Their whole state is the last nu
+    inputs and ny outputs, so n0 measured outputs initialise a free run exactly.
     """
-
-    fs = None
-    input_range = None    # (min, max) of the estimation input, V
-    output_range = None   # (min, max) of the estimation output, m
-
-    @property
-    def n0(self):
-        """Number of leading samples without a full regressor row, max(nu, ny)."""
-        return max(self.nu, self.ny)
-
-    def _require_fitted(self):
-        if not self._is_fitted():
-            raise DataError(f'{type(self).__name__} has no weights yet: '
-                            f'call fit() or load a model file')
-
-    def _record_ranges(self, u, y, fs):
-        self.input_range = (float(u.min()), float(u.max()))
-        self.output_range = (float(y.min()), float(y.max()))
-        if fs is not None:
-            fs = float(fs)
-            if not np.isfinite(fs) or fs <= 0:
-                raise DataError(f'sample rate fs must be a positive number of Hz, got {fs!r}')
-            self.fs = fs
 
     def predict(self, u, y):
         """One-step-ahead prediction from measured past outputs.

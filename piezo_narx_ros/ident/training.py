@@ -227,27 +227,56 @@ def _segment_starts(k_lo, k_hi, length, n_segments):
     return np.round(np.linspace(k_lo, k_hi - length, n_segments)).astype(np.int64)
 
 
+def _pooled_freerun_mse(theta, H, uns, yns, nu, ny, k_starts):
+    """Free-run MSE pooled over records, each run from its own k_start (no state crosses)."""
+    total, count = 0.0, 0
+    for un, yn, k in zip(uns, yns, k_starts):
+        n = un.size - k
+        total += _freerun_mse(theta, H, un, yn, nu, ny, k) * n
+        count += n
+    return total / count if np.isfinite(total) else np.inf
+
+
 def train_narx(un, yn, nu, ny, hidden, seed, restarts=3, restart_iter=8, restart_samples=2000,
                max_iter=25, onestep_samples=4000, val_fraction=0.15, max_fail=6, refine_iter=40,
                refine_max_fail=40, segment_length=200, n_segments=40, hessian_stride=2, threads=1):
-    """Fit the network on normalised signals un, yn (N,); see the module docstring and
+    """Fit the network on normalised signals un, yn: (N,) arrays, or lists of them for several
+    records (no regressor row, free-run segment or score crosses from one record to the next;
+    each record keeps its own held-out tail). See the module docstring and
     narx.TRAINING_DEFAULTS for the options. Returns (W1 (H, d), b1 (H,), w2 (H,), b2, info)."""
     t_start = time.perf_counter()
     n_threads = torch.get_num_threads()
     torch.set_num_threads(max(1, int(threads)))
     try:
+        uns = list(un) if isinstance(un, (list, tuple)) else [un]
+        yns = list(yn) if isinstance(yn, (list, tuple)) else [yn]
         rng = np.random.default_rng(int(seed))
         H, d = int(hidden), nu + 1 + ny
         P = _n_params(H, d)
         n0 = max(nu, ny)
-        N = un.size
-        n_val = min(max(int(round(val_fraction * N)), 0), N - n0 - 10)
-        k_split = N - n_val                       # samples k >= k_split are held out
-        X_all, t_all = lagged_regressors(un, yn, nu, ny)
-        r_split = k_split - n0
-        X, t = X_all[:r_split], t_all[:r_split]
-        Xv, tv = (X_all[r_split:], t_all[r_split:]) if n_val > 0 else (X, t)
-        info = {'n_train': int(k_split), 'n_holdout': int(n_val), 'n_params': P}
+        X_tr, t_tr, X_ho, t_ho, k_splits, n_vals = [], [], [], [], [], []
+        for u_r, y_r in zip(uns, yns):
+            N = u_r.size
+            n_val = min(max(int(round(val_fraction * N)), 0), N - n0 - 10)
+            k_split = N - n_val                       # samples k >= k_split are held out
+            X_all, t_all = lagged_regressors(u_r, y_r, nu, ny)
+            r_split = k_split - n0
+            X_tr.append(X_all[:r_split])
+            t_tr.append(t_all[:r_split])
+            X_ho.append(X_all[r_split:])
+            t_ho.append(t_all[r_split:])
+            k_splits.append(k_split)
+            n_vals.append(n_val)
+        one = len(uns) == 1
+        X = X_tr[0] if one else np.vstack(X_tr)
+        t = t_tr[0] if one else np.concatenate(t_tr)
+        if sum(n_vals) > 0:
+            Xv = X_ho[0] if one else np.vstack(X_ho)
+            tv = t_ho[0] if one else np.concatenate(t_ho)
+        else:
+            Xv, tv = X, t
+        info = {'n_train': int(sum(k_splits)), 'n_holdout': int(sum(n_vals)), 'n_params': P,
+                'n_records': len(uns)}
 
         def subsample(n_rows):
             if n_rows and n_rows < X.shape[0]:
@@ -281,31 +310,44 @@ def train_narx(un, yn, nu, ny, hidden, seed, restarts=3, restart_iter=8, restart
                     stage1_seconds=time.perf_counter() - t_start)
 
         # Stage 2: simulation-error refinement, judged by the held-out free-run error.
-        k_val = k_split if n_val > 2 * n0 else n0
+        k_vals = [k if nv > 2 * n0 else n0 for k, nv in zip(k_splits, n_vals)]
+        starts_at_n0 = [n0] * len(uns)
 
         def score_freerun(th):
             # The held-out free run judges accuracy; the free run over the whole record from its
             # first samples guards stability: the record starts with the excitation switching on,
             # which the held-out tail never shows, and long refinement once produced a network
             # accurate on the tail that fell into a limit cycle there (R² -119).
-            return max(_freerun_mse(th, H, un, yn, nu, ny, k_val),
-                       _freerun_mse(th, H, un, yn, nu, ny, n0))
+            return max(_pooled_freerun_mse(th, H, uns, yns, nu, ny, k_vals),
+                       _pooled_freerun_mse(th, H, uns, yns, nu, ny, starts_at_n0))
 
         stage1_score = score_freerun(theta)
         info['holdout_mse_freerun_stage1'] = stage1_score
         stage = 'one-step'
-        length = min(int(segment_length), k_split - n0)
-        starts = _segment_starts(n0, k_split, length, n_segments) if refine_iter > 0 else []
+        length = min(int(segment_length), min(k - n0 for k in k_splits))
+        # One array for the segment kernel; each segment lies inside one record.
+        u_cat = uns[0] if one else np.concatenate(uns)
+        y_cat = yns[0] if one else np.concatenate(yns)
+        starts = []
+        if refine_iter > 0 and length >= 1:
+            offset, total = 0, sum(k - n0 for k in k_splits)
+            for u_r, k_split in zip(uns, k_splits):
+                n_seg = (n_segments if one or not n_segments
+                         else max(1, int(round(n_segments * (k_split - n0) / total))))
+                starts.append(offset + _segment_starts(n0, k_split, length, n_seg))
+                offset += u_r.size
+            starts = np.concatenate(starts).astype(np.int64)
         if len(starts):
             t2 = time.perf_counter()
             J, e = np.empty((starts.size * length, P)), np.empty(starts.size * length)
             e_trial = np.empty_like(e)
 
             def jac_sim(th):
-                return J, e, _segments(un, yn, starts, length, nu, ny, th, H, J, e, True)
+                return J, e, _segments(u_cat, y_cat, starts, length, nu, ny, th, H, J, e, True)
 
             def sse_sim(th):
-                return _segments(un, yn, starts, length, nu, ny, th, H, J[:1], e_trial, False)
+                return _segments(u_cat, y_cat, starts, length, nu, ny, th, H, J[:1], e_trial,
+                                 False)
 
             th2, sc2, n_it2 = _levenberg_marquardt(theta, jac_sim, sse_sim, score_freerun,
                                                    int(refine_iter), int(refine_max_fail), 1e-2,

@@ -1,0 +1,165 @@
+"""What every model family implements, and the parameter-rule table their constructors check.
+
+Every family (ARX, the paper's NARX network, the hysteresis-operator NARX) is a `DynamicModel`:
+fit / predict / simulate on numpy arrays in SI units (V in, m out), a `Stepper` for the estimator's
+per-sample loop, and the attributes the estimator, the experiment and the model files read.
+
+Constructor arguments are checked against the class's `_parameter_constraints` table (as
+scikit-learn does): the same table gives the CLI its defaults and ranges, and the tests iterate
+over it, so a rule is written once.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ConfigError, DataError
+
+
+@dataclass(frozen=True)
+class Interval:
+    """A number of `kind` (int or float) in [low, high] (None: unbounded on that side)."""
+
+    kind: type
+    low: float | None = None
+    high: float | None = None
+
+    def check(self, name: str, value):
+        """`value` converted to `kind`; ConfigError naming `name` and the rule otherwise."""
+        ok = (not isinstance(value, bool) and isinstance(value, (int, float, np.integer,
+                                                                 np.floating)))
+        if ok and self.kind is int:
+            ok = float(value).is_integer()
+        if ok:
+            value = self.kind(value)
+            ok = math.isfinite(value) and (self.low is None or value >= self.low) and \
+                (self.high is None or value <= self.high)
+        if not ok:
+            raise ConfigError(f'{name} must be {self.describe()}, got {value!r}')
+        return value
+
+    def describe(self) -> str:
+        """The rule in words, e.g. 'an integer in [1, 200]'."""
+        what = 'an integer' if self.kind is int else 'a number'
+        lo = '-inf' if self.low is None else f'{self.low:g}'
+        hi = 'inf' if self.high is None else f'{self.high:g}'
+        return f'{what} in [{lo}, {hi}]'
+
+
+@dataclass(frozen=True)
+class Tuple:
+    """A non-empty tuple of numbers, each satisfying `item`, strictly increasing if asked."""
+
+    item: Interval
+    min_len: int = 1
+    max_len: int = 64
+    increasing: bool = False
+
+    def check(self, name: str, value):
+        """`value` as a tuple; ConfigError naming `name` otherwise."""
+        try:
+            items = tuple(value)
+        except TypeError:
+            raise ConfigError(f'{name} must be {self.describe()}, got {value!r}') from None
+        if not self.min_len <= len(items) <= self.max_len:
+            raise ConfigError(f'{name} must be {self.describe()}, got {len(items)} values')
+        items = tuple(self.item.check(f'{name}[{i}]', v) for i, v in enumerate(items))
+        if self.increasing and any(b <= a for a, b in zip(items, items[1:])):
+            raise ConfigError(f'{name} must be strictly increasing, got {list(items)}')
+        return items
+
+    def describe(self) -> str:
+        """The rule in words."""
+        return (f'{self.min_len}-{self.max_len} values, each {self.item.describe()}'
+                + (', increasing' if self.increasing else ''))
+
+
+def check_parameters(cls, values: dict) -> dict:
+    """Every constructor value checked against `cls._parameter_constraints`; returns them
+    converted. ConfigError on the first bad one (its name, the rule and the value)."""
+    rules = cls._parameter_constraints
+    unknown = set(values) - set(rules)
+    if unknown:
+        raise ConfigError(f'{cls.__name__}: unknown parameter(s) {", ".join(sorted(unknown))}')
+    return {name: rules[name].check(name, value) for name, value in values.items()}
+
+
+class DynamicModel:
+    """Base class of every model family: the interface the rest of the package relies on.
+
+    Attributes (set by fit or by model_io.load_model):
+      kind : str, the model file's structure.kind;
+      nu, ny : input / output history the Stepper takes (samples); n0 = max(nu, ny);
+      n_params : number of estimated parameters;
+      fs : sample rate the model was fitted at, Hz (None when unknown);
+      input_range, output_range : (min, max) seen in the estimation data, V and m;
+      state_from_input : True when the model's internal state is a function of the whole input
+        history (hysteresis operators, creep) and cannot be set from n0 measured outputs: such a
+        model is scored on part of a record by free-running from the record's start.
+    Methods: fit(u, y, fs=None) -> self; predict(u, y) and simulate(u, y0=None) -> (N,) m;
+      stepper(u_past=None, y_past=None) -> a Stepper with step(u_k V) -> y_k m and reset().
+    """
+
+    kind = 'abstract'
+    state_from_input = False
+    fs = None
+    input_range = None
+    output_range = None
+    _parameter_constraints: dict = {}
+
+    @property
+    def n0(self) -> int:
+        """Leading samples without a full regressor row / history, max(nu, ny)."""
+        return max(self.nu, self.ny)
+
+    def fit(self, u, y, fs=None):   # pragma: no cover - interface
+        raise NotImplementedError
+
+    def predict(self, u, y):   # pragma: no cover - interface
+        raise NotImplementedError
+
+    def simulate(self, u, y0=None):   # pragma: no cover - interface
+        raise NotImplementedError
+
+    def stepper(self, u_past=None, y_past=None):   # pragma: no cover - interface
+        raise NotImplementedError
+
+    def _is_fitted(self) -> bool:   # pragma: no cover - interface
+        raise NotImplementedError
+
+    def _require_fitted(self):
+        if not self._is_fitted():
+            raise DataError(f'{type(self).__name__} has no weights yet: '
+                            f'call fit() or load a model file')
+
+    def _record_ranges(self, u, y, fs):
+        """Store input/output ranges (V, m) of the estimation data and the sample rate (Hz)."""
+        self.input_range = (float(np.min(u)), float(np.max(u)))
+        self.output_range = (float(np.min(y)), float(np.max(y)))
+        if fs is not None:
+            fs = float(fs)
+            if not np.isfinite(fs) or fs <= 0:
+                raise DataError(f'sample rate fs must be a positive number of Hz, got {fs!r}')
+            self.fs = fs
+
+
+def as_record_list(u, y, min_len=1):
+    """(list of u arrays V, list of y arrays m) from one record (1-D arrays) or several (a list
+    or tuple of 1-D arrays each). DataError on mismatched or bad arrays."""
+    from .regressors import as_signal
+    several = isinstance(u, (list, tuple))
+    if several != isinstance(y, (list, tuple)):
+        raise DataError('give u and y both as arrays (one record) or both as lists (several)')
+    us, ys = (list(u), list(y)) if several else ([u], [y])
+    if not us or len(us) != len(ys):
+        raise DataError(f'u and y must hold the same number of records, got {len(us)} and '
+                        f'{len(ys)}')
+    out_u, out_y = [], []
+    for i, (ui, yi) in enumerate(zip(us, ys)):
+        tag = f' (record {i})' if several else ''
+        ui = as_signal(ui, 'u' + tag, min_len=min_len)
+        out_u.append(ui)
+        out_y.append(as_signal(yi, 'y' + tag, n=ui.size))
+    return out_u, out_y

@@ -1,0 +1,292 @@
+"""Hysteresis-operator NARX: a sigmoid network over rate-independent operator states of the input,
+followed by learned creep and linear output dynamics (the `--preset envelope` family).
+
+    y(k) = -sum_j a_j y(k-j) + sum_i b_i z(k-i) + y_off                      (output lags: linear)
+    z(k) = w(k) + sum_l g_l x_l(k),   x_l: first-order lags of w, time constants creep_taus (s)
+    w(k) = f(phi(k)),  f: one hidden layer of sigmoid units plus a linear term, f = 0 at rest
+    phi(k) = [play operators of u (n_plays radii), u increments over n_lags samples,
+              learned Duhem states (n_duhem)]
+
+Why this structure (docs/envelope.md has the measurements): the paper's network feeds its own
+output back through a sigmoid layer. A rate-independent plant holding its input has a continuum of
+equilibria (any point inside the loop); such a network has isolated ones, so on slow moves and
+holds its free run drifts to them and can run away. Here the hysteresis memory lives in operators
+of the input that are frozen while the input holds (plays: the Preisach class, any Preisach
+operator is a sum of functions of plays; Duhem states: the Bouc-Wen / Duhem class, with learned
+rates), the network is static in them, and only linear, stability-checked dynamics feed the
+output back. The free run is therefore bounded for every bounded input (plays are bounded by the
+input, Duhem states by |alpha|/BETA_MIN, sigmoids by 1, and the output dynamics are stable).
+
+Inference is numpy + numba only; fitting too (no torch).
+"""
+import numpy as np
+
+from ..errors import DataError
+from . import hysteresis_kernels as hk
+from .base import DynamicModel, Interval, Tuple, as_record_list, check_parameters
+
+#: Creep time constants (s): log-spaced from the mode's scale to the longest drift a record shows.
+DEFAULT_CREEP_TAUS = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
+
+
+class HysteresisNARX(DynamicModel):
+    """Sigmoid network over hysteresis-operator states + creep + linear output dynamics.
+
+    hidden : sigmoid units; n_plays : play operators (radii (i/n_plays)^2 of the input scale,
+    i = 0..n_plays-1, denser where small reversals are); n_duhem : learned Duhem states;
+    n_lags : input increments seen by the network (the drive's short-term dynamics, e.g. an
+    amplifier's slew limit); na, nb : output dynamics orders; creep_taus : creep time constants, s;
+    seed : initial hidden-layer seed. Training: max_iter LM iterations, val_fraction of each
+    record held out for early stopping (0: none), max_fail, hessian_stride (see
+    hysteresis_training).
+
+    Fitted attributes: u_scale_ (V), y_scale_ (m), radii_ (normalised), theta_ (all parameters,
+    normalised units), training_info_; fs, input_range, output_range as every model.
+    """
+
+    kind = 'hysteresis_narx'
+    activation = 'logistic'
+    state_from_input = True
+    _parameter_constraints = {
+        'hidden': Interval(int, 1, 200),
+        'n_plays': Interval(int, 1, 64),
+        'n_duhem': Interval(int, 0, 8),
+        'n_lags': Interval(int, 0, 50),
+        'na': Interval(int, 0, 20),
+        'nb': Interval(int, 0, 20),
+        'creep_taus': Tuple(Interval(float, 1e-5, 1e6), min_len=0, max_len=32, increasing=True),
+        'seed': Interval(int, 0, 2 ** 32 - 1),
+        'max_iter': Interval(int, 0, 100000),
+        'val_fraction': Interval(float, 0.0, 0.5),
+        'max_fail': Interval(int, 1, 10000),
+        'hessian_stride': Interval(int, 1, 64),
+    }
+
+    def __init__(self, hidden=10, n_plays=12, n_duhem=1, n_lags=3, na=3, nb=3,
+                 creep_taus=DEFAULT_CREEP_TAUS, seed=0, max_iter=60, val_fraction=0.0,
+                 max_fail=8, hessian_stride=2):
+        values = check_parameters(type(self), dict(
+            hidden=hidden, n_plays=n_plays, n_duhem=n_duhem, n_lags=n_lags, na=na, nb=nb,
+            creep_taus=creep_taus, seed=seed, max_iter=max_iter, val_fraction=val_fraction,
+            max_fail=max_fail, hessian_stride=hessian_stride))
+        for name, value in values.items():
+            setattr(self, name, value)
+        self.theta_ = None
+        self.training_info_ = {}
+
+    # ------------------------------------------------------------------ structure
+    @property
+    def nu(self):
+        """Input history the Stepper takes: the increments' depth, samples."""
+        return self.n_lags
+
+    @property
+    def ny(self):
+        """Output history the Stepper takes: the output dynamics' order, samples."""
+        return self.na
+
+    @property
+    def n_inputs(self):
+        """Network inputs d = n_plays + n_lags + n_duhem."""
+        return self.n_plays + self.n_lags + self.n_duhem
+
+    @property
+    def n_params(self):
+        """Number of estimated parameters."""
+        return hk.layout(self.hidden, self.n_inputs, self.n_duhem, len(self.creep_taus),
+                         self.na, self.nb)[1]
+
+    def _is_fitted(self):
+        return self.theta_ is not None
+
+    def params_dict(self):
+        """Constructor arguments (for model files and reports)."""
+        return {name: getattr(self, name) for name in self._parameter_constraints}
+
+    # ------------------------------------------------------------------ fitting
+    def fit(self, u, y, fs=None):
+        """Train on one record (u V, y m: 1-D arrays) or several (lists of arrays; no state
+        crosses records); fs (Hz) is required (creep time constants are in seconds). Each
+        record should start at rest, as the free run does. Returns self."""
+        from .hysteresis_training import train
+        us, ys = as_record_list(u, y, min_len=max(self.n0, 1) + 20)
+        if fs is None:
+            raise DataError('HysteresisNARX.fit needs the sample rate fs (Hz)')
+        fs = float(fs)
+        if not np.isfinite(fs) or fs <= 0:
+            raise DataError(f'sample rate fs must be a positive number of Hz, got {fs!r}')
+        u_all, y_all = np.concatenate(us), np.concatenate(ys)
+        u_scale, y_scale = float(np.max(np.abs(u_all))), float(np.std(y_all))
+        if u_scale == 0.0 or y_scale == 0.0:
+            raise DataError('estimation data is constant (zero input or zero output variance); '
+                            'cannot fit')
+        self.u_scale_, self.y_scale_ = u_scale, y_scale
+        self.radii_ = (np.arange(self.n_plays) / self.n_plays) ** 2
+        self.fs = fs
+        theta, info = train([x / u_scale for x in us], [x / y_scale for x in ys], self.radii_,
+                            self.n_lags, self.hidden, self.n_duhem, self._lam(), self.na,
+                            self.nb, self.seed, self.max_iter, self.val_fraction, self.max_fail,
+                            self.hessian_stride)
+        self.set_theta(theta)
+        self._record_ranges(u_all, y_all, fs)
+        self.training_info_ = info
+        return self
+
+    def _lam(self):
+        return np.exp(-1.0 / (np.asarray(self.creep_taus, dtype=float) * self.fs))
+
+    def set_theta(self, theta, u_scale=None, y_scale=None, radii=None, fs=None):
+        """Set every parameter from the flat vector theta (normalised units; layout in
+        hysteresis_kernels), and optionally the scales (V, m), radii and fs (Hz)."""
+        if u_scale is not None:
+            self.u_scale_, self.y_scale_ = float(u_scale), float(y_scale)
+            self.radii_ = np.array(radii, dtype=np.float64)
+            self.fs = float(fs)
+        theta = np.array(theta, dtype=np.float64).ravel()
+        if theta.size != self.n_params or not np.all(np.isfinite(theta)):
+            raise DataError(f'theta must hold {self.n_params} finite values, got {theta.size}')
+        if self.radii_.shape != (self.n_plays,) or not np.all(np.isfinite(self.radii_)):
+            raise DataError(f'radii must hold {self.n_plays} finite values')
+        if not (self.u_scale_ > 0 and self.y_scale_ > 0):
+            raise DataError('u_scale and y_scale must be > 0')
+        lay, _ = hk.layout(self.hidden, self.n_inputs, self.n_duhem, len(self.creep_taus),
+                           self.na, self.nb)
+        part = {k: theta[lo:hi] for k, (lo, hi) in lay.items()}
+        H, d = self.hidden, self.n_inputs
+        W1 = np.ascontiguousarray(part['W1'].reshape(H, d))
+        b1 = part['b1'].copy()
+        w2 = part['w2'].copy()
+        w_rest = float(np.sum(w2 / (1.0 + np.exp(-b1))))
+        self.theta_ = theta
+        self._kernel_args = (
+            np.ascontiguousarray(self.radii_), int(self.n_lags),
+            np.ascontiguousarray(part['duhem'].reshape(self.n_duhem, 6)), W1, b1, w2,
+            part['c'].copy(), w_rest, part['g'].copy(), self._lam(), part['a'].copy(),
+            part['b'].copy(), float(part['y_off'][0]))
+        return self
+
+    @property
+    def output_poles(self):
+        """Roots of the output dynamics' A(q) (z-plane); all inside the unit circle."""
+        a = self._kernel_args[10]
+        return np.roots(np.r_[1.0, a]) if a.size else np.zeros(0)
+
+    # ------------------------------------------------------------------ inference
+    def _state_size(self):
+        return hk.state_size(self.n_plays, self.n_lags, self.n_duhem, len(self.creep_taus),
+                             self.na, self.nb)
+
+    def _initial_state(self, u_past, y_past):
+        """Free-run state after rest, then the inputs u_past (V), with the output history
+        replaced by y_past (m) when given."""
+        st = np.zeros(self._state_size())
+        if u_past is not None and len(u_past):
+            hk.simulate(np.asarray(u_past, dtype=np.float64) / self.u_scale_, st,
+                        *self._kernel_args)
+        if y_past is not None and self.na:
+            y_off = self._kernel_args[-1]
+            i_y = st.size - self.na
+            yl = np.asarray(y_past, dtype=np.float64) / self.y_scale_ - y_off
+            st[i_y:] = yl[::-1]      # st holds yl(k-1), ..., yl(k-na)
+        return st
+
+    def simulate(self, u, y0=None):
+        """Free run from the input alone: u (N,) V -> (N,) m.
+
+        y0=None starts from rest (every operator, creep state and past output 0). y0 (the first
+        n0 measured outputs, m) is copied to the output for k < n0 and sets the output history;
+        the operators then start from rest fed with u[n0-nu:n0]. The operators' memory cannot be
+        read from n0 outputs: to score part of a record, simulate it from the record's start.
+        """
+        from .regressors import as_signal
+        self._require_fitted()
+        n0 = self.n0
+        if y0 is None:
+            u = as_signal(u, 'u')
+            st = np.zeros(self._state_size())
+            return hk.simulate(u / self.u_scale_, st, *self._kernel_args) * self.y_scale_
+        u = as_signal(u, 'u', min_len=n0)
+        y0 = as_signal(y0, 'y0', n=n0, min_len=0)
+        st = self._initial_state(u[n0 - self.nu:n0], y0[n0 - self.ny:])
+        out = np.empty(u.size)
+        out[:n0] = y0
+        out[n0:] = hk.simulate(u[n0:] / self.u_scale_, st, *self._kernel_args) * self.y_scale_
+        return out
+
+    def predict(self, u, y):
+        """One step ahead: the operators free-run on u (V); the output lags are the measured y
+        (m). Returns (N,) m with [:n0] = y[:n0]."""
+        from .regressors import as_signal
+        self._require_fitted()
+        u = as_signal(u, 'u', min_len=self.n0 + 1)
+        y = as_signal(y, 'y', n=u.size)
+        radii, n_lags, dh, W1, b1, w2, c, w_rest, g, lam, a, b, y_off = self._kernel_args
+        z = hk.operator_chain(u / self.u_scale_, radii, n_lags, dh, W1, b1, w2, c, w_rest, g,
+                              lam)
+        yl = y / self.y_scale_ - y_off
+        n, n0 = u.size, self.n0
+        pred = np.zeros(n - n0)
+        for i in range(b.size):
+            pred += b[i] * z[n0 - i:n - i]
+        for j in range(1, a.size + 1):
+            pred -= a[j - 1] * yl[n0 - j:n - j]
+        out = y.copy()
+        out[n0:] = (pred + y_off) * self.y_scale_
+        return out
+
+    def stepper(self, u_past=None, y_past=None):
+        """Per-sample free run (the estimator's loop), started like simulate(): rest, then
+        u_past (V, nu samples) through the operators, output history y_past (m, ny samples)."""
+        self._require_fitted()
+        return HysteresisStepper(self, u_past, y_past)
+
+    def __repr__(self):
+        return (f'HysteresisNARX(hidden={self.hidden}, n_plays={self.n_plays}, '
+                f'n_duhem={self.n_duhem}, n_lags={self.n_lags}, na={self.na}, nb={self.nb}, '
+                f'seed={self.seed})')
+
+
+class HysteresisStepper:
+    """Stepper of a HysteresisNARX: step(u_k V) -> y_k m, reset(u_past, y_past); no allocation
+    per step."""
+
+    def __init__(self, model, u_past=None, y_past=None):
+        self._model = model
+        self.nu, self.ny = model.nu, model.ny
+        self._args = model._kernel_args
+        self._u_scale, self._y_scale = model.u_scale_, model.y_scale_
+        self._u_hist = np.zeros(self.nu)
+        self.reset(u_past, y_past)
+
+    def reset(self, u_past=None, y_past=None):
+        """Restart from rest, then u_past (V, nu samples) and output history y_past (m)."""
+        from .kernels import _history
+        up = _history(u_past, self.nu, 'u_past') if u_past is not None else None
+        yp = _history(y_past, self.ny, 'y_past') if y_past is not None else None
+        self._st = self._model._initial_state(up, yp)
+        self._u_hist[:] = up if up is not None else 0.0
+        self._y_last = np.zeros(self.ny) if yp is None else yp.copy()
+
+    def step(self, u_k):
+        """Feed one input sample u_k (V); returns the free-run output y(k) (m). A non-finite
+        u_k raises DataError and leaves the state untouched."""
+        from .kernels import _finite_input
+        u = _finite_input(u_k)
+        y = hk.step(u / self._u_scale, self._st, *self._args) * self._y_scale
+        if self.nu:
+            self._u_hist[:-1] = self._u_hist[1:]
+            self._u_hist[-1] = u
+        if self.ny:
+            self._y_last[:-1] = self._y_last[1:]
+            self._y_last[-1] = y
+        return y
+
+    @property
+    def u_past(self):
+        """Copy of the last nu inputs [u(k-nu) ... u(k-1)], V."""
+        return self._u_hist.copy()
+
+    @property
+    def y_past(self):
+        """Copy of the last ny outputs [y(k-ny) ... y(k-1)], m."""
+        return self._y_last.copy()

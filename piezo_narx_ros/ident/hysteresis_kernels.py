@@ -1,0 +1,397 @@
+"""Compiled kernels of the hysteresis-operator NARX (numpy + numba only, never torch).
+
+Everything here works in normalised units: un = u / u_scale, yn = y / y_scale. One sample k:
+
+  operators of the input (rate-independent: frozen while the input holds)
+    p_i(k)  play of radius r_i:       p_i = min(un + r_i, max(un - r_i, p_i(k-1)))
+    s_j(k)  Duhem state j, along the input path d = un(k) - un(k-1) with sign sg and slope
+            ds/dun = sg*alpha - beta*s solved exactly over the step:
+                s = s*E + sg*alpha*(1 - E)/beta,  E = exp(-beta*|d|),  beta = rho^2 + BETA_MIN,
+            alpha and rho chosen by the signs of d and s (6 parameters per state)
+  short-term input increments  d_j(k) = un(k-j) - un(k-j-1), j < n_lags (the drive's dynamics)
+  network  w(k) = sum_h w2_h (sig(b1_h + W1_h.phi) - sig(b1_h)) + c.phi,  phi = [p, d, s]
+           (zero at rest: every operator and increment is 0 there)
+  creep    x_l(k) = lam_l x_l(k-1) + (1 - lam_l) w(k),  z(k) = w(k) + sum_l g_l x_l(k)
+  output   yl(k) = -sum_j a_j yl(k-j) + sum_i b_i z(k-i),  yn(k) = yl(k) + y_off
+
+Parameter vector theta = [W1 (H*d, row-major), b1 (H), w2 (H), c (d), duhem (6 per state),
+g (n_creep), a (na), b (nb+1), y_off]; `layout` gives the offsets.
+
+The state of a free run (`step`) is one float array:
+  [un(k-1) .. un(k-Lh) (Lh = max(n_lags, 1)), plays (m), duhem (q), creep (n_creep),
+   z(k-1) .. z(k-nb), yl(k-1) .. yl(k-na)].
+`simulate` loops `step` inside numba, so a Stepper and simulate() give the same bits.
+"""
+import math
+
+import numpy as np
+from numba import njit
+
+# Smallest Duhem decay rate (normalised): keeps every Duhem state bounded, |s| <= |alpha|/BETA_MIN.
+BETA_MIN = 0.01
+
+
+def layout(hidden, d, n_duhem, n_creep, na, nb):
+    """Offsets into theta: dict of name -> (start, stop), and the total size."""
+    sizes = (('W1', hidden * d), ('b1', hidden), ('w2', hidden), ('c', d), ('duhem', 6 * n_duhem),
+             ('g', n_creep), ('a', na), ('b', nb + 1), ('y_off', 1))
+    out, k = {}, 0
+    for name, n in sizes:
+        out[name] = (k, k + n)
+        k += n
+    return out, k
+
+
+def state_size(n_plays, n_lags, n_duhem, n_creep, na, nb):
+    """Length of the free-run state array."""
+    return max(n_lags, 1) + n_plays + n_duhem + n_creep + nb + na
+
+
+@njit(cache=True)
+def _sig(z):
+    return 1.0 / (1.0 + math.exp(-z))
+
+
+@njit(cache=True)
+def _duhem_update(s, d, al_p, al_m, r_pp, r_pm, r_mp, r_mm):
+    """One exact Duhem step (see module docstring) without derivatives."""
+    if d == 0.0:
+        return s
+    if d > 0.0:
+        sg, alpha, rho = 1.0, al_p, (r_pp if s >= 0.0 else r_pm)
+    else:
+        sg, alpha, rho = -1.0, al_m, (r_mp if s >= 0.0 else r_mm)
+    beta = rho * rho + BETA_MIN
+    ad = abs(d)
+    x = beta * ad
+    e = math.exp(-x)
+    phi = (1.0 - e) / beta if x > 1e-8 else ad * (1.0 - 0.5 * x)
+    return s * e + sg * alpha * phi
+
+
+@njit(cache=True)
+def step(un_k, st, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam, a, b, y_off):
+    """Advance the free-run state `st` by one normalised input un_k; returns yn(k)."""
+    m = radii.size
+    q = duhem.shape[0]
+    nl = lam.size
+    na = a.size
+    nb = b.size - 1
+    lh = max(n_lags, 1)
+    i_p = lh
+    i_s = i_p + m
+    i_x = i_s + q
+    i_z = i_x + nl
+    i_y = i_z + nb
+    H, d = W1.shape
+    phi = np.empty(d)
+    for i in range(m):
+        v = st[i_p + i]
+        lo = un_k - radii[i]
+        hi = un_k + radii[i]
+        if v < lo:
+            v = lo
+        elif v > hi:
+            v = hi
+        st[i_p + i] = v
+        phi[i] = v
+    prev = un_k
+    for j in range(n_lags):
+        cur = prev
+        prev = st[j]
+        phi[m + j] = cur - prev
+    dk = un_k - st[0]
+    for j in range(q):
+        s = _duhem_update(st[i_s + j], dk, duhem[j, 0], duhem[j, 1], duhem[j, 2], duhem[j, 3],
+                          duhem[j, 4], duhem[j, 5])
+        st[i_s + j] = s
+        phi[m + n_lags + j] = s
+    for j in range(lh - 1, 0, -1):
+        st[j] = st[j - 1]
+    st[0] = un_k
+    w = -w_rest
+    for h in range(H):
+        zh = b1[h]
+        for i in range(d):
+            zh += W1[h, i] * phi[i]
+        w += w2[h] * _sig(zh)
+    for i in range(d):
+        w += c[i] * phi[i]
+    z = w
+    for l in range(nl):
+        x = lam[l] * st[i_x + l] + (1.0 - lam[l]) * w
+        st[i_x + l] = x
+        z += g[l] * x
+    yl = b[0] * z
+    for i in range(nb):
+        yl += b[i + 1] * st[i_z + i]
+    for j in range(na):
+        yl -= a[j] * st[i_y + j]
+    for i in range(nb - 1, 0, -1):
+        st[i_z + i] = st[i_z + i - 1]
+    if nb > 0:
+        st[i_z] = z
+    for j in range(na - 1, 0, -1):
+        st[i_y + j] = st[i_y + j - 1]
+    if na > 0:
+        st[i_y] = yl
+    return yl + y_off
+
+
+@njit(cache=True)
+def simulate(un, st, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam, a, b, y_off):
+    """Free run over un (N,) from state st (updated in place); returns yn (N,)."""
+    out = np.empty(un.size)
+    for k in range(un.size):
+        out[k] = step(un[k], st, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam, a, b, y_off)
+    return out
+
+
+@njit(cache=True)
+def operator_chain(un, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam):
+    """z(k) (N,) of the operator/network/creep chain from rest: what the output dynamics are
+    driven by (it does not depend on the output, so one-step prediction can reuse it)."""
+    m = radii.size
+    q = duhem.shape[0]
+    nl = lam.size
+    lh = max(n_lags, 1)
+    st = np.zeros(lh + m + q + nl)
+    one = np.ones(1)
+    none = np.zeros(0)
+    out = np.empty(un.size)
+    # The output part of `step` is skipped by giving it b = [1], no a: yl(k) = z(k).
+    for k in range(un.size):
+        out[k] = step(un[k], st, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam, none, one,
+                      0.0)
+    return out
+
+
+# ------------------------------------------------------------------------------ training kernels
+@njit(cache=True)
+def features(un, radii, n_lags):
+    """Fixed network inputs (N, m + n_lags) from rest: plays, then input increments."""
+    n = un.size
+    m = radii.size
+    F = np.empty((n, m + n_lags))
+    p = np.zeros(m)
+    for k in range(n):
+        for i in range(m):
+            lo = un[k] - radii[i]
+            hi = un[k] + radii[i]
+            v = p[i]
+            if v < lo:
+                v = lo
+            elif v > hi:
+                v = hi
+            p[i] = v
+            F[k, i] = v
+        for j in range(n_lags):
+            cur = un[k - j] if k - j >= 0 else 0.0
+            prv = un[k - j - 1] if k - j - 1 >= 0 else 0.0
+            F[k, m + j] = cur - prv
+    return F
+
+
+@njit(cache=True)
+def duhem_states(un, duhem, with_jac):
+    """Duhem states S (N, q) from rest and, when with_jac, dS/d(duhem params) J (N, q, 6)."""
+    n = un.size
+    q = duhem.shape[0]
+    S = np.zeros((n, q))
+    J = np.zeros((n, q, 6) if with_jac else (1, q, 6))
+    gr = np.zeros(6)
+    for j in range(q):
+        s = 0.0
+        prev = 0.0
+        gr[:] = 0.0
+        for k in range(n):
+            d = un[k] - prev
+            prev = un[k]
+            if d != 0.0:
+                if d > 0.0:
+                    sg, ia = 1.0, 0
+                    ir = 2 if s >= 0.0 else 3
+                else:
+                    sg, ia = -1.0, 1
+                    ir = 4 if s >= 0.0 else 5
+                alpha = duhem[j, ia]
+                rho = duhem[j, ir]
+                beta = rho * rho + BETA_MIN
+                ad = abs(d)
+                x = beta * ad
+                e = math.exp(-x)
+                if x > 1e-8:
+                    phi = (1.0 - e) / beta
+                    dphi = (ad * e - phi) / beta
+                else:
+                    phi = ad * (1.0 - 0.5 * x)
+                    dphi = -0.5 * ad * ad
+                if with_jac:
+                    gb = -ad * s * e + sg * alpha * dphi
+                    for p in range(6):
+                        gr[p] *= e
+                    gr[ia] += sg * phi
+                    gr[ir] += 2.0 * rho * gb
+                s = s * e + sg * alpha * phi
+            S[k, j] = s
+            if with_jac:
+                for p in range(6):
+                    J[k, j, p] = gr[p]
+    return S, J
+
+
+@njit(cache=True)
+def forward(F, S, W1, b1, w2, c, g, lam, a, b, y_off):
+    """Free-run output yn (N,) from the features F and Duhem states S (training path)."""
+    n = F.shape[0]
+    H, d = W1.shape
+    df = F.shape[1]
+    nl = lam.size
+    na = a.size
+    nb = b.size - 1
+    w_rest = 0.0
+    for h in range(H):
+        w_rest += w2[h] * _sig(b1[h])
+    phi = np.empty(d)
+    x = np.zeros(nl)
+    zs = np.zeros(n)
+    y = np.empty(n)
+    for k in range(n):
+        for i in range(df):
+            phi[i] = F[k, i]
+        for i in range(d - df):
+            phi[df + i] = S[k, i]
+        w = -w_rest
+        for h in range(H):
+            zh = b1[h]
+            for i in range(d):
+                zh += W1[h, i] * phi[i]
+            w += w2[h] * _sig(zh)
+        for i in range(d):
+            w += c[i] * phi[i]
+        z = w
+        for l in range(nl):
+            x[l] = lam[l] * x[l] + (1.0 - lam[l]) * w
+            z += g[l] * x[l]
+        zs[k] = z
+        yl = 0.0
+        for i in range(nb + 1):
+            if k - i >= 0:
+                yl += b[i] * zs[k - i]
+        for j in range(1, na + 1):
+            if k - j >= 0:
+                yl -= a[j - 1] * (y[k - j] - y_off)
+        y[k] = yl + y_off
+    return y
+
+
+# fastmath: the training's derivatives may be summed in any order (vectorised); the free run
+# (step / simulate), which the estimator and the scores use, stays exact IEEE arithmetic.
+@njit(cache=True, fastmath=True)
+def jacobian(F, S, JD, W1, b1, w2, c, g, lam, a, b, y_off, J):
+    """Free-run output yn (N,) and its exact derivative J (N, P) with respect to theta (layout in
+    the module docstring), from the features F, Duhem states S and their derivatives JD."""
+    n = F.shape[0]
+    H, d = W1.shape
+    df = F.shape[1]
+    q = d - df
+    nl = lam.size
+    na = a.size
+    nb = b.size - 1
+    o_b1 = H * d
+    o_w2 = o_b1 + H
+    o_c = o_w2 + H
+    o_dh = o_c + d
+    o_g = o_dh + 6 * q
+    o_a = o_g + nl
+    o_b = o_a + na
+    o_y = o_b + nb + 1
+    s0 = np.empty(H)
+    w_rest = 0.0
+    for h in range(H):
+        s0[h] = _sig(b1[h])
+        w_rest += w2[h] * s0[h]
+    phi = np.empty(d)
+    sh = np.empty(H)
+    r = np.zeros(o_a)                      # d w / d theta (network and Duhem), then creep
+    X = np.zeros((nl, o_a))                # creep filter states of each column
+    x = np.zeros(nl)
+    ZR = np.zeros((nb + 1, o_a))           # d z / d theta, ring over the last nb+1 samples
+    zs = np.zeros(n)
+    yl_hist = np.zeros(n)
+    y = np.empty(n)
+    for k in range(n):
+        for i in range(df):
+            phi[i] = F[k, i]
+        for i in range(q):
+            phi[df + i] = S[k, i]
+        w = -w_rest
+        for h in range(H):
+            zh = b1[h]
+            for i in range(d):
+                zh += W1[h, i] * phi[i]
+            sh[h] = _sig(zh)
+            w += w2[h] * sh[h]
+        for i in range(d):
+            w += c[i] * phi[i]
+        for h in range(H):
+            dh = w2[h] * sh[h] * (1.0 - sh[h])
+            for i in range(d):
+                r[h * d + i] = dh * phi[i]
+            r[o_b1 + h] = dh - w2[h] * s0[h] * (1.0 - s0[h])
+            r[o_w2 + h] = sh[h] - s0[h]
+        for i in range(d):
+            r[o_c + i] = phi[i]
+        for j in range(q):
+            mj = c[df + j]
+            for h in range(H):
+                mj += w2[h] * sh[h] * (1.0 - sh[h]) * W1[h, df + j]
+            for p in range(6):
+                r[o_dh + 6 * j + p] = mj * JD[k, j, p]
+        z = w
+        for l in range(nl):
+            x[l] = lam[l] * x[l] + (1.0 - lam[l]) * w
+            z += g[l] * x[l]
+        zs[k] = z
+        zr = ZR[k % (nb + 1)]
+        for p in range(o_g):
+            zr[p] = r[p]
+        for l in range(nl):
+            lm, gl = lam[l], g[l]
+            Xl = X[l]
+            for p in range(o_g):
+                v = lm * Xl[p] + (1.0 - lm) * r[p]
+                Xl[p] = v
+                zr[p] += gl * v
+        for l in range(nl):
+            zr[o_g + l] = x[l]
+        yl = 0.0
+        for i in range(nb + 1):
+            if k - i >= 0:
+                yl += b[i] * zs[k - i]
+        for j in range(1, na + 1):
+            if k - j >= 0:
+                yl -= a[j - 1] * yl_hist[k - j]
+        yl_hist[k] = yl
+        y[k] = yl + y_off
+        row = J[k]
+        for p in range(o_y):
+            row[p] = 0.0
+        for i in range(nb + 1):
+            if k - i >= 0:
+                bi = b[i]
+                zri = ZR[(k - i) % (nb + 1)]
+                for p in range(o_a):
+                    row[p] += bi * zri[p]
+                row[o_b + i] += zs[k - i]
+        for jj in range(na):
+            if k - 1 - jj >= 0:
+                row[o_a + jj] -= yl_hist[k - 1 - jj]
+        for j in range(1, na + 1):
+            if k - j >= 0:
+                aj = a[j - 1]
+                prev = J[k - j]
+                for p in range(o_y):
+                    row[p] -= aj * prev[p]
+        row[o_y] = 1.0
+    return y
