@@ -20,6 +20,7 @@ from piezo_narx_ros.bag.pairing import (StreamCheck, clean_stream, pair_by_stamp
 from piezo_narx_ros.bag.writer import (COMMAND_TOPIC, DEFLECTION_TOPIC, JOINT_STATE,
                                        absolute_topic, is_being_recorded, typestore)
 from piezo_narx_ros.errors import BagError
+from piezo_narx_ros.record import Record
 
 _FILE_SUFFIXES = ('.mcap', '.db3')
 
@@ -179,7 +180,6 @@ def read_joint_series(path: str | Path, fields: dict[str, str], axis: int = 0
 def read_uy_report(path: str | Path, command_topic: str = COMMAND_TOPIC,
                    deflection_topic: str = DEFLECTION_TOPIC, axis: int = 0):
     """Like `read_uy`, but returns (Record, PairingReport) and issues no warning."""
-    from piezo_narx_ros.ident.data import Record
     if absolute_topic(command_topic) == absolute_topic(deflection_topic):
         raise BagError('command and deflection topics must differ')
     series = read_joint_series(path, {command_topic: 'effort', deflection_topic: 'position'},

@@ -6,44 +6,20 @@ file and the problem, so `piezo-narx fit` can print it as is.
 from __future__ import annotations
 
 import csv
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from piezo_narx_ros.errors import BagError, DataError
 from piezo_narx_ros.npzfile import read_npz
+from piezo_narx_ros.record import Record
+
+__all__ = ['Record', 'MIN_SAMPLES', 'load_npz', 'load_csv', 'load_bag', 'load_record',
+           'load_records', 'check_length']
 
 # Fewest samples a record may have: below this neither a 50/50 split nor the correlation tests
 # (20 lags) mean anything. `check_length` applies the stricter bound for given lags.
 MIN_SAMPLES = 100
-
-
-@dataclass
-class Record:
-    """One experiment: input u (V; N for the Bouc-Wen benchmark) and measured output y (m)."""
-    u: np.ndarray               # (N,) input, V
-    y: np.ndarray               # (N,) measured output, m
-    fs: float                   # sample rate, Hz
-    source: str                 # file or bag it came from
-    t: np.ndarray | None = None       # (N,) sample stamps, s
-    y_true: np.ndarray | None = None  # (N,) noise-free output when a simulator wrote it, m
-
-    def __len__(self) -> int:
-        return int(self.u.size)
-
-    def segment(self, start: int, stop: int, suffix: str = '') -> 'Record':
-        """Samples [start, stop) as a new Record (copies), `source` tagged with `suffix`."""
-        cut = slice(start, stop)
-        return Record(u=self.u[cut].copy(), y=self.y[cut].copy(), fs=self.fs,
-                      source=self.source + suffix,
-                      t=None if self.t is None else self.t[cut].copy(),
-                      y_true=None if self.y_true is None else self.y_true[cut].copy())
-
-    def split(self, fraction: float = 0.5) -> tuple['Record', 'Record']:
-        """(estimation, validation): the first `fraction` of the samples and the rest."""
-        cut = int(round(len(self) * fraction))
-        return (self.segment(0, cut, '[estimation]'), self.segment(cut, len(self), '[validation]'))
 
 
 def _vector(name: str, value, source: str) -> np.ndarray:
