@@ -1,19 +1,31 @@
-"""`piezo-narx fit`: run the lag-grid identification experiment and save the selected model.
+"""`piezo-narx fit`: run the identification experiment and save the selected model.
 
-    piezo-narx fit INPUT... --out DIR [--ny 1-4 --nu 1-4 --hidden 10 --arx-na 1-10 --arx-nb 1-10]
+    piezo-narx fit INPUT... --out DIR [--preset paper|envelope] [--ny 1-4 --nu 1-4 --hidden 10 ...]
+
+`--preset paper` (the default) is the paper's lag grid; `--preset envelope` fits the
+hysteresis-operator NARX over several network seeds and selects on the worst case over records
+(piezo_narx_ros.ident.experiment.PRESETS, docs/envelope.md). Several INPUTs are fitted together:
+no regressor or state crosses from one record to the next, each is split, and the report gives
+each record's scores.
 
 Writes DIR/model.json (+ DIR/model.npz) for the selected model, DIR/candidates.json with every
 candidate's metrics and test verdicts, and DIR/report/ (metrics.json and the figures).
-Settings come from, in increasing precedence: built-in defaults (the same as config/fit.yaml),
-`--config FILE`, then the command-line options.
+Settings come from, in increasing precedence: the preset's built-in values (ExperimentConfig's
+defaults with the preset's changes; config/fit.yaml spells out the paper preset), `--config FILE`,
+then the command-line options.
 """
 import argparse
 import contextlib
 
 # Keys a --config YAML file may hold (config/fit.yaml lists them all with their defaults).
-CONFIG_KEYS = ('ny', 'nu', 'hidden', 'seed', 'arx_na', 'arx_nb', 'arx', 'split', 'max_lag',
-               'max_outside_fraction', 'residuals', 'noise_model', 'noise_order', 'jobs',
-               'training', 'final_training', 'command_topic', 'deflection_topic')
+CONFIG_KEYS = ('preset', 'family', 'ny', 'nu', 'hidden', 'seed', 'n_seeds', 'hnarx', 'arx_na',
+               'arx_nb', 'arx', 'split', 'max_lag', 'max_outside_fraction', 'residuals',
+               'noise_model', 'noise_order', 'selection', 'jobs', 'training', 'final_training',
+               'command_topic', 'deflection_topic')
+# Settings that belong to the command line, not to ExperimentConfig, with their defaults.
+CLI_DEFAULTS = {'arx': True, 'command_topic': 'piezo/voltage_command',
+                'deflection_topic': 'piezo/deflection'}
+PRESET_NAMES = ('paper', 'envelope')
 
 
 def add_parser(subparsers):
@@ -29,6 +41,10 @@ def add_parser(subparsers):
     p.add_argument('--force', action='store_true',
                    help='overwrite the model, candidates and report already in DIR')
     p.add_argument('--config', metavar='YAML', help='settings file (see config/fit.yaml)')
+    p.add_argument('--preset', choices=PRESET_NAMES,
+                   help='paper (default): the paper\'s NARX lag grid and ARX baseline, selected '
+                        'by the correlation tests; envelope: the hysteresis-operator NARX, '
+                        'accurate on slow, step and hold moves too, selected on the worst case')
     p.add_argument('--ny', metavar='RANGE', help='NARX output lags, e.g. 1-4 or 2 or 1,3 '
                                                  '(default 1-4)')
     p.add_argument('--nu', metavar='RANGE', help='NARX input lags (default 1-4)')
@@ -37,7 +53,9 @@ def add_parser(subparsers):
     p.add_argument('--arx-nb', metavar='RANGE', help='ARX input orders (default 1-10)')
     p.add_argument('--no-arx', action='store_true', help='skip the ARX baseline')
     p.add_argument('--fs', type=float, metavar='HZ', help='sample rate for inputs without one')
-    p.add_argument('--seed', type=int, help='training seed (default 0)')
+    p.add_argument('--seed', type=int, help='first network seed (default 0)')
+    p.add_argument('--n-seeds', type=int, metavar='N',
+                   help='networks per structure, seeds seed..seed+N-1 (paper 1, envelope 4)')
     p.add_argument('--split', type=float, metavar='FRACTION',
                    help='fraction of each input that estimates; the rest validates (default 0.5)')
     p.add_argument('--jobs', type=int, help='worker processes (default 2)')
@@ -90,22 +108,36 @@ def parse_range(text, name: str) -> tuple:
     return tuple(sorted(set(items)))
 
 
-def load_settings(args) -> dict:
-    """Merged settings dict: defaults < --config file < command-line options."""
+def preset_settings(preset: str) -> dict:
+    """Built-in settings of a preset: ExperimentConfig's defaults, the preset's changes
+    (PRESETS), and the command line's own keys (CLI_DEFAULTS)."""
+    from dataclasses import fields
+
     from piezo_narx_ros.errors import ConfigError
-    from piezo_narx_ros.ident.experiment import FINAL_TRAINING
-    settings = {'ny': '1-4', 'nu': '1-4', 'hidden': 10, 'seed': 0, 'arx_na': '1-10',
-                'arx_nb': '1-10', 'arx': True, 'split': 0.5, 'max_lag': 20,
-                'max_outside_fraction': 0.05, 'residuals': 'simulation', 'noise_model': 'ar',
-                'noise_order': 20, 'jobs': 2,
-                'training': {}, 'final_training': dict(FINAL_TRAINING),
-                'command_topic': 'piezo/voltage_command',
-                'deflection_topic': 'piezo/deflection'}
+    from piezo_narx_ros.ident.experiment import PRESETS, ExperimentConfig
+    if preset not in PRESETS:
+        raise ConfigError(f'preset must be one of {", ".join(PRESETS)}, got {preset!r}')
+    base = ExperimentConfig()
+    out = {f.name: getattr(base, f.name) for f in fields(ExperimentConfig)
+           if f.name in CONFIG_KEYS}
+    out.update(CLI_DEFAULTS)
+    out.update(PRESETS[preset])
+    out['preset'] = preset
+    return out
+
+
+def load_settings(args) -> dict:
+    """Merged settings dict: preset < --config file < command-line options."""
+    from piezo_narx_ros.errors import ConfigError
+    doc = {}
     if args.config:
         from piezo_narx_ros.settings import read_yaml_mapping
         doc = read_yaml_mapping(args.config, 'settings', known=CONFIG_KEYS)
-        settings.update(doc)
-    for key in ('ny', 'nu', 'hidden', 'seed', 'split', 'arx_na', 'arx_nb', 'max_lag',
+    preset = getattr(args, 'preset', None) or doc.get('preset') or 'paper'
+    settings = preset_settings(preset)
+    settings.update(doc)
+    settings['preset'] = preset
+    for key in ('ny', 'nu', 'hidden', 'seed', 'n_seeds', 'split', 'arx_na', 'arx_nb', 'max_lag',
                 'max_outside_fraction', 'residuals', 'noise_model', 'noise_order', 'jobs',
                 'command_topic', 'deflection_topic'):
         value = getattr(args, key, None)
@@ -113,9 +145,9 @@ def load_settings(args) -> dict:
             settings[key] = value
     if args.no_arx:
         settings['arx'] = False
-    for key in ('training', 'final_training'):
+    for key in ('training', 'final_training', 'hnarx'):
         if not isinstance(settings[key], dict):
-            raise ConfigError(f'{key}: must be a mapping of NARX training options')
+            raise ConfigError(f'{key}: must be a mapping of training options')
     return settings
 
 
@@ -127,6 +159,8 @@ def experiment_config(settings: dict, progress: bool):
         cfg = ExperimentConfig(
             ny=parse_range(settings['ny'], 'ny'), nu=parse_range(settings['nu'], 'nu'),
             hidden=int(settings['hidden']), seed=int(settings['seed']),
+            n_seeds=int(settings['n_seeds']), family=str(settings['family']),
+            hnarx=dict(settings['hnarx']), selection=str(settings['selection']),
             arx_na=parse_range(settings['arx_na'], 'arx_na') if settings['arx'] else (),
             arx_nb=parse_range(settings['arx_nb'], 'arx_nb') if settings['arx'] else (),
             split=float(settings['split']), max_lag=int(settings['max_lag']),
@@ -188,6 +222,7 @@ def _run(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     best = result.best
     data_info = {'sources': result.sources, 'fs': result.fs, 'split': config.split,
+                 'preset': settings['preset'],
                  'n_estimation': result.n_estimation, 'n_validation': result.n_validation}
     model_path = save_model(best.model, out / 'model.json', data=data_info,
                             metrics={**best.scores, 'selected_by': config.residuals,
@@ -205,6 +240,11 @@ def _run(args) -> int:
               f'{len(result.candidates)} candidates in {result.wall_seconds:.1f} s')
         print(f'validation R²: prediction {val["prediction"]["r2"]:.6f}, simulation '
               f'{"diverged" if r2_sim is None else f"{r2_sim:.6f}"}')
+        for rec in val.get('records', []):
+            sim = rec['simulation']
+            text = ('diverged' if sim['r2'] is None else
+                    f'R² {sim["r2"]:.6f}, RMSE {1e9 * sim["rmse"]:.1f} nm')
+            print(f'  {rec["source"]}: simulation {text}')
         chosen = best.tests[config.residuals]
         noise = chosen.get('noise_model')
         how = f'AR({noise["order"]}) noise model' if noise else 'raw'

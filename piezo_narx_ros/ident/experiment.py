@@ -4,9 +4,12 @@ and the Billings correlation tests, and the choice of one model.
 Protocol
 --------
 * Each record is split 50/50: the first half estimates, the second half validates. With several
-  records the estimation halves are concatenated for fitting (the few regressor rows that straddle
-  a junction are a negligible fraction); each validation half is predicted and simulated on its
-  own, initialised from its first n0 measured outputs, and the scores pool the samples k >= n0.
+  records every model is fitted on the list of estimation halves: no regressor row, free-run
+  segment or state crosses from one record to the next. Each validation half is predicted and
+  simulated on its own, initialised from its first n0 measured outputs; a model whose state is a
+  function of the whole input history (`state_from_input`, the hysteresis-operator NARX) is run
+  from its recording's start instead and scored on the validation samples. Scores are given
+  pooled over records (samples k >= n0) and per record.
 * Every candidate is scored (R², RMSE, NRMSE, fit %) in one-step prediction and in free-run
   simulation, on estimation and on validation data.
 * The correlation tests run on validation residuals of both modes, after a noise model (NARMAX,
@@ -21,11 +24,16 @@ Protocol
   sensor noise. One-step residuals of such a plant carry that noise through the y-lags as a
   nonlinear moving average, which a linear noise model cannot whiten (docs/validation.md has the
   measurements). 'prediction' (Billings' equation-error view) stays available.
-* Selection: among candidates whose tests pass, the fewest parameters; ties go to the best
-  free-run R², taken as the worse of the estimation and validation halves (so a network that is
-  unstable when the excitation switches on at the start of a record cannot win). If none passes,
-  the best such R², flagged `validated = False`. The winner, if a network, is trained again with
-  `final_training` and kept only when no worse.
+* Selection (`selection = 'tests'`, the paper's): among candidates whose tests pass, the fewest
+  parameters; ties go to the best worst-case free-run R², the lowest of the pooled estimation
+  halves and each validation record (so a network that is unstable when the excitation switches
+  on at the start of a record, or that fails on one kind of record, cannot win). If none passes,
+  the best such R², flagged `validated = False`. `selection = 'worst_case'` (the envelope
+  preset) takes the best worst-case free-run R² whatever the tests say. The winner, if a paper
+  network, is trained again with `final_training` and kept only when no worse.
+* Presets (`PRESETS`): 'paper' is the paper's grid (NARX lags 1..4 x 1..4, 10 units, ARX
+  1..10 x 1..10); 'envelope' is the hysteresis-operator NARX over several network seeds with a
+  small ARX baseline, selected on the worst case (docs/envelope.md).
 
 Runs candidates on `jobs` worker processes (spawn start, one torch/BLAS thread each) with a
 tqdm bar on long grids. Results do not depend on `jobs`: each fit is seeded and independent.
@@ -61,32 +69,48 @@ FINAL_TRAINING = {'refine_iter': 300, 'refine_max_fail': 25}
 SIMULATION_BURN_IN = 200
 
 
+FAMILIES = ('narx', 'hysteresis_narx')
+SELECTIONS = ('tests', 'worst_case')
+
+
 @dataclass(frozen=True)
 class CandidateSpec:
-    """One model of the grid. For ARX, ny = na and nu = nb; `hidden` is None."""
-    kind: str           # 'narx' or 'arx'
+    """One model of the grid. For ARX, ny = na and nu = nb; `hidden` is None. For the
+    hysteresis-operator NARX, `options` holds its constructor arguments besides hidden and seed
+    (sorted (name, value) pairs) and nu, ny are its n_lags and na."""
+    kind: str           # 'narx', 'arx' or 'hysteresis_narx'
     nu: int
     ny: int
     hidden: int | None = None
     seed: int = 0
+    options: tuple = ()
 
     @property
     def label(self) -> str:
         """Short human-readable name, e.g. 'NARX(ny=2, nu=3, H=10)' or 'ARX(na=2, nb=3)'."""
         if self.kind == 'arx':
             return f'ARX(na={self.ny}, nb={self.nu})'
-        return f'NARX(ny={self.ny}, nu={self.nu}, H={self.hidden})'
+        if self.kind == 'hysteresis_narx':
+            o = dict(self.options)
+            return (f'HNARX(H={self.hidden}, plays={o.get("n_plays", 12)}, '
+                    f'duhem={o.get("n_duhem", 1)}, seed={self.seed})')
+        seed = f', seed={self.seed}' if self.seed else ''
+        return f'NARX(ny={self.ny}, nu={self.nu}, H={self.hidden}{seed})'
 
     def build(self, training_options: dict | None = None):
         """An unfitted model for this spec (imports the model classes lazily)."""
         if self.kind == 'arx':
             from piezo_narx_ros.ident.arx import ARXModel
             return ARXModel(na=self.ny, nb=self.nu)
+        if self.kind == 'hysteresis_narx':
+            from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+            return HysteresisNARX(hidden=self.hidden, seed=self.seed, **dict(self.options))
         if self.kind == 'narx':
             from piezo_narx_ros.ident.narx import NARXNetwork
             return NARXNetwork(nu=self.nu, ny=self.ny, hidden=self.hidden, seed=self.seed,
                                **(training_options or {}))
-        raise ConfigError(f'unknown model kind {self.kind!r} (use narx or arx)')
+        raise ConfigError(f'unknown model kind {self.kind!r} (use narx, arx or '
+                          f'hysteresis_narx)')
 
 
 @dataclass
@@ -95,7 +119,11 @@ class ExperimentConfig:
     ny: tuple = (1, 2, 3, 4)            # NARX output lags
     nu: tuple = (1, 2, 3, 4)            # NARX input lags
     hidden: int = 10                    # sigmoid units of the hidden layer
-    seed: int = 0
+    seed: int = 0                       # first network seed
+    n_seeds: int = 1                    # networks per structure, seeds seed .. seed + n_seeds - 1
+    family: str = 'narx'                # networks of the grid: 'narx' (paper) | 'hysteresis_narx'
+    hnarx: dict = field(default_factory=dict)  # HysteresisNARX options besides hidden and seed
+    selection: str = 'tests'            # 'tests' (paper) | 'worst_case' (see module docstring)
     arx_na: tuple = tuple(range(1, 11))  # empty = no ARX baseline
     arx_nb: tuple = tuple(range(1, 11))
     narx: bool = True
@@ -112,12 +140,24 @@ class ExperimentConfig:
     # fit). The grid screens 16 networks with fast settings; only the winner needs convergence.
     final_training: dict = field(default_factory=lambda: dict(FINAL_TRAINING))
 
+    @property
+    def seeds(self) -> tuple:
+        """Network seeds of every structure."""
+        return tuple(range(int(self.seed), int(self.seed) + int(self.n_seeds)))
+
     def specs(self) -> list[CandidateSpec]:
         """Every candidate, networks first (the long fits start first on the pool)."""
         out = []
-        if self.narx:
-            out += [CandidateSpec('narx', nu=nu, ny=ny, hidden=self.hidden, seed=self.seed)
-                    for ny in self.ny for nu in self.nu]
+        if self.narx and self.family == 'hysteresis_narx':
+            from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+            probe = HysteresisNARX(hidden=self.hidden, **self.hnarx)
+            options = tuple(sorted(self.hnarx.items()))
+            out += [CandidateSpec('hysteresis_narx', nu=probe.nu, ny=probe.ny,
+                                  hidden=self.hidden, seed=s, options=options)
+                    for s in self.seeds]
+        elif self.narx:
+            out += [CandidateSpec('narx', nu=nu, ny=ny, hidden=self.hidden, seed=s)
+                    for ny in self.ny for nu in self.nu for s in self.seeds]
         out += [CandidateSpec('arx', nu=nb, ny=na) for na in self.arx_na for nb in self.arx_nb]
         return out
 
@@ -128,7 +168,25 @@ class ExperimentConfig:
             if any(int(v) != v or v < (0 if name in ('nu', 'arx_nb') else 1) for v in vals):
                 raise ConfigError(f'{name} orders must be integers >= '
                                   f'{0 if name in ("nu", "arx_nb") else 1}, got {list(vals)}')
-        if self.narx and (not self.ny or not self.nu):
+        if self.family not in FAMILIES:
+            raise ConfigError(f'family must be one of {", ".join(FAMILIES)}, got {self.family!r}')
+        if self.selection not in SELECTIONS:
+            raise ConfigError(f'selection must be one of {", ".join(SELECTIONS)}, got '
+                              f'{self.selection!r}')
+        if int(self.n_seeds) != self.n_seeds or not 1 <= self.n_seeds <= 1000:
+            raise ConfigError(f'n_seeds must be an integer in [1, 1000], got {self.n_seeds}')
+        if int(self.seed) != self.seed or self.seed < 0:
+            raise ConfigError(f'seed must be an integer >= 0, got {self.seed}')
+        if not isinstance(self.hnarx, dict):
+            raise ConfigError('hnarx must be a mapping of HysteresisNARX options')
+        if self.narx and self.family == 'hysteresis_narx':
+            from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+            bad = {'hidden', 'seed'} & set(self.hnarx)
+            if bad:
+                raise ConfigError(f'hnarx: set {", ".join(sorted(bad))} with the top-level '
+                                  f'settings, not inside hnarx')
+            HysteresisNARX(hidden=self.hidden, **self.hnarx)   # ConfigError on a bad option
+        if self.narx and self.family == 'narx' and (not self.ny or not self.nu):
             raise ConfigError('NARX grid is empty: give at least one ny and one nu')
         if self.narx and (int(self.hidden) != self.hidden or self.hidden < 1):
             raise ConfigError(f'hidden must be an integer >= 1, got {self.hidden}')
@@ -151,7 +209,7 @@ class ExperimentConfig:
         if not 0.0 <= self.max_outside_fraction < 1.0:
             raise ConfigError(f'max_outside_fraction must be in [0, 1), got '
                               f'{self.max_outside_fraction}')
-        if self.narx:
+        if self.narx and self.family == 'narx':
             # Fail here on a mistyped training option, not once per network inside the workers.
             for name, options in (('training', self.training),
                                   ('final_training', {**self.training, **self.final_training})):
@@ -163,9 +221,24 @@ class ExperimentConfig:
     @property
     def max_n0(self) -> int:
         """Deepest lag of the whole grid, samples."""
-        lags = list(self.ny) + list(self.nu) if self.narx else []
+        lags = [s.nu for s in self.specs()] + [s.ny for s in self.specs()]
+        lags += list(self.ny) + list(self.nu) if self.narx and self.family == 'narx' else []
         lags += list(self.arx_na) + list(self.arx_nb)
         return int(max(lags))
+
+
+#: Named settings of the experiment (changes to ExperimentConfig's defaults). `piezo-narx fit
+#: --preset NAME` starts from them; docs/envelope.md has the measurements behind 'envelope'.
+PRESETS = {
+    # The paper's experiment: NARX lags 1..4 x 1..4 with 10 sigmoid units, ARX 1..10 x 1..10,
+    # selected by the correlation tests (then by worst-case free-run R²).
+    'paper': {},
+    # Accurate across the operating envelope (fast, slow, steps, holds): the hysteresis-operator
+    # NARX over several network seeds, a small ARX baseline, selection on the worst case.
+    'envelope': {'family': 'hysteresis_narx', 'hidden': 10, 'n_seeds': 4, 'hnarx': {},
+                 'arx_na': (2, 3, 4), 'arx_nb': (2, 3, 4), 'selection': 'worst_case',
+                 'final_training': {}},
+}
 
 
 @dataclass
@@ -187,11 +260,15 @@ class CandidateResult:
         return -np.inf if value is None else value
 
     def free_run_r2(self) -> float:
-        """Worse free-run R² of the two halves: the estimation half starts from rest with the
-        excitation switching on, a start the validation half never shows; a network that falls
-        into a limit cycle there (measured: R² -119 on its own estimation data with 0.99993 on
-        validation) must not win on the validation half alone."""
-        return min(self.r2('estimation'), self.r2('validation'))
+        """Worst-case free-run R²: the lowest of the pooled estimation halves and of each
+        validation record. The estimation half starts from rest with the excitation switching
+        on, a start the validation half never shows; a network that falls into a limit cycle
+        there (measured: R² -119 on its own estimation data with 0.99993 on validation) must
+        not win on the validation half alone; nor may a model that is good on most records
+        and fails one (a kind of move the user makes)."""
+        per_record = [-np.inf if r['simulation']['r2'] is None else r['simulation']['r2']
+                      for r in self.scores.get('validation', {}).get('records', [])]
+        return min([self.r2('estimation'), self.r2('validation')] + per_record)
 
     def to_dict(self) -> dict:
         """JSON-ready form, without the model."""
@@ -219,6 +296,16 @@ class ExperimentResult:
         """The selected candidate."""
         return self.candidates[self.selected]
 
+    def rule(self) -> str:
+        """The selection rule in words."""
+        worst = ('free-run R² in the worst case (the lowest of the pooled estimation halves '
+                 'and each validation record)')
+        if self.config.selection == 'worst_case':
+            return f'best {worst}; correlation tests reported, not used to select'
+        return ('fewest parameters among candidates passing all five tests on '
+                f'{self.config.residuals} residuals (noise model: {self.config.noise_model}), '
+                f'ties by {worst}; else the best such R² (not validated)')
+
     def to_dict(self) -> dict:
         """JSON-ready summary: settings, data, every candidate, the selection."""
         cfg = asdict(self.config)
@@ -228,11 +315,7 @@ class ExperimentResult:
                                         'n_validation': self.n_validation},
                 'selection': {'index': self.selected, 'label': self.best.spec.label,
                               'validated': self.validated,
-                              'rule': 'fewest parameters among candidates passing all five '
-                                      f'tests on {self.config.residuals} residuals '
-                                      f'(noise model: {self.config.noise_model}), ties by '
-                                      'free-run R² (the worse of estimation and validation); '
-                                      'else the best such R² (not validated)'},
+                              'rule': self.rule()},
                 'wall_seconds': self.wall_seconds,
                 'candidates': [c.to_dict() for c in self.candidates]}
 
@@ -244,8 +327,23 @@ def split_records(records: list[Record],
     return [h[0] for h in halves], [h[1] for h in halves]
 
 
-def _concat(records: list[Record]) -> tuple[np.ndarray, np.ndarray]:
-    return (np.concatenate([r.u for r in records]), np.concatenate([r.y for r in records]))
+def free_run(model, record: Record) -> tuple[np.ndarray, np.ndarray]:
+    """(one-step prediction, free run), (N,) m each, of a model on a record.
+
+    The free run starts from the record's first n0 measured outputs, as the paper does. A model
+    whose state is a function of the whole input history (`state_from_input`) is instead run
+    from the start of the recording the record was cut from (its u_before / y_before), with the
+    recording's first n0 outputs, as it would have run live; the record's samples are returned.
+    """
+    u, y, skip = record.u, record.y, 0
+    if getattr(model, 'state_from_input', False) and record.u_before is not None \
+            and record.y_before is not None:
+        skip = record.u_before.size
+        u, y = np.concatenate([record.u_before, u]), np.concatenate([record.y_before, y])
+    with np.errstate(all='ignore'):   # a diverging network must not spam warnings
+        pred = model.predict(u, y)
+        sim = model.simulate(u, y[:model.n0])
+    return pred[skip:], sim[skip:]
 
 
 def outputs_by_record(model, records: list[Record]) -> list[dict[str, np.ndarray]]:
@@ -253,9 +351,7 @@ def outputs_by_record(model, records: list[Record]) -> list[dict[str, np.ndarray
     n0 = model.n0
     parts = []
     for r in records:
-        with np.errstate(all='ignore'):   # a diverging network must not spam warnings
-            pred = model.predict(r.u, r.y)
-            sim = model.simulate(r.u, r.y[:n0])
+        pred, sim = free_run(model, r)
         parts.append({'u': r.u[n0:], 'y': r.y[n0:], 'prediction': pred[n0:],
                       'simulation': sim[n0:]})
     return parts
@@ -299,8 +395,7 @@ def fit_noise_models(model, records: list[Record], max_order: int = 20,
     return result
 
 
-def _scores(parts: list[dict]) -> dict:
-    out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+def _mode_scores(out: dict) -> dict:
     result = {}
     for mode in RESIDUAL_KINDS:
         y_hat = out[mode]
@@ -309,6 +404,17 @@ def _scores(parts: list[dict]) -> dict:
         else:
             result[mode] = {'r2': None, 'rmse': None, 'nrmse': None, 'fit_percent': None,
                             'diverged': True}
+    return result
+
+
+def _scores(parts: list[dict], sources: list[str] | None = None) -> dict:
+    """Scores pooled over the records; with several records also 'records': one entry each
+    (source, samples, prediction and simulation scores)."""
+    out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    result = _mode_scores(out)
+    if sources is not None and len(parts) > 1:
+        result['records'] = [{'source': src, 'samples': int(p['y'].size), **_mode_scores(p)}
+                             for src, p in zip(sources, parts)]
     return result
 
 
@@ -346,7 +452,7 @@ def evaluate_model(model, records: list[Record], max_lag: int = 20,
     A non-finite simulation (diverged network) gets scores of None and failing tests.
     """
     parts = outputs_by_record(model, records)
-    result = _scores(parts)
+    result = _scores(parts, [r.source for r in records])
     if not with_tests:
         return result
     tests = {'raw': {}}
@@ -405,8 +511,10 @@ def _run_candidate(spec: CandidateSpec) -> CandidateResult:
     t0 = time.perf_counter()
     try:
         model = spec.build(config.training)
-        u, y = _concat(est)
-        model.fit(u, y, fs=est[0].fs)
+        us, ys = [r.u for r in est], [r.y for r in est]
+        if len(est) == 1:
+            us, ys = us[0], ys[0]
+        model.fit(us, ys, fs=est[0].fs)
         res.fit_seconds = time.perf_counter() - t0
         res.n_params = int(model.n_params)
         res.scores['estimation'] = evaluate_model(model, est, with_tests=False)
@@ -427,11 +535,15 @@ def _run_candidate(spec: CandidateSpec) -> CandidateResult:
     return res
 
 
-def select(candidates: list[CandidateResult]) -> tuple[int, bool]:
-    """(index, validated) by the selection rule of this module; DataError when nothing fitted."""
+def select(candidates: list[CandidateResult], rule: str = 'tests') -> tuple[int, bool]:
+    """(index, validated) by the selection rule of this module ('tests' or 'worst_case');
+    DataError when nothing fitted."""
     ok = [i for i, c in enumerate(candidates) if c.error is None]
     if not ok:
         raise DataError('no candidate model could be fitted: ' + (candidates[0].error or '?'))
+    if rule == 'worst_case':
+        best = max(ok, key=lambda i: candidates[i].free_run_r2())
+        return best, candidates[best].validated
     passing = [i for i in ok if candidates[i].validated]
     if passing:
         best = min(passing, key=lambda i: (candidates[i].n_params, -candidates[i].free_run_r2()))
@@ -482,7 +594,7 @@ def run_experiment(records: list[Record],
     if show is None:
         show = config.narx and len(specs) > 20 and os.isatty(2)
     results = _run_all(specs, est, val, config, show)
-    index, validated = select(results)
+    index, validated = select(results, config.selection)
     if config.final_training and results[index].spec.kind == 'narx':
         results[index] = final_fit(results[index], est, val, config)
         validated = results[index].validated
