@@ -257,6 +257,7 @@ class HysteresisStepper:
         self._u_scale, self._y_scale = model.u_scale_, model.y_scale_
         self._u_hist = np.zeros(self.nu)
         self.reset(u_past, y_past)
+        self._scratch = np.zeros(self._st.size)
 
     def reset(self, u_past=None, y_past=None):
         """Restart from rest, then u_past (V, nu samples) and output history y_past (m)."""
@@ -280,6 +281,19 @@ class HysteresisStepper:
             self._y_last[:-1] = self._y_last[1:]
             self._y_last[-1] = y
         return y
+
+    def peek(self, u_k):
+        """The output step(u_k) would return (m), without changing the state."""
+        from .kernels import _finite_input
+        return hk.peek(_finite_input(u_k) / self._u_scale, self._st, self._scratch,
+                       *self._args) * self._y_scale
+
+    @property
+    def kernel_state(self):
+        """The live state array the compiled step advances (normalised units, layout in
+        hysteresis_kernels) and the kernel parameters, for compiled code that evaluates
+        candidate inputs without committing them (control/kernels.py). Read, never write."""
+        return (self._st,), self._args
 
     @property
     def u_past(self):

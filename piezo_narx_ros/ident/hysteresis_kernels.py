@@ -139,6 +139,38 @@ def step(un_k, st, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam, a, b, y_
 
 
 @njit(cache=True)
+def peek(un_k, st, scratch, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam, a, b, y_off):
+    """yn(k) that `step` would return for un_k, leaving st untouched (scratch: same size as
+    st). For solvers that try candidate inputs (control/)."""
+    for i in range(st.size):
+        scratch[i] = st[i]
+    return step(un_k, scratch, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam, a, b, y_off)
+
+
+@njit(cache=True)
+def peek_static(un_k, st, scratch, scratch2, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam,
+                gain, y_off):
+    """gain*z(k) + y_off for un_k with the input increments at their held value 0: the output the
+    rate-independent operators (plays and Duhem states moved along un(k-1) -> un_k) and the creep
+    settle to, without the drive's short-term dynamics or the output dynamics. st is untouched
+    (scratch, scratch2: same size as st); gain: [G], the output dynamics' DC gain."""
+    lh = max(n_lags, 1)
+    hi = lh + radii.size + duhem.shape[0]
+    no_a = gain[:0]
+    for i in range(st.size):
+        scratch[i] = st[i]
+        scratch2[i] = st[i]
+    # First step: the operators move to un_k along the real path.
+    step(un_k, scratch, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam, no_a, gain, y_off)
+    for i in range(lh, hi):
+        scratch2[i] = scratch[i]
+    for j in range(lh):
+        scratch2[j] = un_k               # increments 0; the operators stay where they are
+    return step(un_k, scratch2, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam, no_a, gain,
+                y_off)
+
+
+@njit(cache=True)
 def simulate(un, st, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam, a, b, y_off):
     """Free run over un (N,) from state st (updated in place); returns yn (N,)."""
     out = np.empty(un.size)

@@ -68,6 +68,16 @@ def narx_step(u_k, ubuf, ybuf, Wu, Wy, b1, w2, b2):
 
 
 @njit(cache=True)
+def narx_peek(u_k, ubuf, ybuf, scratch, Wu, Wy, b1, w2, b2):
+    """y(k) (m) that narx_step would return for u_k (V), leaving ubuf and ybuf untouched
+    (scratch: (nu+1,) work array). For solvers that try candidate inputs (control/)."""
+    for i in range(ubuf.size - 1):
+        scratch[i] = ubuf[i + 1]
+    scratch[ubuf.size - 1] = u_k
+    return _narx_eval(scratch, 0, ybuf, 0, Wu, Wy, b1, w2, b2)
+
+
+@njit(cache=True)
 def _arx_eval(u, iu, y, iy, bu, ay, c):
     """One ARX output from u[iu : iu+nu+1] and y[iy : iy+ny] (time order)."""
     out = c
@@ -109,6 +119,15 @@ def arx_step(u_k, ubuf, ybuf, bu, ay, c):
     return y_k
 
 
+@njit(cache=True)
+def arx_peek(u_k, ubuf, ybuf, scratch, bu, ay, c):
+    """y(k) that arx_step would return for u_k, leaving ubuf and ybuf untouched."""
+    for i in range(ubuf.size - 1):
+        scratch[i] = ubuf[i + 1]
+    scratch[ubuf.size - 1] = u_k
+    return _arx_eval(scratch, 0, ybuf, 0, bu, ay, c)
+
+
 def _history(x, n, name):
     """Validated (n,) float64 history; None means rest (zeros)."""
     if x is None:
@@ -138,6 +157,7 @@ class Stepper:
         self.ny = ny
         self._ubuf = np.zeros(nu + 1)
         self._ybuf = np.zeros(ny)
+        self._scratch = np.zeros(nu + 1)
         self.reset(u_past, y_past)
 
     def reset(self, u_past=None, y_past=None):
@@ -154,6 +174,13 @@ class Stepper:
     def u_past(self):
         """Copy of the input history ``[u(k-nu) ... u(k-1)]``, V."""
         return self._ubuf[1:].copy()
+
+    @property
+    def kernel_state(self):
+        """The live arrays the compiled step advances, (ubuf (nu+1,) V, ybuf (ny,) m), and the
+        kernel parameters: for compiled code that evaluates candidate inputs without
+        committing them (control/kernels.py). Read them, never write them."""
+        return (self._ubuf, self._ybuf), self._params
 
 
 def _finite_input(u_k) -> float:
@@ -175,6 +202,12 @@ class NARXStepper(Stepper):
         Wu, Wy, b1, w2, b2 = self._params
         return narx_step(u, self._ubuf, self._ybuf, Wu, Wy, b1, w2, b2)
 
+    def peek(self, u_k):
+        """The output step(u_k) would return (m), without changing the histories."""
+        Wu, Wy, b1, w2, b2 = self._params
+        return narx_peek(_finite_input(u_k), self._ubuf, self._ybuf, self._scratch, Wu, Wy,
+                         b1, w2, b2)
+
 
 class ARXStepper(Stepper):
     """Stepper of an ARXModel (see Stepper)."""
@@ -186,3 +219,8 @@ class ARXStepper(Stepper):
         u = _finite_input(u_k)
         bu, ay, c = self._params
         return arx_step(u, self._ubuf, self._ybuf, bu, ay, c)
+
+    def peek(self, u_k):
+        """The output step(u_k) would return (m), without changing the histories."""
+        bu, ay, c = self._params
+        return arx_peek(_finite_input(u_k), self._ubuf, self._ybuf, self._scratch, bu, ay, c)
