@@ -29,6 +29,7 @@ bench: setup
 	$(PY) bench/bench_sysidentpy.py
 	$(PY) bench/bench_live.py
 	$(PY) bench/bench_recorder.py
+	$(PY) bench/bench_control.py
 
 clean:
 	rm -rf $(VENV) reports

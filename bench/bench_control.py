@@ -1,0 +1,240 @@
+"""Sensorless position control (issue 9): how well does the plant's true deflection follow a
+position reference, for each controller mode and a sensor-only PI?
+
+For each plant (the Bouc-Wen cantilever, config/plant.yaml, and the structurally different
+Preisach variant, config/plant_preisach.yaml) the model is the best the package identifies, as a
+user would make it:
+
+    piezo-narx simulate --signal protocol --seconds 25 [--plant-config P] --out p.npz
+    piezo-narx fit p.npz --preset envelope --out DIR
+
+(kept in --models, reused when present; --model-default / --model-preisach take your own).
+Then, for every task and seed, a PositionController drives a fresh PiezoCantilever (sensor-noise
+seed = seed) sample by sample (control.closed_loop.run_loop, no DDS) from rest:
+
+  sin 0.1 / 1 / 10 Hz   +-30 um sines, 2 periods (at least 2 s); scored on the second half
+  tri 0.5 Hz            +-30 um triangle, 4 s; scored on the last 2 s
+  steps                 6 levels uniform in +-30 um (seeded), each held 1 s; scored on all
+  random                white noise low-passed at 10 Hz (4th-order Butterworth, seeded), scaled
+                        to a 30 um peak, 10 s; scored after the first second
+
+Modes: linear (u = (r - offset)/gain, the model's static line), inverse (the model inverted
+sample by sample: no sensor), inverse_feedback (inverse + PI on the measured deflection, the
+controller's default gains) and pi, a sensor-only PI (no model but its static gain) whose gains
+are the best of a grid on the 10 Hz sine with seed 0 (printed). Score: RMSE of y_true - r.
+
+Printed: per plant, the median RMSE over seeds (nm) per task and mode, the ratios the issue asks
+for (inverse/linear at 0.1, 1, 10 Hz; inverse_feedback/pi at 10 Hz), the controller's compute per
+sample in inverse mode (on_reference: stamp gate + inversion + model step; p50 / p99 over every
+inverse run) and the unreachable/limited counts. --out DIR writes results.json and the figures of
+docs/control.md (reference vs deflection, error vs time, deflection vs reference).
+
+Run: python bench/bench_control.py [--seeds 0 1 2] [--plants default preisach] [--out DIR]
+"""
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+
+from piezo_narx_ros.control.closed_loop import run_loop
+from piezo_narx_ros.control.controller import PositionController
+from piezo_narx_ros.ident.model_io import load_model
+from piezo_narx_ros.plant import PiezoCantilever, generate, load_plant_params
+
+FS = 2000.0
+AMP = 30e-6
+REPO = Path(__file__).resolve().parents[1]
+PLANTS = {'default': REPO / 'config' / 'plant.yaml',
+          'preisach': REPO / 'config' / 'plant_preisach.yaml'}
+MODES = ('linear', 'inverse', 'inverse_feedback', 'pi')
+TASKS = ('sin 0.1 Hz', 'sin 1 Hz', 'sin 10 Hz', 'tri 0.5 Hz', 'steps', 'random')
+PI_GRID = {'kp': (0.0, 0.01, 0.02, 0.05), 'ki': (25.0, 50.0, 100.0, 150.0, 200.0, 250.0, 300.0)}
+SLEW = 1e5   # V/s: the simulated amplifier's own limit
+
+
+def reference(task: str, seed: int) -> tuple[np.ndarray, int]:
+    """(reference (N,) m, first scored sample) of a task."""
+    rng = np.random.default_rng(seed)
+    if task.startswith('sin'):
+        f = float(task.split()[1])
+        n = int(round(max(2.0 / f, 2.0) * FS))
+        return AMP * np.sin(2 * np.pi * f * np.arange(n) / FS), n // 2
+    if task.startswith('tri'):
+        r = generate('triangle', FS, 4.0, AMP / 1e-6, freq=0.5) * 1e-6
+        return r, r.size // 2
+    if task == 'steps':
+        return np.repeat(rng.uniform(-AMP, AMP, 6), int(FS)), 0
+    if task == 'random':
+        from scipy.signal import butter, sosfilt
+        n = int(10 * FS)
+        x = sosfilt(butter(4, 10.0, fs=FS, output='sos'), rng.normal(size=n + 2000))[2000:]
+        return AMP * x / np.max(np.abs(x)), int(FS)
+    raise ValueError(task)
+
+
+def identify(plant: str, folder: Path) -> Path:
+    """The envelope model of `plant`, fitted with the piezo-narx commands when not there yet."""
+    from piezo_narx_ros.cli.main import main
+    model = folder / 'model.json'
+    if model.is_file():
+        return model
+    folder.mkdir(parents=True, exist_ok=True)
+    data = folder / 'protocol.npz'
+    print(f'identifying the {plant} plant: simulate --signal protocol + fit --preset envelope '
+          f'(a few minutes) -> {folder}', flush=True)
+    t0 = time.monotonic()
+    main(['simulate', '--signal', 'protocol', '--seconds', '25', '--plant-config',
+          str(PLANTS[plant]), '--out', str(data)])
+    if main(['fit', str(data), '--preset', 'envelope', '--out', str(folder), '--no-report']):
+        raise SystemExit(f'fit failed for the {plant} plant')
+    print(f'  fitted in {time.monotonic() - t0:.0f} s', flush=True)
+    return model
+
+
+def controller(model, mode: str, pi: dict | None = None) -> PositionController:
+    """The controller of a mode ('pi': the sensor-only baseline with the given gains)."""
+    if mode == 'pi':
+        return PositionController(model, mode='feedback', slew_rate=SLEW, **pi)
+    return PositionController(model, mode=mode, slew_rate=SLEW)
+
+
+def run(model, params, task: str, mode: str, seed: int, pi: dict | None = None):
+    """One closed-loop run from rest; returns (LoopRun, first scored sample, controller)."""
+    ref, start = reference(task, seed)
+    ctl = controller(model, mode, pi)
+    return run_loop(ctl, PiezoCantilever(params, fs=FS, seed=seed), ref), start, ctl
+
+
+def tune_pi(model, params) -> tuple[dict, float]:
+    """The sensor-only PI's best gains on the 10 Hz sine (seed 0), and its RMSE there (m)."""
+    best, best_rmse = None, np.inf
+    for kp, ki in itertools.product(PI_GRID['kp'], PI_GRID['ki']):
+        loop, start, _ = run(model, params, 'sin 10 Hz', 'pi', 0, {'kp': kp, 'ki': ki})
+        rmse = loop.rmse(start)
+        if np.isfinite(rmse) and rmse < best_rmse:
+            best, best_rmse = {'kp': kp, 'ki': ki}, rmse
+    return best, best_rmse
+
+
+def bench_plant(plant: str, model_path: Path, seeds, figures: Path | None) -> dict:
+    params = load_plant_params(PLANTS[plant])
+    model = load_model(model_path)
+    pi, pi_rmse = tune_pi(model, params)
+    print(f'\n== {plant} plant, model {model_path} ({type(model).__name__}); sensor-only PI '
+          f'tuned on sin 10 Hz seed 0: kp {pi["kp"]:g}, ki {pi["ki"]:g}/s '
+          f'({pi_rmse * 1e9:.0f} nm)', flush=True)
+    rmse = {t: {m: [] for m in MODES} for t in TASKS}
+    limited = {m: 0 for m in MODES}
+    compute = []
+    examples = {}
+    for task, mode, seed in itertools.product(TASKS, MODES, seeds):
+        loop, start, ctl = run(model, params, task, mode, seed, pi)
+        rmse[task][mode].append(loop.rmse(start))
+        limited[mode] += ctl.stats.unreachable
+        if mode == 'inverse':
+            compute.append(loop.compute_ns[10:])
+        if seed == seeds[0]:
+            examples[(task, mode)] = loop
+    med = {t: {m: statistics.median(v) for m, v in d.items()} for t, d in rmse.items()}
+    ct = np.concatenate(compute) / 1e3
+    out = {'model': str(model_path), 'pi_gains': pi, 'seeds': list(seeds),
+           'rmse_nm_median': {t: {m: v * 1e9 for m, v in d.items()} for t, d in med.items()},
+           'rmse_nm_all': {t: {m: [x * 1e9 for x in v] for m, v in d.items()}
+                           for t, d in rmse.items()},
+           'ratios': {'inverse/linear sin 0.1 Hz': med['sin 0.1 Hz']['inverse'] /
+                      med['sin 0.1 Hz']['linear'],
+                      'inverse/linear sin 1 Hz': med['sin 1 Hz']['inverse'] /
+                      med['sin 1 Hz']['linear'],
+                      'inverse/linear sin 10 Hz': med['sin 10 Hz']['inverse'] /
+                      med['sin 10 Hz']['linear'],
+                      'inverse_feedback/pi sin 10 Hz': med['sin 10 Hz']['inverse_feedback'] /
+                      med['sin 10 Hz']['pi']},
+           'compute_us': {'p50': float(np.percentile(ct, 50)),
+                          'p99': float(np.percentile(ct, 99)), 'max': float(ct.max()),
+                          'samples': int(ct.size)},
+           'unreachable_samples': limited}
+    width = max(len(t) for t in TASKS)
+    print(f'median RMSE of y_true - r over seeds {list(seeds)}, nm')
+    print(f'  {"task":<{width}}' + ''.join(f'{m:>18}' for m in MODES))
+    for t in TASKS:
+        print(f'  {t:<{width}}' + ''.join(f'{med[t][m] * 1e9:18.1f}' for m in MODES))
+    for name, value in out['ratios'].items():
+        print(f'  {name:<32} {value:.4f}')
+    c = out['compute_us']
+    print(f'  compute per sample (inverse): p50 {c["p50"]:.1f} us, p99 {c["p99"]:.1f} us, '
+          f'max {c["max"]:.0f} us over {c["samples"]} samples')
+    print(f'  samples with an unreachable target: {limited}', flush=True)
+    if figures is not None:
+        out['figures'] = write_figures(examples, plant, figures)
+    return out
+
+
+def write_figures(examples: dict, plant: str, folder: Path) -> list[str]:
+    """Reference vs deflection, error vs time, deflection vs reference (docs/control.md)."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    colours = {'linear': 'tab:red', 'inverse': 'tab:blue', 'inverse_feedback': 'tab:green',
+               'pi': 'tab:orange'}
+    for task in ('sin 1 Hz', 'sin 10 Hz', 'steps'):
+        fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+        some = examples[(task, 'linear')]
+        t = np.arange(some.r.size) / FS
+        axes[0].plot(t, some.r * 1e6, 'k', lw=1.5, label='reference')
+        for mode in MODES:
+            loop = examples[(task, mode)]
+            axes[0].plot(t, loop.y_true * 1e6, color=colours[mode], lw=0.8, label=mode)
+            axes[1].plot(t, (loop.y_true - loop.r) * 1e6, color=colours[mode], lw=0.8,
+                         label=mode)
+            axes[2].plot(loop.r * 1e6, loop.y_true * 1e6, color=colours[mode], lw=0.8,
+                         label=mode)
+        axes[0].set(xlabel='t (s)', ylabel='deflection (µm)', title=f'{plant}: {task}')
+        axes[1].set(xlabel='t (s)', ylabel='y_true - reference (µm)', title='tracking error')
+        axes[1].set_ylim(*np.percentile((examples[(task, 'linear')].y_true - some.r) * 1e6,
+                                        [0.5, 99.5]) * 1.3)
+        axes[2].set(xlabel='reference (µm)', ylabel='deflection (µm)', title='deflection vs '
+                    'reference')
+        for ax in axes:
+            ax.grid(alpha=0.3)
+        axes[0].legend(fontsize=8)
+        fig.tight_layout()
+        path = folder / f'control_{plant}_{task.replace(" ", "_").replace(".", "p")}.png'
+        fig.savefig(path, dpi=90)
+        plt.close(fig)
+        paths.append(str(path))
+    return paths
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2])
+    ap.add_argument('--plants', nargs='+', choices=tuple(PLANTS), default=list(PLANTS))
+    ap.add_argument('--models', type=Path, default=REPO / 'reports' / 'control-models',
+                    help='folder of the fitted models (one subfolder per plant)')
+    ap.add_argument('--model-default', type=Path, help='model for the default plant')
+    ap.add_argument('--model-preisach', type=Path, help='model for the Preisach plant')
+    ap.add_argument('--out', type=Path, help='write results.json and figures here')
+    args = ap.parse_args()
+    results = {}
+    t0 = time.monotonic()
+    for plant in args.plants:
+        model = getattr(args, f'model_{plant}') or identify(plant, args.models / plant)
+        results[plant] = bench_plant(plant, model, args.seeds,
+                                     args.out / 'figures' if args.out else None)
+    print(f'\nwall time {time.monotonic() - t0:.0f} s')
+    if args.out:
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / 'results.json').write_text(json.dumps(results, indent=1))
+        print(f'wrote {args.out / "results.json"}')
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,1 @@
+"""Sensorless position control: the identified model inverted sample by sample (ROS-free)."""

@@ -1,0 +1,292 @@
+"""Sensorless position control, ROS-free: the controller node's whole logic.
+
+`PositionController.on_reference(t_ns, r)` takes one position reference (stamp in integer ns,
+metres) and returns the voltage commands to publish, [(t_ns, u V)], with the reference's stamp;
+`on_measurement(t_ns, y)` takes a measured deflection (m) when a sensor exists (feedback, and the
+tracking error shown on /diagnostics). Modes:
+
+- 'linear': u = (r - offset) / gain, the model's static line (`inverse.static_gain`): what a user
+  has without this package;
+- 'inverse': the identified model inverted sample by sample (`inverse.ModelInverse`) with its own
+  free run as the state: sensorless feed-forward;
+- 'inverse_feedback': the inverse, its target corrected by a PI on the measured error r - y;
+- 'feedback' (the benchmark's sensor-only baseline, not a node mode): u = (PI - offset) / gain.
+
+Every mode sends its commands through the model, so the model's free run follows what the plant
+was really given. Limits: u in [u_min, u_max] and within slew_rate of the previous command;
+references outside [y_min, y_max] are clamped and counted; a target the inverse cannot reach
+(voltage or slew limit, or a model flat there) gives the closest input and is counted; the PI's
+integrator stops while the command is limited in the direction it pushes (anti-windup).
+
+Stamps go through a `command.stamps.StampGate` like the estimator's: an isolated outlier stamp
+(backwards, far in the future, duplicate, interleaved) is refused and gets no command; a gap of at
+most max_fill samples advances the model with the held command (the amplifier holds its output,
+as the simulator and a real rig do); a new stream (a planner restarted) is followed without
+resetting the model, since the actuator itself has not moved.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from piezo_narx_ros.command.stamps import SAMPLE, StampGate
+from piezo_narx_ros.control.inverse import (REACHED, SLEW, TARGETS, VOLTAGE, ModelInverse,
+                                            static_gain)
+from piezo_narx_ros.errors import ConfigError
+
+MODES = ('linear', 'inverse', 'inverse_feedback')
+BASELINE = 'feedback'            # sensor-only PI: the benchmark's comparison, not a node mode
+FEEDBACK_MODES = ('inverse_feedback', BASELINE)
+
+
+@dataclass
+class ControllerStats:
+    """Counters shown on /diagnostics (samples unless said)."""
+    references: int = 0          # references received
+    commands: int = 0            # commands returned for publication
+    rejected_nonfinite: int = 0  # NaN/inf references: the previous reference is held
+    out_of_range: int = 0        # references clamped to [y_min, y_max]
+    gaps: int = 0                # stamp gaps (events); the model held the last command
+    filled: int = 0              # samples the model advanced with a held command
+    stamp_outliers: int = 0      # references refused for their stamp (no command sent)
+    stream_restarts: int = 0     # new reference streams followed
+    unreachable: int = 0         # commands that missed their target (next three: why)
+    voltage_limited: int = 0
+    slew_limited: int = 0
+    not_invertible: int = 0      # the model is flat or folds back in the allowed window
+    measurements: int = 0        # deflection samples matched to a command
+    measurements_rejected: int = 0   # non-finite, or no command with that stamp
+    feedback_stale: int = 0      # feedback commands without a measurement of the last samples
+    windup_holds: int = 0        # integrator steps skipped by the anti-windup
+    requested_resets: int = 0    # ~/reset
+
+
+class PositionController:
+    """Position reference in, voltage command out, through `model` (ARX, NARX, HysteresisNARX).
+
+    mode: MODES or 'feedback'; fs: sample rate, Hz (the model's when None); u_min, u_max: V;
+    slew_rate: V/s (inf: none); y_min, y_max: accepted references, m (None: the model's trained
+    output range widened by range_margin of its span); target: the inverse's target
+    ('output' or 'quasi_static', see inverse.py; None: quasi_static for a HysteresisNARX, else
+    output); advance: samples by which the output leads the target (None: estimated from the
+    model, ModelInverse.estimate_advance), compensated as r(k) - advance*(r(k) - r(k-1));
+    kp (m/m) and ki (1/s): the PI on r - y;
+    feedback_timeout: samples after which the last measurement is too old for the P term;
+    max_fill, confirm: see StampGate; window: samples in the running tracking error.
+    """
+
+    def __init__(self, model, mode: str = 'inverse', fs: float | None = None,
+                 u_min: float = -200.0, u_max: float = 200.0, slew_rate: float = math.inf,
+                 y_min: float | None = None, y_max: float | None = None,
+                 range_margin: float = 0.05, target: str | None = None,
+                 advance: float | None = None, kp: float = 0.0,
+                 ki: float = 100.0, feedback_timeout: int = 10, max_fill: int = 2000,
+                 confirm: int = 3, window: int = 2000, **solver):
+        if mode not in MODES + (BASELINE,):
+            raise ConfigError(f'mode must be one of {list(MODES)}, got {mode!r}')
+        if target is None:
+            target = 'quasi_static' if getattr(model, 'kind', None) == 'hysteresis_narx' \
+                else 'output'
+        if target not in TARGETS:
+            raise ConfigError(f'target must be one of {list(TARGETS)}, got {target!r}')
+        if not (kp >= 0 and ki >= 0 and feedback_timeout >= 1 and max_fill >= 0 and
+                confirm >= 1 and window >= 2 and range_margin >= 0):
+            raise ConfigError('kp, ki, max_fill and range_margin must be >= 0, '
+                              'feedback_timeout and confirm >= 1, window >= 2')
+        self.mode = mode
+        self.inverse = ModelInverse(model, u_min=u_min, u_max=u_max, slew_rate=slew_rate, fs=fs,
+                                    target=target, **solver)
+        self.model = model
+        self.fs = self.inverse.fs
+        self.period_ns = 1e9 / self.fs
+        self.gain, self.offset = static_gain(model, self.fs)
+        self.advance = self.inverse.estimate_advance() if advance is None else float(advance)
+        if y_min is None or y_max is None:
+            rng = getattr(model, 'output_range', None)
+            if rng is None:
+                raise ConfigError('the model has no trained output range: give y_min and y_max')
+            pad = range_margin * (rng[1] - rng[0])
+            y_min = rng[0] - pad if y_min is None else y_min
+            y_max = rng[1] + pad if y_max is None else y_max
+        if not y_min < y_max:
+            raise ConfigError(f'y_min ({y_min:g} m) must be below y_max ({y_max:g} m)')
+        self.y_min, self.y_max = float(y_min), float(y_max)
+        self.kp, self.ki_step = float(kp), float(ki) / self.fs
+        self.feedback_timeout = int(feedback_timeout)
+        self.stats = ControllerStats()
+        self.gate = StampGate(self.period_ns, int(max_fill), int(confirm))
+        self.peak_miss = 0.0          # largest |miss| of an unreachable target since read, m
+        self._err = deque(maxlen=int(window))
+        self._refs: dict[int, float] = {}     # stamp -> reference, for matching measurements
+        self._keep = 4 * self.feedback_timeout + 64
+        self._reset_state()
+
+    # ------------------------------------------------------------------------------- state
+    def _reset_state(self) -> None:
+        self.inverse.reset()
+        self._last_t: int | None = None
+        self._last_ref: float | None = None
+        self._integral = 0.0
+        self._e: float | None = None          # last measured error r - y, m
+        self._e_t = 0                         # and its stamp
+        self._limited = 0                     # +1/-1: the last command could not go higher/lower
+        self._r_prev: float | None = None     # previous reference (advance compensation)
+        self._refs.clear()
+
+    def request_reset(self) -> None:
+        """The actuator is at rest now (amplifier at 0 V, e.g. after it was switched off): the
+        model restarts from rest and the integrator is cleared (the node's ~/reset)."""
+        self._reset_state()
+        self.stats.requested_resets += 1
+
+    @property
+    def holding(self) -> int:
+        """References held back while their stamps are ambiguous (StampGate)."""
+        return self.gate.holding
+
+    @property
+    def y_model(self) -> float:
+        """The model's free-run output for the last command, m (a sensorless estimate)."""
+        return self.inverse.y_model
+
+    @property
+    def u_last(self) -> float:
+        """The last command, V."""
+        return self.inverse.u_prev
+
+    # ------------------------------------------------------------------------------- inputs
+    def on_reference(self, t_ns: int, r: float) -> list[tuple[int, float]]:
+        """One reference (stamp ns, m) -> commands to publish [(t_ns, u V)], usually one; none
+        while the stamp is held, several when held references are released."""
+        self.stats.references += 1
+        out: list[tuple[int, float]] = []
+        self._apply(self.gate.push(t_ns, r), out)
+        return out
+
+    def flush(self) -> list[tuple[int, float]]:
+        """Decide on held references when no more come (the node calls it when idle)."""
+        out: list[tuple[int, float]] = []
+        self._apply(self.gate.flush(), out)
+        return out
+
+    def on_measurement(self, t_ns: int, y: float) -> None:
+        """One measured deflection (stamp of the command it answers, m): tracking error and,
+        in the feedback modes, the PI update."""
+        r = self._refs.pop(t_ns, None)
+        if r is None or not math.isfinite(y):
+            self.stats.measurements_rejected += 1
+            return
+        self.stats.measurements += 1
+        e = r - y
+        self._err.append(e)
+        if t_ns >= self._e_t or self._e is None:
+            self._e, self._e_t = e, t_ns
+        if self.mode not in FEEDBACK_MODES:
+            return
+        if self._limited and (e > 0) == (self._limited > 0):
+            self.stats.windup_holds += 1    # pushing further into a limit: do not integrate
+            return
+        span = self.y_max - self.y_min
+        self._integral = min(max(self._integral + self.ki_step * e, -span), span)
+
+    # ------------------------------------------------------------------------------ outputs
+    def running_error(self) -> tuple[float, int]:
+        """(RMS of r - y over the last `window` measurements m, n); NaN when none."""
+        n = len(self._err)
+        if n == 0:
+            return math.nan, 0
+        e = np.fromiter(self._err, float, n)
+        return math.sqrt(float(e @ e) / n), n
+
+    def take_peak_miss(self) -> float:
+        """Largest miss of an unreachable target since the last call, m; resets it."""
+        value, self.peak_miss = self.peak_miss, 0.0
+        return value
+
+    # ---------------------------------------------------------------------------- internals
+    def _apply(self, events, out: list) -> None:
+        for kind, t, r in events:
+            if kind == SAMPLE:
+                self._accept(t, r, out)
+            else:   # RESTART: a new stream; the actuator has not moved, so no reset
+                self._last_t = None
+        self.stats.stamp_outliers = self.gate.outliers
+        self.stats.stream_restarts = self.gate.restarts
+
+    def _accept(self, t_ns: int, r: float, out: list) -> None:
+        st = self.stats
+        if not math.isfinite(r):
+            st.rejected_nonfinite += 1
+            r = self._last_ref
+        elif not self.y_min <= r <= self.y_max:
+            st.out_of_range += 1
+            r = min(max(r, self.y_min), self.y_max)
+        inv = self.inverse
+        if self._last_t is not None:
+            missing = int(round((t_ns - self._last_t) / self.period_ns)) - 1
+            if missing > 0:
+                st.gaps += 1
+                st.filled += missing
+                for _ in range(missing):
+                    inv.commit(inv.u_prev)
+        self._last_t = t_ns
+        if r is None:               # nothing valid received yet: hold the actuator
+            u = inv.u_prev
+            self._limited = 0
+        else:
+            self._last_ref = r
+            u = self._command(t_ns, r)
+            self._refs[t_ns] = r
+            if len(self._refs) > self._keep:
+                del self._refs[next(iter(self._refs))]
+        inv.commit(u)
+        st.commands += 1
+        out.append((t_ns, u))
+
+    def _correction(self, t_ns: int) -> float:
+        """PI output, m: P on the latest measured error while it is recent, plus the integral."""
+        fresh = (self._e is not None and
+                 t_ns - self._e_t <= self.feedback_timeout * self.period_ns)
+        if not fresh:
+            self.stats.feedback_stale += 1
+            return self._integral
+        return self.kp * self._e + self._integral
+
+    def _command(self, t_ns: int, r: float) -> float:
+        inv, mode = self.inverse, self.mode
+        if mode == 'linear' or mode == BASELINE:
+            want = r if mode == 'linear' else self._correction(t_ns)
+            u_wanted = (want - self.offset) / self.gain
+            u = inv.clamp(u_wanted)
+            d = np.sign(u_wanted - u) * np.sign(self.gain)
+            self._limited = int(d)
+            if d:
+                self._count_limit(VOLTAGE if u in (inv.u_min, inv.u_max) else SLEW,
+                                  abs(u_wanted - u) * abs(self.gain))
+            return u
+        target = r + (self._correction(t_ns) if mode == 'inverse_feedback' else 0.0)
+        # The output leads the quasi-static value by `advance` samples: ask for that much less.
+        r_prev = self._r_prev if self._r_prev is not None else r
+        self._r_prev = r
+        target -= self.advance * (r - r_prev)
+        sol = inv.solve(target)
+        self._limited = 0
+        if sol.limit != REACHED:
+            self._limited = 1 if sol.miss < 0 else -1
+            self._count_limit(sol.limit, abs(sol.miss))
+        return sol.u
+
+    def _count_limit(self, why: str, miss: float) -> None:
+        st = self.stats
+        st.unreachable += 1
+        if why == VOLTAGE:
+            st.voltage_limited += 1
+        elif why == SLEW:
+            st.slew_limited += 1
+        else:
+            st.not_invertible += 1
+        if miss > self.peak_miss:
+            self.peak_miss = miss
