@@ -39,6 +39,7 @@ setup(
             'simulator_node = piezo_narx_ros.nodes.simulator_node:main',
             'driver_node = piezo_narx_ros.nodes.driver_node:main',
             'estimator_node = piezo_narx_ros.nodes.estimator_node:main',
+            'controller_node = piezo_narx_ros.nodes.controller_node:main',
             'recorder_node = piezo_narx_ros.nodes.recorder_node:main',
             'player_node = piezo_narx_ros.nodes.player_node:main',
             'fake_rig = piezo_narx_ros.rig.fake_rig:main',

@@ -75,6 +75,10 @@ def test_package_launch_files_are_found_by_name_and_take_arguments():
     rig = load_launch('rig.launch.yaml', {'fake_rig': 'false', 'target_host': '10.1.2.3'})
     assert [s.name for s in rig] == ['driver_node', 'command_node']
     assert 'target_host:=10.1.2.3' in rig[0].argv
+    ctl = load_launch('control.launch.yaml', {'model': 'm.json', 'mode': 'linear'})
+    assert [s.name for s in ctl] == ['simulator_node', 'controller_node', 'command_node']
+    assert 'model:=m.json' in ctl[1].argv and 'mode:=linear' in ctl[1].argv
+    assert 'output:=position' in ctl[2].argv
 
 
 BASE = 'launch:\n- node: {pkg: piezo_narx_ros, exec: command_node}\n'

@@ -326,3 +326,22 @@ def test_bad_controller_settings_are_refused(fitted):
         PositionController(fitted, y_min=1e-5, y_max=-1e-5)
     with pytest.raises(ConfigError, match='kp, ki'):
         PositionController(fitted, ki=-1.0)
+
+
+def test_health_reports_each_tick_since_the_last(fitted):
+    from piezo_narx_ros.control.health import ControllerHealth
+    from piezo_narx_ros.counters import OK, WARN
+    ctl = PositionController(fitted, mode='inverse', u_max=30.0, advance=0.0)
+    health = ControllerHealth(ctl)
+    drive(ctl, np.full(20, 5e-6))
+    assert health.tick(1)[0] == OK
+    # Beyond 30 V, then a NaN: 35 um is held, so 11 commands miss.
+    drive(ctl, np.r_[np.full(10, 35e-6), [np.nan]], t0=20 * PERIOD)
+    level, message, values = health.tick(1)
+    assert level == WARN and message.startswith('11 of 11 commands missed their target')
+    assert '(+1 more)' in message and values['voltage_limited'] == 11
+    assert values['rejected_nonfinite_since_last'] == 1
+    drive(ctl, np.full(5, 5e-6), t0=31 * PERIOD)
+    level, message, values = health.tick(1)
+    assert level == OK and values['unreachable'] == 11, message   # cumulative count stays
+    assert health.tick(2)[0] == WARN                           # two reference writers

@@ -79,7 +79,7 @@ def test_package_xml_declares_runtime_dependencies():
 def test_setup_declares_every_node_entry_point():
     text = (REPO / 'setup.py').read_text()
     for name in ('command_node', 'simulator_node', 'driver_node', 'estimator_node',
-                 'recorder_node', 'player_node', 'piezo-narx'):
+                 'controller_node', 'recorder_node', 'player_node', 'piezo-narx'):
         assert re.search(rf"'{name} = piezo_narx_ros\.[\w.]+:main'", text), name
     assert (REPO / 'resource' / 'piezo_narx_ros').is_file()
     cfg = (REPO / 'setup.cfg').read_text()

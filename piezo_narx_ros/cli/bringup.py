@@ -28,6 +28,7 @@ NODES = {
     'command_node': 'piezo_narx_ros.nodes.command_node',
     'simulator_node': 'piezo_narx_ros.nodes.simulator_node',
     'estimator_node': 'piezo_narx_ros.nodes.estimator_node',
+    'controller_node': 'piezo_narx_ros.nodes.controller_node',
     'driver_node': 'piezo_narx_ros.nodes.driver_node',
     'recorder_node': 'piezo_narx_ros.nodes.recorder_node',
     'player_node': 'piezo_narx_ros.nodes.player_node',
@@ -49,7 +50,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                               'processes and stop them together',
                               description=__doc__.split('\n\n')[0])
     p.add_argument('launch', help='launch file: a path, or a name in share/piezo_narx_ros/launch '
-                   '(sim.launch.yaml, rig.launch.yaml, record.launch.yaml, estimate.launch.yaml)')
+                   '(sim.launch.yaml, rig.launch.yaml, record.launch.yaml, estimate.launch.yaml, '
+                   'control.launch.yaml)')
     p.add_argument('arguments', nargs='*', metavar='NAME:=VALUE',
                    help='launch arguments, as with ros2 launch (e.g. model:=fit/model.json)')
     p.add_argument('--param', '-p', action='append', default=[], metavar='NODE.NAME=VALUE',

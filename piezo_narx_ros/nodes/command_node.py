@@ -1,11 +1,13 @@
-"""command_node: streams voltage_command (JointState, effort = V) at the sample rate.
+"""command_node: streams voltage_command (JointState, effort = V) at the sample rate, or in
+position mode (`output:=position`) position_reference (position = m) for controller_node.
 
 The excitation comes from piezo_narx_ros.plant.signals.generate (kind and options from
 parameters); the clock, catch-up, limits and looping live in command.stream.CommandStreamer. The
-node only turns timer ticks into `poll()` calls and samples into messages. `running` can be set at
-run time to pause/resume, directly or through the ~/set_running service (std_srvs/SetBool);
-`wait_for_subscribers` holds the first sample until the listeners are matched, so that a
-recording or an estimator sees sample 0.
+node only turns timer ticks into `poll()` calls and samples into messages. In position mode the
+same signal kinds are streamed in metres: amplitude, offset, u_min, u_max (clamp) and slew_rate
+are then in m and m/s. `running` can be set at run time to pause/resume, directly or through the
+~/set_running service (std_srvs/SetBool); `wait_for_subscribers` holds the first sample until the
+listeners are matched, so that a recording or an estimator sees sample 0.
 
 Time: stamps come from the node clock. With use_sim_time:=true the samples are also paced on it
 (the /clock of a simulator or of `player_node clock:=true`): none is published before the first
@@ -21,9 +23,12 @@ from std_srvs.srv import SetBool
 
 from piezo_narx_ros.command.stream import CommandStreamer, make_signal
 from piezo_narx_ros.errors import ConfigError
-from piezo_narx_ros.nodes.common import (DIAG_OK, DIAG_WARN, TOPIC_COMMAND, Diagnostics,
-                                         ParamSpec, PiezoNode, encode_joint_state, main_for)
+from piezo_narx_ros.nodes.common import (DIAG_OK, DIAG_WARN, TOPIC_COMMAND, TOPIC_REFERENCE,
+                                         Diagnostics, ParamSpec, PiezoNode, encode_joint_state,
+                                         main_for)
 from piezo_narx_ros.plant.signals import KINDS
+
+OUTPUTS = ('voltage', 'position')
 
 _nonempty = (lambda v: len(v) > 0 and all(isinstance(a, str) and a.strip() for a in v),
              'must be a non-empty list of non-empty names')
@@ -34,13 +39,17 @@ class CommandNode(PiezoNode):
 
     NODE_NAME = 'command_node'
     PARAMS = (
+        ParamSpec('output', 'voltage', 'voltage: voltage_command (effort, V); position: '
+                  'position_reference (position, m) for controller_node', choices=OUTPUTS,
+                  read_only=True),
         ParamSpec('fs', 2000.0, 'sample rate, Hz', low=1.0, high=100000.0, read_only=True),
         ParamSpec('axes', ['x'], 'axis names (one signal per axis, axis i seeded seed + i)',
                   read_only=True, check=_nonempty),
         ParamSpec('kind', 'multisine', 'signal kind', choices=KINDS, read_only=True),
-        ParamSpec('amplitude', 100.0, 'peak deviation from offset, V', low=0.0, high=1000.0,
-                  read_only=True),
-        ParamSpec('offset', 0.0, 'signal offset, V', low=-1000.0, high=1000.0, read_only=True),
+        ParamSpec('amplitude', 100.0, 'peak deviation from offset, V (m in position mode)',
+                  low=0.0, high=1000.0, read_only=True),
+        ParamSpec('offset', 0.0, 'signal offset, V (m in position mode)', low=-1000.0,
+                  high=1000.0, read_only=True),
         ParamSpec('seconds', 25.0, 'length of one period of the signal, s', low=1e-3, high=3600.0,
                   read_only=True),
         ParamSpec('seed', 0, 'seed of the random parts of the signal', low=0, high=2**31 - 1,
@@ -101,15 +110,18 @@ class CommandNode(PiezoNode):
         self.sim_time = bool(self.get_parameter('use_sim_time').value)
         self.clock_jumps = 0
         self._last_pace: int | None = None
-        self.pub = self.sample_publisher(TOPIC_COMMAND)
+        self.position = p['output'] == 'position'
+        self.pub = self.sample_publisher(TOPIC_REFERENCE if self.position else TOPIC_COMMAND)
         self.add_post_set_parameters_callback(self._on_set)
         self.srv_running = self.create_service(SetBool, '~/set_running', self.on_set_running)
         period = p['publish_period'] or 1.0 / p['fs']
         self.timer = self.create_timer(period, self.on_tick)
         self.diagnostics = Diagnostics(self, self.status, task='command stream')
+        unit = 'm' if self.position else 'V'
         self.get_logger().info(
-            f"{p['kind']} on {self.axes} at {p['fs']:g} Hz, {signal.shape[0]} samples per "
-            f"{'loop' if p['loop'] else 'run'}, limits [{p['u_min']:g}, {p['u_max']:g}] V")
+            f"{p['kind']} {p['output']} on {self.axes} at {p['fs']:g} Hz, {signal.shape[0]} "
+            f"samples per {'loop' if p['loop'] else 'run'}, limits [{p['u_min']:g}, "
+            f"{p['u_max']:g}] {unit}")
 
     def _on_set(self, params) -> None:
         for q in params:
@@ -155,8 +167,12 @@ class CommandNode(PiezoNode):
             s.start(self.get_clock().now().nanoseconds, pace)
         stamps, volts = s.poll(pace)
         names, pub = self.axes, self.pub
-        for t, u in zip(stamps.tolist(), volts.tolist()):
-            pub.publish(encode_joint_state(t, names, effort=u))   # CDR bytes: 2x cheaper
+        if self.position:
+            for t, r in zip(stamps.tolist(), volts.tolist()):
+                pub.publish(encode_joint_state(t, names, position=r))
+        else:
+            for t, u in zip(stamps.tolist(), volts.tolist()):
+                pub.publish(encode_joint_state(t, names, effort=u))   # CDR bytes: 2x cheaper
         if s.finished and stamps.size:
             self.get_logger().info(f'signal finished after {s.published} samples')
 
@@ -170,6 +186,7 @@ class CommandNode(PiezoNode):
                               'late_ticks': s.late_polls, 'max_batch': s.max_batch,
                               'fs': s.fs, 'subscribers': self.pub.get_subscription_count(),
                               'clock': 'sim' if self.sim_time else 'steady',
+                              'output': self.params['output'],
                               'clock_jumps': self.clock_jumps}
 
 

@@ -37,6 +37,7 @@ from piezo_narx_ros.errors import ConfigError, DataError, PiezoNarxError
 TOPIC_COMMAND = 'voltage_command'
 TOPIC_DEFLECTION = 'deflection'
 TOPIC_ESTIMATE = 'deflection_estimate'
+TOPIC_REFERENCE = 'position_reference'
 TOPIC_DIAGNOSTICS = '/diagnostics'
 DEFAULT_NAMESPACE = 'piezo'
 

@@ -1,0 +1,188 @@
+"""controller_node: position_reference in, voltage_command out, through the identified model.
+
+Loads a model file (JSON + .npz, never a pickle, never torch) and answers every position
+reference (JointState, position = m) with a voltage command (effort = V) carrying the reference's
+stamp. Modes (`mode`): linear (the model's static line), inverse (the model inverted sample by
+sample, no sensor), inverse_feedback (inverse + PI on `deflection`). Limits, bad references,
+stamps and gaps are handled by piezo_narx_ros.control.controller.PositionController; this node
+only wires parameters, topics, the ~/reset service and /diagnostics to it.
+"""
+from __future__ import annotations
+
+import math
+
+from std_srvs.srv import Trigger
+
+from piezo_narx_ros.control.controller import MODES, PositionController
+from piezo_narx_ros.control.health import ControllerHealth
+from piezo_narx_ros.control.inverse import TARGETS
+from piezo_narx_ros.nodes.common import (DIAG_WARN, TOPIC_COMMAND, TOPIC_DEFLECTION,
+                                         TOPIC_REFERENCE, Diagnostics, ParamSpec, PiezoNode,
+                                         decode_joint_state, encode_joint_state, main_for)
+
+
+class ControllerNode(PiezoNode):
+    """Thin wiring: position_reference / deflection -> PositionController -> voltage_command."""
+
+    NODE_NAME = 'controller_node'
+    PARAMS = (
+        ParamSpec('model', '', 'model file (.json with its .npz beside it)', read_only=True,
+                  check=(lambda v: bool(v.strip()), 'must name a model file (.json)')),
+        ParamSpec('mode', 'inverse', 'linear (static gain), inverse (model inverted, no sensor) '
+                  'or inverse_feedback (inverse + PI on deflection)', choices=MODES,
+                  read_only=True),
+        ParamSpec('axis', 'x', 'axis read from position_reference/deflection and commanded',
+                  read_only=True, check=(lambda v: bool(v.strip()), 'must not be empty')),
+        ParamSpec('fs', 0.0, "reference sample rate, Hz (0: the model file's fs)", low=0.0,
+                  high=100000.0, read_only=True),
+        ParamSpec('target', 'auto', 'what the inverse solves for: output (the next model '
+                  'output), quasi_static (hysteresis + creep only) or auto (quasi_static for a '
+                  'hysteresis_narx model, else output)', choices=('auto',) + TARGETS,
+                  read_only=True),
+        ParamSpec('compensate_advance', True, 'ask for the lead of the output over the '
+                  'quasi-static target (estimated from the model) to be taken off',
+                  read_only=True),
+        ParamSpec('u_min', -200.0, 'lowest command, V', low=-10000.0, high=10000.0,
+                  read_only=True),
+        ParamSpec('u_max', 200.0, 'highest command, V', low=-10000.0, high=10000.0,
+                  read_only=True),
+        ParamSpec('slew_rate', 1e5, 'largest command rate of change, V/s (0: no limit)',
+                  low=0.0, high=1e12, read_only=True),
+        ParamSpec('y_min', 0.0, 'lowest accepted reference, m (y_min = y_max = 0: the model\'s '
+                  'trained output range widened by range_margin)', low=-1.0, high=1.0,
+                  read_only=True),
+        ParamSpec('y_max', 0.0, 'highest accepted reference, m', low=-1.0, high=1.0,
+                  read_only=True),
+        ParamSpec('range_margin', 0.05, 'fraction of the trained output span accepted beyond '
+                  'it (when y_min = y_max = 0)', low=0.0, high=10.0, read_only=True),
+        ParamSpec('kp', 0.0, 'inverse_feedback: proportional gain on reference - deflection '
+                  '(m/m)', low=0.0, high=100.0, read_only=True),
+        ParamSpec('ki', 100.0, 'inverse_feedback: integral gain, 1/s', low=0.0, high=1e6,
+                  read_only=True),
+        ParamSpec('feedback_timeout', 10, 'samples after which the last deflection is too old '
+                  'for the proportional part', low=1, high=10**7, read_only=True),
+        ParamSpec('max_fill', 2000, 'longest reference gap bridged by holding the command, '
+                  'samples', low=0, high=10**7, read_only=True),
+        ParamSpec('window', 2000, 'samples in the running tracking error (with a deflection)',
+                  low=2, high=10**7, read_only=True),
+        ParamSpec('wait_for_subscribers', 0, 'subscribe to position_reference only once '
+                  'voltage_command has this many subscriptions (so the first commands are '
+                  'heard; a reference streamer waiting for this node then waits for them too)',
+                  low=0, high=1000, read_only=True),
+    )
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        from piezo_narx_ros.errors import ConfigError
+        from piezo_narx_ros.ident.model_io import load_model
+        p = self.params
+        if p['u_min'] >= p['u_max']:
+            raise ConfigError(f"parameter u_min ({p['u_min']} V) must be below u_max "
+                              f"({p['u_max']} V)")
+        limits = {} if p['y_min'] == p['y_max'] == 0.0 else {'y_min': p['y_min'],
+                                                              'y_max': p['y_max']}
+        self.model = load_model(p['model'])
+        self.ctl = PositionController(
+            self.model, mode=p['mode'], fs=p['fs'] or None, u_min=p['u_min'], u_max=p['u_max'],
+            slew_rate=p['slew_rate'] or math.inf, range_margin=p['range_margin'],
+            target=None if p['target'] == 'auto' else p['target'],
+            advance=None if p['compensate_advance'] else 0.0, kp=p['kp'], ki=p['ki'],
+            feedback_timeout=p['feedback_timeout'], max_fill=p['max_fill'],
+            window=p['window'], **limits)
+        self.ctl.inverse.solve(0.0)   # compile/load the solver kernel before the first sample
+        self.axis = p['axis']
+        self._names = [self.axis]
+        self.pub = self.sample_publisher(TOPIC_COMMAND)
+        # The callbacks get CDR bytes (see common.decode_joint_state: 8x cheaper).
+        self.sub_ref = None
+        self._wait_timer = self.create_timer(0.05, self.on_wait_check)
+        self.on_wait_check()
+        self.sub_meas = self.sample_subscription(TOPIC_DEFLECTION, self.on_measurement)
+        self.health = ControllerHealth(self.ctl)
+        # A reference held back for its ambiguous stamp is decided when references stop.
+        self._references_at_last_check = 0
+        self.flush_timer = self.create_timer(0.2, self.on_idle_check)
+        self.srv_reset = self.create_service(Trigger, '~/reset', self.on_reset)
+        self.diagnostics = Diagnostics(self, self.status, task='position control',
+                                       hardware_id=f"model {p['model']}")
+        c = self.ctl
+        self.get_logger().info(
+            f"{p['mode']} with {type(self.model).__name__} ({p['model']}) at {c.fs:g} Hz, "
+            f"target {c.inverse.target}, advance {c.advance:.3f} samples, static gain "
+            f"{c.gain * 1e6:.4g} um/V, references [{c.y_min * 1e6:.1f}, {c.y_max * 1e6:.1f}] "
+            f"um, commands [{p['u_min']:g}, {p['u_max']:g}] V")
+
+    def on_wait_check(self) -> None:
+        """Subscribe to the references once the commands have their listeners."""
+        if self.sub_ref is None and \
+                self.pub.get_subscription_count() >= self.params['wait_for_subscribers']:
+            self.sub_ref = self.sample_subscription(TOPIC_REFERENCE, self.on_reference)
+            self._wait_timer.cancel()
+
+    def pending_parameter_prefixes(self) -> list[str]:
+        """position_reference may be subscribed after construction: its QoS overrides too."""
+        return [f'qos_overrides.{self.resolve_topic_name(TOPIC_REFERENCE)}.subscription.']
+
+    def on_reset(self, _request, response):
+        """~/reset (std_srvs/Trigger): the actuator is at rest now (0 V): the model restarts
+        from rest and the integrator is cleared."""
+        self.ctl.request_reset()
+        response.success = True
+        response.message = 'model restarted from rest (actuator at 0 V), integrator cleared'
+        self.get_logger().info(response.message)
+        return response
+
+    def _value(self, msg: bytes, what: str) -> tuple[int, float] | None:
+        try:
+            sample = decode_joint_state(msg)
+            return sample.t_ns, sample.value('position', self.axis)
+        except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the node
+            self.get_logger().warning(f'{what} message ignored: {exc}',
+                                      throttle_duration_sec=1.0)
+            return None
+
+    def on_reference(self, msg: bytes) -> None:
+        got = self._value(msg, 'reference')
+        if got is None:
+            self.ctl.stats.rejected_nonfinite += 1   # unusable: counted like a non-finite one
+            return
+        self.publish(self.ctl.on_reference(*got))
+
+    def on_measurement(self, msg: bytes) -> None:
+        got = self._value(msg, 'deflection')
+        if got is None:
+            self.ctl.stats.measurements_rejected += 1
+            return
+        self.ctl.on_measurement(*got)
+
+    def on_idle_check(self) -> None:
+        """References stopped while one was held back: decide on it now."""
+        n = self.ctl.stats.references
+        if n == self._references_at_last_check and self.ctl.holding:
+            self.publish(self.ctl.flush())
+        self._references_at_last_check = n
+
+    def publish(self, commands) -> None:
+        names, pub = self._names, self.pub
+        for t, u in commands:
+            pub.publish(encode_joint_state(t, names, effort=(u,)))
+
+    def status(self):
+        """Everything since the previous tick (ControllerHealth)."""
+        waiting = self.sub_ref is None
+        level, msg, values = self.health.tick(None if waiting else
+                                              self.sub_ref.get_publisher_count())
+        values['measurement_publishers'] = self.sub_meas.get_publisher_count()
+        values['command_subscribers'] = self.pub.get_subscription_count()
+        if waiting:
+            values['waiting_for_subscribers'] = self.params['wait_for_subscribers']
+            if level == 0:
+                return DIAG_WARN, (f"waiting for {self.params['wait_for_subscribers']} "
+                                   'voltage_command subscriber(s)'), values
+        return bytes([level]), msg, values
+
+
+main = main_for(ControllerNode)
+
+if __name__ == '__main__':
+    main()
