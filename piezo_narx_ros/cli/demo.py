@@ -10,6 +10,8 @@
 Writes everything to --out (default reports/demo-YYYYmmdd-HHMMSS). Every child process is stopped
 on success, on error and on Ctrl-C/SIGTERM (SIGINT, then SIGTERM, then SIGKILL).
 `--make-sample-bags DIR` records the repository's sample bags instead (bags/README.md).
+`--control` runs sensorless position control instead (docs/control.md): identification record and
+envelope fit (or `--model`), then controller_node live in each mode on a position reference.
 """
 
 
@@ -32,6 +34,13 @@ def add_parser(subparsers):
                    'phase uses seed + 1)')
     p.add_argument('--quick', action='store_true',
                    help='tiny run for tests: 4 s + 3 s, NARX(4,4) and four ARX models')
+    p.add_argument('--control', action='store_true',
+                   help='sensorless position control end to end: record + envelope fit (or '
+                        '--model), then controller_node live in each mode (docs/control.md)')
+    p.add_argument('--model', metavar='JSON',
+                   help='with --control: use this model file instead of identifying one')
+    p.add_argument('--control-seconds', type=float, metavar='S',
+                   help='with --control: seconds per mode (default 20)')
     p.add_argument('--make-sample-bags', metavar='DIR',
                    help='record the sample bags (estimation, validation, sine) and their model '
                         'into DIR instead of running the demo')
@@ -47,11 +56,20 @@ def run(args) -> int:
 
     from piezo_narx_ros.demo.runner import Interrupted, child_environment, load_settings
 
+    from piezo_narx_ros.errors import ConfigError
+    if (args.model or args.control_seconds) and not args.control:
+        raise ConfigError('--model and --control-seconds go with --control')
     settings = load_settings(args.config, quick=args.quick, seconds=args.seconds,
                              validation_seconds=args.validation_seconds, fs=args.fs,
-                             seed=args.seed)
+                             seed=args.seed, control=(
+                                 {'seconds': args.control_seconds} if args.control_seconds
+                                 else None))
     child_environment()
     try:
+        if args.control:
+            from piezo_narx_ros.demo.control import run_control_demo
+            out = Path(args.out or datetime.now().strftime('reports/control-%Y%m%d-%H%M%S'))
+            return run_control_demo(settings, out, Path(args.model) if args.model else None)
         if args.make_sample_bags:
             from piezo_narx_ros.demo.sample_bags import make_sample_bags
             return make_sample_bags(settings, Path(args.make_sample_bags))

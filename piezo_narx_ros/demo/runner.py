@@ -29,8 +29,15 @@ DEFAULTS = {
     'validation_seconds': 10.0, 'validation_seed': None,
     'startup_timeout_s': 60.0, 'settle_s': 3.0, 'sigint_timeout_s': 10.0,
     'sigterm_timeout_s': 3.0,
+    # piezo-narx demo --control (demo/control.py): identification record and fit, then each
+    # mode live for `seconds` on a position reference (command_node kinds; amplitude in m).
+    'control': {'record_seconds': 25.0, 'fit': {'preset': 'envelope', 'jobs': 2},
+                'modes': ['linear', 'inverse', 'inverse_feedback'], 'seconds': 20.0,
+                'kind': 'sine', 'freq': 1.0, 'amplitude': 3e-5, 'seed': None,
+                'plant_params': ''},
     'quick': {'seconds': 4.0, 'validation_seconds': 3.0,
-              'fit': {'ny': 4, 'nu': 4, 'arx_na': '1-2', 'arx_nb': '1-2', 'jobs': 1}},
+              'fit': {'ny': 4, 'nu': 4, 'arx_na': '1-2', 'arx_nb': '1-2', 'jobs': 1},
+              'control': {'seconds': 3.0}},
 }
 _POSITIVE = ('fs', 'seconds', 'validation_seconds', 'amplitude', 'startup_timeout_s', 'settle_s',
              'sigint_timeout_s', 'sigterm_timeout_s')
@@ -84,6 +91,8 @@ def load_settings(path=None, quick: bool = False, **overrides) -> dict:
     check_known(settings['fit'], CONFIG_KEYS, 'fit')
     if settings['fs'] * min(settings['seconds'], settings['validation_seconds']) < 500:
         raise ConfigError('seconds x fs must give at least 500 samples per phase')
+    from piezo_narx_ros.demo.control import check_control_settings
+    check_control_settings(settings['control'])
     return settings
 
 
@@ -201,13 +210,15 @@ class Demo:
         return f'/{self.ns}/{name}' if self.ns else f'/{name}'
 
     def stream(self, phase: str, bag: Path, seconds: float, seed: int, model: Path | None = None,
-               kind: str | None = None, extra_command: dict | None = None) -> dict:
+               kind: str | None = None, extra_command: dict | None = None,
+               extra_simulator: dict | None = None) -> dict:
         """Run command -> simulator (-> estimator) -> recorder until the excitation has been
         recorded; returns {'published': N, 'received': messages recorded, 'codes': exit codes}."""
         s = self.s
         topics = ['voltage_command', 'deflection'] + (['deflection_estimate'] if model else [])
         listeners = [{'executable': 'simulator_node',
-                      'parameters': {'fs': float(s['fs']), 'seed': int(seed)}}]
+                      'parameters': {'fs': float(s['fs']), 'seed': int(seed),
+                                     **(extra_simulator or {})}}]
         if model is not None:
             listeners.append({'executable': 'estimator_node',
                               'parameters': {'model': str(model), 'fs': float(s['fs'])}})
