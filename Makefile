@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo test bench soak clean
 
 $(STAMP): requirements.txt setup.py package.xml
 	python3 -m venv $(VENV)
@@ -30,6 +30,10 @@ bench: setup
 	$(PY) bench/bench_live.py
 	$(PY) bench/bench_recorder.py
 	$(PY) bench/bench_control.py
+
+# 10 minutes of command -> simulator -> estimator -> recorder at 2 kHz with scheduled faults.
+soak: setup
+	$(PY) bench/bench_soak.py
 
 clean:
 	rm -rf $(VENV) reports

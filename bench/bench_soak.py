@@ -161,6 +161,7 @@ class Soak:
         self.cpu: dict[str, tuple[float, float]] = {}
         self.events: dict[str, dict] = {}
         self.bags: list[Path] = []
+        self.load: list[float] = []                     # 1-min load average every 5 s
 
     # -------------------------------------------------------------------------- processes
     def spawn(self, role: str, *params: str) -> None:
@@ -188,6 +189,7 @@ class Soak:
         self.spawn('recorder', f'output:={bag}', 'chunk_period_s:=0.5')
 
     def sample_rss(self, t: float) -> None:
+        self.load.append(os.getloadavg()[0])
         for role, name in self.live.items():
             kib = rss_kib(self.procs[name].pid)
             if kib is not None:
@@ -378,20 +380,29 @@ def analyse(soak: Soak, probe: Probe) -> None:
     k_all = np.arange(0, int(k_own.max()) + 1)
     end_ns = t0 + int(k_all[-1]) * period
     if 'estimator' in ev:
+        # The new estimator's first estimate: stamped after the kill (the old one's backlog,
+        # still arriving after the kill, carries earlier stamps).
         s, logs = data['deflection_estimate']
-        later = logs[logs > ev['estimator']['start']]
+        later = logs[s >= ev['estimator']['start']]
         ev['estimator']['end'] = int(later.min()) if later.size else end_ns
     if 'recorder' in ev:
         first = read_bags(soak.bags[-1:])['voltage_command'][1]
         ev['recorder']['end'] = int(first.min()) if first.size else end_ns
-    print(f'\nstream: {k_all.size} command samples at {soak.fs:g} Hz over '
+    load = np.array(soak.load)
+    print(f'\n1-minute load average during the run (every 5 s): min {load.min():.2f}, median '
+          f'{np.median(load):.2f}, max {load.max():.2f} ({os.cpu_count()} cores)')
+    print(f'stream: {k_all.size} command samples at {soak.fs:g} Hz over '
           f'{k_all.size / soak.fs:.1f} s; the pipeline drained {soak.drain_s:.1f} s after the '
           'command node stopped')
 
     first_fault = min(e['start'] for e in ev.values())
-    quiet = np.concatenate([logs[(s > t0 + 10 * NS) & (s < first_fault - NS)] -
-                            s[(s > t0 + 10 * NS) & (s < first_fault - NS)]
-                            for s, logs in data.values()])
+    quiet = []
+    for s, logs in data.values():
+        # the grid's samples only: a burst's random stamp may fall in this period too
+        sel = on_grid(s, t0, period) & (s > t0 + 10 * NS) & (s < first_fault - NS) & \
+            (logs - s < 30 * NS)
+        quiet.append(logs[sel] - s[sel])
+    quiet = np.concatenate(quiet)
     p50, p99, pmax = np.percentile(quiet, [50, 99, 100])
     thr = max(3 * p99, 5e6)
     print(f'quiet-period lateness (receive - stamp, all streams, before the first fault): '
@@ -446,6 +457,8 @@ def analyse(soak: Soak, probe: Probe) -> None:
         else:
             cols = f'{"(ran < 60 s)":>13} {"":>8} {"":>9}'
         print(f'{name:<14} {cols} {100 * cpu / wall:>6.0f} {soak.codes.get(name)!s:>5}')
+    busy = sum(cpu for wall, cpu in soak.cpu.values()) / (soak.args.minutes * 60.0)
+    print(f'the nodes together: {100 * busy:.0f} % of one core on average')
 
     if 'estimator' in ev:
         print('\nestimator#1 before its restart: ' + counters(ev['estimator']['last_status'],
