@@ -12,7 +12,8 @@ from piezo_narx_ros.errors import ConfigError, DataError, ModelFileError
 from piezo_narx_ros.estimator.free_run import FreeRunEstimator
 from piezo_narx_ros.ident import hysteresis_kernels as hk
 from piezo_narx_ros.ident.hysteresis import HysteresisNARX
-from piezo_narx_ros.ident.hysteresis_training import _split_theta, initial_theta
+from piezo_narx_ros.ident.hysteresis_training import (_split_theta, initial_theta,
+                                                      operator_features)
 from piezo_narx_ros.ident.model_io import load_model, save_model
 from piezo_narx_ros.plant import PiezoCantilever, generate
 
@@ -46,24 +47,27 @@ def test_training_jacobian_matches_finite_differences():
     rng = np.random.default_rng(1)
     un = walk(600, 1) / 100.0
     un[300:350] = un[299]
+    un[400] += 0.8                   # jumps the drive's rate limit clips
+    un[450] -= 1.2
     yn = np.tanh(un) + 0.01 * rng.normal(size=un.size)
     radii = (np.arange(5) / 5) ** 2
     lam = np.exp(-1 / (np.array([0.005, 0.05]) * FS))
     H, q, L, na, nb = 3, 2, 2, 2, 2
-    F = hk.features(un, radii, L)
-    theta = initial_theta([F], [un], [yn], H, q, lam.size, na, nb, rng)
+    theta = initial_theta([un], [yn], radii, L, H, q, lam.size, na, nb, rng)
     theta += rng.normal(0, 0.05, theta.size)
-    d = F.shape[1] + q
+    d = radii.size + L + q
     lay, P = hk.layout(H, d, q, lam.size, na, nb)
+    assert 0.05 < np.exp(theta[lay['drive'][0]]) < 1.0    # some steps are limited
 
     def out(t):
-        W1, b1, w2, c, dh, g, a, b, yo = _split_theta(t, lay, H, d, q)
-        return hk.forward(F, hk.duhem_states(un, dh, False)[0], W1, b1, w2, c, g, lam, a, b, yo)
+        W1, b1, w2, c, dh, rho, g, a, b, yo = _split_theta(t, lay, H, d, q)
+        _, (F, S, _, _, _) = operator_features(un, radii, L, dh, rho)
+        return hk.forward(F, S, W1, b1, w2, c, g, lam, a, b, yo)
 
-    W1, b1, w2, c, dh, g, a, b, yo = _split_theta(theta, lay, H, d, q)
-    S, JD = hk.duhem_states(un, dh, True)
+    W1, b1, w2, c, dh, rho, g, a, b, yo = _split_theta(theta, lay, H, d, q)
+    _, parts = operator_features(un, radii, L, dh, rho, with_jac=True)
     J = np.empty((un.size, P))
-    y = hk.jacobian(F, S, JD, W1, b1, w2, c, g, lam, a, b, yo, J)
+    y = hk.jacobian(*parts, rho, W1, b1, w2, c, g, lam, a, b, yo, J)
     np.testing.assert_allclose(y, out(theta), rtol=0, atol=1e-12)
     for name, (lo, hi) in lay.items():
         for p in range(lo, hi):
@@ -88,8 +92,8 @@ def test_simulate_stepper_predict_agree():
     assert np.array_equal(sim0[:n0], y_meas[:n0])
     # One step ahead: the free-run operator chain with measured output lags.
     pred = m.predict(u, y_meas)
-    z = hk.operator_chain(u / m.u_scale_, *m._kernel_args[:10])
-    a, b, y_off = m._kernel_args[10:]
+    z = hk.operator_chain(u / m.u_scale_, *m._kernel_args[:11])
+    a, b, y_off = m._kernel_args[11:]
     k = 1234
     yl = y_meas / m.y_scale_ - y_off
     manual = sum(b[i] * z[k - i] for i in range(b.size)) - sum(a[j - 1] * yl[k - j]
@@ -120,7 +124,7 @@ def test_free_run_is_bounded_for_any_bounded_input():
     m = random_model(5, scale=3.0)
     u = walk(100000, 5) * 1.5
     y = m.simulate(u)
-    radii, n_lags, dh, W1, b1, w2, c, w_rest, g, lam, a, b, y_off = m._kernel_args
+    radii, n_lags, dh, rho, W1, b1, w2, c, w_rest, g, lam, a, b, y_off = m._kernel_args
     umax = np.max(np.abs(u)) / m.u_scale_
     phi_max = np.r_[np.full(m.n_plays, umax), np.full(n_lags, 2 * umax),
                     np.max(np.abs(dh[:, :2]), axis=1) / hk.BETA_MIN]

@@ -4,8 +4,9 @@ followed by learned creep and linear output dynamics (the `--preset envelope` fa
     y(k) = -sum_j a_j y(k-j) + sum_i b_i z(k-i) + y_off                      (output lags: linear)
     z(k) = w(k) + sum_l g_l x_l(k),   x_l: first-order lags of w, time constants creep_taus (s)
     w(k) = f(phi(k)),  f: one hidden layer of sigmoid units plus a linear term, f = 0 at rest
-    phi(k) = [play operators of u (n_plays radii), u increments over n_lags samples,
-              learned Duhem states (n_duhem)]
+    phi(k) = [play operators of v (n_plays radii), v increments over n_lags samples,
+              learned Duhem states of v (n_duhem)]
+    v(k) = v(k-1) + clip(u(k) - v(k-1), -rho, rho)   the drive, rho learned (amplifier slew)
 
 Why this structure (docs/envelope.md has the measurements): the paper's network feeds its own
 output back through a sigmoid layer. A rate-independent plant holding its input has a continuum of
@@ -160,15 +161,21 @@ class HysteresisNARX(DynamicModel):
         self.theta_ = theta
         self._kernel_args = (
             np.ascontiguousarray(self.radii_), int(self.n_lags),
-            np.ascontiguousarray(part['duhem'].reshape(self.n_duhem, 6)), W1, b1, w2,
-            part['c'].copy(), w_rest, part['g'].copy(), self._lam(), part['a'].copy(),
-            part['b'].copy(), float(part['y_off'][0]))
+            np.ascontiguousarray(part['duhem'].reshape(self.n_duhem, 6)),
+            float(np.exp(part['drive'][0])), W1, b1, w2, part['c'].copy(), w_rest,
+            part['g'].copy(), self._lam(), part['a'].copy(), part['b'].copy(),
+            float(part['y_off'][0]))
         return self
+
+    @property
+    def drive_slew_rate(self):
+        """Learned slew-rate limit of the drive, V/s (inf when it never limits)."""
+        return self._kernel_args[3] * self.u_scale_ * self.fs
 
     @property
     def output_poles(self):
         """Roots of the output dynamics' A(q) (z-plane); all inside the unit circle."""
-        a = self._kernel_args[10]
+        a = self._kernel_args[11]
         return np.roots(np.r_[1.0, a]) if a.size else np.zeros(0)
 
     # ------------------------------------------------------------------ inference
@@ -220,9 +227,8 @@ class HysteresisNARX(DynamicModel):
         self._require_fitted()
         u = as_signal(u, 'u', min_len=self.n0 + 1)
         y = as_signal(y, 'y', n=u.size)
-        radii, n_lags, dh, W1, b1, w2, c, w_rest, g, lam, a, b, y_off = self._kernel_args
-        z = hk.operator_chain(u / self.u_scale_, radii, n_lags, dh, W1, b1, w2, c, w_rest, g,
-                              lam)
+        *chain, a, b, y_off = self._kernel_args
+        z = hk.operator_chain(u / self.u_scale_, *chain)
         yl = y / self.y_scale_ - y_off
         n, n0 = u.size, self.n0
         pred = np.zeros(n - n0)

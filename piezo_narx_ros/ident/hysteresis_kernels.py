@@ -2,23 +2,26 @@
 
 Everything here works in normalised units: un = u / u_scale, yn = y / y_scale. One sample k:
 
-  operators of the input (rate-independent: frozen while the input holds)
-    p_i(k)  play of radius r_i:       p_i = min(un + r_i, max(un - r_i, p_i(k-1)))
-    s_j(k)  Duhem state j, along the input path d = un(k) - un(k-1) with sign sg and slope
+  drive    v(k) = v(k-1) + clip(un(k) - v(k-1), -rho, rho),  rho = exp(drive) (learned): the
+           voltage the actuator gets when the amplifier's slew rate limits a jump (a capacitive
+           load fed by a current-limited amplifier); rho large = no limit
+  operators of the drive (rate-independent: frozen while the input holds)
+    p_i(k)  play of radius r_i:       p_i = min(v + r_i, max(v - r_i, p_i(k-1)))
+    s_j(k)  Duhem state j, along the drive's path d = v(k) - v(k-1) with sign sg and slope
             ds/dun = sg*alpha - beta*s solved exactly over the step:
                 s = s*E + sg*alpha*(1 - E)/beta,  E = exp(-beta*|d|),  beta = rho^2 + BETA_MIN,
             alpha and rho chosen by the signs of d and s (6 parameters per state)
-  short-term input increments  d_j(k) = un(k-j) - un(k-j-1), j < n_lags (the drive's dynamics)
+  short-term drive increments  d_j(k) = v(k-j) - v(k-j-1), j < n_lags (the drive's dynamics)
   network  w(k) = sum_h w2_h (sig(b1_h + W1_h.phi) - sig(b1_h)) + c.phi,  phi = [p, d, s]
            (zero at rest: every operator and increment is 0 there)
   creep    x_l(k) = lam_l x_l(k-1) + (1 - lam_l) w(k),  z(k) = w(k) + sum_l g_l x_l(k)
   output   yl(k) = -sum_j a_j yl(k-j) + sum_i b_i z(k-i),  yn(k) = yl(k) + y_off
 
 Parameter vector theta = [W1 (H*d, row-major), b1 (H), w2 (H), c (d), duhem (6 per state),
-g (n_creep), a (na), b (nb+1), y_off]; `layout` gives the offsets.
+drive (1), g (n_creep), a (na), b (nb+1), y_off]; `layout` gives the offsets.
 
 The state of a free run (`step`) is one float array:
-  [un(k-1) .. un(k-Lh) (Lh = max(n_lags, 1)), plays (m), duhem (q), creep (n_creep),
+  [v(k-1) .. v(k-Lh) (Lh = max(n_lags, 1)), plays (m), duhem (q), creep (n_creep),
    z(k-1) .. z(k-nb), yl(k-1) .. yl(k-na)].
 `simulate` loops `step` inside numba, so a Stepper and simulate() give the same bits.
 """
@@ -34,7 +37,7 @@ BETA_MIN = 0.01
 def layout(hidden, d, n_duhem, n_creep, na, nb):
     """Offsets into theta: dict of name -> (start, stop), and the total size."""
     sizes = (('W1', hidden * d), ('b1', hidden), ('w2', hidden), ('c', d), ('duhem', 6 * n_duhem),
-             ('g', n_creep), ('a', na), ('b', nb + 1), ('y_off', 1))
+             ('drive', 1), ('g', n_creep), ('a', na), ('b', nb + 1), ('y_off', 1))
     out, k = {}, 0
     for name, n in sizes:
         out[name] = (k, k + n)
@@ -70,8 +73,14 @@ def _duhem_update(s, d, al_p, al_m, r_pp, r_pm, r_mp, r_mm):
 
 
 @njit(cache=True)
-def step(un_k, st, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam, a, b, y_off):
+def step(un_k, st, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, b, y_off):
     """Advance the free-run state `st` by one normalised input un_k; returns yn(k)."""
+    dv = un_k - st[0]
+    if dv > rho:
+        dv = rho
+    elif dv < -rho:
+        dv = -rho
+    un_k = st[0] + dv
     m = radii.size
     q = duhem.shape[0]
     nl = lam.size
@@ -139,48 +148,53 @@ def step(un_k, st, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam, a, b, y_
 
 
 @njit(cache=True)
-def peek(un_k, st, scratch, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam, a, b, y_off):
+def peek(un_k, st, scratch, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, b,
+         y_off):
     """yn(k) that `step` would return for un_k, leaving st untouched (scratch: same size as
     st). For solvers that try candidate inputs (control/)."""
     for i in range(st.size):
         scratch[i] = st[i]
-    return step(un_k, scratch, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam, a, b, y_off)
+    return step(un_k, scratch, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, b,
+                y_off)
 
 
 @njit(cache=True)
-def peek_static(un_k, st, scratch, scratch2, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam,
-                gain, y_off):
+def peek_static(un_k, st, scratch, scratch2, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g,
+                lam, gain, y_off):
     """gain*z(k) + y_off for un_k with the input increments at their held value 0: the output the
     rate-independent operators (plays and Duhem states moved along un(k-1) -> un_k) and the creep
-    settle to, without the drive's short-term dynamics or the output dynamics. st is untouched
-    (scratch, scratch2: same size as st); gain: [G], the output dynamics' DC gain."""
+    settle to, without the drive's short-term dynamics (its slew limit included) or the output
+    dynamics. st is untouched (scratch, scratch2: same size as st); gain: [G], the output
+    dynamics' DC gain; rho is taken for the signature's sake (the settled drive reaches un_k)."""
     lh = max(n_lags, 1)
     hi = lh + radii.size + duhem.shape[0]
     no_a = gain[:0]
     for i in range(st.size):
         scratch[i] = st[i]
         scratch2[i] = st[i]
-    # First step: the operators move to un_k along the real path.
-    step(un_k, scratch, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam, no_a, gain, y_off)
+    # First step: the operators move to un_k along the real path, the drive reaching it.
+    step(un_k, scratch, radii, n_lags, duhem, np.inf, W1, b1, w2, c, w_rest, g, lam, no_a, gain,
+         y_off)
     for i in range(lh, hi):
         scratch2[i] = scratch[i]
     for j in range(lh):
         scratch2[j] = un_k               # increments 0; the operators stay where they are
-    return step(un_k, scratch2, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam, no_a, gain,
-                y_off)
+    return step(un_k, scratch2, radii, n_lags, duhem, np.inf, W1, b1, w2, c, w_rest, g, lam, no_a,
+                gain, y_off)
 
 
 @njit(cache=True)
-def simulate(un, st, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam, a, b, y_off):
+def simulate(un, st, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, b, y_off):
     """Free run over un (N,) from state st (updated in place); returns yn (N,)."""
     out = np.empty(un.size)
     for k in range(un.size):
-        out[k] = step(un[k], st, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam, a, b, y_off)
+        out[k] = step(un[k], st, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, b,
+                      y_off)
     return out
 
 
 @njit(cache=True)
-def operator_chain(un, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam):
+def operator_chain(un, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam):
     """z(k) (N,) of the operator/network/creep chain from rest: what the output dynamics are
     driven by (it does not depend on the output, so one-step prediction can reuse it)."""
     m = radii.size
@@ -193,52 +207,86 @@ def operator_chain(un, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam):
     out = np.empty(un.size)
     # The output part of `step` is skipped by giving it b = [1], no a: yl(k) = z(k).
     for k in range(un.size):
-        out[k] = step(un[k], st, radii, n_lags, duhem, W1, b1, w2, c, w_rest, g, lam, none, one,
-                      0.0)
+        out[k] = step(un[k], st, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, none,
+                      one, 0.0)
     return out
 
 
 # ------------------------------------------------------------------------------ training kernels
 @njit(cache=True)
-def features(un, radii, n_lags):
-    """Fixed network inputs (N, m + n_lags) from rest: plays, then input increments."""
+def drive(un, rho):
+    """Rate-limited drive v (N,) from rest and dv/drho (N,)."""
     n = un.size
-    m = radii.size
-    F = np.empty((n, m + n_lags))
-    p = np.zeros(m)
+    v = np.empty(n)
+    dv = np.empty(n)
+    prev, dprev = 0.0, 0.0
     for k in range(n):
-        for i in range(m):
-            lo = un[k] - radii[i]
-            hi = un[k] + radii[i]
-            v = p[i]
-            if v < lo:
-                v = lo
-            elif v > hi:
-                v = hi
-            p[i] = v
-            F[k, i] = v
-        for j in range(n_lags):
-            cur = un[k - j] if k - j >= 0 else 0.0
-            prv = un[k - j - 1] if k - j - 1 >= 0 else 0.0
-            F[k, m + j] = cur - prv
-    return F
+        e = un[k] - prev
+        if e > rho:
+            prev, dprev = prev + rho, dprev + 1.0
+        elif e < -rho:
+            prev, dprev = prev - rho, dprev - 1.0
+        else:
+            prev, dprev = un[k], 0.0
+        v[k] = prev
+        dv[k] = dprev
+    return v, dv
 
 
 @njit(cache=True)
-def duhem_states(un, duhem, with_jac):
-    """Duhem states S (N, q) from rest and, when with_jac, dS/d(duhem params) J (N, q, 6)."""
-    n = un.size
+def features(v, radii, n_lags, dv):
+    """Network inputs (N, m + n_lags) from rest: plays of the drive v, then its increments; and
+    their derivatives (N, m + n_lags) with respect to rho given dv = dv/drho."""
+    n = v.size
+    m = radii.size
+    F = np.empty((n, m + n_lags))
+    DF = np.empty((n, m + n_lags))
+    p = np.zeros(m)
+    dp = np.zeros(m)
+    for k in range(n):
+        for i in range(m):
+            lo = v[k] - radii[i]
+            hi = v[k] + radii[i]
+            if p[i] < lo:
+                p[i] = lo
+                dp[i] = dv[k]
+            elif p[i] > hi:
+                p[i] = hi
+                dp[i] = dv[k]
+            F[k, i] = p[i]
+            DF[k, i] = dp[i]
+        for j in range(n_lags):
+            cur = v[k - j] if k - j >= 0 else 0.0
+            prv = v[k - j - 1] if k - j - 1 >= 0 else 0.0
+            F[k, m + j] = cur - prv
+            dcur = dv[k - j] if k - j >= 0 else 0.0
+            dprv = dv[k - j - 1] if k - j - 1 >= 0 else 0.0
+            DF[k, m + j] = dcur - dprv
+    return F, DF
+
+
+@njit(cache=True)
+def duhem_states(v, duhem, with_jac, dv):
+    """Duhem states S (N, q) of the drive v from rest and, when with_jac, their derivatives
+    J (N, q, 6) with respect to each state's parameters and SR (N, q) with respect to rho
+    (given dv = dv/drho)."""
+    n = v.size
     q = duhem.shape[0]
     S = np.zeros((n, q))
     J = np.zeros((n, q, 6) if with_jac else (1, q, 6))
+    SR = np.zeros((n, q) if with_jac else (1, q))
     gr = np.zeros(6)
     for j in range(q):
         s = 0.0
+        sr = 0.0
         prev = 0.0
+        dprev = 0.0
         gr[:] = 0.0
         for k in range(n):
-            d = un[k] - prev
-            prev = un[k]
+            d = v[k] - prev
+            dd = dv[k] - dprev
+            prev = v[k]
+            dprev = dv[k]
             if d != 0.0:
                 if d > 0.0:
                     sg, ia = 1.0, 0
@@ -264,12 +312,14 @@ def duhem_states(un, duhem, with_jac):
                         gr[p] *= e
                     gr[ia] += sg * phi
                     gr[ir] += 2.0 * rho * gb
+                    sr = e * sr + e * (alpha - beta * sg * s) * dd
                 s = s * e + sg * alpha * phi
             S[k, j] = s
             if with_jac:
+                SR[k, j] = sr
                 for p in range(6):
                     J[k, j, p] = gr[p]
-    return S, J
+    return S, J, SR
 
 
 @njit(cache=True)
@@ -320,9 +370,10 @@ def forward(F, S, W1, b1, w2, c, g, lam, a, b, y_off):
 # fastmath: the training's derivatives may be summed in any order (vectorised); the free run
 # (step / simulate), which the estimator and the scores use, stays exact IEEE arithmetic.
 @njit(cache=True, fastmath=True)
-def jacobian(F, S, JD, W1, b1, w2, c, g, lam, a, b, y_off, J):
+def jacobian(F, S, JD, DF, SR, rho, W1, b1, w2, c, g, lam, a, b, y_off, J):
     """Free-run output yn (N,) and its exact derivative J (N, P) with respect to theta (layout in
-    the module docstring), from the features F, Duhem states S and their derivatives JD."""
+    the module docstring), from the features F, Duhem states S, their derivatives JD (Duhem
+    parameters) and DF, SR (rho), and rho itself (the drive parameter is log rho)."""
     n = F.shape[0]
     H, d = W1.shape
     df = F.shape[1]
@@ -334,7 +385,8 @@ def jacobian(F, S, JD, W1, b1, w2, c, g, lam, a, b, y_off, J):
     o_w2 = o_b1 + H
     o_c = o_w2 + H
     o_dh = o_c + d
-    o_g = o_dh + 6 * q
+    o_dr = o_dh + 6 * q
+    o_g = o_dr + 1
     o_a = o_g + nl
     o_b = o_a + na
     o_y = o_b + nb + 1
@@ -374,12 +426,19 @@ def jacobian(F, S, JD, W1, b1, w2, c, g, lam, a, b, y_off, J):
             r[o_w2 + h] = sh[h] - s0[h]
         for i in range(d):
             r[o_c + i] = phi[i]
-        for j in range(q):
-            mj = c[df + j]
+        drho = 0.0
+        for i in range(d):
+            mi = c[i]
             for h in range(H):
-                mj += w2[h] * sh[h] * (1.0 - sh[h]) * W1[h, df + j]
-            for p in range(6):
-                r[o_dh + 6 * j + p] = mj * JD[k, j, p]
+                mi += w2[h] * sh[h] * (1.0 - sh[h]) * W1[h, i]
+            if i < df:
+                drho += mi * DF[k, i]
+            else:
+                j = i - df
+                drho += mi * SR[k, j]
+                for p in range(6):
+                    r[o_dh + 6 * j + p] = mi * JD[k, j, p]
+        r[o_dr] = rho * drho
         z = w
         for l in range(nl):
             x[l] = lam[l] * x[l] + (1.0 - lam[l]) * w

@@ -6,8 +6,9 @@ output feedback is linear, the exact derivative of the whole free run is cheap
 (hysteresis_kernels.jacobian), so the training needs no segments or truncation: it fits the slow
 states (creep, hysteresis memory) over the full length of each record.
 
-Start: a seeded random hidden layer; the output layer (w2, c) by least squares on the static map
-from the operators to the output; the output dynamics (a, b) by least squares (ARX) on that
+Start: the drive's rate limit at half the largest input step (so that the largest jumps of the
+data are limited and its derivative is informative); a seeded random hidden layer; the output
+layer (w2, c) by least squares on the static map from the operators to the output; the output dynamics (a, b) by least squares (ARX) on that
 static prediction, replaced by a static gain when unstable. Then Marquardt's LM (the damping
 scaled by diag(J^T J)) until the error stops falling, `max_iter`, or `max_fail` iterations without
 improvement of the held-out tail of each record (when `val_fraction` > 0). A step that would make
@@ -25,27 +26,38 @@ _MAX_POLE = 0.9999
 
 
 def _split_theta(theta, lay, H, d, q):
+    """(W1, b1, w2, c, duhem, rho, g, a, b, y_off) from the flat vector (rho = exp(drive))."""
     def part(name):
         lo, hi = lay[name]
         return theta[lo:hi]
     return (part('W1').reshape(H, d), part('b1'), part('w2'), part('c'),
-            np.ascontiguousarray(part('duhem').reshape(q, 6)), part('g'), part('a'), part('b'),
-            float(part('y_off')[0]))
+            np.ascontiguousarray(part('duhem').reshape(q, 6)), float(np.exp(part('drive')[0])),
+            part('g'), part('a'), part('b'), float(part('y_off')[0]))
+
+
+def operator_features(un, radii, n_lags, duhem, rho, with_jac=False):
+    """(phi (N, d), parts) of one normalised record: the drive, its plays and increments, the
+    Duhem states; parts = (F, S, JD, DF, SR) for the Jacobian kernel."""
+    v, dv = hk.drive(un, rho)
+    F, DF = hk.features(v, radii, n_lags, dv)
+    S, JD, SR = hk.duhem_states(v, duhem, with_jac, dv)
+    return np.hstack([F, S]), (F, S, JD, DF, SR)
 
 
 def _stable(a):
     return a.size == 0 or np.max(np.abs(np.roots(np.r_[1.0, a]))) < _MAX_POLE
 
 
-def initial_theta(Fs, uns, yns, H, q, n_creep, na, nb, rng):
-    """Starting parameters (see the module docstring) for records of features Fs, inputs uns and
-    outputs yns (normalised)."""
-    df = Fs[0].shape[1]
-    d = df + q
+def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng):
+    """Starting parameters (see the module docstring) for records of inputs uns and outputs yns
+    (normalised)."""
+    rho = 0.5 * max(float(np.max(np.abs(np.diff(np.r_[0.0, un])))) for un in uns)
+    rho = max(rho, 1e-6)
+    duhem = np.array([[1.0, 1.0] + [np.sqrt(1.0 + 2.0 * j)] * 4 for j in range(q)]).reshape(q, 6)
+    phis = [operator_features(un, radii, n_lags, duhem, rho)[0] for un in uns]
+    d = phis[0].shape[1]
     W1 = rng.normal(0.0, 1.0, (H, d)) * (2.0 / np.sqrt(d))
     b1 = rng.uniform(-1.0, 1.0, H)
-    duhem = np.array([[1.0, 1.0] + [np.sqrt(1.0 + 2.0 * j)] * 4 for j in range(q)]).reshape(q, 6)
-    phis = [np.hstack([F, hk.duhem_states(un, duhem, False)[0]]) for F, un in zip(Fs, uns)]
     phi = np.vstack(phis)
     sig = 1.0 / (1.0 + np.exp(-(phi @ W1.T + b1))) - 1.0 / (1.0 + np.exp(-b1))
     A = np.hstack([sig, phi])
@@ -67,7 +79,8 @@ def initial_theta(Fs, uns, yns, H, q, n_creep, na, nb, rng):
     ab = np.linalg.lstsq(np.vstack(rows), np.concatenate(targets), rcond=None)[0]
     if np.all(np.isfinite(ab)) and _stable(ab[:na]):
         a, b = ab[:na], ab[na:]
-    return np.concatenate([W1.ravel(), b1, w2, c, duhem.ravel(), np.zeros(n_creep), a, b, [0.0]])
+    return np.concatenate([W1.ravel(), b1, w2, c, duhem.ravel(), [np.log(rho)], np.zeros(n_creep),
+                           a, b, [0.0]])
 
 
 def train(uns, yns, radii, n_lags, hidden, n_duhem, lam, na, nb, seed, max_iter=60,
@@ -79,25 +92,24 @@ def train(uns, yns, radii, n_lags, hidden, n_duhem, lam, na, nb, seed, max_iter=
     """
     t0 = time.perf_counter()
     rng = np.random.default_rng(int(seed))
-    H, q = int(hidden), int(n_duhem)
-    Fs = [hk.features(un, radii, int(n_lags)) for un in uns]
-    d = Fs[0].shape[1] + q
+    H, q, n_lags = int(hidden), int(n_duhem), int(n_lags)
+    d = radii.size + n_lags + q
     lay, P = hk.layout(H, d, q, lam.size, na, nb)
     splits = [un.size - int(round(val_fraction * un.size)) if val_fraction > 0 else un.size
               for un in uns]
-    theta = initial_theta([F[:s] for F, s in zip(Fs, splits)], [u[:s] for u, s in zip(uns, splits)],
-                          [y[:s] for y, s in zip(yns, splits)], H, q, lam.size, na, nb, rng)
+    theta = initial_theta([u[:s] for u, s in zip(uns, splits)], [y[:s] for y, s in zip(yns, splits)],
+                          radii, n_lags, H, q, lam.size, na, nb, rng)
     n_train = sum(splits)
     n_hold = sum(un.size for un in uns) - n_train
 
     def errors(th):
         """(train SSE, holdout MSE) of the free run; inf when not finite or unstable."""
-        W1, b1, w2, c, dh, g, a, b, y_off = _split_theta(th, lay, H, d, q)
-        if not _stable(a):
+        W1, b1, w2, c, dh, rho, g, a, b, y_off = _split_theta(th, lay, H, d, q)
+        if not _stable(a) or not np.isfinite(rho):
             return np.inf, np.inf
         sse, hold = 0.0, 0.0
-        for F, un, yn, s in zip(Fs, uns, yns, splits):
-            S, _ = hk.duhem_states(un, dh, False)
+        for un, yn, s in zip(uns, yns, splits):
+            _, (F, S, _, _, _) = operator_features(un, radii, n_lags, dh, rho)
             e = yn - hk.forward(F, S, W1, b1, w2, c, g, lam, a, b, y_off)
             sse += float(e[:s] @ e[:s])
             hold += float(e[s:] @ e[s:])
@@ -106,13 +118,13 @@ def train(uns, yns, radii, n_lags, hidden, n_duhem, lam, na, nb, seed, max_iter=
         return sse, (hold / n_hold if n_hold else sse / n_train)
 
     def normal_equations(th):
-        W1, b1, w2, c, dh, g, a, b, y_off = _split_theta(th, lay, H, d, q)
+        W1, b1, w2, c, dh, rho, g, a, b, y_off = _split_theta(th, lay, H, d, q)
         JtJ = np.zeros((P, P))
         Jte = np.zeros(P)
-        for F, un, yn, s in zip(Fs, uns, yns, splits):
-            S, JD = hk.duhem_states(un, dh, True)
+        for un, yn, s in zip(uns, yns, splits):
+            _, parts = operator_features(un, radii, n_lags, dh, rho, with_jac=True)
             J = np.empty((un.size, P))
-            y = hk.jacobian(F, S, JD, W1, b1, w2, c, g, lam, a, b, y_off, J)
+            y = hk.jacobian(*parts, rho, W1, b1, w2, c, g, lam, a, b, y_off, J)
             e = yn[:s] - y[:s]
             Jt = J[:s]
             Jte += Jt.T @ e

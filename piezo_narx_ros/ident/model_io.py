@@ -28,7 +28,7 @@ FORMAT = 'piezo_narx_ros/model'
 FORMAT_VERSION = 2
 _MODEL_TYPES = (NARXNetwork, ARXModel, HysteresisNARX)
 # Weight arrays of a HysteresisNARX, in the order of its parameter vector.
-_HNARX_PARTS = ('W1', 'b1', 'w2', 'c', 'duhem', 'g', 'a', 'b', 'y_off')
+_HNARX_PARTS = ('W1', 'b1', 'w2', 'c', 'duhem', 'drive', 'g', 'a', 'b', 'y_off')
 UNITS = {'input': 'V', 'output': 'm', 'time': 's', 'fs': 'Hz'}
 
 
