@@ -59,7 +59,9 @@ def test_config_file_holds_the_builtin_defaults():
     assert load_settings(REPO / 'config' / 'demo.yaml') == load_settings(None)
     quick = load_settings(None, quick=True, seed=5)
     assert quick['seconds'] == DEFAULTS['quick']['seconds'] and quick['validation_seed'] == 6
-    assert quick['fit']['ny'] == 4 and quick['fit']['hidden'] == 10   # merged, not replaced
+    # merged, not replaced: the quick section's network over the default preset and split
+    assert quick['fit']['preset'] == 'envelope' and quick['fit']['hidden'] == 6
+    assert quick['fit']['split'] == 0.5 and quick['slow_seconds'] == 3.0
 
 
 @pytest.mark.parametrize('text, message', [
@@ -173,8 +175,8 @@ def test_quick_demo_end_to_end(tmp_path):
             proc.kill()
     assert proc.returncode == 0, stderr[-2000:]
     _no_leftovers(tag)
-    for n in (1, 2, 3, 4):
-        assert f'== {n}/4 ' in stdout
+    for n in (1, 2, 3, 4, 5):
+        assert f'== {n}/5 ' in stdout
     assert '== summary' in stdout and 'live free-run R²' in stdout
     summary = json.loads((out / 'summary.json').read_text())
     live = summary['live']
@@ -191,7 +193,13 @@ def test_quick_demo_end_to_end(tmp_path):
     assert live['latency_us']['p50'] <= live['latency_us']['p99'] <= live['latency_us']['max']
     # The live estimator is model.simulate to rounding (no sample was lost).
     assert live['live_vs_offline_simulate_max_nm'] < 1e-3
-    assert set(summary['wall_seconds']) == {'record', 'fit', 'live', 'analysis', 'total'}
+    assert set(summary['wall_seconds']) == {'record', 'fit', 'live', 'live_slow', 'analysis',
+                                            'total'}
+    # The slow full-range sine after the multisine: scored, nothing lost, the same estimator.
+    slow = summary['live_slow']
+    assert slow['published'] == 6000 and slow['lost'] == live['lost']
+    assert slow['r2'] > 0.99 and slow['live_vs_offline_simulate_max_nm'] < 1e-3
+    assert Path(summary['figures_slow']['tracking']).stat().st_size > 10_000
     for name in ('tracking', 'hysteresis', 'latency'):
         png = Path(summary['figures'][name])
         assert png.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n' and png.stat().st_size > 10_000

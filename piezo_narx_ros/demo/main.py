@@ -1,4 +1,4 @@
-"""`piezo-narx demo` flow: the four phases, the summary JSON and the printed table."""
+"""`piezo-narx demo` flow: the five phases, the summary JSON and the printed table."""
 from __future__ import annotations
 
 import json
@@ -16,17 +16,21 @@ def _say(text: str = '') -> None:
     print(text, flush=True)
 
 
+PHASES = 5
+
+
 def _header(n: int, title: str) -> None:
-    _say(f'\n== {n}/4 {title}')
+    _say(f'\n== {n}/{PHASES} {title}')
 
 
 def run_demo(settings: dict, out: Path) -> int:
-    """All four phases into `out`; returns 0. PhaseFailed / Interrupted propagate after every
+    """All five phases into `out`; returns 0. PhaseFailed / Interrupted propagate after every
     child has been stopped."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f'--out {out}: exists and is not a directory')
-    if any((out / name).exists() for name in ('record', 'fit', 'live', 'summary.json')):
+    if any((out / name).exists() for name in ('record', 'fit', 'live', 'live_slow',
+                                              'summary.json')):
         raise ConfigError(f'--out {out}: holds an earlier demo; choose a new folder')
     s = settings
     t_all = time.monotonic()
@@ -45,9 +49,8 @@ def run_demo(settings: dict, out: Path) -> int:
             if min(rec_counts.values()) == 0:
                 raise PhaseFailed('record: no samples recorded')
 
-            _header(2, 'fit: piezo-narx fit on the recording '
-                       f'(NARX ny {s["fit"].get("ny")} x nu {s["fit"].get("nu")}, '
-                       f'ARX {s["fit"].get("arx_na")} x {s["fit"].get("arx_nb")})')
+            _header(2, 'fit: piezo-narx fit on the recording (preset '
+                       f'{s["fit"].get("preset", "paper")})')
             t0 = time.monotonic()
             model_doc = demo.fit(out / 'record', out / 'fit')
             demo.times.add('fit', t0)
@@ -60,17 +63,31 @@ def run_demo(settings: dict, out: Path) -> int:
                  f'prediction {val["prediction"]["r2"]:.6f}, simulation '
                  f'{_fmt(val["simulation"]["r2"], ".6f")}')
 
-            _header(3, f'live: estimator_node with {sel["label"]}, fresh {s["kind"]} '
-                       f'{s["validation_seconds"]:g} s, seed {s["validation_seed"]}')
+            model_path = out / 'fit' / 'model.json'
+            _header(3, f'live: estimator_node with {sel["label"]}, fresh {s["validation_kind"]}'
+                       f' {s["validation_seconds"]:g} s, seed {s["validation_seed"]}')
             t0 = time.monotonic()
             live = demo.stream('live', out / 'live', s['validation_seconds'],
-                               s['validation_seed'], model=out / 'fit' / 'model.json')
+                               s['validation_seed'], model=model_path, kind=s['validation_kind'])
             demo.times.add('live', t0)
             est_diag = demo.probe.status(demo.fq('estimator_node'))
 
-        _header(4, 'analysis')
+            _header(4, f'live, slow full-range move: {s["slow_kind"]} {s["slow_freq"]:g} Hz '
+                       f'+-{s["amplitude"]:g} V, {s["slow_seconds"]:g} s')
+            t0 = time.monotonic()
+            slow = demo.stream('live_slow', out / 'live_slow', s['slow_seconds'],
+                               s['validation_seed'] + 1, model=model_path, kind=s['slow_kind'],
+                               extra_command={'freq': float(s['slow_freq'])})
+            demo.times.add('live_slow', t0)
+            slow_diag = demo.probe.status(demo.fq('estimator_node'))
+
+        _header(5, 'analysis')
         t0 = time.monotonic()
         summary = analyse(out, live, model_doc, est_diag)
+        slow_summary = analyse(out, slow, model_doc, slow_diag, phase='live_slow',
+                               fig_dir=out / 'figures' / 'slow')
+        summary['live_slow'] = slow_summary['live']
+        summary['figures_slow'] = slow_summary['figures']
         demo.times.add('analysis', t0)
     finally:
         restore_signal_handlers(old)
@@ -93,21 +110,22 @@ def run_demo(settings: dict, out: Path) -> int:
     return 0
 
 
-def analyse(out: Path, live: dict, model_doc: dict, est_diag) -> dict:
-    """Live figures, offline-equality check and PNGs of the live recording."""
+def analyse(out: Path, live: dict, model_doc: dict, est_diag, phase: str = 'live',
+            fig_dir: Path | None = None) -> dict:
+    """Live figures, offline-equality check and PNGs of one live recording (OUT/phase)."""
     from piezo_narx_ros.demo.analysis import (live_figures, load_live_run, offline_difference,
                                               write_figures)
     from piezo_narx_ros.ident.model_io import load_model
     model = load_model(out / 'fit' / 'model.json')
-    run = load_live_run(out / 'live', expected=live['published'])
+    run = load_live_run(out / phase, expected=live['published'])
     skip = int(model.n0)   # first n0 estimates are copies of the measurement (init from it)
     in_range = getattr(model, 'input_range', None)
     in_range = None if in_range is None else tuple(float(v) for v in in_range)
     figures = live_figures(run, skip, in_range)
     diff = offline_difference(run, model, skip)
-    paths = write_figures(run, skip, out / 'figures', in_range)
+    paths = write_figures(run, skip, fig_dir or out / 'figures', in_range)
     diag = dict(est_diag[1]) if est_diag else {}
-    return {'live': {'bag': str(out / 'live'), 'published': live['published'],
+    return {'live': {'bag': str(out / phase), 'published': live['published'],
                      'estimator_init': diag.get('init'), 'estimator_diagnostics': diag,
                      **figures,
                      'live_vs_offline_simulate_max_nm': None if diff is None else diff * 1e9,
@@ -137,6 +155,9 @@ def print_table(summary: dict) -> None:
         ('offline validation R² (sim)',
          _fmt(summary['fit']['offline_validation']['simulation']['r2'], '.6f')),
         ('live free-run R²', f'{live["r2"]:.6f}  ({live["n_scored"]} samples)'),
+        ('  slow full-range sine', f'R² {summary["live_slow"]["r2"]:.6f}, RMSE '
+                                   f'{summary["live_slow"]["rmse_nm"]:.1f} nm  '
+                                   f'({summary["live_slow"]["n_scored"]} samples)'),
         ('  inside training input range',
          f'R² {_fmt(live.get("r2_inside_input_range"), ".6f")}, RMSE '
          f'{_fmt(live.get("rmse_nm_inside_input_range"), ".1f")} nm '
@@ -154,6 +175,8 @@ def print_table(summary: dict) -> None:
         ('lost samples (record)', ', '.join(f'{k} {v}' for k, v in
                                             summary['record']['lost'].items())),
         ('lost samples (live)', ', '.join(f'{k} {v}' for k, v in live['lost'].items())),
+        ('lost samples (live slow)', ', '.join(f'{k} {v}' for k, v in
+                                               summary['live_slow']['lost'].items())),
         ('wall time', ', '.join(f'{k} {v:.1f} s' for k, v in w.items())),
     ]
     width = max(len(r[0]) for r in rows)

@@ -22,11 +22,11 @@ from piezo_narx_ros.errors import ConfigError, PiezoNarxError
 from piezo_narx_ros.settings import check_known, read_yaml_mapping
 
 DEFAULTS = {
-    'namespace': 'piezo', 'fs': 2000.0, 'seconds': 25.0, 'seed': 0, 'kind': 'multisine',
+    'namespace': 'piezo', 'fs': 2000.0, 'seconds': 25.0, 'seed': 0, 'kind': 'protocol',
     'amplitude': 100.0,
-    'fit': {'ny': '1-4', 'nu': '1-4', 'hidden': 10, 'arx_na': '1-10', 'arx_nb': '1-10',
-            'split': 0.5, 'jobs': 2},
-    'validation_seconds': 10.0, 'validation_seed': None,
+    'fit': {'preset': 'envelope', 'split': 0.5, 'jobs': 2},
+    'validation_kind': 'multisine', 'validation_seconds': 10.0, 'validation_seed': None,
+    'slow_kind': 'sine', 'slow_freq': 0.5, 'slow_seconds': 10.0,
     'startup_timeout_s': 60.0, 'settle_s': 3.0, 'sigint_timeout_s': 10.0,
     'sigterm_timeout_s': 3.0,
     # piezo-narx demo --control (demo/control.py): identification record and fit, then each
@@ -35,12 +35,14 @@ DEFAULTS = {
                 'modes': ['linear', 'inverse', 'inverse_feedback'], 'seconds': 20.0,
                 'kind': 'sine', 'freq': 1.0, 'amplitude': 3e-5, 'seed': None,
                 'plant_params': ''},
-    'quick': {'seconds': 4.0, 'validation_seconds': 3.0,
-              'fit': {'ny': 4, 'nu': 4, 'arx_na': '1-2', 'arx_nb': '1-2', 'jobs': 1},
+    'quick': {'seconds': 4.0, 'validation_seconds': 3.0, 'slow_seconds': 3.0,
+              'fit': {'n_seeds': 1, 'hidden': 6, 'hnarx': {'n_plays': 8, 'max_iter': 15},
+                      'arx_na': 2, 'arx_nb': 2, 'jobs': 1},
               'control': {'seconds': 3.0}},
 }
-_POSITIVE = ('fs', 'seconds', 'validation_seconds', 'amplitude', 'startup_timeout_s', 'settle_s',
-             'sigint_timeout_s', 'sigterm_timeout_s')
+_POSITIVE = ('fs', 'seconds', 'validation_seconds', 'slow_seconds', 'slow_freq', 'amplitude',
+             'startup_timeout_s', 'settle_s', 'sigint_timeout_s', 'sigterm_timeout_s')
+_KINDS = ('kind', 'validation_kind', 'slow_kind')
 
 
 class PhaseFailed(PiezoNarxError):
@@ -85,11 +87,16 @@ def load_settings(path=None, quick: bool = False, **overrides) -> dict:
             raise ConfigError(f'{key} must be an integer >= 0, got {v!r}')
     if settings['validation_seed'] is None:
         settings['validation_seed'] = settings['seed'] + 1
+    from piezo_narx_ros.cli.simulate import KINDS
+    for key in _KINDS:
+        if settings[key] not in KINDS:
+            raise ConfigError(f'{key} must be one of {", ".join(KINDS)}, got {settings[key]!r}')
     if not isinstance(settings['fit'], dict):
         raise ConfigError('fit must be a mapping of `piezo-narx fit` settings')
     from piezo_narx_ros.cli.fit import CONFIG_KEYS
     check_known(settings['fit'], CONFIG_KEYS, 'fit')
-    if settings['fs'] * min(settings['seconds'], settings['validation_seconds']) < 500:
+    if settings['fs'] * min(settings['seconds'], settings['validation_seconds'],
+                            settings['slow_seconds']) < 500:
         raise ConfigError('seconds x fs must give at least 500 samples per phase')
     from piezo_narx_ros.demo.control import check_control_settings
     check_control_settings(settings['control'])
