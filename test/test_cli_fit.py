@@ -285,3 +285,29 @@ def test_warnings_print_as_one_line(capsys):
         warnings.warn('bag.mcap: 3 samples missing on /piezo/deflection', UserWarning)
     err = capsys.readouterr().err
     assert err == 'piezo-narx: warning: bag.mcap: 3 samples missing on /piezo/deflection\n'
+
+
+def test_fit_envelope_preset_from_two_records(tmp_path, capsys):
+    from piezo_narx_ros.plant import PiezoCantilever, generate
+    for i in (0, 1):
+        u = generate('protocol', 2000.0, 3.0, 100.0, seed=i, cycles=2)
+        np.savez(tmp_path / f'p{i}.npz', u=u, y=PiezoCantilever(seed=i).run(u).y, fs=2000.0)
+    (tmp_path / 'small.yaml').write_text(yaml.safe_dump(
+        {'hidden': 3, 'n_seeds': 2, 'hnarx': {'n_plays': 4, 'max_iter': 3}, 'arx_na': '2',
+         'arx_nb': '2'}))
+    code, out, err = cli(['fit', str(tmp_path / 'p0.npz'), str(tmp_path / 'p1.npz'),
+                          '--preset', 'envelope', '--config', str(tmp_path / 'small.yaml'),
+                          '--jobs', '1', '--no-report', '--out', str(tmp_path / 'o')], capsys)
+    assert code == 0, err
+    doc = json.loads((tmp_path / 'o' / 'model.json').read_text())
+    assert doc['data']['preset'] == 'envelope' and len(doc['data']['sources']) == 2
+    assert doc['structure']['kind'] in ('hysteresis_narx', 'arx')
+    # Each record's validation score is shown and stored.
+    assert out.count('[validation]: simulation') == 2
+    assert len(doc['metrics']['validation']['records']) == 2
+    cands = json.loads((tmp_path / 'o' / 'candidates.json').read_text())
+    assert [c['seed'] for c in cands['candidates'][:2]] == [0, 1]
+    assert cands['config']['selection'] == 'worst_case'
+    code, _, err = cli(['fit', str(tmp_path / 'p0.npz'), '--preset', 'nope', '--out',
+                        str(tmp_path / 'x')], capsys)
+    assert code == 2 and 'nope' in err

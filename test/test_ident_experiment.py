@@ -235,3 +235,77 @@ def test_free_run_start_up_transient_is_not_taken_for_noise():
     y[:2] += 3.0
     noise = fit_noise_models(true, [Record(u=u, y=y, fs=1000.0, source='oe')])
     assert noise['simulation'].order == 0
+
+
+# ---------------------------------------------------------------------------- several records
+def test_arx_regressors_never_cross_records():
+    # Two noise-free records of one ARX system, each starting from its own rest. Fitted as a
+    # list, every row comes from one record and the coefficients are exact; joined into one
+    # array, the rows straddling the junction (record 1's end as the past of record 2's start)
+    # are wrong equations and pull the estimate off.
+    from piezo_narx_ros.ident.arx import ARXModel
+    r1, r2 = arx_record(3000, seed=1, noise=0.0), arx_record(3000, seed=2, noise=0.0)
+    m = ARXModel(na=2, nb=1, fit_intercept=False).fit([r1.u, r2.u], [r1.y, r2.y])
+    np.testing.assert_allclose(m.a, [-1.2, 0.5], rtol=0, atol=1e-10)
+    np.testing.assert_allclose(m.b, [0.0, 1e-6], rtol=0, atol=1e-16)
+    joined = ARXModel(na=2, nb=1, fit_intercept=False).fit(np.r_[r1.u, r2.u], np.r_[r1.y, r2.y])
+    assert np.max(np.abs(joined.a - [-1.2, 0.5])) > 1e-6
+
+
+def test_several_records_are_scored_each_and_the_worst_selects():
+    recs = [arx_record(3000, seed=s) for s in (3, 4)]
+    recs[1] = Record(u=recs[1].u, y=recs[1].y * 3, fs=1000.0, source='scaled')   # harder one
+    cfg = ExperimentConfig(narx=False, arx_na=(1, 2), arx_nb=(1,), jobs=1, progress=False,
+                           selection='worst_case')
+    res = run_experiment(recs, cfg)
+    for c in res.candidates:
+        per = c.scores['validation']['records']
+        assert [r['source'] for r in per] == ['arx-3[validation]', 'scaled[validation]']
+        assert c.free_run_r2() == pytest.approx(min(
+            [c.r2('estimation'), c.r2('validation')] + [r['simulation']['r2'] for r in per]))
+    best = res.best
+    assert best.free_run_r2() == max(c.free_run_r2() for c in res.candidates)
+    assert 'worst case' in res.to_dict()['selection']['rule']
+
+
+def test_stateful_model_is_scored_from_its_recording_start():
+    from piezo_narx_ros.ident.experiment import free_run
+    from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+    from piezo_narx_ros.plant import PiezoCantilever, generate
+    u = generate('protocol', 2000.0, 4.0, 100.0, seed=1, cycles=1)
+    y = PiezoCantilever(fs=2000.0, seed=1).run(u).y
+    rec = Record(u=u, y=y, fs=2000.0, source='p')
+    est, val = rec.split(0.5)
+    assert np.array_equal(val.u_before, est.u)
+    m = HysteresisNARX(hidden=3, n_plays=4, max_iter=3).fit(est.u, est.y, fs=2000.0)
+    _, sim = free_run(m, val)
+    assert np.array_equal(sim, m.simulate(u, y[:m.n0])[est.u.size:])
+    # The paper's networks keep the paper's protocol: from the validation half's own outputs.
+    from piezo_narx_ros.ident.arx import ARXModel
+    a = ARXModel(2, 2).fit(est.u, est.y)
+    assert np.array_equal(free_run(a, val)[1], a.simulate(val.u, val.y[:a.n0]))
+
+
+def test_envelope_preset_fits_hysteresis_networks_over_seeds(tmp_path):
+    from dataclasses import replace
+
+    from piezo_narx_ros.ident.experiment import PRESETS
+    from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+    from piezo_narx_ros.plant import PiezoCantilever, generate
+    u = generate('protocol', 2000.0, 4.0, 100.0, seed=2)
+    rec = Record(u=u, y=PiezoCantilever(fs=2000.0, seed=2).run(u).y, fs=2000.0, source='p')
+    cfg = replace(ExperimentConfig(), **{**PRESETS['envelope'], 'n_seeds': 2, 'hidden': 3,
+                                         'hnarx': {'n_plays': 4, 'max_iter': 4}},
+                  jobs=1, progress=False)
+    specs = cfg.specs()
+    assert [s.kind for s in specs[:2]] == ['hysteresis_narx'] * 2
+    assert [s.seed for s in specs[:2]] == [0, 1] and len(specs) == 2 + 9
+    res = run_experiment([rec], cfg)
+    assert isinstance(res.best.model, HysteresisNARX) or res.best.spec.kind == 'arx'
+    assert res.best.free_run_r2() == max(c.free_run_r2() for c in res.candidates)
+    paths = write_report(res, split_records([rec])[1], tmp_path)
+    assert paths['simulation'].is_file()
+    with pytest.raises(ConfigError, match='hnarx'):
+        replace(cfg, hnarx={'hidden': 4}).validate()
+    with pytest.raises(ConfigError, match='n_plays'):
+        replace(cfg, hnarx={'n_plays': 0}).validate()

@@ -19,8 +19,8 @@ import numpy as np
 
 from piezo_narx_ros.ident.correlation import TEST_LABELS, TEST_NAMES
 from piezo_narx_ros.ident.data import Record
-from piezo_narx_ros.ident.experiment import (ExperimentResult, model_outputs, outputs_by_record,
-                                             residual_correlations)
+from piezo_narx_ros.ident.experiment import (ExperimentResult, free_run, model_outputs,
+                                             outputs_by_record, residual_correlations)
 from piezo_narx_ros.ident.noise_model import ARNoiseModel
 
 UM = 1e6  # metres -> micrometres for plots
@@ -68,11 +68,15 @@ def selected_correlations(result: ExperimentResult, validation: list[Record]) ->
     return corr
 
 
+MAX_RECORD_FIGURES = 4
+
+
 def write_report(result: ExperimentResult, validation: list[Record], out_dir) -> dict[str, Path]:
     """Write metrics.json and the figures for `result` into out_dir (created); returns the paths.
 
     `validation` are the validation halves the experiment scored (figures 7-9 use the selected
-    model on them; figures 8-9 show the first record).
+    model on them; figures 8-9 show each record, the first as fig8_simulation.png /
+    fig9_hysteresis.png, the next ones with a _r<i> suffix, at most MAX_RECORD_FIGURES).
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -93,16 +97,18 @@ def write_report(result: ExperimentResult, validation: list[Record], out_dir) ->
             c, noise = corr[mode]
             paths['correlation'] = _save(plot_correlation(c, result.best.spec.label, mode, noise),
                                          out_dir / 'fig7_correlation.png')
-        rec = validation[0]
         model = result.best.model
-        with np.errstate(all='ignore'):
-            sim = model.simulate(rec.u, rec.y[:model.n0])
-        if np.all(np.isfinite(sim)):
-            label = result.best.spec.label
-            paths['simulation'] = _save(plot_simulation(rec, sim, label, model.n0),
-                                        out_dir / 'fig8_simulation.png')
-            paths['hysteresis'] = _save(plot_hysteresis(rec, sim, label, model.n0),
-                                        out_dir / 'fig9_hysteresis.png')
+        label = result.best.spec.label
+        for i, rec in enumerate(validation[:MAX_RECORD_FIGURES]):
+            _, sim = free_run(model, rec)
+            if not np.all(np.isfinite(sim)):
+                continue
+            tag = '' if i == 0 else f'_r{i}'
+            title = label if len(validation) == 1 else f'{label}, {rec.source}'
+            paths['simulation' + tag] = _save(plot_simulation(rec, sim, title, model.n0),
+                                              out_dir / f'fig8_simulation{tag}.png')
+            paths['hysteresis' + tag] = _save(plot_hysteresis(rec, sim, title, model.n0),
+                                              out_dir / f'fig9_hysteresis{tag}.png')
     finally:
         plt.close('all')
     return paths
