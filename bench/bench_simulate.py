@@ -1,5 +1,8 @@
 """Speed of the identification core: fit time, free-run throughput, Stepper.step latency, grid time.
 
+Both families: the paper's NARX network and the hysteresis-operator NARX of --preset envelope
+(fitted on 25,000 samples of the identification protocol).
+
 Run: python bench/bench_simulate.py [--quick]
 Prints medians; the figures are only meaningful on a quiet machine (the fit uses one core).
 
@@ -64,6 +67,47 @@ def piezo_data(n=50000, seed=0):
                                  f'{type(exc).__name__})'
 
 
+def step_latency(model, u, n_calls):
+    """Print p50/p99/max of model.stepper().step(), µs, over n_calls calls."""
+    step = model.stepper().step
+    for x in u[:1000]:
+        step(x)
+    samples = np.empty(n_calls)
+    clock = time.perf_counter_ns
+    vals = np.resize(u, n_calls).tolist()
+    for i in range(n_calls):
+        t0 = clock()
+        step(vals[i])
+        samples[i] = clock() - t0
+    p50, p99 = np.percentile(samples, [50, 99]) / 1e3
+    print(f'{n_calls} calls: p50 {p50:.2f} us, p99 {p99:.2f} us, max {samples.max() / 1e3:.1f} us')
+
+
+def hnarx_section(reps, n_calls, u_long):
+    """Fit time, simulate() throughput and Stepper latency of the hysteresis-operator NARX."""
+    from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+    from piezo_narx_ros.plant import PiezoCantilever, generate
+    u = generate('protocol', FS, 25.0, 100.0, seed=0)
+    y = PiezoCantilever(fs=FS, seed=0).run(u).y
+    HysteresisNARX(hidden=2, n_plays=2, max_iter=1).fit(u[:2000], y[:2000], fs=FS)   # JIT
+    times = []
+    for seed in range(min(reps, 3)):
+        t0 = time.perf_counter()
+        m = HysteresisNARX(seed=seed).fit(u[:25000], y[:25000], fs=FS)
+        times.append(time.perf_counter() - t0)
+        val = r2(y[25000:], m.simulate(u)[25000:])
+        print(f'seed {seed}: fit {times[-1]:.2f} s ({m.training_info_["iterations"]} LM '
+              f'iterations, {m.n_params} parameters); free-run R2 on the second half of the '
+              f'protocol {val:.6f}')
+    print(f'median fit time {statistics.median(times):.2f} s')
+    m.simulate(u_long[:100])
+    t_sim = median_time(lambda: m.simulate(u_long), reps)
+    print(f'simulate(): {u_long.size} samples in {t_sim * 1e3:.1f} ms -> '
+          f'{u_long.size / t_sim / 1e6:.2f} M samples/s')
+    print('Stepper.step():', end=' ')
+    step_latency(m, u, n_calls)
+
+
 def median_time(f, repeats):
     times = []
     for _ in range(repeats):
@@ -115,20 +159,11 @@ def main(argv=None):
     print(f'ARX(4,4): {u_long.size / t_arx / 1e6:.2f} M samples/s')
 
     print('\n# Stepper.step() per call, including Python call overhead')
-    st = model.stepper()
-    step = st.step
-    for x in uv[:1000]:
-        step(x)
     n_calls = 20000 if args.quick else 100000
-    samples = np.empty(n_calls)
-    clock = time.perf_counter_ns
-    vals = np.resize(uv, n_calls).tolist()
-    for i in range(n_calls):
-        t0 = clock()
-        step(vals[i])
-        samples[i] = clock() - t0
-    p50, p99 = np.percentile(samples, [50, 99]) / 1e3
-    print(f'{n_calls} calls: p50 {p50:.2f} us, p99 {p99:.2f} us, max {samples.max() / 1e3:.1f} us')
+    step_latency(model, uv, n_calls)
+
+    print('\n# HysteresisNARX (--preset envelope family), default structure, one core')
+    hnarx_section(reps, n_calls, u_long)
 
     if not args.quick:
         print('\n# identification grid: 16 NARX (nu, ny in 1..4, H=10) + 100 ARX (na, nb in 1..10),'

@@ -20,11 +20,14 @@ input, Duhem states by |alpha|/BETA_MIN, sigmoids by 1, and the output dynamics 
 
 Inference is numpy + numba only; fitting too (no torch).
 """
+from collections import deque
+
 import numpy as np
 
 from ..errors import DataError
 from . import hysteresis_kernels as hk
 from .base import DynamicModel, Interval, Tuple, as_record_list, check_parameters
+from .kernels import _finite_input, _history
 
 #: Creep time constants (s): log-spaced from the mode's scale to the longest drift a record shows.
 DEFAULT_CREEP_TAUS = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
@@ -253,39 +256,32 @@ class HysteresisNARX(DynamicModel):
 
 
 class HysteresisStepper:
-    """Stepper of a HysteresisNARX: step(u_k V) -> y_k m, reset(u_past, y_past); no allocation
-    per step."""
+    """Stepper of a HysteresisNARX: step(u_k V) -> y_k m, reset(u_past, y_past); no array is
+    allocated per step."""
 
     def __init__(self, model, u_past=None, y_past=None):
         self._model = model
         self.nu, self.ny = model.nu, model.ny
         self._args = model._kernel_args
         self._u_scale, self._y_scale = model.u_scale_, model.y_scale_
-        self._u_hist = np.zeros(self.nu)
         self.reset(u_past, y_past)
         self._scratch = np.zeros(self._st.size)
 
     def reset(self, u_past=None, y_past=None):
         """Restart from rest, then u_past (V, nu samples) and output history y_past (m)."""
-        from .kernels import _history
         up = _history(u_past, self.nu, 'u_past') if u_past is not None else None
         yp = _history(y_past, self.ny, 'y_past') if y_past is not None else None
         self._st = self._model._initial_state(up, yp)
-        self._u_hist[:] = up if up is not None else 0.0
-        self._y_last = np.zeros(self.ny) if yp is None else yp.copy()
+        self._u_hist = deque(np.zeros(self.nu) if up is None else up, maxlen=self.nu)
+        self._y_hist = deque(np.zeros(self.ny) if yp is None else yp, maxlen=self.ny)
 
     def step(self, u_k):
         """Feed one input sample u_k (V); returns the free-run output y(k) (m). A non-finite
         u_k raises DataError and leaves the state untouched."""
-        from .kernels import _finite_input
         u = _finite_input(u_k)
         y = hk.step(u / self._u_scale, self._st, *self._args) * self._y_scale
-        if self.nu:
-            self._u_hist[:-1] = self._u_hist[1:]
-            self._u_hist[-1] = u
-        if self.ny:
-            self._y_last[:-1] = self._y_last[1:]
-            self._y_last[-1] = y
+        self._u_hist.append(u)
+        self._y_hist.append(y)
         return y
 
     def peek(self, u_k):
@@ -304,9 +300,9 @@ class HysteresisStepper:
     @property
     def u_past(self):
         """Copy of the last nu inputs [u(k-nu) ... u(k-1)], V."""
-        return self._u_hist.copy()
+        return np.array(self._u_hist, dtype=np.float64)
 
     @property
     def y_past(self):
         """Copy of the last ny outputs [y(k-ny) ... y(k-1)], m."""
-        return self._y_last.copy()
+        return np.array(self._y_hist, dtype=np.float64)
