@@ -286,7 +286,6 @@ class HysteresisStepper:
 
     def peek(self, u_k):
         """The output step(u_k) would return (m), without changing the state."""
-        from .kernels import _finite_input
         return hk.peek(_finite_input(u_k) / self._u_scale, self._st, self._scratch,
                        *self._args) * self._y_scale
 

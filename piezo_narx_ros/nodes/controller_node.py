@@ -90,6 +90,7 @@ class ControllerNode(PiezoNode):
             feedback_timeout=p['feedback_timeout'], max_fill=p['max_fill'],
             window=p['window'], **limits)
         self.ctl.inverse.solve(0.0)   # compile/load the solver kernel before the first sample
+        self.ctl.inverse.reset()      # ...and forget that solve (its remembered slope)
         self.axis = p['axis']
         self._names = [self.axis]
         self.pub = self.sample_publisher(TOPIC_COMMAND)
