@@ -90,6 +90,10 @@ def test_simulate_stepper_predict_agree():
     st = m.stepper(u[n0 - m.nu:n0], y_meas[n0 - m.ny:n0])
     assert np.array_equal(np.array([st.step(v) for v in u[n0:]]), sim0[n0:])
     assert np.array_equal(sim0[:n0], y_meas[:n0])
+    # Measured outputs do not set the state (it is a function of the input history): the free
+    # run after them is the one from rest, however far off they are.
+    assert m.nu == n0 and np.array_equal(sim0[n0:], y[n0:])
+    assert np.array_equal(m.simulate(u, y_meas[:n0] + 1e-3)[n0:], y[n0:])
     # One step ahead: the free-run operator chain with measured output lags.
     pred = m.predict(u, y_meas)
     z = hk.operator_chain(u / m.u_scale_, *m._kernel_args[:11])
