@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from piezo_narx_ros.ident import metrics
+from bench_excitation import score   # {name: (R², RMSE nm)} of the free run from y[:n0]
 from piezo_narx_ros.ident.experiment import PRESETS, ExperimentConfig, run_experiment
 from piezo_narx_ros.plant import PiezoCantilever, generate, load_plant_params
 from piezo_narx_ros.record import Record
@@ -79,26 +79,12 @@ def identify(params, seed, preset, jobs, signal='protocol'):
     return result.best.model, time.perf_counter() - t0, result.best.spec.label
 
 
-def score(model, tests):
-    """{name: (R², RMSE m)} of the free run from the first n0 measured samples."""
-    out = {}
-    for name, (u, y) in tests.items():
-        n0 = model.n0
-        with np.errstate(all='ignore'):
-            y_sim = model.simulate(u, y[:n0])
-        if not np.all(np.isfinite(y_sim)):
-            out[name] = (-np.inf, np.inf)
-            continue
-        out[name] = (metrics.r2(y, y_sim, start=n0), metrics.rmse(y, y_sim, start=n0))
-    return out
-
-
 def summarise(runs):
-    """Per-signal medians and worst cases over seeds of [{name: (R², RMSE)}]."""
+    """Per-signal medians and worst cases over seeds of [{name: (R², RMSE nm)}]; RMSE in m."""
     rows = {}
     for name in BATTERY:
         r2 = [r[name][0] for r in runs]
-        rmse = [r[name][1] for r in runs]
+        rmse = [1e-9 * r[name][1] for r in runs]
         rows[name] = {'r2_median': statistics.median(r2), 'r2_worst': min(r2),
                       'rmse_median': statistics.median(rmse), 'rmse_worst': max(rmse),
                       'runaways': sum(v < RUNAWAY_R2 for v in r2)}
@@ -154,7 +140,7 @@ def main(argv=None):
             title = f'{plant} plant, --preset {preset} on the {signal}'
             print_table(title, rows, times, labels)
             report[title] = {'rows': rows, 'fit_seconds': times, 'selected': labels,
-                             'per_seed': [{k: list(v) for k, v in r.items()} for r in runs]}
+                             'per_seed_r2_rmse_nm': [{k: list(v) for k, v in r.items()} for r in runs]}
     print(f'\nbench wall time {time.perf_counter() - t_start:.0f} s')
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=1, default=float) + '\n')

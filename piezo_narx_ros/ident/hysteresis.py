@@ -257,8 +257,8 @@ class HysteresisNARX(DynamicModel):
 
 
 class HysteresisStepper:
-    """Stepper of a HysteresisNARX: step(u_k V) -> y_k m, reset(u_past, y_past); no array is
-    allocated per step."""
+    """Stepper of a HysteresisNARX: step(u_k V) -> y_k m, reset(u_past, y_past); one compiled
+    call per step on a preallocated state."""
 
     def __init__(self, model, u_past=None, y_past=None):
         self._model = model

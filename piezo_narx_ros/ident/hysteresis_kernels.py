@@ -56,6 +56,20 @@ def _sig(z):
 
 
 @njit(cache=True)
+def _network(phi, W1, b1, w2, c, w_rest):
+    """w = sum_h w2_h sig(b1_h + W1_h . phi) + c . phi - w_rest (the network, zero at rest)."""
+    w = -w_rest
+    for h in range(W1.shape[0]):
+        zh = b1[h]
+        for i in range(W1.shape[1]):
+            zh += W1[h, i] * phi[i]
+        w += w2[h] * _sig(zh)
+    for i in range(W1.shape[1]):
+        w += c[i] * phi[i]
+    return w
+
+
+@njit(cache=True)
 def _duhem_update(s, d, al_p, al_m, r_pp, r_pm, r_mp, r_mm):
     """One exact Duhem step (see module docstring) without derivatives."""
     if d == 0.0:
@@ -118,14 +132,7 @@ def step(un_k, st, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, 
     for j in range(lh - 1, 0, -1):
         st[j] = st[j - 1]
     st[0] = un_k
-    w = -w_rest
-    for h in range(H):
-        zh = b1[h]
-        for i in range(d):
-            zh += W1[h, i] * phi[i]
-        w += w2[h] * _sig(zh)
-    for i in range(d):
-        w += c[i] * phi[i]
+    w = _network(phi, W1, b1, w2, c, w_rest)
     z = w
     for l in range(nl):
         x = lam[l] * st[i_x + l] + (1.0 - lam[l]) * w
@@ -343,14 +350,7 @@ def forward(F, S, W1, b1, w2, c, g, lam, a, b, y_off):
             phi[i] = F[k, i]
         for i in range(d - df):
             phi[df + i] = S[k, i]
-        w = -w_rest
-        for h in range(H):
-            zh = b1[h]
-            for i in range(d):
-                zh += W1[h, i] * phi[i]
-            w += w2[h] * _sig(zh)
-        for i in range(d):
-            w += c[i] * phi[i]
+        w = _network(phi, W1, b1, w2, c, w_rest)
         z = w
         for l in range(nl):
             x[l] = lam[l] * x[l] + (1.0 - lam[l]) * w

@@ -19,7 +19,7 @@ import numpy as np
 
 from piezo_narx_ros.ident.correlation import TEST_LABELS, TEST_NAMES
 from piezo_narx_ros.ident.data import Record
-from piezo_narx_ros.ident.experiment import (ExperimentResult, free_run, model_outputs,
+from piezo_narx_ros.ident.experiment import (ExperimentResult, free_run,
                                              outputs_by_record, residual_correlations)
 from piezo_narx_ros.ident.noise_model import ARNoiseModel
 

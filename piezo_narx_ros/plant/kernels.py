@@ -79,6 +79,29 @@ def amplifier_substep(v, target, w_a, slew, h):
 
 
 @njit(cache=True)
+def _linear_substep(lin, tmp, phi, g0, g1, w0, w1):
+    """Linear states lin after one sub-step (exact first-order hold of w from w0 to w1, m);
+    tmp: scratch of lin's size."""
+    n_lin = lin.shape[0]
+    for i in range(n_lin):
+        acc = g0[i] * w0 + g1[i] * (w1 - w0)
+        for j in range(n_lin):
+            acc += phi[i, j] * lin[j]
+        tmp[i] = acc
+    for i in range(n_lin):
+        lin[i] = tmp[i]
+
+
+@njit(cache=True)
+def _outputs(lin, noise, quant):
+    """(true tip deflection m, measured m): the sensor state plus noise (m), quantised."""
+    meas = lin[lin.shape[0] - 1] + noise
+    if quant > 0.0:
+        meas = quant * math.floor(meas / quant + 0.5)
+    return lin[lin.shape[0] - 3], meas
+
+
+@njit(cache=True)
 def advance(u_cmd, noise, n_sub, consts, phi, g0, g1, state, work, y_meas, y_true, u_applied):
     """Advance the plant over len(u_cmd) samples; writes the three output arrays in place.
 
@@ -90,7 +113,6 @@ def advance(u_cmd, noise, n_sub, consts, phi, g0, g1, state, work, y_meas, y_tru
     noise (N,) holds standard normal draws. state is updated in place; work is scratch of phi's size
     (passed in so that a one-sample call allocates nothing).
     """
-    n_lin = phi.shape[0]
     vmin, vmax = consts[C_VMIN], consts[C_VMAX]
     slew, w_a, h = consts[C_SLEW], consts[C_AMP_W], consts[C_H]
     d_p, a_bw = consts[C_DP], consts[C_A] * consts[C_DP]
@@ -108,20 +130,10 @@ def advance(u_cmd, noise, n_sub, consts, phi, g0, g1, state, work, y_meas, y_tru
             h1 = bouc_wen_increment(h0, dv, a_bw, b_bw, gamma)
             w0 = d_p * v0 - h0
             w1 = d_p * v1 - h1
-            for i in range(n_lin):
-                acc = g0[i] * w0 + g1[i] * (w1 - w0)
-                for j in range(n_lin):
-                    acc += phi[i, j] * lin[j]
-                tmp[i] = acc
-            for i in range(n_lin):
-                lin[i] = tmp[i]
+            _linear_substep(lin, tmp, phi, g0, g1, w0, w1)
             state[S_V] = v1
             state[S_H] = h1
-        y_true[k] = lin[n_lin - 3]
-        meas = lin[n_lin - 1] + noise_std * noise[k]
-        if quant > 0.0:
-            meas = quant * math.floor(meas / quant + 0.5)
-        y_meas[k] = meas
+        y_true[k], y_meas[k] = _outputs(lin, noise_std * noise[k], quant)
         u_applied[k] = state[S_V]
 
 
@@ -153,7 +165,6 @@ def advance_preisach(u_cmd, noise, n_sub, consts, phi, g0, g1, state, work, y_me
     State: [v, x_1..x_m, plays (len(radii)), linear states (phi's size)]; consts as `advance`, with
     C_DP = d_rev (m/V), C_A = rest offset (m), C_B = relay-centre spread (V).
     """
-    n_lin = phi.shape[0]
     n_cr = creep_gains.shape[0]
     n_r = radii.shape[0]
     vmin, vmax = consts[C_VMIN], consts[C_VMAX]
@@ -184,20 +195,10 @@ def advance_preisach(u_cmd, noise, n_sub, consts, phi, g0, g1, state, work, y_me
                 elif plays[i] > hi:
                     plays[i] = hi
             w1 = d_rev * v_c + preisach_output(plays, weights, centres, spread) - rest
-            for i in range(n_lin):
-                acc = g0[i] * w0 + g1[i] * (w1 - w0)
-                for j in range(n_lin):
-                    acc += phi[i, j] * lin[j]
-                tmp[i] = acc
-            for i in range(n_lin):
-                lin[i] = tmp[i]
+            _linear_substep(lin, tmp, phi, g0, g1, w0, w1)
             state[0] = v1
             w0 = w1
-        y_true[k] = lin[n_lin - 3]
-        meas = lin[n_lin - 1] + noise_std * noise[k]
-        if quant > 0.0:
-            meas = quant * math.floor(meas / quant + 0.5)
-        y_meas[k] = meas
+        y_true[k], y_meas[k] = _outputs(lin, noise_std * noise[k], quant)
         u_applied[k] = state[0]
 
 
