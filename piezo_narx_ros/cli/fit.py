@@ -9,7 +9,13 @@ no regressor or state crosses from one record to the next, each is split, and th
 each record's scores.
 
 Writes DIR/model.json (+ DIR/model.npz) for the selected model, DIR/candidates.json with every
-candidate's metrics and test verdicts, and DIR/report/ (metrics.json and the figures).
+candidate's metrics and test verdicts, and DIR/report/ (metrics.json and the figures). A folder
+INPUT stands for the recordings in it. `--per-record` fits each recording on its own instead
+(a fleet of rigs or bags): DIR/NAME/ per recording, with the files above, and DIR/summary.csv.
+
+`--executor ray [--ray-address ADDR]` runs the candidate fits as Ray tasks (a local Ray of
+--jobs CPUs without an address); the selected model, its weights and the report are the same
+as with the default `--executor local` (piezo_narx_ros.ident.executor).
 Settings come from, in increasing precedence: the preset's built-in values (ExperimentConfig's
 defaults with the preset's changes; config/fit.yaml spells out the paper preset), `--config FILE`,
 then the command-line options.
@@ -36,8 +42,18 @@ def add_parser(subparsers):
                     'score them on the second half (R², correlation tests) and save the selected '
                     'model and a report.')
     p.add_argument('inputs', nargs='+', metavar='INPUT',
-                   help='.npz (u, y, fs), .csv (t,u,y or u,y), .mcap or rosbag2 directory')
+                   help='.npz (u, y, fs), .csv (t,u,y or u,y), .mcap or rosbag2 directory, or a '
+                        'folder of these')
     p.add_argument('--out', required=True, metavar='DIR', help='output directory')
+    p.add_argument('--per-record', action='store_true',
+                   help='fit each recording on its own: DIR/NAME/ per recording and '
+                        'DIR/summary.csv')
+    p.add_argument('--executor', choices=('local', 'ray'), default='local',
+                   help='where the candidate fits run: local (default) = --jobs processes; '
+                        'ray = Ray tasks on a local Ray of --jobs CPUs or on --ray-address')
+    p.add_argument('--ray-address', metavar='ADDR',
+                   help='running Ray cluster (auto, HOST:PORT or ray://HOST:10001); needs '
+                        '--executor ray')
     p.add_argument('--force', action='store_true',
                    help='overwrite the model, candidates and report already in DIR')
     p.add_argument('--config', metavar='YAML', help='settings file (see config/fit.yaml)')
@@ -196,29 +212,52 @@ def _run(args) -> int:
     from pathlib import Path
 
     from piezo_narx_ros.errors import ConfigError
-    import warnings
-
-    from piezo_narx_ros.ident.data import check_identifiable, load_records
-    from piezo_narx_ros.ident.experiment import run_experiment, split_records
-    from piezo_narx_ros.ident.model_io import save_model
-    from piezo_narx_ros.ident.report import write_json, write_report
+    from piezo_narx_ros.ident.data import expand_inputs
+    from piezo_narx_ros.ident.executor import make_executor
 
     settings = load_settings(args)
     config = experiment_config(settings, progress=not args.quiet)
     if args.fs is not None and not args.fs > 0:
         raise ConfigError(f'--fs must be a positive number of Hz, got {args.fs}')
+    executor = make_executor(args.executor, config.jobs, args.ray_address)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f'--out {out}: exists and is not a directory')
+    inputs = expand_inputs(args.inputs)
+    if args.per_record:
+        return _run_fleet(args, settings, config, inputs, executor, out)
     if (out / 'model.json').exists() and not args.force:
         raise ConfigError(f'--out {out} already holds a model ({out / "model.json"}); choose '
                           'another directory or pass --force to overwrite it')
-    records = load_records(args.inputs, fs=args.fs, command_topic=settings['command_topic'],
+    records = _load(args, settings, config, inputs)
+    from piezo_narx_ros.ident.experiment import run_experiment
+    with executor:
+        result = run_experiment(records, config, executor)
+    model_path, paths = _write_fit(out, result, records, config, settings, not args.no_report)
+    if not args.quiet:
+        _print_fit(result, config, executor, model_path, out, paths)
+    return 0
+
+
+def _load(args, settings, config, inputs):
+    """Records of `inputs` (DataError/BagError on the first bad one), identifiability warned."""
+    import warnings
+
+    from piezo_narx_ros.ident.data import check_identifiable, load_records
+    records = load_records(inputs, fs=args.fs, command_topic=settings['command_topic'],
                            deflection_topic=settings['deflection_topic'])
     for record in records:
         for line in check_identifiable(record, config.split):
             warnings.warn(line)
-    result = run_experiment(records, config)
+    return records
+
+
+def _write_fit(out, result, records, config, settings, report: bool):
+    """DIR/model.json (+ .npz), DIR/candidates.json and, if `report`, DIR/report/; returns
+    (model path, report paths)."""
+    from piezo_narx_ros.ident.experiment import split_records
+    from piezo_narx_ros.ident.model_io import save_model
+    from piezo_narx_ros.ident.report import write_json, write_report
     out.mkdir(parents=True, exist_ok=True)
     best = result.best
     data_info = {'sources': result.sources, 'fs': result.fs, 'split': config.split,
@@ -230,38 +269,145 @@ def _run(args) -> int:
                             tests={**best.tests, 'validated': result.validated})
     write_json(result.to_dict(), out / 'candidates.json')
     paths = {}
-    if not args.no_report:
+    if report:
         _, validation = split_records(records, config.split)
         paths = write_report(result, validation, out / 'report')
+    return model_path, paths
+
+
+def _failed_line(failed) -> str:
+    names = ', '.join(c.spec.label for c in failed[:5]) + (', ...' if len(failed) > 5 else '')
+    return (f'warning: {len(failed)} candidate(s) could not be fitted ({names}); '
+            f'{failed[0].spec.label}: {failed[0].error}')
+
+
+def _print_fit(result, config, executor, model_path, out, paths) -> None:
+    best = result.best
+    val = best.scores['validation']
+    r2_sim = val['simulation']['r2']
+    print(f'selected {best.spec.label} ({best.n_params} parameters) of '
+          f'{len(result.candidates)} candidates in {result.wall_seconds:.1f} s '
+          f'({executor.describe()})')
+    print(f'validation R²: prediction {val["prediction"]["r2"]:.6f}, simulation '
+          f'{"diverged" if r2_sim is None else f"{r2_sim:.6f}"}')
+    for rec in val.get('records', []):
+        sim = rec['simulation']
+        text = ('diverged' if sim['r2'] is None else
+                f'R² {sim["r2"]:.6f}, RMSE {1e9 * sim["rmse"]:.1f} nm')
+        print(f'  {rec["source"]}: simulation {text}')
+    chosen = best.tests[config.residuals]
+    noise = chosen.get('noise_model')
+    how = f'AR({noise["order"]}) noise model' if noise else 'raw'
+    print(f'correlation tests ({config.residuals} residuals, {how}): ' + ', '.join(
+        f'{k} {"pass" if v["passed"] else "fail"}'
+        for k, v in chosen.get('tests', {}).items()))
+    failed = [c for c in result.candidates if c.error is not None]
+    if failed:
+        print(_failed_line(failed))
+    n_pass = sum(c.validated for c in result.candidates)
+    print(f'{n_pass} of {len(result.candidates)} candidates pass all five tests')
+    if not result.validated:
+        print('warning: no candidate passed all correlation tests; selected by free-run R² '
+              '(the worse of estimation and validation; not validated)')
+    print(f'model: {model_path}')
+    print(f'candidates: {out / "candidates.json"}')
+    if paths:
+        print(f'report: {out / "report"}')
+
+
+# Columns of DIR/summary.csv (--per-record): one row per recording. SI units.
+SUMMARY_COLUMNS = ('recording', 'status', 'selected', 'n_params', 'validated',
+                   'r2_validation_simulation', 'r2_worst_case', 'rmse_validation_simulation_m',
+                   'samples', 'fs_hz', 'failed_candidates', 'source', 'error')
+
+
+def recording_names(paths) -> list[str]:
+    """Output folder name per input path: its stem, made unique with -2, -3, ..."""
+    from pathlib import Path
+    names, seen = [], {}
+    for path in paths:
+        stem = Path(path).stem or 'recording'
+        seen[stem] = seen.get(stem, 0) + 1
+        names.append(stem if seen[stem] == 1 else f'{stem}-{seen[stem]}')
+    return names
+
+
+def _run_fleet(args, settings, config, inputs, executor, out) -> int:
+    """--per-record: one experiment per recording, all on one executor; DIR/NAME/ each and
+    DIR/summary.csv. Recordings that cannot be loaded or fitted are rows with their error; the
+    others complete. Exit 0 when every recording was fitted, else a one-line error (exit 2)."""
+    from piezo_narx_ros.errors import ConfigError, DataError, PiezoNarxError
+    from piezo_narx_ros.ident.experiment import run_experiments
+    names = recording_names(inputs)
+    taken = [out / 'summary.csv'] + [out / n / 'model.json' for n in names]
+    if any(p.exists() for p in taken) and not args.force:
+        first = next(p for p in taken if p.exists())
+        raise ConfigError(f'--out {out} already holds a fleet fit ({first}); choose another '
+                          'directory or pass --force to overwrite it')
+    loaded, rows = {}, {}
+    for path, name in zip(inputs, names):
+        try:
+            loaded[name] = _load(args, settings, config, [path])
+        except PiezoNarxError as exc:
+            rows[name] = {'recording': name, 'status': 'failed', 'source': str(path),
+                          'error': str(exc)}
     if not args.quiet:
-        val = best.scores['validation']
-        r2_sim = val['simulation']['r2']
-        print(f'selected {best.spec.label} ({best.n_params} parameters) of '
-              f'{len(result.candidates)} candidates in {result.wall_seconds:.1f} s')
-        print(f'validation R²: prediction {val["prediction"]["r2"]:.6f}, simulation '
-              f'{"diverged" if r2_sim is None else f"{r2_sim:.6f}"}')
-        for rec in val.get('records', []):
-            sim = rec['simulation']
-            text = ('diverged' if sim['r2'] is None else
-                    f'R² {sim["r2"]:.6f}, RMSE {1e9 * sim["rmse"]:.1f} nm')
-            print(f'  {rec["source"]}: simulation {text}')
-        chosen = best.tests[config.residuals]
-        noise = chosen.get('noise_model')
-        how = f'AR({noise["order"]}) noise model' if noise else 'raw'
-        print(f'correlation tests ({config.residuals} residuals, {how}): ' + ', '.join(
-            f'{k} {"pass" if v["passed"] else "fail"}'
-            for k, v in chosen.get('tests', {}).items()))
-        failed = [c for c in result.candidates if c.error is not None]
-        if failed:
-            print(f'warning: {len(failed)} candidate(s) could not be fitted, e.g. '
-                  f'{failed[0].spec.label}: {failed[0].error}')
-        n_pass = sum(c.validated for c in result.candidates)
-        print(f'{n_pass} of {len(result.candidates)} candidates pass all five tests')
-        if not result.validated:
-            print('warning: no candidate passed all correlation tests; selected by free-run R² '
-                  '(the worse of estimation and validation; not validated)')
-        print(f'model: {model_path}')
-        print(f'candidates: {out / "candidates.json"}')
-        if paths:
-            print(f'report: {out / "report"}')
+        print(f'fitting {len(loaded)} recording(s) one by one on {executor.describe()}')
+    with executor:
+        results = run_experiments(list(loaded.values()), config, executor)
+    for (name, records), result in zip(loaded.items(), results):
+        rows[name] = _fleet_row(name, records[0], result)
+        if not isinstance(result, PiezoNarxError):
+            _write_fit(out / name, result, records, config, settings, not args.no_report)
+    table = [rows[n] for n in names]
+    out.mkdir(parents=True, exist_ok=True)
+    _write_summary(table, out / 'summary.csv')
+    if not args.quiet:
+        _print_summary(table, out / 'summary.csv')
+    failed = [r for r in table if r['status'] != 'ok']
+    if failed:
+        raise DataError(f'{len(failed)} of {len(table)} recordings could not be fitted (see '
+                        f'{out / "summary.csv"}); {failed[0]["recording"]}: {failed[0]["error"]}')
     return 0
+
+
+def _fleet_row(name, record, result) -> dict:
+    from piezo_narx_ros.errors import PiezoNarxError
+    row = {'recording': name, 'source': record.source, 'samples': len(record),
+           'fs_hz': record.fs}
+    if isinstance(result, PiezoNarxError):
+        return {**row, 'status': 'failed', 'error': str(result)}
+    best = result.best
+    sim = best.scores['validation']['simulation']
+    return {**row, 'status': 'ok', 'selected': best.spec.label, 'n_params': best.n_params,
+            'validated': result.validated, 'r2_validation_simulation': sim['r2'],
+            'r2_worst_case': best.free_run_r2(), 'rmse_validation_simulation_m': sim['rmse'],
+            'failed_candidates': sum(c.error is not None for c in result.candidates)}
+
+
+def _write_summary(table, path) -> None:
+    import csv
+    with open(path, 'w', newline='') as f:
+        writer = csv.DictWriter(f, SUMMARY_COLUMNS, restval='')
+        writer.writeheader()
+        for row in table:
+            writer.writerow({k: ('' if v is None else v) for k, v in row.items()})
+
+
+def _print_summary(table, path) -> None:
+    def num(value, fmt):
+        return '-' if value is None or value == '' else format(value, fmt)
+    width = max(len('recording'), *(len(r['recording']) for r in table))
+    print(f'{"recording":<{width}}  {"selected":<28} {"R² val sim":>10} {"R² worst":>10} '
+          f'{"RMSE nm":>8}  validated')
+    for r in table:
+        if r['status'] != 'ok':
+            print(f'{r["recording"]:<{width}}  failed: {r["error"]}')
+            continue
+        rmse = r['rmse_validation_simulation_m']
+        print(f'{r["recording"]:<{width}}  {r["selected"]:<28} '
+              f'{num(r["r2_validation_simulation"], ".6f"):>10} '
+              f'{num(r["r2_worst_case"], ".6f"):>10} '
+              f'{num(None if rmse is None else 1e9 * rmse, ".1f"):>8}  '
+              f'{"yes" if r["validated"] else "no"}')
+    print(f'summary: {path}')

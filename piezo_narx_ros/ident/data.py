@@ -180,12 +180,39 @@ def load_record(path, fs: float | None = None, command_topic: str = 'piezo/volta
                     f'use .npz, .csv, .mcap or a rosbag2 directory')
 
 
-def load_records(paths, fs: float | None = None, command_topic: str = 'piezo/voltage_command',
-                 deflection_topic: str = 'piezo/deflection') -> list[Record]:
-    """Records from every path; all must share one sample rate (Hz), else DataError."""
+RECORDING_SUFFIXES = ('.npz', '.csv', '.mcap')
+
+
+def expand_inputs(paths) -> list[Path]:
+    """Input paths with each folder of recordings replaced by the recordings in it, sorted by
+    name: rosbag2 bags (directories or .mcap files), .npz and .csv files. A folder that is itself
+    a bag stays one input; an .npz beside a .json of the same stem is a model's weights and is
+    left out. DataError for a folder holding no recording."""
     if isinstance(paths, (str, Path)):
         paths = [paths]
-    records = [load_record(p, fs, command_topic, deflection_topic) for p in paths]
+    out = []
+    for path in map(Path, paths):
+        # One bag: metadata.yaml, or a single .mcap (a recording whose metadata was lost).
+        if not path.is_dir() or (path / 'metadata.yaml').is_file() \
+                or len(list(path.glob('*.mcap'))) == 1:
+            out.append(path)
+            continue
+        found = [p for p in sorted(path.iterdir())
+                 if (_is_bag(p) or (p.is_file() and p.suffix.lower() in RECORDING_SUFFIXES))
+                 and not (p.suffix.lower() == '.npz' and p.with_suffix('.json').is_file())]
+        if not found:
+            raise DataError(f'{path}: a directory that is neither a rosbag2 bag nor a folder of '
+                            'recordings (no bag, .mcap, .npz or .csv in it)')
+        out += found
+    return out
+
+
+def load_records(paths, fs: float | None = None, command_topic: str = 'piezo/voltage_command',
+                 deflection_topic: str = 'piezo/deflection') -> list[Record]:
+    """Records from every path (a folder of recordings gives each one in it, `expand_inputs`);
+    all must share one sample rate (Hz), else DataError."""
+    records = [load_record(p, fs, command_topic, deflection_topic)
+               for p in expand_inputs(paths)]
     if not records:
         raise DataError('no input files given')
     first = records[0]

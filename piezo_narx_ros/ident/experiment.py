@@ -40,9 +40,6 @@ tqdm bar on long grids. Results do not depend on `jobs`: each fit is seeded and 
 """
 from __future__ import annotations
 
-import concurrent.futures as cf
-import contextlib
-import multiprocessing as mp
 import os
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -53,6 +50,7 @@ from piezo_narx_ros.errors import ConfigError, DataError, PiezoNarxError
 from piezo_narx_ros.ident import metrics
 from piezo_narx_ros.ident.correlation import correlation_tests
 from piezo_narx_ros.ident.data import Record, check_length
+from piezo_narx_ros.ident.executor import Executor, LocalExecutor, TaskFailure, in_worker
 from piezo_narx_ros.ident.noise_model import NOISE_MODELS, ARNoiseModel, fit_ar_noise_model
 
 RESIDUAL_KINDS = ('prediction', 'simulation')
@@ -475,38 +473,10 @@ def evaluate_model(model, records: list[Record], max_lag: int = 20,
     return result
 
 
-# Worker state: the data is sent once per process (initializer), not once per candidate.
-_WORKER: dict = {}
-
-
-# A worker is one of `jobs` processes on as many cores: threaded BLAS/torch inside it would only
-# oversubscribe them. The variables must be set before the child imports numpy, hence at spawn.
-_SINGLE_THREAD_ENV = {'OMP_NUM_THREADS': '1', 'OPENBLAS_NUM_THREADS': '1', 'MKL_NUM_THREADS': '1'}
-
-
-@contextlib.contextmanager
-def _environment(values: dict):
-    saved = {k: os.environ.get(k) for k in values}
-    os.environ.update(values)
-    try:
-        yield
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-
-
-def _init_worker(est, val, config, single_thread):
-    if single_thread and config.narx:
-        import torch
-        torch.set_num_threads(1)
-    _WORKER.update(est=est, val=val, config=config)
-
-
-def _run_candidate(spec: CandidateSpec) -> CandidateResult:
-    est, val, config = _WORKER['est'], _WORKER['val'], _WORKER['config']
+def fit_candidate(spec: CandidateSpec, est: list[Record], val: list[Record],
+                  config: ExperimentConfig) -> CandidateResult:
+    """Fit one candidate on the estimation records and score it on both (the same code on every
+    executor); a PiezoNarxError becomes the result's `error`."""
     res = CandidateResult(spec=spec)
     t0 = time.perf_counter()
     try:
@@ -535,6 +505,23 @@ def _run_candidate(spec: CandidateSpec) -> CandidateResult:
     return res
 
 
+def fit_task(payload: tuple, data: tuple) -> CandidateResult:
+    """Executor task: payload (spec, config), data (estimation, validation records)."""
+    spec, config = payload
+    if spec.kind == 'narx' and in_worker():
+        # One torch thread per worker, as many workers as cores (see executor.py).
+        import torch
+        torch.set_num_threads(1)
+    return fit_candidate(spec, data[0], data[1], config)
+
+
+def _as_result(spec: CandidateSpec, outcome) -> CandidateResult:
+    """A task's outcome as a CandidateResult: a TaskFailure becomes the candidate's error."""
+    if isinstance(outcome, TaskFailure):
+        return CandidateResult(spec=spec, error=outcome.message)
+    return outcome
+
+
 def select(candidates: list[CandidateResult], rule: str = 'tests') -> tuple[int, bool]:
     """(index, validated) by the selection rule of this module ('tests' or 'worst_case');
     DataError when nothing fitted."""
@@ -552,17 +539,15 @@ def select(candidates: list[CandidateResult], rule: str = 'tests') -> tuple[int,
     return best, False
 
 
-def final_fit(screened: CandidateResult, est: list[Record], val: list[Record],
-              config: ExperimentConfig) -> CandidateResult:
-    """Train the selected network again with `config.final_training` (longer, to convergence) and
-    keep it if its free-run R² on both halves (the worse of the two) is at least the screened one's
-    and its test verdict is no worse; the returned result records both fits under 'final_fit'."""
-    final_config = replace(config, training={**config.training, **config.final_training})
-    _init_worker(est, val, final_config, single_thread=False)
-    try:
-        final = _run_candidate(screened.spec)
-    finally:
-        _WORKER.clear()
+def _final_config(config: ExperimentConfig) -> ExperimentConfig:
+    return replace(config, training={**config.training, **config.final_training})
+
+
+def keep_final(screened: CandidateResult, final: CandidateResult,
+               config: ExperimentConfig) -> CandidateResult:
+    """The final fit if its free-run R² on both halves (the worse of the two) is at least the
+    screened one's and its test verdict is no worse, else the screened fit; the returned result
+    records both fits under 'final_fit'."""
     keep = (final.error is None and final.free_run_r2() >= screened.free_run_r2()
             and (final.validated or not screened.validated))
     chosen = final if keep else screened
@@ -578,58 +563,91 @@ def final_fit(screened: CandidateResult, est: list[Record], val: list[Record],
     return chosen
 
 
-def run_experiment(records: list[Record],
-                   config: ExperimentConfig | None = None) -> ExperimentResult:
-    """Fit and score the whole grid on records (split per `config.split`) and select one model."""
+def final_fit(screened: CandidateResult, est: list[Record], val: list[Record],
+              config: ExperimentConfig) -> CandidateResult:
+    """Train the selected network again with `config.final_training` (longer, to convergence),
+    in this process, and keep the better fit (`keep_final`)."""
+    final = fit_candidate(screened.spec, est, val, _final_config(config))
+    return keep_final(screened, final, config)
+
+
+def run_experiment(records: list[Record], config: ExperimentConfig | None = None,
+                   executor: Executor | None = None) -> ExperimentResult:
+    """Fit and score the whole grid on records (split per `config.split`) and select one model.
+
+    The fits run on `executor` (default: a LocalExecutor of `config.jobs` processes, closed at
+    the end); the result does not depend on the executor.
+    """
+    result = run_experiments([records], config, executor)[0]
+    if isinstance(result, PiezoNarxError):
+        raise result
+    return result
+
+
+def run_experiments(groups: list[list[Record]], config: ExperimentConfig | None = None,
+                    executor: Executor | None = None) -> list:
+    """One experiment per group of records (e.g. one per recording of a fleet), all candidate
+    fits of every group in one pass over the executor, then the final fits in a second.
+
+    Returns, per group, its ExperimentResult or the PiezoNarxError that stopped it (too short,
+    nothing fitted); the other groups complete. `wall_seconds` is the time of the whole call.
+    """
     config = config or ExperimentConfig()
     config.validate()
-    if not records:
-        raise DataError('no records to identify from')
-    for r in records:
-        check_length(r, config.max_n0, config.max_lag)
+    owned = executor is None
+    executor = executor or LocalExecutor(config.jobs)
     t0 = time.perf_counter()
-    est, val = split_records(records, config.split)
+    outcome, data = {}, {}
+    for g, records in enumerate(groups):
+        try:
+            if not records:
+                raise DataError('no records to identify from')
+            for r in records:
+                check_length(r, config.max_n0, config.max_lag)
+            data[g] = split_records(records, config.split)
+        except PiezoNarxError as exc:
+            outcome[g] = exc
     specs = config.specs()
     show = config.progress
     if show is None:
-        show = config.narx and len(specs) > 20 and os.isatty(2)
-    results = _run_all(specs, est, val, config, show)
-    index, validated = select(results, config.selection)
-    if config.final_training and results[index].spec.kind == 'narx':
-        results[index] = final_fit(results[index], est, val, config)
-        validated = results[index].validated
-    return ExperimentResult(config=config, candidates=results, selected=index,
-                            validated=validated, sources=[r.source for r in records],
-                            fs=records[0].fs, n_estimation=sum(len(r) for r in est),
-                            n_validation=sum(len(r) for r in val),
-                            wall_seconds=time.perf_counter() - t0)
-
-
-def _run_all(specs, est, val, config, show) -> list[CandidateResult]:
-    from tqdm import tqdm
-    bar = tqdm(total=len(specs), desc='fitting', unit='model', disable=not show)
+        show = config.narx and len(specs) * len(data) > 20 and os.isatty(2)
+    tasks = [(g, (spec, config)) for g in data for spec in specs]
+    candidates = {g: [] for g in data}
+    chosen = {}
     try:
-        if config.jobs == 1:
-            _init_worker(est, val, config, single_thread=False)
-            results = []
+        for (g, (spec, _)), out in zip(tasks, _map(executor, tasks, data, show)):
+            candidates[g].append(_as_result(spec, out))
+        for g, cands in candidates.items():
             try:
-                for spec in specs:
-                    results.append(_run_candidate(spec))
-                    bar.update()
-            finally:
-                _WORKER.clear()   # do not keep the data alive after the run
-            return results
-        # spawn, not fork: forking a parent that holds torch/OpenMP threads can deadlock.
-        ctx = mp.get_context('spawn')
-        results = [None] * len(specs)
-        pool = cf.ProcessPoolExecutor(max_workers=config.jobs, mp_context=ctx,
-                                      initializer=_init_worker,
-                                      initargs=(est, val, config, True))
-        with _environment(_SINGLE_THREAD_ENV), pool:
-            futures = {pool.submit(_run_candidate, s): i for i, s in enumerate(specs)}
-            for fut in cf.as_completed(futures):
-                results[futures[fut]] = fut.result()
-                bar.update()
-        return results
+                chosen[g] = select(cands, config.selection)
+            except PiezoNarxError as exc:
+                outcome[g] = exc
+        finals = [(g, (candidates[g][i].spec, _final_config(config)))
+                  for g, (i, _) in chosen.items()
+                  if config.final_training and candidates[g][i].spec.kind == 'narx']
+        for (g, (spec, _)), out in zip(finals, _map(executor, finals, data, False)):
+            i = chosen[g][0]
+            candidates[g][i] = keep_final(candidates[g][i], _as_result(spec, out), config)
+            chosen[g] = (i, candidates[g][i].validated)
     finally:
-        bar.close()
+        if owned:
+            executor.close()
+    wall = time.perf_counter() - t0
+    for g, (index, validated) in chosen.items():
+        est, val = data[g]
+        records = groups[g]
+        outcome[g] = ExperimentResult(
+            config=config, candidates=candidates[g], selected=index, validated=validated,
+            sources=[r.source for r in records], fs=records[0].fs,
+            n_estimation=sum(len(r) for r in est), n_validation=sum(len(r) for r in val),
+            wall_seconds=wall)
+    return [outcome[g] for g in range(len(groups))]
+
+
+def _map(executor: Executor, tasks: list, data: dict, show: bool) -> list:
+    """executor.map of fit_task with a tqdm bar when `show`."""
+    if not tasks:
+        return []
+    from tqdm import tqdm
+    with tqdm(total=len(tasks), desc='fitting', unit='model', disable=not show) as bar:
+        return executor.map(fit_task, tasks, data, lambda i, r: bar.update())
