@@ -5,7 +5,6 @@ One local Ray instance (2 CPUs, no dashboard, small object store) serves the mod
 down at its end; the CLI tests run in-process and reuse it (RayExecutor leaves a connection it did
 not make open).
 """
-import hashlib
 import json
 import os
 import signal
@@ -23,7 +22,7 @@ from piezo_narx_ros.ident.data import Record
 from piezo_narx_ros.ident.executor import (LocalExecutor, RayExecutor, TaskFailure,
                                            make_executor)
 from piezo_narx_ros.ident.experiment import ExperimentConfig, fit_task, run_experiment
-from piezo_narx_ros.ident.model_io import save_model
+from piezo_narx_ros.ident.model_io import save_model, weights_sha256
 
 # Few iterations: these tests check where and how fits run, not the optimiser.
 FAST_TRAINING = {'restarts': 1, 'restart_iter': 2, 'max_iter': 5, 'refine_iter': 3,
@@ -46,19 +45,6 @@ def hysteretic_record(n=3000, seed=0, fs=1000.0):
         y[k] = 0.8 * y[k - 1] + 0.2 * play[k]
     return Record(u=u, y=1e-6 * (y + 1e-3 * rng.standard_normal(n)), fs=fs,
                   source=f'hyst-{seed}')
-
-
-def weights_sha256(model) -> str:
-    """SHA-256 of a model's saved weights (every array of its .npz, by name)."""
-    import tempfile
-    with tempfile.TemporaryDirectory() as d:
-        save_model(model, Path(d) / 'm.json')
-        with np.load(Path(d) / 'm.npz', allow_pickle=False) as z:
-            h = hashlib.sha256()
-            for name in sorted(z.files):
-                h.update(name.encode())
-                h.update(np.ascontiguousarray(z[name]).tobytes())
-    return h.hexdigest()
 
 
 def without_times(doc):

@@ -63,6 +63,17 @@ def _weights_of(model):
     return {'a': model.a, 'b': model.b, 'c': np.array([model.c])}
 
 
+def weights_sha256(model) -> str:
+    """SHA-256 (hex) of a fitted model's weights: every array save_model writes, by name, with
+    its dtype and shape, so two fits compare bit for bit."""
+    h = hashlib.sha256()
+    for name, value in sorted(_weights_of(model).items()):
+        arr = np.ascontiguousarray(value)
+        h.update(f'{name}:{arr.dtype.str}:{arr.shape};'.encode())
+        h.update(arr.tobytes())
+    return h.hexdigest()
+
+
 def _structure_of(model):
     if isinstance(model, HysteresisNARX):
         return {'kind': model.kind, 'hidden': model.hidden, 'n_plays': model.n_plays,
