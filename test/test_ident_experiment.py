@@ -3,6 +3,8 @@ import json
 
 import numpy as np
 import pytest
+from scipy import stats
+from scipy.signal import lfilter
 
 from piezo_narx_ros.errors import ConfigError, DataError
 from piezo_narx_ros.ident.data import Record
@@ -69,17 +71,56 @@ def test_selection_when_nothing_fitted_raises():
         select([_cand('arx', 1, 1, 4, 0.0, False, 'degenerate data')])
 
 
-def test_arx_grid_recovers_true_orders_and_writes_report(tmp_path):
+def arx_records(n_seeds, n=3000, noise=0.05, seed=0):
+    """arx_record's system for many seeds at once (one lfilter call along axis 1)."""
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(-1, 1, (n_seeds, n))
+    e = noise * rng.standard_normal((n_seeds, n))
+    drive = np.pad(u, ((0, 0), (1, 0)))[:, :-1] + e
+    y = lfilter([1.0], [1.0, -1.2, 0.5], drive, axis=1)
+    return [Record(u=u[s], y=y[s] * 1e-6, fs=1000.0, source=f'arx-{s}') for s in range(n_seeds)]
+
+
+# Calibration of the pipeline (default rule, free-run residuals whitened by the AR noise model
+# fitted on the estimation half), measured over 1000 seeds other than the test's, N = 3000: the
+# true ARX(2, 1) passes all five tests in 12.6 % of records. Below the 15 % that five independent
+# chance rates give: its coefficients are estimated on the other half, and that error leaves a
+# little of the input in the validation residual (φuε passes 56 %, not 66 %; docs/testing.md).
+TRUE_ORDERS_VALIDATED = 0.126
+
+
+def test_arx_grid_over_seeds_rejects_missing_orders_and_validates_the_true_ones_by_chance():
+    n_seeds = 100
+    true = CandidateSpec('arx', nu=1, ny=2)
+    cfg = ExperimentConfig(narx=False, arx_na=(1, 2), arx_nb=(0, 1), jobs=1)
+    true_validated = under_validated = noise_model_found = 0
+    for rec in arx_records(n_seeds, seed=7):
+        result = run_experiment([rec], cfg)
+        by_spec = {c.spec: c for c in result.candidates}
+        under = [c for c in result.candidates if c.spec != true]
+        under_validated += sum(c.validated for c in under)
+        # Under-modelled structures are never the answer; the true one is, when it passes.
+        assert result.best.spec == true, result.best.spec
+        assert result.validated == by_spec[true].validated
+        nm = by_spec[true].tests['simulation']['noise_model']
+        noise_model_found += (nm['order'] == 2
+                              and np.allclose(nm['coef'], [1.2, -0.5], atol=0.05))
+        true_validated += by_spec[true].validated
+    # Leaving out y(k-2) or u(k-1) leaves dynamics in the residuals: rejected (never, measured).
+    assert under_validated <= 0.05 * 3 * n_seeds
+    # The free run of the equation-error system is coloured by 1/A(q): the AR noise model
+    # fitted on the estimation half is A(q) itself (97 of 100 seeds measured).
+    assert noise_model_found >= 0.9 * n_seeds
+    low, high = stats.binom.interval(0.999, n_seeds, TRUE_ORDERS_VALIDATED)
+    assert low <= true_validated <= high, true_validated
+
+
+def test_arx_grid_writes_a_report_of_what_it_found(tmp_path):
     rec = arx_record()
-    # 0.1, not the default 0.05: at N = 2000 this seed's true model has 4 of 40 φuε lags outside
-    # the 95 % band by chance (the default allows 2); the test is about order recovery.
-    cfg = ExperimentConfig(narx=False, arx_na=(1, 2, 3), arx_nb=(0, 1, 2), jobs=1,
-                           max_outside_fraction=0.1)
+    cfg = ExperimentConfig(narx=False, arx_na=(1, 2, 3), arx_nb=(0, 1, 2), jobs=1)
     result = run_experiment([rec], cfg)
     assert len(result.candidates) == 9
     assert result.n_estimation == result.n_validation == 2000
-    assert result.best.spec == CandidateSpec('arx', nu=1, ny=2)
-    assert result.validated
     by_label = {c.spec.label: c for c in result.candidates}
     # Under-modelled structures leave dynamics in the residuals and fail.
     assert not by_label['ARX(na=1, nb=1)'].validated
@@ -92,18 +133,15 @@ def test_arx_grid_recovers_true_orders_and_writes_report(tmp_path):
     assert set(best.tests) == {'prediction', 'simulation', 'raw', 'noise_model', 'residuals'}
     assert best.tests['residuals'] == 'simulation' and best.tests['noise_model'] == 'ar'
     assert set(best.tests['raw']) == {'prediction', 'simulation'}
-    # The free run of an equation-error ARX system is coloured by 1/A(q): the raw simulation
-    # residuals fail φεε, an AR(2) noise model fitted on the estimation half whitens them.
+    # The raw free-run residuals keep the 1/A(q) colouring (0 of 1000 seeds pass φεε).
     assert not best.tests['raw']['simulation']['tests']['phi_ee']['passed']
-    nm = best.tests['simulation']['noise_model']
-    assert nm['order'] == 2
-    np.testing.assert_allclose(nm['coef'], [1.2, -0.5], atol=0.05)
 
     _, val = split_records([rec], cfg.split)
     paths = write_report(result, val, tmp_path / 'report')
     doc = json.loads(paths['metrics'].read_text())
     assert len(doc['candidates']) == 9
-    assert doc['selection']['label'] == 'ARX(na=2, nb=1)' and doc['selection']['validated']
+    assert doc['selection']['label'] == best.spec.label
+    assert doc['selection']['validated'] == result.validated
     assert set(doc['selected_correlation']['prediction']['tests']) == {
         'phi_ee', 'phi_ue', 'phi_u2e', 'phi_u2e2', 'phi_e_eu'}
     for key in ('r2_grid_arx', 'correlation', 'simulation', 'hysteresis'):
@@ -131,16 +169,20 @@ def test_without_noise_model_tests_are_the_raw_verdicts():
 
 
 def test_strict_rule_validates_no_more_than_tolerant_rule():
-    rec = arx_record()
-    grid = dict(narx=False, arx_na=(1, 2, 3), arx_nb=(1, 2), jobs=1)
-    strict = run_experiment([rec], ExperimentConfig(max_outside_fraction=0.0, **grid))
-    tolerant = run_experiment([rec], ExperimentConfig(max_outside_fraction=0.1, **grid))
-    s = [c.validated for c in strict.candidates]
-    t = [c.validated for c in tolerant.candidates]
-    assert all(tv or not sv for sv, tv in zip(s, t))     # strict pass implies tolerant pass
-    assert tolerant.validated
-    # Scores do not depend on the test rule.
-    assert [c.scores for c in strict.candidates] == [c.scores for c in tolerant.candidates]
+    grid = dict(narx=False, arx_na=(2, 3), arx_nb=(1,), jobs=1)
+    strict_total = tolerant_total = 0
+    for rec in arx_records(8, seed=3):
+        strict = run_experiment([rec], ExperimentConfig(max_outside_fraction=0.0, **grid))
+        tolerant = run_experiment([rec], ExperimentConfig(max_outside_fraction=0.1, **grid))
+        s = [c.validated for c in strict.candidates]
+        t = [c.validated for c in tolerant.candidates]
+        assert all(tv or not sv for sv, tv in zip(s, t))     # strict pass implies tolerant pass
+        strict_total, tolerant_total = strict_total + sum(s), tolerant_total + sum(t)
+        # Scores do not depend on the test rule.
+        assert [c.scores for c in strict.candidates] == [c.scores for c in tolerant.candidates]
+    # Correct and over-parameterised models: the 0.1 rule passes about 60 % of them, the strict
+    # rule (every one of 160 lags inside the band) almost none.
+    assert tolerant_total >= 6 and strict_total < tolerant_total
 
 
 def test_parallel_run_equals_serial_run():
