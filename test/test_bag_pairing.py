@@ -82,6 +82,75 @@ def test_no_common_stamp_is_an_error():
         pair_by_stamp(t, np.zeros(20), t + 1, np.zeros(20))
 
 
+def _reference_stream(stamps, values):
+    """clean_stream by its definition, one message at a time: {stamp: first value}, counts."""
+    kept, counts = {}, {'reordered': 0, 'duplicates': 0, 'conflicting': 0}
+    for i, (s, v) in enumerate(zip(stamps.tolist(), values.tolist())):
+        counts['reordered'] += i > 0 and s < stamps[i - 1]
+        if s in kept:
+            counts['duplicates'] += 1
+            counts['conflicting'] += not (v == kept[s] or (np.isnan(v) and np.isnan(kept[s])))
+        else:
+            kept[s] = v
+    return kept, counts
+
+
+def _messy_stream(rng, t, values):
+    """t/values as a recorder may receive them: samples lost, some re-delivered (some with
+    another value), neighbours swapped in transit."""
+    keep = rng.random(t.size) > rng.uniform(0.0, 0.3)
+    s, v = list(t[keep]), list(values[keep])
+    for _ in range(rng.integers(0, 6)):
+        i = int(rng.integers(0, len(s)))
+        s.insert(i + 1, s[i])
+        v.insert(i + 1, v[i] if rng.random() < 0.5 else v[i] + 1.0)
+    for _ in range(rng.integers(0, 6)):
+        i = int(rng.integers(0, len(s) - 1))
+        s[i], s[i + 1], v[i], v[i + 1] = s[i + 1], s[i], v[i + 1], v[i]
+    return np.array(s, dtype=np.int64), np.array(v)
+
+
+def test_pairing_matches_a_message_by_message_reference_on_random_defects():
+    """Every returned sample and count against a plain-Python pairing of the same messages:
+    lengths equal the number of common stamps, each pair carries the first value received for
+    its stamp, and the trimmed, dropped and unmatched counts add up to the inputs."""
+    rng = np.random.default_rng(8)
+    for case in range(40):
+        n = int(rng.integers(30, 300))
+        t = _stamps(n)
+        head, tail = int(rng.integers(0, 25)), int(rng.integers(0, 25))
+        tu, u = _messy_stream(rng, t, rng.standard_normal(n))
+        ty, y = _messy_stream(rng, t[head:n - tail], rng.standard_normal(n - head - tail))
+        if case % 4 == 0:   # deflection stamps no command carries (another writer's clock)
+            ty, y = np.r_[ty, t[n // 2] + 7], np.r_[y, 9.0]
+        cu, count_u = _reference_stream(tu, u)
+        cy, count_y = _reference_stream(ty, y)
+        common = sorted(set(cu) & set(cy))
+        if len(common) < 2:
+            continue
+        tt, uu, yy, rep = pair_by_stamp(tu, u, ty, y)
+        assert tt.size == uu.size == yy.size == rep.paired == len(common)
+        assert tt.tolist() == common
+        assert uu.tolist() == [cu[k] for k in common] and yy.tolist() == [cy[k] for k in common]
+        first, last = common[0], common[-1]
+        inside_u = [k for k in cu if first < k < last and k not in cy]
+        inside_y = [k for k in cy if first < k < last and k not in cu]
+        assert rep.command_samples == len(cu)
+        assert rep.unmatched_command == len(cu) - len(common)
+        assert rep.unmatched_deflection == len(cy) - len(common)
+        assert rep.head_trimmed == sum(k < first for k in cu)
+        assert rep.tail_trimmed == sum(k > last for k in cu)
+        assert rep.dropped_deflection == len(inside_u)
+        assert rep.interior_unmatched == len(inside_u) + len(inside_y)
+        assert rep.unmatched_command == rep.head_trimmed + rep.tail_trimmed + len(inside_u)
+        for check, want in ((rep.command, count_u), (rep.deflection, count_y)):
+            assert (check.reordered, check.duplicates, check.conflicting) == (
+                want['reordered'], want['duplicates'], want['conflicting'])
+            assert check.received == check.duplicates + (len(cu) if check is rep.command
+                                                         else len(cy))
+        assert rep.t0_ns == first and rep.fs == pytest.approx(2000.0)
+
+
 def test_read_uy_warns_about_defects_in_a_bag(tmp_path):
     """A bag whose deflection lost a sample, got one twice and two out of order."""
     t = _stamps(80).tolist()

@@ -160,6 +160,21 @@ def test_truncated_weights_file(saved):
         load_model(saved)
 
 
+def test_tampered_well_formed_weights_with_the_old_hash_are_refused(saved):
+    # A valid .npz with the right arrays, shapes and dtypes, but other numbers: only the SHA-256
+    # recorded in the JSON can tell (a truncated file numpy refuses anyway).
+    w = saved.with_suffix('.npz')
+    with np.load(w) as npz:
+        content = {k: npz[k] for k in npz.files}
+    content['W1'] = content['W1'] * 1.001
+    np.savez(w, **content)
+    with pytest.raises(ModelFileError, match='do not match the SHA-256') as exc:
+        load_model(saved)
+    assert 'model.npz' in str(exc.value) and '\n' not in str(exc.value)
+    edit_json(saved, _set('weights.sha256', None))   # the same file loads once the hash is gone
+    assert np.array_equal(load_model(saved).W1, content['W1'])
+
+
 def rewrite_weights(saved, **arrays):
     w = saved.with_suffix('.npz')
     with np.load(w) as npz:

@@ -1,4 +1,5 @@
 """nodes/common.py: QoS, validated parameters, JointState/CDR helpers, diagnostics (in-process)."""
+import numpy as np
 import pytest
 import rclpy
 from rclpy.parameter import Parameter
@@ -170,6 +171,33 @@ def test_cdr_encode_is_read_back_by_rclpy(names, position, effort):
     assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (123, 7)
     assert (list(msg.name), list(msg.position), list(msg.effort)) == (names, position, effort)
     assert msg.header.frame_id == '' and list(msg.velocity) == []
+
+
+@pytest.mark.parametrize('names, position, velocity, effort, frame', [
+    (['x'], [1e-6], [], [10.0], ''),
+    (['x', 'yy', 'zzz'], [1.0, -2.0, 3.5], [0.1], [4.0, 5.0, 6.0], 'abc'),
+    ([], [], [], [3.0], 'frame_with_odd_length'),
+])
+@pytest.mark.parametrize('little_endian', [False, True])
+def test_cdr_decode_reads_both_byte_orders_as_rosbags_writes_them(
+        names, position, velocity, effort, frame, little_endian):
+    """DDS peers may send big-endian CDR (encapsulation 0x0000); rclpy here only writes little
+    endian, so rosbags' serialiser is the reference for both orders."""
+    from rosbags.typesys import Stores, get_typestore
+    store = get_typestore(Stores.ROS2_KILTED)
+    JointState = store.types['sensor_msgs/msg/JointState']
+    Header, Time = store.types['std_msgs/msg/Header'], store.types['builtin_interfaces/msg/Time']
+    msg = JointState(header=Header(stamp=Time(sec=1_795_241_581, nanosec=123_456_789),
+                                   frame_id=frame),
+                     name=names, position=np.array(position, dtype=np.float64),
+                     velocity=np.array(velocity, dtype=np.float64),
+                     effort=np.array(effort, dtype=np.float64))
+    raw = bytes(store.serialize_cdr(msg, 'sensor_msgs/msg/JointState',
+                                    little_endian=little_endian))
+    assert raw[1] == int(little_endian)          # the encapsulation says which order follows
+    s = common.decode_joint_state(raw)
+    assert (s.t_ns, s.names, s.position, s.effort) == (1_795_241_581_123_456_789, names,
+                                                      position, effort)
 
 
 def test_cdr_decode_refuses_truncated_bytes():
