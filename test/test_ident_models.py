@@ -232,15 +232,36 @@ def test_narx_fit_is_deterministic_for_a_seed():
     assert not np.array_equal(a.W1, c.W1)
 
 
-def test_simulation_refinement_improves_free_run_error():
-    u, y = piezo_like(8000, seed=2)
-    one = NARXNetwork(3, 3, 6, seed=1, **{**FAST, 'refine_iter': 0}).fit(u, y)
-    ref = NARXNetwork(3, 3, 6, seed=1, **{**FAST, 'refine_iter': 15}).fit(u, y)
+def output_error_system(n, seed, noise):
+    """Saturating nonlinearity into a lightly damped second-order filter, then white sensor noise
+    of `noise` x the output's std: (u, noiseless x, measured y). Its one-step regressors hold
+    noisy past outputs, so a one-step (equation-error) fit is biased; a simulation-error fit is
+    not: the textbook case where the refinement must help."""
+    rng = np.random.default_rng(seed)
+    u = signal.lfilter([0.5], [1, -0.5], rng.uniform(-1, 1, n))
+    x = signal.lfilter([0, 0.3], [1, -1.5, 0.7], np.tanh(2 * u))
+    return u, x, x + noise * np.std(x) * rng.standard_normal(n)
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_simulation_refinement_is_selected_where_one_step_training_is_biased(seed):
+    # Measured (4 seeds): one-step fits run free at 40-41 % NRMSE against the noiseless output
+    # of fresh data, refined ones at 4-7 %; the held-out free-run MSE falls 0.24 -> 0.085, the
+    # sensor-noise floor 0.09 (normalised). A training change that never keeps the refinement,
+    # or a refinement that does not lower the free-run error, fails here.
+    u, _, y = output_error_system(4000, seed, noise=0.3)
+    u_new, x_new, _ = output_error_system(4000, 100 + seed, noise=0.0)
+    one = NARXNetwork(2, 2, 4, seed=seed, **{**FAST, 'refine_iter': 0}).fit(u, y)
+    ref = NARXNetwork(2, 2, 4, seed=seed, **{**FAST, 'refine_iter': 15}).fit(u, y)
     i1, i2 = one.training_info_, ref.training_info_
     assert i1['selected_stage'] == 'one-step' and 'refine_iterations' not in i1
-    assert i2['holdout_mse_freerun'] <= i1['holdout_mse_freerun']
-    if i2['selected_stage'] == 'simulation':
-        assert i2['holdout_mse_freerun'] < i2['holdout_mse_freerun_stage1']
+    assert i2['selected_stage'] == 'simulation' and i2['refine_iterations'] >= 1
+    assert i2['holdout_mse_freerun'] < 0.5 * i2['holdout_mse_freerun_stage1']
+    assert i2['holdout_mse_freerun_stage1'] == pytest.approx(i1['holdout_mse_freerun'])
+
+    def nrmse(model):
+        return np.sqrt(np.mean((model.simulate(u_new) - x_new) ** 2)) / np.std(x_new)
+    assert nrmse(one) > 0.25 and nrmse(ref) < 0.15, (nrmse(one), nrmse(ref))
 
 
 def test_training_jacobians_match_finite_differences():
