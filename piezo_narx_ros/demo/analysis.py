@@ -221,7 +221,9 @@ def plot_latency(run: LiveRun):
     fig, ax = plt.subplots(figsize=(8, 4), constrained_layout=True)
     pos = d[d > 0]
     if pos.size:
-        bins = np.logspace(np.log10(max(pos.min(), 1.0)), np.log10(pos.max() * 1.01 + 1), 60)
+        lo = max(pos.min(), 1.0)
+        bins = np.logspace(np.log10(lo), np.log10(pos.max() * 1.01 + 1), 60)
+        bins[0] = min(bins[0], lo)   # 10**log10(x) can round above x and drop the fastest sample
         ax.hist(pos, bins=bins, color='C2')
         ax.set_xscale('log')
     for q, ls in ((50, '--'), (99, ':')):
