@@ -21,7 +21,9 @@ seed = seed) sample by sample (control.closed_loop.run_loop, no DDS) from rest:
 Modes: linear (u = (r - offset)/gain, the model's static line), inverse (the model inverted
 sample by sample: no sensor), inverse_feedback (inverse + PI on the measured deflection, the
 controller's default gains) and pi, a sensor-only PI (no model but its static gain) whose gains
-are the best of a grid on the 10 Hz sine with seed 0 (printed). Score: RMSE of y_true - r.
+are the best of a grid on the 10 Hz sine with seed 0 (printed). --variants adds the inverse's
+alternatives (exact output target; quasi-static target without the advance compensation).
+Score: RMSE of y_true - r.
 
 Printed: per plant, the median RMSE over seeds (nm) per task and mode, the ratios the issue asks
 for (inverse/linear at 0.1, 1, 10 Hz; inverse_feedback/pi at 10 Hz), the controller's compute per
@@ -53,6 +55,10 @@ REPO = Path(__file__).resolve().parents[1]
 PLANTS = {'default': REPO / 'config' / 'plant.yaml',
           'preisach': REPO / 'config' / 'plant_preisach.yaml'}
 MODES = ('linear', 'inverse', 'inverse_feedback', 'pi')
+# --variants: the inverse's design choices side by side (docs/control.md): the exact one-step
+# inverse of the model output, and the quasi-static target without the advance compensation.
+VARIANTS = {'inverse output': {'mode': 'inverse', 'target': 'output'},
+            'inverse qs no-adv': {'mode': 'inverse', 'target': 'quasi_static', 'advance': 0.0}}
 TASKS = ('sin 0.1 Hz', 'sin 1 Hz', 'sin 10 Hz', 'tri 0.5 Hz', 'steps', 'random')
 PI_GRID = {'kp': (0.0, 0.01, 0.02, 0.05), 'ki': (25.0, 50.0, 100.0, 150.0, 200.0, 250.0, 300.0)}
 SLEW = 1e5   # V/s: the simulated amplifier's own limit
@@ -98,9 +104,12 @@ def identify(plant: str, folder: Path) -> Path:
 
 
 def controller(model, mode: str, pi: dict | None = None) -> PositionController:
-    """The controller of a mode ('pi': the sensor-only baseline with the given gains)."""
+    """The controller of a mode ('pi': the sensor-only baseline with the given gains; a
+    VARIANTS name: that inverse)."""
     if mode == 'pi':
         return PositionController(model, mode='feedback', slew_rate=SLEW, **pi)
+    if mode in VARIANTS:
+        return PositionController(model, slew_rate=SLEW, **VARIANTS[mode])
     return PositionController(model, mode=mode, slew_rate=SLEW)
 
 
@@ -122,18 +131,19 @@ def tune_pi(model, params) -> tuple[dict, float]:
     return best, best_rmse
 
 
-def bench_plant(plant: str, model_path: Path, seeds, figures: Path | None) -> dict:
+def bench_plant(plant: str, model_path: Path, seeds, figures: Path | None,
+                modes=MODES) -> dict:
     params = load_plant_params(PLANTS[plant])
     model = load_model(model_path)
     pi, pi_rmse = tune_pi(model, params)
     print(f'\n== {plant} plant, model {model_path} ({type(model).__name__}); sensor-only PI '
           f'tuned on sin 10 Hz seed 0: kp {pi["kp"]:g}, ki {pi["ki"]:g}/s '
           f'({pi_rmse * 1e9:.0f} nm)', flush=True)
-    rmse = {t: {m: [] for m in MODES} for t in TASKS}
-    limited = {m: 0 for m in MODES}
+    rmse = {t: {m: [] for m in modes} for t in TASKS}
+    limited = {m: 0 for m in modes}
     compute = []
     examples = {}
-    for task, mode, seed in itertools.product(TASKS, MODES, seeds):
+    for task, mode, seed in itertools.product(TASKS, modes, seeds):
         loop, start, ctl = run(model, params, task, mode, seed, pi)
         rmse[task][mode].append(loop.rmse(start))
         limited[mode] += ctl.stats.unreachable
@@ -161,9 +171,9 @@ def bench_plant(plant: str, model_path: Path, seeds, figures: Path | None) -> di
            'unreachable_samples': limited}
     width = max(len(t) for t in TASKS)
     print(f'median RMSE of y_true - r over seeds {list(seeds)}, nm')
-    print(f'  {"task":<{width}}' + ''.join(f'{m:>18}' for m in MODES))
+    print(f'  {"task":<{width}}' + ''.join(f'{m:>18}' for m in modes))
     for t in TASKS:
-        print(f'  {t:<{width}}' + ''.join(f'{med[t][m] * 1e9:18.1f}' for m in MODES))
+        print(f'  {t:<{width}}' + ''.join(f'{med[t][m] * 1e9:18.1f}' for m in modes))
     for name, value in out['ratios'].items():
         print(f'  {name:<32} {value:.4f}')
     c = out['compute_us']
@@ -222,13 +232,16 @@ def main() -> None:
     ap.add_argument('--model-default', type=Path, help='model for the default plant')
     ap.add_argument('--model-preisach', type=Path, help='model for the Preisach plant')
     ap.add_argument('--out', type=Path, help='write results.json and figures here')
+    ap.add_argument('--variants', action='store_true', help='also the inverse with the exact '
+                    'output target and without the advance compensation')
     args = ap.parse_args()
     results = {}
     t0 = time.monotonic()
     for plant in args.plants:
         model = getattr(args, f'model_{plant}') or identify(plant, args.models / plant)
         results[plant] = bench_plant(plant, model, args.seeds,
-                                     args.out / 'figures' if args.out else None)
+                                     args.out / 'figures' if args.out else None,
+                                     MODES + (tuple(VARIANTS) if args.variants else ()))
     print(f'\nwall time {time.monotonic() - t0:.0f} s')
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
