@@ -261,9 +261,9 @@ class PositionController:
             want = r if mode == 'linear' else self._correction(t_ns)
             u_wanted = (want - self.offset) / self.gain
             u = inv.clamp(u_wanted)
-            d = np.sign(u_wanted - u) * np.sign(self.gain)
-            self._limited = int(d)
-            if d:
+            self._limited = 0
+            if u != u_wanted:   # +1: it could not go as high as wanted (in metres)
+                self._limited = 1 if (u_wanted > u) == (self.gain > 0) else -1
                 self._count_limit(VOLTAGE if u in (inv.u_min, inv.u_max) else SLEW,
                                   abs(u_wanted - u) * abs(self.gain))
             return u

@@ -22,6 +22,8 @@ import numpy as np
 
 from piezo_narx_ros.control import kernels as ck
 from piezo_narx_ros.errors import ConfigError
+from piezo_narx_ros.ident import hysteresis_kernels as hk
+from piezo_narx_ros.ident.kernels import arx_step, narx_step
 
 TARGETS = ('output', 'quasi_static')
 
@@ -29,7 +31,7 @@ TARGETS = ('output', 'quasi_static')
 REACHED, VOLTAGE, SLEW, NOT_INVERTIBLE = 'reached', 'voltage', 'slew', 'not_invertible'
 
 
-@dataclass
+@dataclass(slots=True)
 class Solution:
     """One sample's answer: u (V), the model's achieved value for it (m, in the target's sense),
     the signed miss achieved - target (m), why it missed (`limit`: REACHED, VOLTAGE, SLEW or
@@ -101,6 +103,15 @@ class ModelInverse:
         """Argument tuple of the family's solve kernel (the stepper's live arrays)."""
         arrays, params = self.stepper.kernel_state
         work = (self._sv, self._cand, self._g)
+        # commit() advances the stepper's arrays with the compiled step itself: the stepper's
+        # Python step() also keeps u_past/y_past copies, which cost more than the step here.
+        if self.kind == 'hysteresis_narx':
+            u_scale, y_scale, step, full = (float(self.model.u_scale_),
+                                            float(self.model.y_scale_), hk.step, params)
+            self._advance = lambda u: step(u / u_scale, arrays[0], *full) * y_scale
+        else:
+            step = narx_step if self.kind == 'narx' else arx_step
+            self._advance = lambda u: step(u, arrays[0], arrays[1], *params)
         if self.kind == 'hysteresis_narx':
             radii, n_lags, dh, rho, W1, b1, w2, c, w_rest, g, lam, a, b, y_off = params
             static = self.target == 'quasi_static'
@@ -139,7 +150,6 @@ class ModelInverse:
     def value(self, u: float) -> float:
         """The model's value for input u (V) in the target's sense (m), state untouched."""
         if self.kind == 'hysteresis_narx':
-            from piezo_narx_ros.ident import hysteresis_kernels as hk
             (static, st, s1, s2, u_scale, y_scale, radii, n_lags, dh, rho, W1, b1, w2, c, w_rest,
              g, lam, a, b, y_off) = self._args[3:]
             un = float(u) / u_scale
@@ -176,8 +186,10 @@ class ModelInverse:
         return min(max(u, lo), hi)
 
     def commit(self, u: float) -> float:
-        """Send u (V): the model advances one sample; returns its free-run output y(k) (m)."""
-        self.y_model = self.stepper.step(u)
+        """Send u (V, finite): the model advances one sample; returns its free-run output y(k)
+        (m), as the model's Stepper.step would (its state arrays are the ones advanced; its
+        u_past / y_past copies are not kept up to date)."""
+        self.y_model = self._advance(float(u))
         self.u_prev = float(u)
         return self.y_model
 
