@@ -194,30 +194,36 @@ def write_figures(examples: dict, plant: str, folder: Path) -> list[str]:
     paths = []
     colours = {'linear': 'tab:red', 'inverse': 'tab:blue', 'inverse_feedback': 'tab:green',
                'pi': 'tab:orange'}
+    styles = {'inverse_feedback': '--'}
     for task in ('sin 1 Hz', 'sin 10 Hz', 'steps'):
-        fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+        fig, axes = plt.subplots(1, 4, figsize=(18, 4.2))
         some = examples[(task, 'linear')]
         t = np.arange(some.r.size) / FS
         axes[0].plot(t, some.r * 1e6, 'k', lw=1.5, label='reference')
         for mode in MODES:
             loop = examples[(task, mode)]
-            axes[0].plot(t, loop.y_true * 1e6, color=colours[mode], lw=0.8, label=mode)
-            axes[1].plot(t, (loop.y_true - loop.r) * 1e6, color=colours[mode], lw=0.8,
-                         label=mode)
-            axes[2].plot(loop.r * 1e6, loop.y_true * 1e6, color=colours[mode], lw=0.8,
-                         label=mode)
+            kw = dict(color=colours[mode], lw=0.8, ls=styles.get(mode, '-'), label=mode)
+            axes[0].plot(t, loop.y_true * 1e6, **kw)
+            axes[1].plot(t, (loop.y_true - loop.r) * 1e6, **kw)
+            if mode.startswith('inverse'):
+                axes[2].plot(t, (loop.y_true - loop.r) * 1e9, **kw)
+            axes[3].plot(loop.r * 1e6, loop.y_true * 1e6, **kw)
         axes[0].set(xlabel='t (s)', ylabel='deflection (µm)', title=f'{plant}: {task}')
         axes[1].set(xlabel='t (s)', ylabel='y_true - reference (µm)', title='tracking error')
-        axes[1].set_ylim(*np.percentile((examples[(task, 'linear')].y_true - some.r) * 1e6,
-                                        [0.5, 99.5]) * 1.3)
-        axes[2].set(xlabel='reference (µm)', ylabel='deflection (µm)', title='deflection vs '
-                    'reference')
+        axes[1].set_ylim(*np.percentile((some.y_true - some.r) * 1e6, [0.5, 99.5]) * 1.3)
+        inv = examples[(task, 'inverse')]
+        axes[2].set_ylim(*np.percentile((inv.y_true - inv.r) * 1e9, [1, 99]) * 2.0)
+        axes[2].set(xlabel='t (s)', ylabel='y_true - reference (nm)',
+                    title='tracking error, model-based modes')
+        axes[3].set(xlabel='reference (µm)', ylabel='deflection (µm)',
+                    title='deflection vs reference')
         for ax in axes:
             ax.grid(alpha=0.3)
         axes[0].legend(fontsize=8)
+        axes[2].legend(fontsize=8)
         fig.tight_layout()
         path = folder / f'control_{plant}_{task.replace(" ", "_").replace(".", "p")}.png'
-        fig.savefig(path, dpi=90)
+        fig.savefig(path, dpi=80)
         plt.close(fig)
         paths.append(str(path))
     return paths

@@ -140,3 +140,7 @@ def test_bad_parameters_end_in_one_line(model_file, tmp_path):
     proc = start_node('controller_node', '-p', f'model:={tmp_path / "missing.json"}')
     assert proc.wait(60) == 2
     assert 'missing.json' in proc.stderr.read()
+    proc = start_node('controller_node', '-p', f'model:={model_file}', '-p',
+                      'mode:=inverse_feedback', '-p', 'use_deflection:=false')
+    assert proc.wait(60) == 2
+    assert 'needs use_deflection:=true' in proc.stderr.read()

@@ -121,7 +121,9 @@ class PositionController:
         self.peak_miss = 0.0          # largest |miss| of an unreachable target since read, m
         self._err = deque(maxlen=int(window))
         self._refs: dict[int, float] = {}     # stamp -> reference, for matching measurements
-        self._keep = 4 * self.feedback_timeout + 64
+        # References kept for matching measurements: 1 s, so a controller running behind (a
+        # loaded machine) still matches the deflections that arrive late.
+        self._keep = max(4 * self.feedback_timeout + 64, int(self.fs))
         self._reset_state()
 
     # ------------------------------------------------------------------------------- state

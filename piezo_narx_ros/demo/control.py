@@ -185,6 +185,8 @@ def _control_phase(demo, mode: str, bag: Path, model: Path, c: dict) -> dict:
                                                         'plant_params': str(c['plant_params'])}},
         {'executable': 'controller_node', 'parameters': {
             'model': str(model), 'mode': mode, 'fs': float(s['fs']),
+            # The bag has the deflection; only the PI needs it live (saves CPU on 2 cores).
+            'use_deflection': mode == 'inverse_feedback',
             'wait_for_subscribers': 2}},      # the simulator and the recorder
         {'executable': 'recorder_node', 'parameters': {'output': str(bag), 'topics': topics}}]
     command = {'executable': 'command_node', 'parameters': {
