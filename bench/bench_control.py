@@ -8,8 +8,9 @@ user would make it:
     piezo-narx simulate --signal protocol --seconds 25 [--plant-config P] --out p.npz
     piezo-narx fit p.npz --preset envelope --out DIR
 
-(kept in --models, reused when present; --model-default / --model-preisach take your own).
-Then, for every task and seed, a PositionController drives a fresh PiezoCantilever (sensor-noise
+with --seed s for each seed s (kept in --models, reused when present; --model-default /
+--model-preisach take one model of your own for every seed instead). Then, for every task and
+seed, a PositionController with that seed's model drives a fresh PiezoCantilever (sensor-noise
 seed = seed) sample by sample (control.closed_loop.run_loop, no DDS) from rest:
 
   sin 0.1 / 1 / 10 Hz   +-30 um sines, 2 periods (at least 2 s); scored on the second half
@@ -84,8 +85,9 @@ def reference(task: str, seed: int) -> tuple[np.ndarray, int]:
     raise ValueError(task)
 
 
-def identify(plant: str, folder: Path) -> Path:
-    """The envelope model of `plant`, fitted with the piezo-narx commands when not there yet."""
+def identify(plant: str, folder: Path, seed: int = 0) -> Path:
+    """The envelope model of `plant` identified from the protocol record with `seed` (signal
+    and sensor noise), fitted with the piezo-narx commands when not there yet."""
     from piezo_narx_ros.cli.main import main
     model = folder / 'model.json'
     if model.is_file():
@@ -95,8 +97,8 @@ def identify(plant: str, folder: Path) -> Path:
     print(f'identifying the {plant} plant: simulate --signal protocol + fit --preset envelope '
           f'(a few minutes) -> {folder}', flush=True)
     t0 = time.monotonic()
-    main(['simulate', '--signal', 'protocol', '--seconds', '25', '--plant-config',
-          str(PLANTS[plant]), '--out', str(data)])
+    main(['simulate', '--signal', 'protocol', '--seconds', '25', '--seed', str(seed),
+          '--plant-config', str(PLANTS[plant]), '--out', str(data)])
     if main(['fit', str(data), '--preset', 'envelope', '--out', str(folder), '--no-report']):
         raise SystemExit(f'fit failed for the {plant} plant')
     print(f'  fitted in {time.monotonic() - t0:.0f} s', flush=True)
@@ -131,20 +133,22 @@ def tune_pi(model, params) -> tuple[dict, float]:
     return best, best_rmse
 
 
-def bench_plant(plant: str, model_path: Path, seeds, figures: Path | None,
+def bench_plant(plant: str, model_paths: dict, seeds, figures: Path | None,
                 modes=MODES) -> dict:
+    """model_paths: {seed: model file} (one model per seed, or the same for all)."""
     params = load_plant_params(PLANTS[plant])
-    model = load_model(model_path)
-    pi, pi_rmse = tune_pi(model, params)
-    print(f'\n== {plant} plant, model {model_path} ({type(model).__name__}); sensor-only PI '
-          f'tuned on sin 10 Hz seed 0: kp {pi["kp"]:g}, ki {pi["ki"]:g}/s '
-          f'({pi_rmse * 1e9:.0f} nm)', flush=True)
+    models = {s: load_model(p) for s, p in model_paths.items()}
+    pi, pi_rmse = tune_pi(models[seeds[0]], params)
+    names = sorted({str(p) for p in model_paths.values()})
+    print(f'\n== {plant} plant, model(s) {", ".join(names)}; sensor-only PI tuned on sin 10 '
+          f'Hz seed {seeds[0]}: kp {pi["kp"]:g}, ki {pi["ki"]:g}/s ({pi_rmse * 1e9:.0f} nm)',
+          flush=True)
     rmse = {t: {m: [] for m in modes} for t in TASKS}
     limited = {m: 0 for m in modes}
     compute = []
     examples = {}
     for task, mode, seed in itertools.product(TASKS, modes, seeds):
-        loop, start, ctl = run(model, params, task, mode, seed, pi)
+        loop, start, ctl = run(models[seed], params, task, mode, seed, pi)
         rmse[task][mode].append(loop.rmse(start))
         limited[mode] += ctl.stats.unreachable
         if mode == 'inverse':
@@ -153,7 +157,8 @@ def bench_plant(plant: str, model_path: Path, seeds, figures: Path | None,
             examples[(task, mode)] = loop
     med = {t: {m: statistics.median(v) for m, v in d.items()} for t, d in rmse.items()}
     ct = np.concatenate(compute) / 1e3
-    out = {'model': str(model_path), 'pi_gains': pi, 'seeds': list(seeds),
+    out = {'models': {str(k): str(v) for k, v in model_paths.items()}, 'pi_gains': pi,
+           'seeds': list(seeds),
            'rmse_nm_median': {t: {m: v * 1e9 for m, v in d.items()} for t, d in med.items()},
            'rmse_nm_all': {t: {m: [x * 1e9 for x in v] for m, v in d.items()}
                            for t, d in rmse.items()},
@@ -235,8 +240,9 @@ def main() -> None:
     ap.add_argument('--plants', nargs='+', choices=tuple(PLANTS), default=list(PLANTS))
     ap.add_argument('--models', type=Path, default=REPO / 'reports' / 'control-models',
                     help='folder of the fitted models (one subfolder per plant)')
-    ap.add_argument('--model-default', type=Path, help='model for the default plant')
-    ap.add_argument('--model-preisach', type=Path, help='model for the Preisach plant')
+    ap.add_argument('--model-default', type=Path, help='one model for the default plant, every '
+                    'seed (default: one identified per seed)')
+    ap.add_argument('--model-preisach', type=Path, help='the same for the Preisach plant')
     ap.add_argument('--out', type=Path, help='write results.json and figures here')
     ap.add_argument('--variants', action='store_true', help='also the inverse with the exact '
                     'output target and without the advance compensation')
@@ -244,8 +250,10 @@ def main() -> None:
     results = {}
     t0 = time.monotonic()
     for plant in args.plants:
-        model = getattr(args, f'model_{plant}') or identify(plant, args.models / plant)
-        results[plant] = bench_plant(plant, model, args.seeds,
+        given = getattr(args, f'model_{plant}')
+        models = {s: given or identify(plant, args.models / f'{plant}-seed{s}', s)
+                  for s in args.seeds}
+        results[plant] = bench_plant(plant, models, args.seeds,
                                      args.out / 'figures' if args.out else None,
                                      MODES + (tuple(VARIANTS) if args.variants else ()))
     print(f'\nwall time {time.monotonic() - t0:.0f} s')
