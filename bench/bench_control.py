@@ -88,20 +88,24 @@ def reference(task: str, seed: int) -> tuple[np.ndarray, int]:
 def identify(plant: str, folder: Path, seed: int = 0) -> Path:
     """The envelope model of `plant` identified from the protocol record with `seed` (signal
     and sensor noise), fitted with the piezo-narx commands when not there yet."""
-    from piezo_narx_ros.cli.main import main
+    import subprocess
+    import sys
     model = folder / 'model.json'
     if model.is_file():
         return model
     folder.mkdir(parents=True, exist_ok=True)
     data = folder / 'protocol.npz'
-    print(f'identifying the {plant} plant: simulate --signal protocol + fit --preset envelope '
-          f'(a few minutes) -> {folder}', flush=True)
+    print(f'identifying the {plant} plant (seed {seed}): simulate --signal protocol + fit '
+          f'--preset envelope (a few minutes) -> {folder}', flush=True)
     t0 = time.monotonic()
-    main(['simulate', '--signal', 'protocol', '--seconds', '25', '--seed', str(seed),
-          '--plant-config', str(PLANTS[plant]), '--out', str(data)])
-    if main(['fit', str(data), '--preset', 'envelope', '--out', str(folder), '--no-report']):
-        raise SystemExit(f'fit failed for the {plant} plant')
-    print(f'  fitted in {time.monotonic() - t0:.0f} s', flush=True)
+    cli = [sys.executable, '-m', 'piezo_narx_ros.cli.main']
+    for args in (['simulate', '--signal', 'protocol', '--seconds', '25', '--seed', str(seed),
+                  '--plant-config', str(PLANTS[plant]), '--out', str(data)],
+                 ['fit', str(data), '--preset', 'envelope', '--out', str(folder),
+                  '--no-report']):
+        if subprocess.run(cli + args).returncode:
+            raise SystemExit(f'piezo-narx {args[0]} failed for the {plant} plant')
+    print(f'  identified in {time.monotonic() - t0:.0f} s', flush=True)
     return model
 
 
