@@ -326,6 +326,29 @@ def test_integrator_does_not_wind_up_against_a_limit(fitted):
     assert np.max(np.abs(ref[2200:] - y[2200:])) < 0.3e-6
 
 
+def test_late_deflections_are_not_integrated(fitted):
+    # Deflections arriving 50 samples (25 ms) late, as from a starved machine: integrating them
+    # is feedback through a 50-sample delay, unstable at ki = 100/s (limit ki/fs < 0.031).
+    ref = 20e-6 * np.sin(2 * np.pi * 2.0 * np.arange(6000) / FS)
+    peak = {}
+    for timeout in (10, 1000):
+        ctl = PositionController(fitted, mode='inverse_feedback', slew_rate=1e5,
+                                 feedback_timeout=timeout)
+        plant = PiezoCantilever(fs=FS, seed=3)
+        late, y = [], np.empty(ref.size)
+        for i, r in enumerate(ref):
+            (t, u), = ctl.on_reference(i * PERIOD, r)
+            ym, y[i], _ = plant.step(u)
+            late.append((t, ym))
+            if len(late) > 50:
+                ctl.on_measurement(*late.pop(0))
+        peak[timeout] = np.max(np.abs(ref - y)[3000:])
+        if timeout == 10:
+            assert ctl.stats.measurements_late == ref.size - 50
+    assert peak[10] < 0.5e-6            # measured 94 nm: the inverse alone, no oscillation
+    assert peak[1000] > 5e-6            # measured 100 um: what integrating them did
+
+
 def test_feedback_without_measurements_is_reported_stale(fitted):
     ctl = PositionController(fitted, mode='inverse_feedback')
     drive(ctl, np.full(50, 5e-6))

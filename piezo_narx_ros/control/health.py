@@ -27,11 +27,12 @@ _WARN_ON_FEEDBACK = (
     ('feedback_stale', 'command(s) without a recent deflection (proportional part off)'),
     ('measurements_rejected', 'deflection sample(s) ignored (non-finite, or no command with '
                               'that stamp)'),
+    ('measurements_late', 'deflection sample(s) older than feedback_timeout: not integrated'),
 )
 _CUMULATIVE = ('references', 'commands', 'rejected_nonfinite', 'out_of_range', 'gaps', 'filled',
                'stamp_outliers', 'stream_restarts', 'unreachable', 'voltage_limited',
                'slew_limited', 'not_invertible', 'measurements', 'measurements_rejected',
-               'feedback_stale', 'windup_holds', 'requested_resets')
+               'measurements_late', 'feedback_stale', 'windup_holds', 'requested_resets')
 
 
 class ControllerHealth:
