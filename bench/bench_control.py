@@ -32,7 +32,12 @@ sample in inverse mode (on_reference: stamp gate + inversion + model step; p50 /
 inverse run) and the unreachable/limited counts. --out DIR writes results.json and the figures of
 docs/control.md (reference vs deflection, error vs time, deflection vs reference).
 
+--live S runs the loop over DDS instead (2 kHz, one process per node, S seconds): lost samples,
+reference -> voltage_command latency at an in-process probe (bench_live's), CPU per node, and
+bench_live's estimator pipeline right after it, for a side-by-side figure under the same load.
+
 Run: python bench/bench_control.py [--seeds 0 1 2] [--plants default preisach] [--out DIR]
+     python bench/bench_control.py --live 60 [--model-default M] [--live-mode inverse]
 """
 from __future__ import annotations
 
@@ -238,6 +243,79 @@ def write_figures(examples: dict, plant: str, folder: Path) -> list[str]:
     return paths
 
 
+def live(model_path: Path, seconds: float, mode: str = 'inverse') -> dict:
+    """command_node (position, 1 Hz +-30 um sine) -> controller_node -> simulator_node over DDS
+    for `seconds` at 2 kHz, one process each, observed by bench_live's probe in this process
+    (raw stamps, one clock); then bench_live's estimator pipeline for the same time, so the two
+    are measured side by side under the same machine load."""
+    import os
+    import sys
+    sys.path.insert(0, str(Path(__file__).parent))
+    from bench_live import Probe, cpu_seconds, run_rate, start, stop
+    os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 100))
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    ns, n = '/benchctl', int(round(seconds * FS))
+    probe = Probe(ns, ('position_reference', 'voltage_command', 'deflection'),
+                  wall_topic='voltage_command')
+    load0 = os.getloadavg()[0]
+    procs = {'simulator': start('simulator_node', ns, f'fs:={FS}'),
+             'controller': start('controller_node', ns, f'model:={model_path}', f'mode:={mode}',
+                                 'wait_for_subscribers:=2',
+                                 f'use_deflection:={str(mode == "inverse_feedback").lower()}')}
+    out = {'mode': mode, 'n': n}
+    try:
+        if not probe.spin_until(lambda: probe.subs['voltage_command'].get_publisher_count() >= 1
+                                and probe.subs['deflection'].get_publisher_count() >= 1, 60.0):
+            raise RuntimeError('simulator/controller did not come up')
+        procs['command'] = start('command_node', ns, 'output:=position', 'kind:=sine',
+                                 'freq:=1.0', f'amplitude:={AMP}', f'fs:={FS}', 'loop:=false',
+                                 f'seconds:={seconds}', 'wait_for_subscribers:=2')
+        ref = probe.recv['position_reference']
+        probe.spin_until(lambda: len(ref) > 0, 60.0)
+        cpu0 = {k: cpu_seconds(p.pid) for k, p in procs.items()}
+        t0 = time.monotonic()
+        probe.spin_until(lambda: all(len(v) >= n for v in probe.recv.values()), seconds + 10.0)
+        wall = time.monotonic() - t0
+        cpu1 = {k: cpu_seconds(p.pid) for k, p in procs.items()}
+        probe.spin_until(lambda: False, 1.2)
+        cmd = probe.recv['voltage_command']
+        out['cpu'] = {k: 100.0 * (cpu1[k] - cpu0[k]) / wall for k in procs}
+        out['lost'] = {t: n - len(v) for t, v in probe.recv.items()}
+        out['latency_us'] = np.array([cmd[t] - ref[t] for t in cmd if t in ref]) / 1e3
+        out['lateness_us'] = np.array([probe.wall[t] - t for t in cmd]) / 1e3
+        out['controller'] = next((v for k, v in probe.diag.items()
+                                  if k.startswith(ns.strip('/') + '/controller_node')), {})
+    finally:
+        out['codes'] = stop(procs.values())
+        probe.close()
+    out['load'] = (load0, os.getloadavg()[0])
+    est = run_rate(FS, seconds, model_path, 0.0, 'events')
+    out['estimator'] = {'latency_us': est['latency_us'], 'lost': est['lost'],
+                        'cpu': est['cpu'], 'codes': est['codes']}
+    out['load_after_estimator'] = os.getloadavg()[0]
+    return out
+
+
+def print_live(r: dict) -> None:
+    from bench_live import pct
+    print(f'\n== live over DDS, {r["mode"]}, {r["n"]} references at {FS:g} Hz (exit codes '
+          f'{r["codes"]}; load average {r["load"][0]:.1f} -> {r["load"][1]:.1f}, then '
+          f'{r["load_after_estimator"]:.1f} after the estimator pipeline)')
+    print('                                          p50      p99      max  (us)')
+    print(f'  reference -> voltage_command        {pct(r["latency_us"])}')
+    print(f'  lateness stamp -> voltage_command   {pct(r["lateness_us"])}')
+    print(f'  same time: command -> estimate      {pct(r["estimator"]["latency_us"])}  '
+          '(bench_live, estimator pipeline)')
+    print('  lost: ' + ', '.join(f'{t} {v}' for t, v in r['lost'].items()) + '; estimator '
+          'pipeline: ' + ', '.join(f'{t} {v}' for t, v in r['estimator']['lost'].items()))
+    print('  CPU % of a core: ' + ', '.join(f'{k} {v:.0f}' for k, v in r['cpu'].items()) +
+          '; estimator pipeline: ' + ', '.join(f'{k} {v:.0f}'
+                                               for k, v in r['estimator']['cpu'].items()))
+    c = r['controller']
+    print(f"  controller: references {c.get('references')}, commands {c.get('commands')}, "
+          f"gaps {c.get('gaps')}, unreachable {c.get('unreachable')}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2])
@@ -248,9 +326,18 @@ def main() -> None:
                     'seed (default: one identified per seed)')
     ap.add_argument('--model-preisach', type=Path, help='the same for the Preisach plant')
     ap.add_argument('--out', type=Path, help='write results.json and figures here')
+    ap.add_argument('--live', type=float, metavar='S', help='instead: the loop over DDS for S '
+                    's (2 kHz) and, right after, the estimator pipeline of bench_live for '
+                    'comparison; the model is --model-default or the seed-0 default model')
+    ap.add_argument('--live-mode', default='inverse', choices=('linear', 'inverse',
+                                                               'inverse_feedback'))
     ap.add_argument('--variants', action='store_true', help='also the inverse with the exact '
                     'output target and without the advance compensation')
     args = ap.parse_args()
+    if args.live:
+        model = args.model_default or identify('default', args.models / 'default-seed0', 0)
+        print_live(live(model, args.live, args.live_mode))
+        return
     results = {}
     t0 = time.monotonic()
     for plant in args.plants:

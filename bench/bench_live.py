@@ -58,9 +58,11 @@ def estimator_compute(model, n: int = 20000) -> tuple[float, float]:
 
 
 class Probe:
-    """Subscribes to the three sample streams and /diagnostics of one namespace."""
+    """Subscribes to the three sample streams (or `topics`; wall-clock receive times kept for
+    `wall_topic`) and /diagnostics of one namespace."""
 
-    def __init__(self, ns: str):
+    def __init__(self, ns: str, topics=('voltage_command', 'deflection', 'deflection_estimate'),
+                 wall_topic: str = 'deflection_estimate'):
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.experimental import EventsExecutor
@@ -71,7 +73,7 @@ class Probe:
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
         self.node = Node('bench_probe', namespace=ns, context=self.context)
-        self.recv = {t: {} for t in ('voltage_command', 'deflection', 'deflection_estimate')}
+        self.recv = {t: {} for t in topics}
         self.wall = {}
         self.diag = {}
         mono, wall = time.monotonic_ns, time.time_ns
@@ -95,7 +97,7 @@ class Probe:
 
         qos = sample_qos(depth=100000)
         self.subs = {t: self.node.create_subscription(JointState, t, make_cb(store, t ==
-                                                       'deflection_estimate'), qos, raw=True)
+                                                       wall_topic), qos, raw=True)
                      for t, store in self.recv.items()}
         self.node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 100)
         self.executor = EventsExecutor(context=self.context)
