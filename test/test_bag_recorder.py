@@ -41,6 +41,25 @@ def test_write_error_is_reported_not_raised_in_the_thread(tmp_path):
     assert list(iter_raw(tmp_path / 'b')) == []
 
 
+def test_disk_full_stops_the_writer_with_the_reason_and_counts_the_rest(tmp_path, monkeypatch):
+    from piezo_narx_ros.bag import writer
+    original, calls = writer.BagWriter.write, []
+
+    def write(self, *args):
+        calls.append(1)
+        if len(calls) > 5:
+            raise OSError(28, 'No space left on device')
+        return original(self, *args)
+    monkeypatch.setattr(writer.BagWriter, 'write', write)
+    rec = BagRecorder(tmp_path / 'b')
+    topic = rec.add_topic('piezo/t', JOINT_STATE)
+    for k in range(20):
+        rec.put(topic, T0 + k, joint_state_cdr(T0 + k * 500_000, effort=(float(k),)))
+    stats = rec.close()
+    assert (stats.written, stats.failed) == (5, 15) and len(calls) == 6
+    assert stats.error == '[Errno 28] No space left on device'
+
+
 def test_type_rules():
     assert expand_types(['/a', '/b'], ['x/msg/Y']) == ['x/msg/Y', 'x/msg/Y']
     assert expand_types(['/a', '/b'], ['x/msg/Y', '']) == ['x/msg/Y', 'auto']

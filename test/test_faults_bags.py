@@ -5,6 +5,7 @@ the file it names.
 
 Covers issue 10 items 7-10 (item 6, SIGHUP, is in test_faults_nodes.py).
 """
+import os
 import subprocess
 import sys
 
@@ -158,3 +159,52 @@ def test_repair_of_a_non_bag_is_one_line(tmp_path):
     (tmp_path / 'x.mcap').write_bytes(b'not mcap at all')
     with pytest.raises(BagError, match='not an MCAP file'):
         repair_bag(tmp_path / 'x.mcap')
+
+
+def test_recorder_on_a_full_disk_reports_the_error_and_leaves_a_repairable_bag(tmp_path):
+    """The bag file cannot grow past 200 kB (RLIMIT_FSIZE; Python ignores SIGXFSZ, so writes
+    fail with EFBIG as on a full disk). Before: the writer thread died with a traceback,
+    /diagnostics went on saying 'recording' and SIGTERM ended silently. Now: ERROR on
+    /diagnostics while it runs, one line at the end, and `bag repair` recovers what was
+    written, in order."""
+    import resource
+
+    from test_estimator_node import Collector, stop
+    from test_recorder_node import P, T0, Publisher
+
+    from piezo_narx_ros.bag.reader import iter_raw
+    from piezo_narx_ros.bag.repair import repair_bag
+    from piezo_narx_ros.nodes.common import DIAG_ERROR, decode_joint_state
+
+    def small_files():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))
+    bag, ns = tmp_path / 'full', '/fulldisk'
+    proc = subprocess.Popen(
+        [sys.executable, '-m', 'piezo_narx_ros.nodes.recorder_node', '--ros-args', '-r',
+         f'__ns:={ns}', '-p', f'output:={bag}'], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True, preexec_fn=small_files, env=dict(os.environ, PYTHONUNBUFFERED='1'))
+    pub, col = Publisher(ns), Collector(ns, (), diagnostics=True)
+    try:
+        assert pub.wait_matched(), 'recorder never subscribed'
+        pub.publish_samples(0, 3000)               # ~600 kB of messages
+        assert col.wait_for(lambda: col.diag.get(f'{ns}/recorder_node', (0,))[0]
+                            == DIAG_ERROR, 15.0), col.diag
+        level, message, values = col.diag[f'{ns}/recorder_node']
+        assert message.startswith('writer stopped: ') and 'File too large' in message
+        assert proc.poll() is None                  # still running, still answering
+    finally:
+        pub.close()
+        col.close()
+        codes = stop([proc])
+    err = proc.stderr.read()
+    assert codes == [0] and 'Traceback' not in err, err
+    [line] = [ln for ln in err.splitlines() if 'error' in ln]
+    assert line.startswith('recorder_node: error: writer stopped: [Errno 27] File too large')
+    assert f'piezo-narx bag repair {bag}' in line
+    repair_bag(bag)
+    stamps = {}
+    for topic, _, _, data in iter_raw(bag):
+        stamps.setdefault(topic, []).append(decode_joint_state(data).t_ns)
+    assert sum(map(len, stamps.values())) > 100
+    for got in stamps.values():     # each topic: the first samples sent, none missing
+        assert got == [T0 + k * P for k in range(len(got))]

@@ -154,6 +154,30 @@ def test_empty_list_parameter_is_one_line_not_a_type_error():
     assert proc.stderr.startswith('command_node: error: parameter axes has no value')
 
 
+@pytest.mark.parametrize('where', ['constructor', 'callback'])
+def test_unexpected_error_in_a_node_exits_1_with_one_line(where):
+    """run_node's last resort: an exception that is not the package's own (a bug) ends the
+    process with exit 1 and one line naming the node and the exception, no traceback."""
+    fault = ('raise KeyError("gain")' if where == 'constructor'
+             else 'self.timer = self.create_timer(0.05, lambda: 1 / 0)')
+    code = ('import sys\n'
+            'from piezo_narx_ros.nodes.common import PiezoNode, run_node\n'
+            'class Boom(PiezoNode):\n'
+            '    NODE_NAME = "boom_node"\n'
+            '    def __init__(self, **kwargs):\n'
+            '        super().__init__(**kwargs)\n'
+            f'        {fault}\n'
+            f'sys.exit(run_node(Boom, ["boom", "--ros-args", "-r", "__ns:=/boom{os.getpid()}"]))\n')
+    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 1, done.stderr
+    want = ("boom_node: error: KeyError: 'gain'" if where == 'constructor'
+            else 'boom_node: error: ZeroDivisionError: division by zero')
+    # (rclpy's EventsExecutor logs a callback's exception itself before it reaches run_node)
+    assert done.stderr.strip().splitlines()[-1] == want
+    assert 'Traceback' not in done.stderr
+
+
 def test_retired_parameter_refused_by_a_real_node():
     proc = subprocess.run([sys.executable, '-m', 'piezo_narx_ros.nodes.simulator_node',
                            '--ros-args', '-p', 'best_effort:=true', '-r', '__ns:=/retired'],
@@ -337,3 +361,55 @@ def test_live_player_loop_feeding_the_estimator_restarts_each_pass(tmp_path):
         codes = stop([p for p in (player, est) if p is not None])
         col.close()
     assert codes[-1] == 0
+
+
+def test_malformed_bytes_reaching_a_running_simulator_and_estimator_are_counted_and_survived(
+        tmp_path):
+    """Over DDS, raw CDR that is not a JointState (truncated, a name count running past the
+    end, random bytes) among good commands: both nodes keep running, answer every good command
+    exactly as offline, and count each bad message on /diagnostics."""
+    import numpy as np
+    from test_estimator_node import Collector, start_node, stop
+
+    from piezo_narx_ros.estimator.toy import toy_narx
+    from piezo_narx_ros.ident.model_io import save_model
+    from piezo_narx_ros.plant import PiezoCantilever
+    model = toy_narx(fs=2000.0)
+    save_model(model, tmp_path / 'toy.json')
+    col = Collector('/garbled', ('deflection', 'deflection_estimate'), diagnostics=True)
+    sim = start_node('simulator_node', ns='/garbled')
+    est = start_node('estimator_node', '-p', f'model:={tmp_path / "toy.json"}', '-p', 'init:=rest',
+                     ns='/garbled')
+    p, t0, n = 500_000, 10**18, 300
+    good = common.encode_joint_state(t0, ['x'], effort=[1.0])
+    bad = {50: good[:30],                                              # truncated
+           120: good[:20] + (10**6).to_bytes(4, 'little') + good[24:],  # a million names
+           200: bytes(np.random.default_rng(1).integers(0, 256, 64, dtype=np.uint8))}
+    try:
+        assert col.wait_for(lambda: col.pub.get_subscription_count() >= 2, 40.0)
+        u = np.random.default_rng(4).uniform(-100, 100, n)
+        for k in range(n):
+            if k in bad:
+                col.pub.publish(bad[k])
+            col.pub.publish(common.make_joint_state(t0 + k * p, ['x'], effort=[u[k]]))
+            time.sleep(0.0005)
+        assert col.wait_for(lambda: len(col.data['deflection']) >= n
+                            and len(col.data['deflection_estimate']) >= n, 20.0)
+
+        def values(node):
+            return (_status_of(col, node) or (0, '', {}))[2]
+        assert col.wait_for(lambda: values('simulator_node').get('rejected') == '3'
+                            and values('estimator_node').get('rejected_nonfinite') == '3', 10.0), (
+            values('simulator_node'), values('estimator_node'))
+        assert sim.poll() is None and est.poll() is None              # still running
+        t, y = col.arrays('deflection')
+        assert np.array_equal(t, t0 + p * np.arange(n))
+        assert np.array_equal(y, PiezoCantilever(fs=2000.0, seed=0).run(u).y)
+        t, y_hat = col.arrays('deflection_estimate')
+        assert np.array_equal(t, t0 + p * np.arange(n))
+        assert np.max(np.abs(y_hat - model.simulate(u))) <= 1e-12
+        assert values('estimator_node')['commands'] == str(n)    # the good ones
+    finally:
+        codes = stop([sim, est])
+        col.close()
+    assert codes == [0, 0]

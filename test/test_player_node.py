@@ -112,6 +112,16 @@ def test_bad_bag_exits_2_with_one_line(tmp_path):
     assert err.strip() == f'player_node: error: bag not found: {tmp_path / "missing"}'
 
 
+def test_bag_without_a_playable_topic_exits_2_with_one_line(tmp_path):
+    from piezo_narx_ros.bag.writer import BagWriter
+    with BagWriter(tmp_path / 'empty'):
+        pass                                           # a valid bag with no topic at all
+    proc = start_player('-p', f'bag:={tmp_path / "empty"}')
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 2
+    assert err.strip() == f'player_node: error: no playable topic in {tmp_path / "empty"}'
+
+
 def _qos(reliability, durability, depth=0, history=3):
     from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                     QosReliability, QosTime)

@@ -17,6 +17,10 @@ from piezo_narx_ros.errors import BagError
 _STOP = object()
 
 
+def _one_line(exc: BaseException) -> str:
+    return ' '.join(str(exc).split())
+
+
 @dataclass
 class RecorderStats:
     """Counters of a BagRecorder (messages, not bytes)."""
@@ -82,8 +86,11 @@ class BagRecorder:
                 item = q.get(timeout=self._chunk_period_s)
             except queue.Empty:
                 with self._lock:
-                    if bag.message_count:
-                        bag.flush()  # idle: push the pending chunk to disk
+                    if bag.message_count and not stats.error:
+                        try:
+                            bag.flush()  # idle: push the pending chunk to disk
+                        except OSError as exc:
+                            stats.error = _one_line(exc)
                 continue
             items = [item]
             while len(items) < self._batch:
@@ -103,8 +110,8 @@ class BagRecorder:
                         continue
                     try:
                         bag.write(*it)
-                    except BagError as exc:
-                        stats.error = str(exc)
+                    except (BagError, OSError) as exc:   # OSError: disk full, file too large
+                        stats.error = _one_line(exc)
                         stats.failed += 1
                         continue
                     stats.written += 1
@@ -120,7 +127,10 @@ class BagRecorder:
         self._queue.put(_STOP)
         self._thread.join(timeout)
         with self._lock:
-            self._bag.close()
+            try:
+                self._bag.close()
+            except OSError as exc:   # what was written stays repairable (bag repair)
+                self.stats.error = self.stats.error or _one_line(exc)
         return self.stats
 
     def __enter__(self) -> 'BagRecorder':

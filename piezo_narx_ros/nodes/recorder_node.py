@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import importlib
 import re
+import sys
 import time
 from datetime import datetime
 from functools import partial
@@ -155,6 +156,10 @@ class RecorderNode(PiezoNode):
         stats = self.recorder.close()
         print(f'recorder_node: wrote {stats.written} message(s) to {self.recorder.path}',
               flush=True)
+        if stats.error:
+            print(f'recorder_node: error: writer stopped: {stats.error} ({stats.failed} '
+                  f'message(s) not written); `piezo-narx bag repair {self.recorder.path}` '
+                  'recovers what was', file=sys.stderr, flush=True)
 
 
 main = main_for(RecorderNode)
