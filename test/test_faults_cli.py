@@ -6,6 +6,7 @@ cannot identify anything, inputs far outside a model's range, NaN in model files
 header-only CSV, random bytes, and `fit --out` over an existing model.
 """
 import json
+import re
 import subprocess
 import sys
 import zipfile
@@ -253,3 +254,40 @@ def test_no_traceback_in_a_real_process(tmp_path):
                           capture_output=True, text=True, cwd=REPO, timeout=60)
     assert proc.returncode == 2 and proc.stderr.count('\n') == 1, proc.stderr
     assert 'Traceback' not in proc.stderr
+
+
+# ------------------------------------------------------------------- argument errors (issue 13)
+@pytest.mark.parametrize('argv, message', [
+    (['evaluate', '{model}', '{good}', '--max-lag', '0'], '--max-lag must be >= 1, got 0'),
+    (['evaluate', '{model}', '{good}', '--max-outside', '1'],
+     r'--max-outside must be in \[0, 1\), got 1.0'),
+    (['evaluate', '{model}', '{good}', '--noise-order', '500'],
+     r'--noise-order must be in \[0, 200\], got 500'),
+    (['fit', '{good}', '--out', '{tmp}/o', '--ny', '1.5'], "--ny: not a lag range: '1.5'"),
+    (['fit', '{good}', '--out', '{tmp}/o', '--config', '{cfg}'],
+     r"ny: lag orders must be integers, got \[1, 2.5\]"),
+    (['fit', '{good}', '--out', '{tmp}/o', '--fs', '-1'],
+     '--fs must be a positive number of Hz, got -1.0'),
+    (['fit', '{good}', '--out', '{good}'], 'good.npz: exists and is not a directory'),
+    (['simulate', '--seconds', '1', '--out', '{tmp}/missing/s.npz'],
+     '--out directory .*missing does not exist'),
+    (['simulate', '--seconds', '1', '--seed', '-3', '--out', '{tmp}/s.npz'],
+     '--seed must be a non-negative integer, got -3'),
+    (['bag', 'export', '{bag}', '--out', '{tmp}/x.txt'], '--out must end in .npz or .csv'),
+    (['bringup', 'sim.launch.yaml', '-p', 'nobody.fs=1'],
+     '--param names node.s. not in .*sim.launch.yaml: nobody'),
+    (['bringup', 'rig.launch.yaml', '-p', 'fake_rig.seed=1'],
+     '--param fake_rig.seed: fake_rig takes no parameters'),
+])
+def test_argument_errors_are_one_line_naming_the_option(tmp_path, good_npz, toy_model, capsys,
+                                                        argv, message):
+    from piezo_narx_ros.bag.writer import write_uy_bag
+    u, y = record()
+    write_uy_bag(tmp_path / 'bag', u, y, 2000.0)
+    (tmp_path / 'c.yaml').write_text('ny: [1, 2.5]\n')
+    argv = [a.format(good=good_npz, tmp=tmp_path, model=toy_model, bag=tmp_path / 'bag',
+                     cfg=tmp_path / 'c.yaml') for a in argv]
+    code, out, err = cli(argv, capsys)
+    assert code == 2 and one_error_line(err), err
+    assert re.search(message, err), err
+    assert not (tmp_path / 'o').exists() and not (tmp_path / 's.npz').exists()

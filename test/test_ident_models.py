@@ -55,16 +55,40 @@ def test_lagged_regressors_follow_eq1_order():
 
 
 @pytest.mark.parametrize('u, y, nu, ny, match', [
-    (np.zeros((5, 2)), np.zeros(5), 1, 1, 'must be 1-D'),
-    (np.zeros(5), np.zeros(4), 1, 1, 'expected 5'),
-    (np.array([0, 1, np.nan, 2.0]), np.zeros(4), 1, 1, 'NaN'),
-    (np.zeros(3), np.zeros(3), 4, 4, 'at least 5'),
+    (np.zeros((5, 2)), np.zeros(5), 1, 1, '^u must be 1-D'),
+    (np.zeros(5), np.zeros(4), 1, 1, '^y has 4 samples, expected 5$'),
+    (np.array([0, 1, np.nan, 2.0]), np.zeros(4), 1, 1, '^u contains NaN'),
+    (np.zeros(4), np.array([0, 1, np.inf, 2.0]), 1, 1, '^y contains NaN or infinite'),
+    (np.zeros(4), np.zeros((4, 1)), 1, 1, r'^y must be 1-D, got shape \(4, 1\)'),
+    (np.zeros(3), np.zeros(3), 4, 4, '^u has 3 samples, need at least 5$'),
     (np.zeros(9), np.zeros(9), 1, 0, 'ny >= 1'),
     (np.zeros(9), np.zeros(9), 1.5, 1, 'integers'),
 ])
 def test_lagged_regressors_reject_bad_input(u, y, nu, ny, match):
     with pytest.raises(DataError, match=match):
         lagged_regressors(u, y, nu, ny)
+
+
+def test_predict_and_simulate_name_the_bad_argument():
+    """Bad input to a fitted model's predict/simulate: one line naming the argument and what
+    is wrong with it (ARX(2, 1): n0 = 2, a row needs 3 samples)."""
+    model = ARXModel(na=2, nb=1).fit(*arx_system(200)[:2])
+    u = np.zeros(10)
+    cases = [
+        (lambda: model.predict(u[:2], u[:2]), '^u has 2 samples, need at least 3$'),
+        (lambda: model.predict(u, u[:9]), '^y has 9 samples, expected 10$'),
+        (lambda: model.predict(u, np.r_[u[:9], np.nan]), '^y contains NaN'),
+        (lambda: model.predict(np.r_[np.nan, u[1:]], u), '^u contains NaN'),
+        (lambda: model.simulate(np.r_[u[:9], np.inf]), '^u contains NaN or infinite'),
+        (lambda: model.simulate(np.r_[u[:9], np.inf], u[:2]), '^u contains NaN or infinite'),
+        (lambda: model.simulate(u, u[:3]), '^y0 has 3 samples, expected 2$'),
+        (lambda: model.simulate(u[:1], u[:2]), '^u has 1 samples, need at least 2$'),
+    ]
+    for call, match in cases:
+        with pytest.raises(DataError, match=match):
+            call()
+    assert model.predict(u[:3], u[:3]).shape == (3,)     # exactly n0 + 1 samples is enough
+    assert model.simulate(u[:2], u[:2]).shape == (2,)
 
 
 # ---------------------------------------------------------------- ARX
