@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test bench soak clean
+.PHONY: setup demo test bench soak mutate clean
 
 $(STAMP): requirements.txt setup.py package.xml
 	python3 -m venv $(VENV)
@@ -36,5 +36,19 @@ bench: setup
 soak: setup
 	$(PY) bench/bench_soak.py
 
+# Mutation testing of the core modules with their fast tests, one module at a time (CPU-heavy:
+# about an hour on the shared 2-core box); the tool comes from requirements-dev.txt, not from
+# requirements.txt, so neither `make test` nor CI installs it. Settings: [mutmut] in setup.cfg;
+# results in mutants/ (a second run only retests what changed); figures: docs/testing.md.
+MUTATE := ident.regressors ident.correlation ident.metrics ident.noise_model ident.narx \
+	ident.model_io estimator.free_run bag.pairing nodes.common.x_decode_joint_state \
+	nodes.common.x_encode_joint_state
+
+mutate: setup
+	$(PY) -m pip install -q -r requirements-dev.txt
+	for m in $(MUTATE); do echo "mutating $$m"; $(VENV)/bin/mutmut run "piezo_narx_ros.$$m*" \
+		> .mutmut.log 2>&1 || { tail -c 2000 .mutmut.log; exit 1; }; done
+	$(PY) bench/mutation_summary.py
+
 clean:
-	rm -rf $(VENV) reports
+	rm -rf $(VENV) reports mutants .mutmut.log
