@@ -52,6 +52,10 @@ def test_lagged_regressors_follow_eq1_order():
     np.testing.assert_array_equal(X[0], [3, 2, 1, 102, 101, 100])
     np.testing.assert_array_equal(X[-1], [9, 8, 7, 108, 107, 106])
     np.testing.assert_array_equal(t, y[3:])
+    # Integer samples come back as float64 arrays (the kernels and torch expect doubles).
+    Xi, ti = lagged_regressors([1, 2, 3, 4], [5, 6, 7, 8], nu=1, ny=1)
+    assert Xi.dtype == ti.dtype == np.float64 and Xi.flags.c_contiguous
+    np.testing.assert_array_equal(Xi, [[2, 1, 5], [3, 2, 6], [4, 3, 7]])
 
 
 @pytest.mark.parametrize('u, y, nu, ny, match', [
@@ -63,6 +67,7 @@ def test_lagged_regressors_follow_eq1_order():
     (np.zeros(3), np.zeros(3), 4, 4, '^u has 3 samples, need at least 5$'),
     (np.zeros(9), np.zeros(9), 1, 0, 'ny >= 1'),
     (np.zeros(9), np.zeros(9), 1.5, 1, 'integers'),
+    (np.zeros(9), np.zeros(9), 1, 2.5, 'integers'),
 ])
 def test_lagged_regressors_reject_bad_input(u, y, nu, ny, match):
     with pytest.raises(DataError, match=match):
