@@ -105,18 +105,28 @@ class PlaybackClock:
     """The recorded time (ns) that playback has reached, for /clock (`ros2 bag play --clock`).
 
     `anchor(mono_s, bag_ns)` when the message recorded at bag_ns goes out at monotonic mono_s;
-    `now(mono_s)` extrapolates at `rate` recorded seconds per second; before the first anchor it
-    holds `start_ns`, after `finish()` the last anchored time."""
+    `now(mono_s)` extrapolates at `rate` recorded seconds per second, but not past the next
+    message (`next_due(bag_ns)`) while it has not gone out, nor past the anchor while the next
+    message is unknown (a stalled player or a loop reopening the bag must not run the clock ahead
+    of the messages, or backwards when they catch up); before the first anchor it holds
+    `start_ns`, after `finish()` the last anchored time."""
 
     def __init__(self, start_ns: int, rate: float = 1.0):
         self.rate = float(rate)
         self._anchor: tuple[float, int] | None = None
         self._held: int | None = int(start_ns)
+        self._next: int | None = None
 
     def anchor(self, mono_s: float, bag_ns: int) -> None:
         """The message recorded at bag_ns (ns) is published at monotonic mono_s (s)."""
         self._anchor = (float(mono_s), int(bag_ns))
         self._held = None
+        self._next = int(bag_ns)   # held there until the next message is known
+
+    def next_due(self, bag_ns: int) -> None:
+        """The next message to go out was recorded at bag_ns (ns): the clock may advance up to
+        it; when it lies before the last anchor (a loop starts over) the clock holds there."""
+        self._next = int(bag_ns)
 
     def finish(self) -> None:
         """Playback ended: hold the last anchored time."""
@@ -128,4 +138,5 @@ class PlaybackClock:
         if self._held is not None or self._anchor is None:
             return int(self._held)
         t0, ns0 = self._anchor
-        return ns0 + max(0, int(round((mono_s - t0) * self.rate * 1e9)))
+        ns = ns0 + max(0, int(round((mono_s - t0) * self.rate * 1e9)))
+        return ns if self._next is None else min(ns, max(ns0, self._next))

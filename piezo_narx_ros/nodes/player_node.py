@@ -112,6 +112,8 @@ class PlayerNode(PiezoNode):
         start = time.monotonic()
         try:
             for due, topic, _, data in self.schedule:
+                if self.clock is not None:
+                    self.clock.next_due(self.schedule.current_ns)
                 wait = start + due - time.monotonic()
                 if wait > 0:
                     if self._stop.wait(wait):
