@@ -26,6 +26,7 @@ bench: setup
 	$(PY) bench/bench_simulate.py
 	$(PY) bench/bench_plant.py
 	$(PY) bench/bench_grid.py
+	$(PY) bench/bench_scale.py
 	$(PY) bench/bench_sysidentpy.py
 	$(PY) bench/bench_live.py
 	$(PY) bench/bench_recorder.py

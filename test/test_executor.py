@@ -189,8 +189,8 @@ def test_fleet_per_record_local_and_ray(ray_executor, tmp_path, capsys):
         assert cands[0]['data']['sources'] == [str(fleet / f'{name}.npz')]
     rows = [(outs[k] / 'summary.csv').read_text().splitlines() for k in outs]
     assert rows[0][0].startswith('recording,status,selected')
-    assert [r.split(',')[:2] for r in rows[0][1:]] == [['idle', 'failed'], ['rig4', 'ok'],
-                                                      ['rig5', 'ok']]
+    assert [r.split(',')[:2] for r in rows[0][1:]] == [
+        ['idle', 'failed'], ['rig4', 'ok'], ['rig5', 'ok']]
     assert [r.split(',')[:7] for r in rows[0]] == [r.split(',')[:7] for r in rows[1]]
     assert not (outs['local'] / 'model').exists()     # the model.json/.npz pair was skipped
 

@@ -52,8 +52,8 @@ def add_parser(subparsers):
                    help='where the candidate fits run: local (default) = --jobs processes; '
                         'ray = Ray tasks on a local Ray of --jobs CPUs or on --ray-address')
     p.add_argument('--ray-address', metavar='ADDR',
-                   help='running Ray cluster (auto, HOST:PORT or ray://HOST:10001); needs '
-                        '--executor ray')
+                   help='running Ray cluster: HOST:PORT of its head node (ray start --head '
+                        'prints it), or auto on a node of the cluster; needs --executor ray')
     p.add_argument('--force', action='store_true',
                    help='overwrite the model, candidates and report already in DIR')
     p.add_argument('--config', metavar='YAML', help='settings file (see config/fit.yaml)')

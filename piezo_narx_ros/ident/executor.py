@@ -13,7 +13,10 @@ Ctrl-C (KeyboardInterrupt) cancels the work not yet done and is re-raised.
 
 The task function is the same on every executor, so a search gives the same numbers on all of
 them: each worker runs one BLAS/OpenMP thread (`SINGLE_THREAD_ENV`, set before numpy loads) and
-the task function asks `in_worker()` to pin torch to one thread as well.
+the task function asks `in_worker()` to pin torch to one thread as well. Tasks run in the calling
+process (LocalExecutor with jobs = 1 or a single task, e.g. the final fit) use that process's BLAS
+threads: for the same bits there, set OPENBLAS_NUM_THREADS=1 before numpy loads, as `piezo-narx`
+does (measured without it: 6 of the paper grid's 100 ARX fits differed in the last bits).
 
 `LocalExecutor(jobs)` is the default: `jobs` spawned processes (in this process for jobs = 1 or
 a single task). `RayExecutor(address, num_cpus)` runs each task as a Ray task; without an
@@ -266,11 +269,13 @@ class RayExecutor(Executor):
 
     `address` None starts a local Ray instance with `num_cpus` CPUs (default: all), no
     dashboard and an object store sized from the data (at least `min_store` bytes), stopped on
-    close(). An address ('auto', 'HOST:PORT' or 'ray://HOST:10001') connects to a running
-    cluster, whose nodes need this package and its requirements installed; close() then only
-    disconnects. A worker that dies is retried `retries` times by Ray; a task that raises is
-    not retried (a fit is deterministic). In a process already connected to Ray (ray.init done
-    by the caller) the existing connection is used and left open.
+    close(). An address ('HOST:PORT' of the head node, or 'auto' on a node of the cluster)
+    connects to a running cluster as a driver: its nodes need this project's requirements; this
+    package's code is shipped with the job. close() then only disconnects. (Ray Client's
+    'ray://' addresses need the ray[client] extras, which requirements.txt does not install.)
+    A worker that dies is retried `retries` times by Ray; a task that raises is not retried (a
+    fit is deterministic). In a process already connected to Ray (ray.init done by the caller)
+    the existing connection is used and left open.
     """
     name = 'ray'
 
@@ -420,5 +425,3 @@ def make_executor(name: str = 'local', jobs: int = 2, address: str | None = None
     if name == 'ray':
         return RayExecutor(address=address, num_cpus=None if address else jobs)
     raise ConfigError(f'executor must be one of {", ".join(EXECUTORS)}, got {name!r}')
-
-
