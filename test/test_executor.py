@@ -5,6 +5,7 @@ One local Ray instance (2 CPUs, no dashboard, small object store) serves the mod
 down at its end; the CLI tests run in-process and reuse it (RayExecutor leaves a connection it did
 not make open).
 """
+import csv
 import json
 import os
 import signal
@@ -187,11 +188,17 @@ def test_fleet_per_record_local_and_ray(ray_executor, tmp_path, capsys):
                  for k in outs]
         assert cands[0] == cands[1]
         assert cands[0]['data']['sources'] == [str(fleet / f'{name}.npz')]
-    rows = [(outs[k] / 'summary.csv').read_text().splitlines() for k in outs]
-    assert rows[0][0].startswith('recording,status,selected')
-    assert [r.split(',')[:2] for r in rows[0][1:]] == [
-        ['idle', 'failed'], ['rig4', 'ok'], ['rig5', 'ok']]
-    assert [r.split(',')[:7] for r in rows[0]] == [r.split(',')[:7] for r in rows[1]]
+    tables = []
+    for k in outs:
+        with open(outs[k] / 'summary.csv', newline='') as f:
+            tables.append(list(csv.DictReader(f)))
+    assert [(r['recording'], r['status']) for r in tables[0]] == [
+        ('idle', 'failed'), ('rig4', 'ok'), ('rig5', 'ok')]
+    assert 'constant' in tables[0][0]['error']
+    same = ('recording', 'status', 'selected', 'n_params', 'validated',
+            'r2_validation_simulation', 'r2_worst_case', 'rmse_validation_simulation_m')
+    assert [{c: r[c] for c in same} for r in tables[0]] == \
+        [{c: r[c] for c in same} for r in tables[1]]
     assert not (outs['local'] / 'model').exists()     # the model.json/.npz pair was skipped
 
     # Each recording's fit is the fit of that recording alone.
@@ -379,3 +386,32 @@ def test_unreachable_address_is_one_line(tmp_path):
     assert done.returncode == 2, done.stderr
     assert done.stderr.strip().splitlines()[-1].startswith(
         'piezo-narx: error: --ray-address 127.0.0.1:9: cannot connect to a Ray cluster')
+
+
+def test_without_address_a_local_ray_is_started_and_stopped(tmp_path):
+    _write_npz(tmp_path / 'r.npz', hysteretic_record(seed=12))
+    proc = subprocess.Popen(
+        [sys.executable, '-m', 'piezo_narx_ros.cli.main', 'fit', str(tmp_path / 'r.npz'),
+         '--no-arx', '--ny', '1', '--nu', '1', '--hidden', '2', '--no-report', '--executor',
+         'ray', '--jobs', '2', '--out', str(tmp_path / 'o')],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    seen = {}
+    try:
+        while proc.poll() is None:
+            for pid in _descendants(proc.pid) - set(seen):
+                seen[pid] = _cmdline(pid)
+            time.sleep(0.1)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert '(local Ray (2 CPUs))' in out.splitlines()[0]
+    assert any('raylet' in c for c in seen.values()), 'no Ray of its own was started'
+    family = set(seen)
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and any(_alive(p) for p in family):
+        time.sleep(0.5)
+    assert not [p for p in family if _alive(p)], 'the local Ray outlived the command'
+    assert (tmp_path / 'o' / 'model.json').is_file()

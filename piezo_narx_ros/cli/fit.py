@@ -352,7 +352,7 @@ def _run_fleet(args, settings, config, inputs, executor, out) -> int:
             rows[name] = {'recording': name, 'status': 'failed', 'source': str(path),
                           'error': str(exc)}
     if not args.quiet:
-        print(f'fitting {len(loaded)} recording(s) one by one on {executor.describe()}')
+        print(f'fitting {len(loaded)} recording(s), each on its own, on {executor.describe()}')
     with executor:
         results = run_experiments(list(loaded.values()), config, executor)
     for (name, records), result in zip(loaded.items(), results):
