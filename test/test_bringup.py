@@ -79,6 +79,9 @@ def test_package_launch_files_are_found_by_name_and_take_arguments():
     assert [s.name for s in ctl] == ['simulator_node', 'controller_node', 'command_node']
     assert 'model:=m.json' in ctl[1].argv and 'mode:=linear' in ctl[1].argv
     assert 'output:=position' in ctl[2].argv
+    assert all(s.argv[0] == sys.executable for s in ctl)          # launch_prefix '' = none
+    rt = load_launch('control.launch.yaml', {'model': 'm.json', 'launch_prefix': 'chrt -f 80'})
+    assert all(s.argv[:4] == ['chrt', '-f', '80', sys.executable] for s in rt)
 
 
 BASE = 'launch:\n- node: {pkg: piezo_narx_ros, exec: command_node}\n'
@@ -102,6 +105,8 @@ BASE = 'launch:\n- node: {pkg: piezo_narx_ros, exec: command_node}\n'
     (BASE + BASE[8:], {}, 'two processes named'),
     ('launch:\n- node: {pkg: piezo_narx_ros, exec: fake_rig}', {}, 'executable action'),
     ('launch: [', {}, 'not valid YAML'),
+    ('launch:\n- node: {pkg: piezo_narx_ros, exec: command_node, launch-prefix: no_such_cmd}',
+     {}, "launch-prefix of command_node: no executable 'no_such_cmd' on PATH"),
 ])
 def test_bad_launch_file_refused_with_one_line(tmp_path, text, args, fragment):
     launch = tmp_path / 'b.launch.yaml'
@@ -142,11 +147,18 @@ def test_escalates_to_sigkill_for_a_process_that_ignores_signals():
     assert '[stubborn] ready' in text and 'SIGTERM' in text and 'SIGKILL' in text
 
 
+def _nice(pid):
+    with open(f'/proc/{pid}/stat') as f:
+        return int(f.read().rsplit(')', 1)[1].split()[16])     # field 19: nice
+
+
 def test_sim_bringup_runs_prefixes_logs_and_stops_all_on_sigterm(tmp_path):
     from piezo_narx_ros.estimator.toy import toy_narx
     from piezo_narx_ros.ident.model_io import save_model
     model = save_model(toy_narx(), tmp_path / 'toy.json')
-    p = _bringup('estimate.launch.yaml', f'model:={model}')
+    # launch_prefix runs each node under a command (here nice; chrt -f for real-time priority):
+    # the node is that command's process, so the stop below still reaches it.
+    p = _bringup('estimate.launch.yaml', f'model:={model}', 'launch_prefix:=nice -n 5')
     lines = []
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
@@ -159,12 +171,15 @@ def test_sim_bringup_runs_prefixes_logs_and_stops_all_on_sigterm(tmp_path):
                                                   'estimator_node')):
             break
     time.sleep(1.0)                                # let samples flow
+    running = [int(x) for x in re.findall(r'\(pid (\d+)\)', ''.join(lines))]
+    niceness = [_nice(pid) for pid in running]
     p.send_signal(signal.SIGTERM)
     out, err = p.communicate(timeout=30)
     text = ''.join(lines) + out
     assert p.returncode == 0, err
     pids = [int(x) for x in re.findall(r'\(pid (\d+)\)', text)]
     assert len(pids) == 3 and not any(_alive(pid) for pid in pids)
+    assert niceness == [_nice(os.getpid()) + 5] * 3
     assert 'stopped (simulator_node=0, estimator_node=0, command_node=0)' in text
     assert re.search(r'\[estimator_node\] \[INFO\] .*toy\.json', text)
 

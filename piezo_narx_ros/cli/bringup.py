@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -117,8 +118,11 @@ def load_launch(path, arguments: dict[str, str] | None = None,
             if not proc.ros:
                 raise ConfigError(f'--param {proc.name}.{k}: {proc.name} takes no parameters')
             argv += ['-p', f'{k}:={_yaml_flow(v)}']
+        if proc.prefix and shutil.which(proc.prefix[0]) is None:
+            raise ConfigError(f'{launch.path}: launch-prefix of {proc.name}: no executable '
+                              f'{proc.prefix[0]!r} on PATH')
         # python -m this module MODULE ...: see _child_main
-        specs.append(NodeSpec(proc.name, [sys.executable, '-m', __name__,
+        specs.append(NodeSpec(proc.name, [*proc.prefix, sys.executable, '-m', __name__,
                                           NODES[proc.executable], *argv], proc.env))
     if overrides:
         raise ConfigError(f'--param names node(s) not in {launch.path}: {", ".join(overrides)}')

@@ -19,6 +19,7 @@ line naming it, rather than ignored:
           param: [{from: FILE}, {name: N, value: V}]       # --params-file FILE, -p N:=V
           remap: [{from: A, to: B}]                        # -r A:=B
           env: [{name: N, value: V}]
+          launch-prefix: chrt -f 80                        # a command the process runs under
           output: screen                                   # accepted; output is always shown
           if: $(var x)   /   unless: $(var x)              # on node and executable
       - executable:                                        # a non-ROS process (fake_rig)
@@ -43,8 +44,8 @@ from piezo_narx_ros.errors import ConfigError
 PACKAGE = 'piezo_narx_ros'
 _SUBST = re.compile(r'\$\(([a-z][a-z-]*)((?:\s+[^\s()]+)*)\s*\)')
 _NODE_KEYS = {'pkg', 'exec', 'name', 'namespace', 'args', 'ros_args', 'param', 'remap', 'env',
-              'output', 'exec_name', 'if', 'unless'}
-_EXECUTABLE_KEYS = {'cmd', 'name', 'env', 'output', 'if', 'unless'}
+              'output', 'exec_name', 'if', 'unless', 'launch-prefix'}
+_EXECUTABLE_KEYS = {'cmd', 'name', 'env', 'output', 'if', 'unless', 'launch-prefix'}
 
 
 @dataclass
@@ -52,12 +53,14 @@ class Process:
     """One process of a launch file: the executable of this package, its arguments, environment.
 
     `argv` holds everything after the executable (command-line arguments, then --ros-args ...).
-    `ros` is False for a plain executable (fake_rig)."""
+    `ros` is False for a plain executable (fake_rig). `prefix`: the launch-prefix's words (a
+    command that runs the process, e.g. `chrt -f 80` for a real-time priority; empty: none)."""
     name: str
     executable: str
     argv: list[str]
     env: dict = field(default_factory=dict)
     ros: bool = True
+    prefix: list[str] = field(default_factory=list)
 
 
 class LaunchFile:
@@ -225,7 +228,8 @@ class LaunchFile:
             if not isinstance(remap, dict) or set(remap) != {'from', 'to'}:
                 raise ConfigError(f'{here} must be {{from: A, to: B}}')
             argv += ['-r', f'{self.subst(remap["from"], here)}:={self.subst(remap["to"], here)}']
-        self.processes.append(Process(name or exe, exe, argv, self._env(body, where)))
+        self.processes.append(Process(name or exe, exe, argv, self._env(body, where),
+                                      prefix=self._prefix(body, where)))
 
     def _executable(self, body: dict, where: str) -> None:
         _check_keys(body, _EXECUTABLE_KEYS, where)
@@ -242,7 +246,12 @@ class LaunchFile:
         self._check_executable(exe, where)
         argv = shlex.split(self.subst(cmd[m.end():], where))
         name = self.subst(body['name'], where) if 'name' in body else exe
-        self.processes.append(Process(name, exe, argv, self._env(body, where), ros=False))
+        self.processes.append(Process(name, exe, argv, self._env(body, where), ros=False,
+                                      prefix=self._prefix(body, where)))
+
+    def _prefix(self, body: dict, where: str) -> list[str]:
+        # As launch does: the substituted text split like a shell would; empty means none.
+        return shlex.split(self.subst(_scalar_text(body.get('launch-prefix', '')), where))
 
     def _env(self, body: dict, where: str) -> dict:
         env = {}
