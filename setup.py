@@ -1,4 +1,5 @@
-"""ament_python package definition for piezo_narx_ros.
+"""
+ament_python package definition for piezo_narx_ros.
 
 Installs the same way under colcon (data_files land in share/, scripts in lib/piezo_narx_ros for
 `ros2 run`) and with pip into a virtual environment (console scripts in bin/).
@@ -30,7 +31,8 @@ setup(
     zip_safe=True,
     maintainer='piezo_narx_ros developers',
     maintainer_email='dev@piezo-narx-ros.invalid',
-    description='NARX identification of piezo hysteresis and a ROS 2 free-run deflection estimator',
+    description=('NARX identification of piezo hysteresis and a ROS 2 free-run deflection '
+                 'estimator'),
     license='Apache-2.0',
     entry_points={
         'console_scripts': [

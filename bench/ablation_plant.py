@@ -1,4 +1,5 @@
-"""Which element of the simulated plant keeps NARX 4/4/10 from passing Billings' tests?
+"""
+Ablation: which plant element keeps NARX 4/4/10 from passing Billings' tests.
 
 One PlantParams field (or a small named group) is changed at a time from config/plant.yaml; for
 each variant the paper's experiment is rerun on 25 s of the default identification multisine
@@ -90,7 +91,8 @@ VARIANTS = {
 
 
 def make_records(params, record_seed: int) -> tuple[Record, Record]:
-    """(estimation, validation) halves of the default 25 s multisine record on `params`.
+    """
+    (estimation, validation) halves of the default 25 s multisine record on `params`.
 
     y_true is the noise-free sensor output (same command, no noise, no quantisation): the output
     a perfect model of the measured signal would give.
@@ -114,13 +116,17 @@ BURN_IN = 200  # samples (100 ms, ~10 decay times of the 765 Hz, zeta 0.02 mode)
 
 
 def scores_of(parts: list[dict], est_parts: list[dict], y_true: np.ndarray, u: np.ndarray) -> dict:
-    """Test values and error figures of given outputs ('simulation' of each part), as the
-    experiment judges them: AR noise model on the estimation residuals, whitened validation
-    residuals, chance-rate rule. `y_true` and `u` are the validation samples k >= n0.
+    """
+    Judge given outputs as the experiment does: test values and error figures.
+
+    The outputs are the 'simulation' of each part; judged with the AR noise model on the estimation
+    residuals, whitened validation residuals and the chance-rate rule. `y_true` and `u` are the
+    validation samples k >= n0.
 
     'passed_burn' is the verdict when the noise model is fitted on the estimation residuals
     without their first BURN_IN samples: the free run starts from n0 noisy outputs and its
-    start-up transient alone can make BIC choose a high AR order (docs/ablation.md)."""
+    start-up transient alone can make BIC choose a high AR order (docs/ablation.md).
+    """
     resid_est = np.concatenate([p['y'] - p['simulation'] for p in est_parts])
     shortest = min(p['y'].size for p in est_parts)
     cap = max(0, min(20, resid_est.size // 10 - 1, shortest - 80))
@@ -149,7 +155,8 @@ def scores_of(parts: list[dict], est_parts: list[dict], y_true: np.ndarray, u: n
 
 
 def judge(model, est: Record, val: Record) -> dict:
-    """Scores, whitened free-run test values and model error of a fitted model (SI units).
+    """
+    Scores, whitened free-run test values and model error of a fitted model (SI units).
 
     The verdict is the experiment's own (evaluate_model with fit_noise_models); the max |φ|/band
     values come from residual_correlations with the same noise model. 'step1' is the one-step
@@ -168,7 +175,8 @@ def judge(model, est: Record, val: Record) -> dict:
 
 
 def calibrate(model, est: Record, val: Record, scales) -> list[tuple[float, dict]]:
-    """Verdicts when the model's free-run error (against y_true) is scaled by each factor c.
+    """
+    Verdicts when the model's free-run error (against y_true) is scaled by each factor c.
 
     The output judged is y_true - c * (y_true - simulation), on estimation and validation halves
     alike, so the residual is the record's own sensor noise plus c times the model's error: how
@@ -193,9 +201,12 @@ def width_at_100v(params) -> float:
 
 
 def states_and_output(params, record_seed: int):
-    """(u V, noise-free sensor output m, plant state after each sample (N, n_states)) of the
-    default record, by step() (bit-identical to run()). State columns: v, h, creep..., y, dy/dt,
-    sensor (PiezoCantilever.state)."""
+    """
+    Return the default record with its noise-free output and the plant state after each sample.
+
+    (u V, noise-free sensor output m, state (N, n_states)), by step() (bit-identical to run()).
+    State columns: v, h, creep..., y, dy/dt, sensor (PiezoCantilever.state).
+    """
     u = generate('multisine', FS, SECONDS, AMPLITUDE, seed=record_seed)
     plant = PiezoCantilever(params.replace(noise_std=0.0, quantisation=0.0), FS, seed=record_seed)
     y = np.empty(u.size)
@@ -208,9 +219,12 @@ def states_and_output(params, record_seed: int):
 
 def mlp_one_step_error(x: np.ndarray, t: np.ndarray, n_est: int, seed: int = 0,
                        steps: int = 3000) -> float:
-    """Validation RMS one-step error (units of t) of a 2 x 64 tanh MLP trained with Adam on the
-    first n_est rows of regressors x (N, d) -> target t (N,): what a flexible learner can get
-    out of these regressors on noise-free data (an upper bound on what 10 sigmoids can).
+    """
+    Return the validation RMS one-step error (units of t) of a 2 x 64 tanh MLP.
+
+    Trained with Adam on the first n_est rows of regressors x (N, d) -> target t (N,): what a
+    flexible learner can get out of these regressors on noise-free data (an upper bound on what 10
+    sigmoids can).
 
     The linear least-squares part is fitted first and the MLP learns what it leaves: Adam's
     mini-batch noise would otherwise stop near 1 % of the output, the size of the effect sought.
@@ -242,8 +256,11 @@ def mlp_one_step_error(x: np.ndarray, t: np.ndarray, n_est: int, seed: int = 0,
 
 
 def capacity_probe(params, record_seed: int) -> list[tuple[str, float]]:
-    """One-step validation error (m) of a flexible learner on noise-free data for several
-    regressor sets: is the 4/4 regressor enough to determine y(k), or is state missing?"""
+    """
+    Measure the one-step validation error (m) of a flexible learner for several regressor sets.
+
+    On noise-free data: is the 4/4 regressor enough to determine y(k), or is state missing?
+    """
     from piezo_narx_ros.ident.regressors import lagged_regressors
     u, y, states = states_and_output(params, record_seed)
     half = u.size // 2
@@ -259,8 +276,11 @@ def capacity_probe(params, record_seed: int) -> list[tuple[str, float]]:
 
 
 def white_noise_pass_rate(record_seed: int = 0, draws: int = 200) -> tuple[int, dict]:
-    """How often white residuals pass against the validation half of the default multisine:
-    (all five passed, {test: passes}) over `draws` seeded draws (chance-rate rule, L = 20)."""
+    """
+    How often white residuals pass against the validation half of the default multisine.
+
+    (all five passed, {test: passes}) over `draws` seeded draws (chance-rate rule, L = 20).
+    """
     from piezo_narx_ros.ident.correlation import correlation_tests
     u = generate('multisine', FS, SECONDS, AMPLITUDE, seed=record_seed)[int(SECONDS * FS) // 2:]
     rng = np.random.default_rng(123)
@@ -291,7 +311,7 @@ HEADER = (f'{"variant":16s} rs {"model":12s} {"err nm":>7s} {"|u|lo":>6s} {"|u|h
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     ap.add_argument('--variants', nargs='+', default=list(VARIANTS),
                     help=f'variants to run (default all): {", ".join(VARIANTS)}')
     ap.add_argument('--record-seeds', nargs='+', type=int, default=[0])

@@ -1,4 +1,5 @@
-"""Bouc-Wen benchmark (Noel & Schoukens 2016): fit on train.npz, free-run on test_multisine.
+"""
+Bouc-Wen benchmark (Noel & Schoukens 2016): fit on train.npz, free-run on test_multisine.
 
 Run: python bench/bench_boucwen.py [--data ../shared/data/boucwen] [--save model.json] [--floor]
 
@@ -35,7 +36,8 @@ def rmse(a, b):
 
 
 def true_system_from_rest(u, fs):
-    """The benchmark's Bouc-Wen oscillator integrated from rest, input linearly interpolated.
+    """
+    Return the benchmark's Bouc-Wen oscillator integrated from rest, input linearly interpolated.
 
     m y'' + c y' + k y + z = u,  z' = alpha y' - beta (gamma |y'| |z|^(nu-1) z + delta y' |z|^nu)
     with m = 2 kg, c = 10 N s/m, k = 5e4 N/m, alpha = 5e4 N/m, beta = 1e3 m^-1, gamma = 0.8,
@@ -58,7 +60,7 @@ def true_system_from_rest(u, fs):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--data', type=Path, default=DEFAULT_DATA)
     ap.add_argument('--nu', type=int, default=DEFAULT['nu'])
     ap.add_argument('--ny', type=int, default=DEFAULT['ny'])

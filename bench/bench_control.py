@@ -1,5 +1,8 @@
-"""Sensorless position control (issue 9): how well does the plant's true deflection follow a
-position reference, for each controller mode and a sensor-only PI?
+"""
+Sensorless position control (issue 9).
+
+How well does the plant's true deflection follow a position reference, for each controller mode and
+a sensor-only PI?
 
 For each plant (the Bouc-Wen cantilever, config/plant.yaml, and the structurally different
 Preisach variant, config/plant_preisach.yaml) the model is the best the package identifies, as a
@@ -71,7 +74,7 @@ SLEW = 1e5   # V/s: the simulated amplifier's own limit
 
 
 def reference(task: str, seed: int) -> tuple[np.ndarray, int]:
-    """(reference (N,) m, first scored sample) of a task."""
+    """Return a task's reference, (N,) m, and its first scored sample."""
     rng = np.random.default_rng(seed)
     if task.startswith('sin'):
         f = float(task.split()[1])
@@ -91,8 +94,12 @@ def reference(task: str, seed: int) -> tuple[np.ndarray, int]:
 
 
 def identify(plant: str, folder: Path, seed: int = 0) -> Path:
-    """The envelope model of `plant` identified from the protocol record with `seed` (signal
-    and sensor noise), fitted with the piezo-narx commands when not there yet."""
+    """
+    Return the envelope model of `plant` identified from the protocol record with `seed`.
+
+    The seed sets the signal and the sensor noise; the model is fitted with the piezo-narx commands
+    when not there yet.
+    """
     import subprocess
     import sys
     model = folder / 'model.json'
@@ -115,8 +122,11 @@ def identify(plant: str, folder: Path, seed: int = 0) -> Path:
 
 
 def controller(model, mode: str, pi: dict | None = None) -> PositionController:
-    """The controller of a mode ('pi': the sensor-only baseline with the given gains; a
-    VARIANTS name: that inverse)."""
+    """
+    Return the controller of a mode.
+
+    'pi': the sensor-only baseline with the given gains; a VARIANTS name: that inverse.
+    """
     if mode == 'pi':
         return PositionController(model, mode='feedback', slew_rate=SLEW, **pi)
     if mode in VARIANTS:
@@ -132,7 +142,7 @@ def run(model, params, task: str, mode: str, seed: int, pi: dict | None = None):
 
 
 def tune_pi(model, params) -> tuple[dict, float]:
-    """The sensor-only PI's best gains on the 10 Hz sine (seed 0), and its RMSE there (m)."""
+    """Tune the sensor-only PI on the 10 Hz sine (seed 0): its best gains and RMSE there (m)."""
     best, best_rmse = None, np.inf
     for kp, ki in itertools.product(PI_GRID['kp'], PI_GRID['ki']):
         loop, start, _ = run(model, params, 'sin 10 Hz', 'pi', 0, {'kp': kp, 'ki': ki})
@@ -153,7 +163,7 @@ def bench_plant(plant: str, model_paths: dict, seeds, figures: Path | None,
           f'Hz seed {seeds[0]}: kp {pi["kp"]:g}, ki {pi["ki"]:g}/s ({pi_rmse * 1e9:.0f} nm)',
           flush=True)
     rmse = {t: {m: [] for m in modes} for t in TASKS}
-    limited = {m: 0 for m in modes}
+    limited = dict.fromkeys(modes, 0)
     compute = []
     examples = {}
     for task, mode, seed in itertools.product(TASKS, modes, seeds):
@@ -200,7 +210,7 @@ def bench_plant(plant: str, model_paths: dict, seeds, figures: Path | None,
 
 
 def write_figures(examples: dict, plant: str, folder: Path) -> list[str]:
-    """Reference vs deflection, error vs time, deflection vs reference (docs/control.md)."""
+    """Plot reference vs deflection, error vs time, deflection vs reference (docs/control.md)."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -216,7 +226,7 @@ def write_figures(examples: dict, plant: str, folder: Path) -> list[str]:
         axes[0].plot(t, some.r * 1e6, 'k', lw=1.5, label='reference')
         for mode in MODES:
             loop = examples[(task, mode)]
-            kw = dict(color=colours[mode], lw=0.8, ls=styles.get(mode, '-'), label=mode)
+            kw = {'color': colours[mode], 'lw': 0.8, 'ls': styles.get(mode, '-'), 'label': mode}
             axes[0].plot(t, loop.y_true * 1e6, **kw)
             axes[1].plot(t, (loop.y_true - loop.r) * 1e6, **kw)
             if mode.startswith('inverse'):
@@ -244,10 +254,14 @@ def write_figures(examples: dict, plant: str, folder: Path) -> list[str]:
 
 
 def live(model_path: Path, seconds: float, mode: str = 'inverse') -> dict:
-    """command_node (position, 1 Hz +-30 um sine) -> controller_node -> simulator_node over DDS
-    for `seconds` at 2 kHz, one process each, observed by bench_live's probe in this process
-    (raw stamps, one clock); then bench_live's estimator pipeline for the same time, so the two
-    are measured side by side under the same machine load."""
+    """
+    Run the control loop over DDS, then the estimator pipeline, side by side.
+
+    command_node (position, 1 Hz +-30 um sine) -> controller_node -> simulator_node over DDS for
+    `seconds` at 2 kHz, one process each, observed by bench_live's probe in this process (raw
+    stamps, one clock); then bench_live's estimator pipeline for the same time, so the two are
+    measured side by side under the same machine load.
+    """
     import os
     import sys
     sys.path.insert(0, str(Path(__file__).parent))
@@ -317,7 +331,7 @@ def print_live(r: dict) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
     ap.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2])
     ap.add_argument('--plants', nargs='+', choices=tuple(PLANTS), default=list(PLANTS))
     ap.add_argument('--models', type=Path, default=REPO / 'reports' / 'control-models',

@@ -1,4 +1,5 @@
-"""Is the free-run estimate trustworthy on every move a user commands? Presets side by side.
+"""
+Is the free-run estimate trustworthy on every move a user commands? Presets side by side.
 
 For each plant (the project's Bouc-Wen cantilever, config/plant.yaml, and the structurally
 different Preisach variant, config/plant_preisach.yaml) and each seed s:
@@ -10,7 +11,8 @@ different Preisach variant, config/plant_preisach.yaml) and each seed s:
 * the selected model's free run (`simulate(u, y[:n0])`) on the battery of the envelope issue: the
   plant starting at rest, 10 s each, noise seeds 1000*s + i: a fresh multisine +-100 V (phases
   seeded by s); sines at 0.1, 0.5 and 2 Hz with +-100 V and +-50 V; a 0.5 Hz +-100 V triangle; an
-  APRBS (seeded by s); steps (0, 1, 0.5, -1, -0.5, 0, 1, -1) x 100 V held 1.25 s; a 0.1-50 Hz chirp.
+  APRBS (seeded by s); steps (0, 1, 0.5, -1, -0.5, 0, 1, -1) x 100 V held 1.25 s; a 0.1-50 Hz
+  chirp.
 
 Prints, per plant and preset: per-signal RMSE (um) median and worst over seeds, R² median and
 worst, the number of runaways (free-run R² < 0.5) and the fit times; `--reference` adds today's
@@ -27,8 +29,6 @@ import sys
 import time
 from dataclasses import replace
 from pathlib import Path
-
-import numpy as np
 
 from bench_excitation import score   # {name: (R², RMSE nm)} of the free run from y[:n0]
 from piezo_narx_ros.ident.experiment import PRESETS, ExperimentConfig, run_experiment
@@ -70,7 +70,7 @@ def battery(params, seed):
 
 
 def identify(params, seed, preset, jobs, signal='protocol'):
-    """(selected model, fit wall time s, label) for one preset on one 25 s record."""
+    """Identify one preset on one 25 s record: (selected model, fit wall time s, label)."""
     u = generate(signal, FS, 25.0, 100.0, seed=seed)
     y = PiezoCantilever(params, FS, seed=seed).run(u).y
     cfg = replace(ExperimentConfig(), **PRESETS[preset], seed=seed, jobs=jobs, progress=False)
@@ -110,7 +110,7 @@ def print_table(title, rows, fit_times, labels):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2, 3, 4])
     ap.add_argument('--plants', nargs='+', choices=tuple(PLANTS), default=list(PLANTS))
     ap.add_argument('--presets', nargs='+', choices=tuple(PRESETS), default=list(PRESETS))
@@ -139,8 +139,9 @@ def main(argv=None):
             rows = summarise(runs)
             title = f'{plant} plant, --preset {preset} on the {signal}'
             print_table(title, rows, times, labels)
+            per_seed = [{k: list(v) for k, v in r.items()} for r in runs]
             report[title] = {'rows': rows, 'fit_seconds': times, 'selected': labels,
-                             'per_seed_r2_rmse_nm': [{k: list(v) for k, v in r.items()} for r in runs]}
+                             'per_seed_r2_rmse_nm': per_seed}
     print(f'\nbench wall time {time.perf_counter() - t_start:.0f} s')
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=1, default=float) + '\n')

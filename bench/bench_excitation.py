@@ -1,4 +1,5 @@
-"""Which identification excitation also teaches the major hysteresis loop?
+"""
+Find the identification excitation that also teaches the major hysteresis loop.
 
 For each candidate excitation (25 s at 2 kHz, spanning exactly +-100 V) the plant
 (PiezoCantilever, sensor noise on) is recorded, the project's experiment is run on the record
@@ -37,7 +38,7 @@ AMP = 100.0  # V
 
 
 def span_to(x, amplitude=AMP):
-    """x rescaled so that it spans exactly [-amplitude, +amplitude] V."""
+    """Rescale x so that it spans exactly [-amplitude, +amplitude] V."""
     lo, hi = np.min(x), np.max(x)
     return amplitude * (2.0 * x - (hi + lo)) / (hi - lo)
 
@@ -103,8 +104,11 @@ def battery():
 
 
 def identify(u, seed, nu, jobs, net_seed=0):
-    """Selected model of run_experiment on the plant's answer to u (noise seed = seed); net_seed
-    seeds the networks' initial weights (the demo's: 0)."""
+    """
+    Return run_experiment's selected model on the plant's answer to u (noise seed = seed).
+
+    net_seed seeds the networks' initial weights (the demo's: 0).
+    """
     y = PiezoCantilever(fs=FS, seed=seed).run(u).y
     rec = Record(u=u, y=y, fs=FS, source=f'bench seed {seed}')
     cfg = ExperimentConfig(ny=(4,), nu=tuple(nu), hidden=10, arx_na=(), arx_nb=(), jobs=jobs,
@@ -134,7 +138,7 @@ def main(argv=None):
     ap.add_argument('--only', nargs='+', help='candidate names (substring match)')
     ap.add_argument('--jobs', type=int, default=2)
     ap.add_argument('--net-seed', type=int, default=0,
-                    help='seed of the networks\' initial weights (the demo uses 0)')
+                    help="seed of the networks' initial weights (the demo uses 0)")
     args = ap.parse_args(argv)
     nu = (3,) if args.quick else (3, 4)
     names = [n for n in CANDIDATES

@@ -1,7 +1,9 @@
-"""Wall time of the paper's full lag grid: 16 NARX networks (ny, nu in 1..4, H = 10) + 100 ARX
-(na, nb in 1..10), each scored in prediction and simulation on estimation and validation data with
-the five correlation tests, on 50,000 piezo-like samples (25,000 + 25,000).
-Target <= 20 s on 2 cores.
+"""
+Wall time of the paper's full lag grid.
+
+16 NARX networks (ny, nu in 1..4, H = 10) + 100 ARX (na, nb in 1..10), each scored in prediction
+and simulation on estimation and validation data with the five correlation tests, on 50,000
+piezo-like samples (25,000 + 25,000). Target <= 20 s on 2 cores.
 
 Run: python bench/bench_grid.py [--samples 50000] [--jobs 2] [--repeats 1] [--compare-serial]
 Data: bench_simulate.piezo_data (the project plant when importable, else its stand-in).

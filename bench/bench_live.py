@@ -1,12 +1,13 @@
-"""Live pipeline benchmark: command -> simulator -> estimator over DDS, one process per node.
+"""
+Live pipeline benchmark: command -> simulator -> estimator over DDS, one process per node.
 
 For each rate (default 2, 5 and 10 kHz) the three nodes run for --seconds (default 60) and a probe
 node in this process records every voltage_command, deflection and deflection_estimate. Printed:
 
 - latency command -> estimate: probe receive time of the estimate minus probe receive time of the
   command with the same stamp (one clock, one process), p50 / p99 / max;
-- lateness stamp -> estimate: probe wall-clock receive time minus the sample's stamp t0 + k/fs (adds
-  the command node's timer lateness), p50 / p99 / max;
+- lateness stamp -> estimate: probe wall-clock receive time minus the sample's stamp t0 + k/fs
+  (adds the command node's timer lateness), p50 / p99 / max;
 - lost samples per topic (expected n minus distinct stamps received);
 - CPU per node process (user + system time over the streaming interval, % of one core);
 - the command node's catch-up figures (late ticks, largest batch) from /diagnostics;
@@ -58,8 +59,11 @@ def estimator_compute(model, n: int = 20000) -> tuple[float, float]:
 
 
 class Probe:
-    """Subscribes to the three sample streams (or `topics`; wall-clock receive times kept for
-    `wall_topic`) and /diagnostics of one namespace."""
+    """
+    Subscribe to the three sample streams and /diagnostics of one namespace.
+
+    Or to `topics`; wall-clock receive times are kept for `wall_topic`.
+    """
 
     def __init__(self, ns: str, topics=('voltage_command', 'deflection', 'deflection_estimate'),
                  wall_topic: str = 'deflection_estimate'):
@@ -96,8 +100,9 @@ class Probe:
                 self.diag[st.name] = diagnostic_values(st)
 
         qos = sample_qos(depth=100000)
-        self.subs = {t: self.node.create_subscription(JointState, t, make_cb(store, t ==
-                                                       wall_topic), qos, raw=True)
+        self.subs = {t: self.node.create_subscription(JointState, t,
+                                                      make_cb(store, t == wall_topic), qos,
+                                                      raw=True)
                      for t, store in self.recv.items()}
         self.node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 100)
         self.executor = EventsExecutor(context=self.context)
@@ -193,7 +198,7 @@ def run_rate(fs: float, seconds: float, model_path: Path, publish_period: float,
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
     ap.add_argument('--seconds', type=float, default=60.0, help='stream length per rate, s')
     ap.add_argument('--rates', default='2000,5000,10000', help='comma-separated rates, Hz')
     ap.add_argument('--model', default=None, help='model file (default: a toy NARX 4/4/10)')

@@ -1,4 +1,5 @@
-"""Speed of the simulated cantilever: real-time factor of run() and cost of one step() call.
+"""
+Speed of the simulated cantilever: real-time factor of run() and cost of one step() call.
 
     python bench/bench_plant.py [--seconds 25] [--repeats 7]
 
@@ -47,12 +48,14 @@ def main():
     run_med = float(np.median(run_s))
     step_med = float(np.median(step_s))
     period = 1.0 / args.fs
-    print(f'plant: {params.substeps} sub-steps/sample, {len(params.creep_gains) + 3} linear states')
-    print(f'run():  {u.size} samples ({args.seconds:g} s at {args.fs:g} Hz) in {1e3 * run_med:.1f} ms '
-          f'(median of {args.repeats}, min {1e3 * min(run_s):.1f} ms) -> {args.seconds / run_med:.0f}x real time, '
-          f'{1e9 * run_med / u.size:.0f} ns/sample')
+    print(f'plant: {params.substeps} sub-steps/sample, '
+          f'{len(params.creep_gains) + 3} linear states')
+    print(f'run():  {u.size} samples ({args.seconds:g} s at {args.fs:g} Hz) in '
+          f'{1e3 * run_med:.1f} ms (median of {args.repeats}, min {1e3 * min(run_s):.1f} ms) -> '
+          f'{args.seconds / run_med:.0f}x real time, {1e9 * run_med / u.size:.0f} ns/sample')
     print(f'step(): {1e6 * step_med:.2f} us/call (median of {args.repeats} x {args.steps}) -> '
-          f'{period / step_med:.0f}x real time; run() is {step_med / (run_med / u.size):.0f}x faster per sample')
+          f'{period / step_med:.0f}x real time; run() is '
+          f'{step_med / (run_med / u.size):.0f}x faster per sample')
 
 
 if __name__ == '__main__':

@@ -1,5 +1,8 @@
-"""Benchmark the bag recorder: messages lost at 2 kHz (and higher) on three topics, CPU of the
-recorder process, and offline writer/reader throughput.
+"""
+Benchmark the bag recorder.
+
+Messages lost at 2 kHz (and higher) on three topics, CPU of the recorder process, and offline
+writer/reader throughput.
 
     python bench/bench_recorder.py --seconds 5 --rates 2000 5000
 
@@ -92,7 +95,7 @@ def live_run(rate: float, seconds: float, workdir: Path) -> dict:
 
 
 def offline(n_samples: int, repeats: int, workdir: Path) -> dict:
-    """BagWriter throughput (2 topics, pre-serialized) and read_uy throughput, medians."""
+    """Measure BagWriter throughput (2 topics, pre-serialized) and read_uy throughput, medians."""
     from piezo_narx_ros.bag.reader import read_uy
     from piezo_narx_ros.bag.writer import JOINT_STATE, BagWriter, joint_state_cdr
 
@@ -122,7 +125,7 @@ def offline(n_samples: int, repeats: int, workdir: Path) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(description=__doc__.strip().split('\n')[0])
     parser.add_argument('--seconds', type=float, default=5.0)
     parser.add_argument('--rates', type=float, nargs='+', default=[2000.0, 5000.0])
     parser.add_argument('--offline-samples', type=int, default=60000)

@@ -1,4 +1,5 @@
-"""Speed of the identification core: fit time, free-run throughput, Stepper.step latency, grid time.
+"""
+Speed of the identification core: fit time, free-run throughput, Stepper.step latency, grid time.
 
 Both families: the paper's NARX network and the hysteresis-operator NARX of --preset envelope
 (fitted on 25,000 samples of the identification protocol).
@@ -49,7 +50,8 @@ def stand_in_plant(u, fs=FS):
         a = np.exp(-1.0 / (fs * tau))
         z += gain * signal.lfilter([1 - a], [1, -a], w)
     wn, zeta = 2 * np.pi * 765.0, 0.02
-    bd, ad, _ = signal.cont2discrete(([wn ** 2], [1, 2 * zeta * wn, wn ** 2]), 1 / fs, method='zoh')
+    bd, ad, _ = signal.cont2discrete(([wn ** 2], [1, 2 * zeta * wn, wn ** 2]), 1 / fs,
+                                     method='zoh')
     return signal.lfilter(np.squeeze(bd), ad, z)
 
 
@@ -63,8 +65,8 @@ def piezo_data(n=50000, seed=0):
     except Exception as exc:  # plant not landed yet, or its API differs: use the stand-in
         y = stand_in_plant(u_cmd)
         noisy = y + 1e-7 * np.random.default_rng(seed + 1).standard_normal(n)
-        return u_cmd, noisy, y, f'stand-in plant (noise 1e-7 m; project plant unavailable: ' \
-                                 f'{type(exc).__name__})'
+        return u_cmd, noisy, y, ('stand-in plant (noise 1e-7 m; project plant unavailable: '
+                                 f'{type(exc).__name__})')
 
 
 def step_latency(model, u, n_calls):
@@ -118,15 +120,15 @@ def median_time(f, repeats):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--quick', action='store_true', help='fewer repeats, no grid')
     args = ap.parse_args(argv)
     reps = 3 if args.quick else 5
     u, y, y_true, source = piezo_data()
     half = u.size // 2
     ue, ye, uv, yv, ytv = u[:half], y[:half], u[half:], y[half:], y_true[half:]
-    print(f'data: {source}; {half} estimation + {u.size - half} validation samples at {FS:.0f} Hz; '
-          f'cpu count {os.cpu_count()}')
+    print(f'data: {source}; {half} estimation + {u.size - half} validation samples at '
+          f'{FS:.0f} Hz; cpu count {os.cpu_count()}')
 
     NARXNetwork(4, 4, 10, restarts=1, max_iter=2, refine_iter=2).fit(ue[:3000], ye[:3000])  # JIT
     print('\n# NARX fit, nu=ny=4, H=10, default options, one core (torch threads=1)')
@@ -144,7 +146,7 @@ def main(argv=None):
               f'R2 {fits[-1][1]:.6f} vs measured y, {fits[-1][2]:.6f} vs y_true')
     print(f'median fit time {statistics.median(f[0] for f in fits):.2f} s; median free-run R2 '
           f'{statistics.median(f[1] for f in fits):.6f} (measured), '
-          f'{statistics.median(f[2] for f in fits):.6f} (y_true: the plant\'s tip deflection '
+          f"{statistics.median(f[2] for f in fits):.6f} (y_true: the plant's tip deflection "
           f'before sensor filter and noise)')
     model = fits[0][3]
 
@@ -166,8 +168,8 @@ def main(argv=None):
     hnarx_section(reps, n_calls, u_long)
 
     if not args.quick:
-        print('\n# identification grid: 16 NARX (nu, ny in 1..4, H=10) + 100 ARX (na, nb in 1..10),'
-              ' 25,000 estimation samples, sequential on one core')
+        print('\n# identification grid: 16 NARX (nu, ny in 1..4, H=10) + 100 ARX '
+              '(na, nb in 1..10), 25,000 estimation samples, sequential on one core')
         t0 = time.perf_counter()
         for nu in range(1, 5):
             for ny in range(1, 5):

@@ -1,5 +1,8 @@
-"""Soak benchmark: command -> simulator -> estimator -> recorder at 2 kHz for 10 minutes, with
-faults injected on a schedule, one process per node over DDS (isolated domain).
+"""
+Soak benchmark.
+
+Command -> simulator -> estimator -> recorder at 2 kHz for 10 minutes, with faults injected on a
+schedule, one process per node over DDS (isolated domain).
 
 Faults (at 20, 35, 50 and 70 % of the run):
   sigstop    the simulator is stopped with SIGSTOP for 200 ms, then continued;
@@ -121,7 +124,7 @@ class Probe:
         return None
 
     def one_command_stamp(self, timeout: float = 10.0) -> int:
-        """The stamp of one voltage_command (a temporary raw subscription)."""
+        """Return the stamp of one voltage_command (a temporary raw subscription)."""
         from sensor_msgs.msg import JointState
 
         from piezo_narx_ros.nodes.common import sample_qos
@@ -320,8 +323,12 @@ class Soak:
 
 # ------------------------------------------------------------------------------------ analysis
 def read_bags(bags) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """{topic without namespace: (header stamps ns, receive times ns)} over all bags, sorted by
-    receive time; one pass per bag, only the stamp decoded."""
+    """
+    Read the header stamps and receive times of every stream over all bags.
+
+    {topic without namespace: (header stamps ns, receive times ns)}, sorted by receive time; one
+    pass per bag, only the stamp decoded.
+    """
     from piezo_narx_ros.bag.reader import iter_raw
     head = struct.Struct('<iI')
     out = {t: (array.array('q'), array.array('q')) for t in TOPICS}
@@ -343,8 +350,12 @@ def on_grid(stamps: np.ndarray, t0: int, period: int) -> np.ndarray:
 
 def recovery_ms(data, start_ns: int, thr_ns: float, t0: int, period: int,
                 run: int = 200) -> float:
-    """ms from start_ns until every stream's samples stamped after it arrive within thr_ns of
-    their stamp for `run` consecutive samples (nan if never)."""
+    """
+    Return the time (ms) from start_ns until every stream is on time again, nan if never.
+
+    On time: the stream's samples stamped after start_ns arrive within thr_ns of their stamp for
+    `run` consecutive samples.
+    """
     worst = 0.0
     for stamps, logs in data.values():
         sel = on_grid(stamps, t0, period) & (stamps >= start_ns)
@@ -461,15 +472,15 @@ def analyse(soak: Soak, probe: Probe) -> None:
     print(f'the nodes together: {100 * busy:.0f} % of one core on average')
 
     if 'estimator' in ev:
-        print('\nestimator#1 before its restart: ' + counters(ev['estimator']['last_status'],
-                                                           ESTIMATOR_KEYS))
+        print('\nestimator#1 before its restart: '
+              + counters(ev['estimator']['last_status'], ESTIMATOR_KEYS))
     print('estimator at the end: ' + counters(probe.status('estimator'), ESTIMATOR_KEYS))
     print('simulator at the end: ' + counters(probe.status('simulator'), (
         'answered', 'rejected', 'stamp_outliers', 'stream_restarts', 'gaps', 'filled')))
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
     ap.add_argument('--minutes', type=float, default=10.0, help='run length (default 10)')
     ap.add_argument('--model', default=None,
                     help='model file (default bags/model.json, else a toy NARX)')

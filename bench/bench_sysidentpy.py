@@ -1,4 +1,5 @@
-"""This project's NARX fitter against SysIdentPy's NARXNN on the same piezo-like data.
+"""
+This project's NARX fitter against SysIdentPy's NARXNN on the same piezo-like data.
 
 Both fit a 4/4-lag network with one hidden layer of 10 sigmoid units on 25,000 estimation samples
 and are judged in free run (simulation) on the next 25,000 samples, initialised from the first
@@ -44,7 +45,8 @@ def fit_ours(u_est, y_est, u_val, y_val, seed):
 
 
 def fit_sysidentpy(u_est, y_est, u_val, y_val, seed, epochs):
-    """(fit s, free-run validation R², one-step validation R², free-run s) of SysIdentPy's NARXNN.
+    """
+    (fit s, free-run validation R², one-step validation R², free-run s) of SysIdentPy's NARXNN.
 
     The one-step R² shows whether its training worked at all; its free run was checked against a
     hand-written loop over its network (identical), so a poor free run is its training's result.
@@ -57,6 +59,7 @@ def fit_sysidentpy(u_est, y_est, u_val, y_val, seed, epochs):
     n_regressors = 2 * LAGS
 
     class Net(nn.Module):
+
         def __init__(self):
             super().__init__()
             self.hidden = nn.Linear(n_regressors, HIDDEN)
@@ -84,9 +87,9 @@ def fit_sysidentpy(u_est, y_est, u_val, y_val, seed, epochs):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--samples', type=int, default=50000)
-    ap.add_argument('--epochs', type=int, default=200, help="SysIdentPy epochs (its default 200)")
+    ap.add_argument('--epochs', type=int, default=200, help='SysIdentPy epochs (its default 200)')
     ap.add_argument('--repeats', type=int, default=1)
     ap.add_argument('--seed', type=int, default=0)
     args = ap.parse_args(argv)
@@ -103,8 +106,8 @@ def main(argv=None):
     half = u.size // 2
     u_est, y_est, u_val, y_val = u[:half], y[:half], u[half:], y[half:]
     print(f'data: {u.size} samples ({half} estimation + {u.size - half} validation) from {source}')
-    print(f'SysIdentPy {sysidentpy.__version__}, numpy {np.__version__}, torch {torch.__version__};'
-          f' load average {os.getloadavg()[0]:.2f}')
+    print(f'SysIdentPy {sysidentpy.__version__}, numpy {np.__version__}, '
+          f'torch {torch.__version__}; load average {os.getloadavg()[0]:.2f}')
 
     ours, theirs = [], []
     for r in range(args.repeats):   # interleaved, so both see the same machine load

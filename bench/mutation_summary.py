@@ -1,4 +1,5 @@
-"""Kill rate per core module and the surviving mutants, from the results `mutmut run` left.
+"""
+Kill rate per core module and the surviving mutants, from the results `mutmut run` left.
 
     python bench/mutation_summary.py [--diffs]       (after `make mutate`; docs/testing.md)
 
@@ -66,8 +67,8 @@ def main(argv: list[str]) -> int:
             shown = subprocess.run([str(Path(sys.executable).parent / 'mutmut'), 'show', name],
                                    cwd=REPO, capture_output=True, text=True)
             print('\n'.join('    ' + line for line in shown.stdout.splitlines()
-                            if line.startswith(('+', '-')) and not line.startswith(('+++',
-                                                                                     '---'))))
+                            if line.startswith(('+', '-'))
+                            and not line.startswith(('+++', '---'))))
     return 0
 
 

@@ -1,4 +1,5 @@
-"""piezo_narx_ros: NARX identification of piezo hysteresis and a ROS 2 free-run deflection estimator.
+"""
+piezo_narx_ros: NARX identification of piezo hysteresis and a ROS 2 free-run deflection estimator.
 
 Subpackages, one per concern:
     ident      identification core (ROS-free): regressors, NARX network, ARX, training, metrics,

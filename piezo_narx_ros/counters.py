@@ -1,4 +1,5 @@
-"""Counter deltas between diagnostics ticks (ROS-free).
+"""
+Counter deltas between diagnostics ticks (ROS-free).
 
 A node's hot path only bumps cumulative counters; once per /diagnostics tick, `Since.tick()` says
 how much each grew since the previous tick, so the reported level reflects everything that
@@ -12,7 +13,8 @@ OK, WARN, ERROR = 0, 1, 2   # DiagnosticStatus levels, as ints (nodes convert th
 
 
 class Since:
-    """Growth of named cumulative counters between calls of `tick`.
+    """
+    Growth of named cumulative counters between calls of `tick`.
 
     read: returns {name: cumulative count} now (e.g. lambda: vars(stats)). The first tick
     compares with zeros, so what happened before it counts too.
@@ -21,7 +23,7 @@ class Since:
     def __init__(self, read: Callable[[], dict[str, Any]], names):
         self._read = read
         self.names = tuple(names)
-        self._last = {n: 0 for n in self.names}
+        self._last = dict.fromkeys(self.names, 0)
 
     def tick(self) -> dict[str, int]:
         """{name: growth since the previous tick} for every name."""

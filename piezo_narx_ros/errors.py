@@ -1,4 +1,5 @@
-"""Exceptions that carry a one-line, user-facing message.
+"""
+Exceptions that carry a one-line, user-facing message.
 
 The command line prints `piezo-narx: error: <message>` for any of these and exits non-zero, so the
 message must name the problem (file, field, value) on its own.
@@ -10,7 +11,7 @@ class PiezoNarxError(Exception):
 
 
 class DataError(PiezoNarxError):
-    """Input data is missing, malformed, or unusable (NaN, too short, wrong columns, fs mismatch)."""
+    """Input data missing, malformed, or unusable (NaN, too short, wrong columns, fs mismatch)."""
 
 
 class ModelFileError(PiezoNarxError):

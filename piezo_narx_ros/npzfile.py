@@ -1,4 +1,5 @@
-"""One reader for .npz files (data records, model weights, playback signals).
+"""
+One reader for .npz files (data records, model weights, playback signals).
 
 `np.load(allow_pickle=False)` alone is not enough for files from strangers: random bytes are
 reported as "pickled data, load it unsafely", and a member whose header declares 10^12 values
@@ -30,7 +31,8 @@ def _header(member) -> tuple[tuple[int, ...], np.dtype]:
 
 
 def read_npz(path, keys=None, error=DataError) -> dict[str, np.ndarray]:
-    """{key: array} of the .npz file `path` (only `keys` when given; absent keys are left out).
+    """
+    {key: array} of the .npz file `path` (only `keys` when given; absent keys are left out).
 
     Raises `error` (a PiezoNarxError subclass) with one line naming the file when it is not a
     zip archive, is damaged, holds Python objects, or an array header declares more data than the

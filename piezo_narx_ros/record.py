@@ -1,4 +1,5 @@
-"""The input/output record every part of the package exchanges (files, bags, identification).
+"""
+The input/output record every part of the package exchanges (files, bags, identification).
 
 It lives here, below both `ident` (which loads files and fits models) and `bag` (which reads
 bags), so that neither has to import the other for it.
@@ -12,13 +13,15 @@ import numpy as np
 
 @dataclass
 class Record:
-    """One experiment: input u (V; N for the Bouc-Wen benchmark) and measured output y (m).
+    """
+    One experiment: input u (V; N for the Bouc-Wen benchmark) and measured output y (m).
 
     A segment cut out of a longer recording keeps what came before it in that recording
     (`u_before`, `y_before`, from the recording's start): a model whose state depends on the
     whole input history (hysteresis operators, creep) is then scored on the segment by running
     from the recording's start, as it would have run live.
     """
+
     u: np.ndarray               # (N,) input, V
     y: np.ndarray               # (N,) measured output, m
     fs: float                   # sample rate, Hz
@@ -32,13 +35,16 @@ class Record:
         return int(self.u.size)
 
     def segment(self, start: int, stop: int, suffix: str = '') -> 'Record':
-        """Samples [start, stop) as a new Record (copies), `source` tagged with `suffix`; the
-        samples before `start` become its u_before / y_before."""
+        """
+        Return samples [start, stop) as a new Record (copies), `source` tagged with `suffix`.
+
+        The samples before `start` become its u_before / y_before.
+        """
         cut = slice(start, stop)
-        before_u = self.u[:start] if self.u_before is None else np.r_[self.u_before,
-                                                                       self.u[:start]]
-        before_y = self.y[:start] if self.y_before is None else np.r_[self.y_before,
-                                                                       self.y[:start]]
+        before_u = (self.u[:start] if self.u_before is None
+                    else np.r_[self.u_before, self.u[:start]])
+        before_y = (self.y[:start] if self.y_before is None
+                    else np.r_[self.y_before, self.y[:start]])
         return Record(u=self.u[cut].copy(), y=self.y[cut].copy(), fs=self.fs,
                       source=self.source + suffix,
                       t=None if self.t is None else self.t[cut].copy(),

@@ -1,4 +1,5 @@
-"""Settings files: one reader for every YAML mapping the project loads (fit, demo, plant).
+"""
+Settings files: one reader for every YAML mapping the project loads (fit, demo, plant).
 
 yaml.safe_load builds plain data only, so reading a settings file never executes code from it.
 """
@@ -10,7 +11,8 @@ from piezo_narx_ros.errors import ConfigError
 
 
 def read_yaml_mapping(path, what: str = 'settings', known=None) -> dict:
-    """The mapping stored in the YAML file `path` (empty file: {}).
+    """
+    Return the mapping stored in the YAML file `path` (empty file: {}).
 
     what: what the file holds, for messages ('settings', 'demo settings', ...); known: the allowed
     keys (None: any). Raises ConfigError with one line naming the file when it cannot be read, is
@@ -34,7 +36,7 @@ def read_yaml_mapping(path, what: str = 'settings', known=None) -> dict:
 
 
 def check_known(doc: dict, known, where: str) -> None:
-    """ConfigError naming the keys of `doc` that are not in `known`."""
+    """Raise ConfigError naming the keys of `doc` that are not in `known`."""
     unknown = sorted(set(doc) - set(known))
     if unknown:
         raise ConfigError(f'{where}: unknown setting(s) {", ".join(map(str, unknown))}; '

@@ -1,4 +1,5 @@
-"""Where this copy's installed data lives: share/piezo_narx_ros (config/, launch/, package.xml).
+"""
+Where this copy's installed data lives: share/piezo_narx_ros (config/, launch/, package.xml).
 
 setup.py installs config/*.yaml and launch/*.launch.yaml under PREFIX/share/piezo_narx_ros, as
 colcon and ROS packages do; the Python package itself lands in PREFIX/lib/.../site-packages. The
@@ -55,10 +56,12 @@ def _ament_index() -> Path | None:
 
 @lru_cache(maxsize=None)
 def share_dir() -> Path:
-    """The folder holding config/ and launch/ for this copy (see the module docstring).
+    """
+    Return the folder holding config/ and launch/ for this copy (see the module docstring).
 
     Raises ConfigError (one line) when no copy can be found, e.g. a wheel installed without its
-    data files."""
+    data files.
+    """
     for find in (lambda: _own_prefix_share(_HERE), lambda: _source_tree(_HERE), _ament_index):
         found = find()
         if found is not None:

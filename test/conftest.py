@@ -1,4 +1,5 @@
-"""Shared pytest fixtures.
+"""
+Shared pytest fixtures.
 
 DDS isolation: every test session gets its own ROS_DOMAIN_ID (claimed with a lock file, so that
 parallel runs on one machine do not see each other) and discovery limited to localhost. Child
@@ -15,9 +16,9 @@ SHARED = Path(os.environ.get('PIEZO_NARX_SHARED', REPO.parent / 'shared'))
 BOUCWEN = SHARED / 'data' / 'boucwen'
 
 
-
 def _claim_domain_id() -> str:
-    """Claim a ROS domain id no other test run on this machine holds (flock on a file per id).
+    """
+    Claim a ROS domain id no other test run on this machine holds (flock on a file per id).
 
     A pid-derived id collided between concurrent runs: one run's command node fed another's driver.
     The lock is held (file kept open) for the life of this pytest process and released by the OS.

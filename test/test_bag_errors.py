@@ -1,4 +1,4 @@
-"""Bad bags give one-line BagErrors that name the problem; foreign topics do not disturb reading."""
+"""Bad bags give one-line BagErrors naming the problem; foreign topics do not disturb reading."""
 import shutil
 
 import numpy as np

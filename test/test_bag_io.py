@@ -1,5 +1,9 @@
-"""Bags written by bag.writer: exact round trip, and independent reads with mcap/mcap-ros2 and
-rosbags; read_uy on bags from other writers (sqlite3 storage, a lone .mcap from mcap-ros2)."""
+"""
+Bags written by bag.writer.
+
+Exact round trip, and independent reads with mcap/mcap-ros2 and rosbags; read_uy on bags from other
+writers (sqlite3 storage, a lone .mcap from mcap-ros2).
+"""
 import numpy as np
 import pytest
 import yaml
@@ -171,8 +175,11 @@ def test_writer_refuses_existing_path_and_unknown_type(tmp_path):
 
 
 def test_rclpy_serialized_payloads_with_trailing_bytes_are_read(tmp_path):
-    """rclpy's serialize_message returns 8 bytes more than the message; such bytes, republished
-    and recorded, must still decode."""
+    """
+    Check that rclpy's serialize_message returns 8 bytes more than the message.
+
+    Such bytes, republished and recorded, must still decode.
+    """
     from rclpy.serialization import serialize_message
 
     from piezo_narx_ros.nodes.common import make_joint_state

@@ -1,5 +1,9 @@
-"""Pairing u and y by header stamp: gaps, duplicates, reordering, unmatched ends, irregular rate,
-both on arrays and through read_uy on a bag with the same defects."""
+"""
+Pairing u and y by header stamp.
+
+Gaps, duplicates, reordering, unmatched ends, irregular rate, both on arrays and through read_uy on
+a bag with the same defects.
+"""
 import numpy as np
 import pytest
 
@@ -96,8 +100,11 @@ def _reference_stream(stamps, values):
 
 
 def _messy_stream(rng, t, values):
-    """t/values as a recorder may receive them: samples lost, some re-delivered (some with
-    another value), neighbours swapped in transit."""
+    """
+    t/values as a recorder may receive them.
+
+    Samples lost, some re-delivered (some with another value), neighbours swapped in transit.
+    """
     keep = rng.random(t.size) > rng.uniform(0.0, 0.3)
     s, v = list(t[keep]), list(values[keep])
     for _ in range(rng.integers(0, 6)):
@@ -111,9 +118,12 @@ def _messy_stream(rng, t, values):
 
 
 def test_pairing_matches_a_message_by_message_reference_on_random_defects():
-    """Every returned sample and count against a plain-Python pairing of the same messages:
-    lengths equal the number of common stamps, each pair carries the first value received for
-    its stamp, and the trimmed, dropped and unmatched counts add up to the inputs."""
+    """
+    Every returned sample and count against a plain-Python pairing of the same messages.
+
+    Lengths equal the number of common stamps, each pair carries the first value received for its
+    stamp, and the trimmed, dropped and unmatched counts add up to the inputs.
+    """
     rng = np.random.default_rng(8)
     for case in range(40):
         n = int(rng.integers(30, 300))

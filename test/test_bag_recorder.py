@@ -26,7 +26,7 @@ def test_concurrent_puts_are_all_written_in_order_per_thread(tmp_path):
         for t in threads:
             t.join()
     assert rec.received == rec.stats.written == 3 * n and not rec.stats.error
-    series = read_joint_series(tmp_path / 'b', {t: 'effort' for t in topics})
+    series = read_joint_series(tmp_path / 'b', dict.fromkeys(topics, 'effort'))
     for t in topics:
         np.testing.assert_array_equal(series[t].values, np.arange(n))
     assert rec.close() is rec.stats   # second close is a no-op

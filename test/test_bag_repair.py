@@ -18,7 +18,7 @@ TOPIC = '/piezo/voltage_command'
 
 # A recording process: 1000 messages, wait until they are on disk, say so, then keep recording
 # until killed.
-RECORDER = r'''
+RECORDER = r"""
 import sys, time
 from piezo_narx_ros.bag.recorder import BagRecorder
 from piezo_narx_ros.bag.writer import joint_state_cdr
@@ -39,7 +39,7 @@ while True:
     put()
     if k %% 200 == 0:
         time.sleep(0.02)
-''' % T0
+""" % T0
 
 
 def _assert_exact_prefix(path, at_least):

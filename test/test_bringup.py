@@ -1,5 +1,9 @@
-"""piezo-narx bringup: ROS 2 YAML launch files (the subset it reads, the command lines launch_ros
-would build), prefixed logs, clean stop on SIGTERM, failing node."""
+"""
+piezo-narx bringup.
+
+ROS 2 YAML launch files (the subset it reads, the command lines launch_ros would build), prefixed
+logs, clean stop on SIGTERM, failing node.
+"""
 import os
 import re
 import signal
@@ -168,7 +172,7 @@ def test_sim_bringup_runs_prefixes_logs_and_stops_all_on_sigterm(tmp_path):
         lines.append(line)
         text = ''.join(lines)
         if all(f'[{n}] [INFO]' in text for n in ('command_node', 'simulator_node',
-                                                  'estimator_node')):
+                                                 'estimator_node')):
             break
     time.sleep(1.0)                                # let samples flow
     running = [int(x) for x in re.findall(r'\(pid (\d+)\)', ''.join(lines))]

@@ -232,10 +232,10 @@ def test_default_config_file_matches_built_in_defaults(tmp_path):
     from types import SimpleNamespace
 
     from piezo_narx_ros.cli.fit import experiment_config, load_settings
-    blank = dict(config=None, ny=None, nu=None, hidden=None, seed=None, arx_na=None, arx_nb=None,
-                 max_lag=None, max_outside_fraction=None, residuals=None, noise_model=None,
-                 noise_order=None, jobs=None, preset=None, n_seeds=None,
-                 command_topic=None, deflection_topic=None, no_arx=False)
+    blank = dict.fromkeys(('config', 'ny', 'nu', 'hidden', 'seed', 'arx_na', 'arx_nb', 'max_lag',
+                           'max_outside_fraction', 'residuals', 'noise_model', 'noise_order',
+                           'jobs', 'preset', 'n_seeds', 'command_topic', 'deflection_topic'))
+    blank['no_arx'] = False
     built_in = load_settings(SimpleNamespace(**blank))
     from_file = load_settings(SimpleNamespace(**{**blank, 'config': str(REPO / 'config' /
                                                                         'fit.yaml')}))

@@ -113,8 +113,11 @@ def test_set_running_service_pauses_resumes_and_keeps_the_parameter_in_step():
 
 
 def test_use_sim_time_paces_on_clock_waits_for_it_stops_with_it_and_follows_a_jump_back():
-    """With use_sim_time:=true the stream follows /clock, not the wall clock (in one process:
-    a /clock publisher, the command node and a subscriber on one executor)."""
+    """
+    With use_sim_time:=true the stream follows /clock, not the wall clock.
+
+    In one process: a /clock publisher, the command node and a subscriber on one executor.
+    """
     import time
 
     import numpy as np

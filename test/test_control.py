@@ -1,6 +1,9 @@
-"""Sensorless position control (piezo_narx_ros/control/): the one-sample inverse of every model
-family, its limits and bounded work, and the controller's modes, bad references, stamps, gaps,
-feedback and anti-windup, on the simulated plant without DDS."""
+"""
+Sensorless position control (piezo_narx_ros/control/).
+
+The one-sample inverse of every model family, its limits and bounded work, and the controller's
+modes, bad references, stamps, gaps, feedback and anti-windup, on the simulated plant without DDS.
+"""
 import math
 
 import numpy as np
@@ -23,7 +26,7 @@ PERIOD = int(1e9 / FS)
 
 
 def random_hysteresis(seed=0):
-    """A HysteresisNARX with random (not fitted) parameters and stable output dynamics."""
+    """Return a HysteresisNARX with random (not fitted) parameters and stable output dynamics."""
     m = HysteresisNARX(hidden=4, n_plays=5, n_duhem=1, n_lags=2, na=2, nb=2,
                        creep_taus=(0.01, 0.5))
     rng = np.random.default_rng(seed)
@@ -43,7 +46,7 @@ def arx(b=(2e-7, 1e-7), a=(-0.5,), c=0.0):
 
 @pytest.fixture(scope='module')
 def fitted():
-    """A small HysteresisNARX fitted on 8 s of the identification protocol (default plant)."""
+    """Return a small HysteresisNARX fitted on 8 s of the identification protocol."""
     u = generate('protocol', FS, 8.0, 100.0, seed=3)
     y = PiezoCantilever(fs=FS, seed=3).run(u).y
     return HysteresisNARX(hidden=6, n_plays=8, max_iter=25, seed=0).fit(u, y, fs=FS)

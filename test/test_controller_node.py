@@ -1,4 +1,7 @@
-"""controller_node in a separate process over DDS (isolated domain, see conftest):
+"""
+Test controller_node in a separate process over DDS (isolated domain, see conftest).
+
+Checked:
 
 - command_node (position mode) -> controller_node (inverse) -> simulator_node for 4 s at 2 kHz:
   every reference answered by one command with its stamp, the commands equal an offline
@@ -23,7 +26,7 @@ P = 500_000  # ns
 
 @pytest.fixture(scope='module')
 def model_file(tmp_path_factory):
-    """A small HysteresisNARX fitted on 8 s of the identification protocol, saved."""
+    """Return a small HysteresisNARX fitted on 8 s of the identification protocol, saved."""
     from piezo_narx_ros.ident.hysteresis import HysteresisNARX
     from piezo_narx_ros.ident.model_io import save_model
     from piezo_narx_ros.plant import PiezoCantilever, generate
@@ -36,7 +39,7 @@ def model_file(tmp_path_factory):
 
 
 def offline(model_file, refs, **options):
-    """The commands an offline PositionController gives for (stamp, reference) pairs."""
+    """Return the commands an offline PositionController gives for (stamp, reference) pairs."""
     from piezo_narx_ros.control.controller import PositionController
     from piezo_narx_ros.ident.model_io import load_model
     ctl = PositionController(load_model(model_file), slew_rate=1e5, **options)

@@ -1,5 +1,9 @@
-"""piezo-narx demo: settings, live-run analysis, failure handling, the quick run end to end (real
-node processes over DDS), a clean stop on SIGTERM, and the committed sample bags and model."""
+"""
+piezo-narx demo.
+
+Settings, live-run analysis, failure handling, the quick run end to end (real node processes over
+DDS), a clean stop on SIGTERM, and the committed sample bags and model.
+"""
 import json
 import math
 import os
@@ -24,8 +28,11 @@ BAGS = REPO / 'bags'
 
 # ------------------------------------------------------------------------------------ helpers
 def _tagged_processes(tag: str) -> list[str]:
-    """Command lines of live processes whose environment carries `tag` (all descendants of a
-    demo started with it inherit it, even after being re-parented)."""
+    """
+    Return the command lines of live processes whose environment carries `tag`.
+
+    All descendants of a demo started with it inherit it, even after being re-parented.
+    """
     found = []
     for d in Path('/proc').iterdir():
         if not d.name.isdigit() or int(d.name) == os.getpid():
@@ -164,9 +171,12 @@ def test_earlier_demo_folder_is_refused(tmp_path):
 
 # --------------------------------------------------------------------------------- end to end
 def _bag_latency_us(bag: Path) -> np.ndarray:
-    """Estimate minus command receive time (µs) of each stamp on all three streams of a live
-    bag, read with mcap + mcap_ros2 (independent of the project's reader); first message per
-    stamp."""
+    """
+    Return estimate minus command receive time (µs) of each stamp of a live bag.
+
+    On all three streams, read with mcap + mcap_ros2 (independent of the project's reader); first
+    message per stamp.
+    """
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
     first = {'/piezo/voltage_command': {}, '/piezo/deflection_estimate': {},

@@ -1,5 +1,9 @@
-"""piezo-narx demo --control: the analysis of its bags (synthetic, ROS-free), its settings, and
-one mode end to end with real node processes over DDS."""
+"""
+piezo-narx demo --control.
+
+The analysis of its bags (synthetic, ROS-free), its settings, and one mode end to end with real
+node processes over DDS.
+"""
 import json
 import uuid
 
@@ -16,7 +20,11 @@ FS = 2000.0
 
 
 def _control_bag(path, n=4000, drop=(), delay_ns=250_000):
-    """reference r, command u = r/0.4e-6 V, deflection r + 50 nm; drop: {stream: samples}."""
+    """
+    Write a control bag: reference r, command u = r/0.4e-6 V, deflection r + 50 nm.
+
+    drop: {stream: samples}.
+    """
     t0 = 1_700_000_000_000_000_000
     r = 30e-6 * np.sin(2 * np.pi * np.arange(n) / FS)
     with BagWriter(path) as bag:
@@ -80,8 +88,11 @@ def test_control_option_without_control_is_refused(tmp_path):
 
 
 def test_control_demo_one_mode_end_to_end(tmp_path):
-    """Real processes: command (position) -> controller (inverse) -> simulator + recorder;
-    every reference answered, tracked, figures and summary written, no process left."""
+    """
+    Real processes: command (position) -> controller (inverse) -> simulator + recorder.
+
+    Every reference answered, tracked, figures and summary written, no process left.
+    """
     from piezo_narx_ros.ident.hysteresis import HysteresisNARX
     from piezo_narx_ros.ident.model_io import save_model
     from piezo_narx_ros.plant import PiezoCantilever, generate

@@ -1,4 +1,5 @@
-"""driver_node as a real process over DDS (isolated domain from conftest), against a UDP target.
+"""
+driver_node as a real process over DDS (isolated domain from conftest), against a UDP target.
 
 The test process holds a probe node (publishes voltage_command, listens to deflection and
 /diagnostics) and, for the watchdog test, plays the target itself so it can see every datagram.
@@ -55,16 +56,19 @@ def stop(proc: subprocess.Popen) -> str:
 
 
 class Probe:
-    """Test-side node in its own context, spun on a background thread.
+    """
+    Test-side node in its own context, spun on a background thread.
 
     Publishes /NS/voltage_command with stamps T0 + k DT (k counts on across calls) and collects
-    /NS/deflection (and the `extra` deflection topics) and the driver's /diagnostics."""
+    /NS/deflection (and the `extra` deflection topics) and the driver's /diagnostics.
+    """
 
     def __init__(self, extra=()):
         self.ctx = rclpy.Context()
         rclpy.init(context=self.ctx)
         self.node = rclpy.create_node('probe', namespace=NS, context=self.ctx)
-        self.pub = self.node.create_publisher(JointState, 'voltage_command', sample_qos(depth=1000))
+        self.pub = self.node.create_publisher(JointState, 'voltage_command',
+                                              sample_qos(depth=1000))
         self.k = 0
         self.topics = [f'/{NS}/deflection', *extra]
         self.received = {t: [] for t in self.topics}
@@ -103,9 +107,13 @@ class Probe:
                   'discovery')
 
     def handshake(self, timeout=20.0):
-        """Publish 0 V warm-up commands until every deflection topic answers, so that the real
-        sequence starts after DDS matching has settled. Returns the first warm-up sample index
-        answered on /NS/deflection: from there to the real sequence the plant sees 0 V."""
+        """
+        Publish 0 V warm-up commands until every deflection topic answers.
+
+        So that the real sequence starts after DDS matching has settled. Returns the first warm-up
+        sample index answered on /NS/deflection: from there to the real sequence the plant sees 0
+        V.
+        """
         self.wait_connected(timeout)
         deadline = time.monotonic() + timeout
         while not all(self.received.values()):
@@ -157,7 +165,8 @@ def test_driver_with_fake_rig_reproduces_the_plant_stream(probe):
         first = probe.handshake()
         k0 = probe.k
         k = np.arange(600)
-        u = 80.0 * np.sin(2 * np.pi * 3.0 * k / 2000.0) + 20.0 * np.sin(2 * np.pi * 41 * k / 2000.0)
+        u = (80.0 * np.sin(2 * np.pi * 3.0 * k / 2000.0)
+             + 20.0 * np.sin(2 * np.pi * 41 * k / 2000.0))
         stamps = probe.send(u)
         probe.wait(lambda: len(probe.deflection) >= len(u), 20.0,
                    lambda: f'all deflection samples, got {len(probe.deflection)}')
@@ -189,8 +198,12 @@ def test_driver_with_fake_rig_reproduces_the_plant_stream(probe):
 
 
 def test_driver_with_fake_rig_equals_simulator_node_across_lost_commands():
-    """Both answer the same /NS/voltage_command; samples the driver never sees (a stamp gap, as
-    after a DDS loss) are bridged the same way by the fake rig and the simulator node."""
+    """
+    Both answer the same /NS/voltage_command.
+
+    Samples the driver never sees (a stamp gap, as after a DDS loss) are bridged the same way by
+    the fake rig and the simulator node.
+    """
     rig_port = free_udp_port()
     rig = subprocess.Popen([sys.executable, '-m', 'piezo_narx_ros.rig.fake_rig', '--port',
                             str(rig_port), '--seed', '5'], stdout=subprocess.PIPE,
@@ -228,8 +241,12 @@ def test_driver_with_fake_rig_equals_simulator_node_across_lost_commands():
 
 
 class EchoTarget:
-    """A UDP target in the test: records (arrival s, Command), replies position = 1e-7 m/V,
-    skips the replies to samples k in `drop` and answers samples in `dup` twice (k from stamps)."""
+    """
+    A UDP target in the test.
+
+    Records (arrival s, Command), replies position = 1e-7 m/V, skips the replies to samples k in
+    `drop` and answers samples in `dup` twice (k from stamps).
+    """
 
     def __init__(self):
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -280,8 +297,8 @@ def test_limits_clamp_and_watchdog_ramps_to_zero_at_the_slew_limit(probe):
         probe.pub.publish(bad)
         probe.pub.publish(make_joint_state(T0, ['x'], effort=[float('nan')]))
         probe.wait(lambda: target.got and target.got[-1][1].volts == (0.0,), 10.0, 'ramp to 0 V')
-        probe.wait(lambda: any(diagnostic_values(s).get('state') == 'parked' for s in probe.status),
-                   5.0, 'parked state on /diagnostics')
+        probe.wait(lambda: any(diagnostic_values(s).get('state') == 'parked'
+                               for s in probe.status), 5.0, 'parked state on /diagnostics')
     finally:
         out = stop(driver)
         target.close()
@@ -349,6 +366,7 @@ class RecordingRig:
         from piezo_narx_ros.rig.fake_rig import FakeRig
 
         class _Rig(FakeRig):
+
             def handle(inner, data):
                 try:
                     self.log.append(p.unpack_command(data))
@@ -373,8 +391,12 @@ class RecordingRig:
 
 
 def test_lifecycle_transitions_estop_and_arm_against_the_fake_rig(probe):
-    """autostart:=false: each transition does what it says, checked on the rig's side (the
-    datagrams it receives) and on the ROS side (subscription, deflection, /diagnostics)."""
+    """
+    autostart:=false.
+
+    Each transition does what it says, checked on the rig's side (the datagrams it receives) and on
+    the ROS side (subscription, deflection, /diagnostics).
+    """
     from lifecycle_msgs.msg import Transition
     from lifecycle_msgs.srv import ChangeState, GetState
     from std_srvs.srv import Trigger

@@ -1,5 +1,9 @@
-"""FreeRunEstimator (the estimator node's logic) without DDS: equality with offline simulate,
-initialisation, gap/NaN/range handling, output-range flag, running error, re-anchoring."""
+"""
+FreeRunEstimator (the estimator node's logic) without DDS.
+
+Equality with offline simulate, initialisation, gap/NaN/range handling, output-range flag, running
+error, re-anchoring.
+"""
 import math
 
 import numpy as np
@@ -174,8 +178,12 @@ def test_bad_configuration_refused(model):
 
 
 def test_requested_restart_from_rest_and_from_measurement(model):
-    """The ~/reset and ~/reinitialize services: the run after the request equals an offline
-    simulate of the later commands alone, from rest or from the measured outputs there."""
+    """
+    The ~/reset and ~/reinitialize services.
+
+    The run after the request equals an offline simulate of the later commands alone, from rest or
+    from the measured outputs there.
+    """
     u = _u(1200, 21)
     y_meas = model.simulate(u) + 2e-8
     est = FreeRunEstimator(model, init='auto')

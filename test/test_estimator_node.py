@@ -1,4 +1,7 @@
-"""Live nodes in separate processes over DDS (isolated domain, see conftest):
+"""
+Test live nodes in separate processes over DDS (isolated domain, see conftest).
+
+Checked:
 
 - command -> simulator -> estimator for 10 s at 2 kHz: no sample lost on any topic, and the
   estimate published live equals offline `simulate` of the same model on the received commands;
@@ -65,7 +68,8 @@ class Collector:
         if diagnostics:
             self._subs.append(self.node.create_subscription(DiagnosticArray, '/diagnostics',
                                                             self._on_diag, 100))
-        self.pub = self.node.create_publisher(JointState, 'voltage_command', sample_qos(depth=1000))
+        self.pub = self.node.create_publisher(JointState, 'voltage_command',
+                                              sample_qos(depth=1000))
         from rclpy.experimental import EventsExecutor
         self.executor = EventsExecutor(context=self.context)
         self.executor.add_node(self.node)
@@ -212,9 +216,13 @@ def test_nan_range_and_gap_injection_counted_and_survived(toy_model_file):
 
 
 def test_reset_and_reinitialize_services(toy_model_file):
-    """~/reset restarts the free run from rest at the next command (estimates then equal an
-    offline simulate of the later commands alone); ~/reinitialize is refused without a
-    deflection publisher, with a reason."""
+    """
+    Check ~/reset and ~/reinitialize.
+
+    ~/reset restarts the free run from rest at the next command (estimates then equal an offline
+    simulate of the later commands alone); ~/reinitialize is refused without a deflection
+    publisher, with a reason.
+    """
     from std_srvs.srv import Trigger
 
     from piezo_narx_ros.ident.model_io import load_model

@@ -1,5 +1,8 @@
-"""Executors of the candidate search: the Ray executor gives the local pool's results bit for bit,
-failures are reported per candidate while the rest completes, and Ctrl-C leaves no Ray process.
+"""
+Executors of the candidate search.
+
+The Ray executor gives the local pool's results bit for bit, failures are reported per candidate
+while the rest completes, and Ctrl-C leaves no Ray process.
 
 One local Ray instance (2 CPUs, no dashboard, small object store) serves the module and is shut
 down at its end; the CLI tests run in-process and reuse it (RayExecutor leaves a connection it did
@@ -28,16 +31,16 @@ from piezo_narx_ros.ident.model_io import save_model, weights_sha256
 # Few iterations: these tests check where and how fits run, not the optimiser.
 FAST_TRAINING = {'restarts': 1, 'restart_iter': 2, 'max_iter': 5, 'refine_iter': 3,
                  'n_segments': 5, 'onestep_samples': 1000}
-PAPER_LIKE = dict(ny=(1, 2), nu=(1, 2), hidden=3, arx_na=(1, 2), arx_nb=(1, 2),
-                  training=FAST_TRAINING, final_training={'max_iter': 8, 'refine_iter': 4},
-                  progress=False)
-ENVELOPE_LIKE = dict(family='hysteresis_narx', hidden=3, n_seeds=2,
-                     hnarx={'n_plays': 4, 'max_iter': 3}, arx_na=(2,), arx_nb=(2,),
-                     selection='worst_case', final_training={}, progress=False)
+PAPER_LIKE = {'ny': (1, 2), 'nu': (1, 2), 'hidden': 3, 'arx_na': (1, 2), 'arx_nb': (1, 2),
+              'training': FAST_TRAINING, 'final_training': {'max_iter': 8, 'refine_iter': 4},
+              'progress': False}
+ENVELOPE_LIKE = {'family': 'hysteresis_narx', 'hidden': 3, 'n_seeds': 2,
+                 'hnarx': {'n_plays': 4, 'max_iter': 3}, 'arx_na': (2,), 'arx_nb': (2,),
+                 'selection': 'worst_case', 'final_training': {}, 'progress': False}
 
 
 def hysteretic_record(n=3000, seed=0, fs=1000.0):
-    """A backlash-like hysteresis into a first-order lag, with sensor noise (u V, y m)."""
+    """Return a backlash-like hysteresis into a first-order lag, with sensor noise (u V, y m)."""
     rng = np.random.default_rng(seed)
     u = np.convolve(rng.uniform(-1, 1, n + 20), np.ones(20) / 20, mode='valid')[:n]
     play, y = np.zeros(n), np.zeros(n)
@@ -49,7 +52,7 @@ def hysteretic_record(n=3000, seed=0, fs=1000.0):
 
 
 def without_times(doc):
-    """A result's to_dict() without wall/fit seconds (the only fields that may differ)."""
+    """Return a result's to_dict() without wall/fit seconds (the only fields that may differ)."""
     if isinstance(doc, dict):
         return {k: without_times(v) for k, v in doc.items()
                 if k not in ('wall_seconds', 'fit_seconds')}
@@ -133,7 +136,8 @@ def test_failed_candidate_is_named_and_the_search_completes(ray_executor):
 
     class Faulty(RayExecutor):
         """The Ray executor with ARX(na=2, nb=1)'s worker killed on every attempt."""
-        def map(self, fn, tasks, data, done=None):
+
+        def map(self, fn, tasks, data, done=None):  # noqa: A003 - Executor.map
             def task(payload, shared):
                 if payload[0].label == 'ARX(na=2, nb=1)':
                     os._exit(1)
@@ -273,9 +277,13 @@ def _cmdline(pid: int) -> str:
 @pytest.mark.parametrize('whom, when', [('group', 'ray::_ray_call'), ('driver', 'ray::_ray_call'),
                                         ('driver', 'gcs_server')])
 def test_ctrl_c_stops_the_local_ray_cleanly(tmp_path, whom, when):
-    """Ctrl-C in a terminal signals the whole process group; a signal to the driver alone takes
-    the path a remote cluster sees (cancel the tasks, disconnect). Either while tasks run, or
-    while the local Ray is still starting (`gcs_server` up, the rest coming)."""
+    """
+    Ctrl-C in a terminal signals the whole process group.
+
+    A signal to the driver alone takes the path a remote cluster sees (cancel the tasks,
+    disconnect). Either while tasks run, or while the local Ray is still starting (`gcs_server` up,
+    the rest coming).
+    """
     _write_npz(tmp_path / 'r.npz', hysteretic_record(n=6000, seed=9))
     proc = subprocess.Popen(
         [sys.executable, '-m', 'piezo_narx_ros.cli.main', 'fit', str(tmp_path / 'r.npz'),
@@ -319,7 +327,7 @@ def _stop_group(proc, grace=15.0):
             proc.wait(timeout=grace)
         except subprocess.TimeoutExpired:
             pass
-    with_pids = [p for p in _descendants(proc.pid)]
+    with_pids = list(_descendants(proc.pid))
     try:
         os.killpg(proc.pid, signal.SIGKILL)
     except ProcessLookupError:
@@ -329,8 +337,11 @@ def _stop_group(proc, grace=15.0):
 
 
 def test_fit_on_a_running_cluster_by_address(tmp_path):
-    """`--ray-address` connects to a cluster started apart (`ray start --head`), ships this
-    package's code with the job, and gives the local pool's model."""
+    """
+    Check that `--ray-address` connects to a cluster started apart (`ray start --head`).
+
+    It ships this package's code with the job, and gives the local pool's model.
+    """
     import re
     ray_cli = Path(sys.executable).with_name('ray')
     head = subprocess.Popen(

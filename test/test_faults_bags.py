@@ -1,7 +1,9 @@
-"""Fault suite, bags: a live recording is not repaired under the recorder's feet, the paired rate
-is the command rate with dropped samples reported, an unreadable metadata.yaml is handled the
-same way by export and repair, `bag info` counts every message, and `bag export --out` writes
-the file it names.
+"""
+Fault suite, bags.
+
+A live recording is not repaired under the recorder's feet, the paired rate is the command rate
+with dropped samples reported, an unreadable metadata.yaml is handled the same way by export and
+repair, `bag info` counts every message, and `bag export --out` writes the file it names.
 
 Covers issue 10 items 7-10 (item 6, SIGHUP, is in test_faults_nodes.py).
 """
@@ -162,13 +164,17 @@ def test_repair_of_a_non_bag_is_one_line(tmp_path):
 
 
 def test_recorder_on_a_full_disk_reports_the_error_and_leaves_a_repairable_bag(tmp_path):
-    """The bag file cannot grow past 200 kB (RLIMIT_FSIZE; Python ignores SIGXFSZ, so writes
-    fail with EFBIG as on a full disk). Before: the writer thread died with a traceback,
-    /diagnostics went on saying 'recording' and SIGTERM ended silently. Now: ERROR on
-    /diagnostics while it runs, one line at the end, and `bag repair` recovers what was
-    written, in order. Chunks are cut every 50 ms (about 30 kB at this rate), so several complete
-    ones precede the failed write whatever the machine's load; at the default 0.5 s the first
-    full chunk alone can exceed the limit and nothing but the first message is recoverable."""
+    """
+    A full disk: the recorder reports the error and leaves a repairable bag.
+
+    The bag file cannot grow past 200 kB (RLIMIT_FSIZE; Python ignores SIGXFSZ, so writes fail with
+    EFBIG as on a full disk). Before: the writer thread died with a traceback, /diagnostics went on
+    saying 'recording' and SIGTERM ended silently. Now: ERROR on /diagnostics while it runs, one
+    line at the end, and `bag repair` recovers what was written, in order. Chunks are cut every 50
+    ms (about 30 kB at this rate), so several complete ones precede the failed write whatever the
+    machine's load; at the default 0.5 s the first full chunk alone can exceed the limit and
+    nothing but the first message is recoverable.
+    """
     import resource
 
     from test_estimator_node import Collector, stop

@@ -1,5 +1,8 @@
-"""Fault suite, command line: what a hostile new user feeds `piezo-narx` ends in one line and a
-non-zero exit, or in a clear warning, never in a traceback or a silently wrong result.
+"""
+Fault suite, command line.
+
+What a hostile new user feeds `piezo-narx` ends in one line and a non-zero exit, or in a clear
+warning, never in a traceback or a silently wrong result.
 
 Covers issue 10 items 11-15: non-UTF-8 YAML, absurd lengths, crafted .npz headers, data that
 cannot identify anything, inputs far outside a model's range, NaN in model files, BOM and
@@ -75,7 +78,7 @@ def test_simulate_absurd_length_is_refused_before_allocating(tmp_path, capsys, e
 
 
 def crafted_npz(path, declared=10**12):
-    """An .npz whose 'u' header declares `declared` float64 values but stores 80 bytes."""
+    """Return an .npz whose 'u' header declares `declared` float64 values but stores 80 bytes."""
     import io
     head = io.BytesIO()
     np.lib.format.write_array_header_1_0(
@@ -265,7 +268,7 @@ def test_no_traceback_in_a_real_process(tmp_path):
      r'--noise-order must be in \[0, 200\], got 500'),
     (['fit', '{good}', '--out', '{tmp}/o', '--ny', '1.5'], "--ny: not a lag range: '1.5'"),
     (['fit', '{good}', '--out', '{tmp}/o', '--config', '{cfg}'],
-     r"ny: lag orders must be integers, got \[1, 2.5\]"),
+     r'ny: lag orders must be integers, got \[1, 2.5\]'),
     (['fit', '{good}', '--out', '{tmp}/o', '--fs', '-1'],
      '--fs must be a positive number of Hz, got -1.0'),
     (['fit', '{good}', '--out', '{good}'], 'good.npz: exists and is not a directory'),

@@ -1,5 +1,8 @@
-"""Fault suite, estimator (ROS-free): stamp outliers against real stream restarts, interleaved
-writers, and a /diagnostics level that reflects everything since the previous tick.
+"""
+Fault suite, estimator (ROS-free).
+
+Stamp outliers against real stream restarts, interleaved writers, and a /diagnostics level that
+reflects everything since the previous tick.
 
 Covers issue 10 items 1-3. The estimates are compared with offline `simulate` of the commands the
 estimator should have used, so a fault that silently corrupts the estimate fails here.
@@ -136,8 +139,12 @@ def test_flush_decides_when_the_stream_stops(model):
 
 
 def test_runaway_between_ticks_is_a_warn_tick_even_if_the_last_sample_is_fine():
-    """0.5 Hz ±200 V on a model trained on ±50 V: thousands of flagged estimates between two
-    ticks used to leave the level OK when the sample at the tick was back in range."""
+    """
+    0.5 Hz ±200 V on a model trained on ±50 V.
+
+    Thousands of flagged estimates between two ticks used to leave the level OK when the sample at
+    the tick was back in range.
+    """
     from piezo_narx_ros.ident.arx import ARXModel
     m = ARXModel(na=1, nb=0).set_coefficients(a=[-0.5], b=[1e-8])   # 2e-8 m/V static gain
     m.fs, m.output_range = 2000.0, (-1e-6, 1e-6)
@@ -157,8 +164,12 @@ def test_runaway_between_ticks_is_a_warn_tick_even_if_the_last_sample_is_fine():
 
 
 def test_commands_faster_than_fs_are_not_stepped_as_samples(model):
-    """4 kHz commands into a 2 kHz model: before, every command was stepped as one 2 kHz sample
-    (the estimate ran twice as fast, silently); now the in-between ones are refused and reported."""
+    """
+    4 kHz commands into a 2 kHz model.
+
+    Before, every command was stepped as one 2 kHz sample (the estimate ran twice as fast,
+    silently); now the in-between ones are refused and reported.
+    """
     u = _u(400, 8)
     est = FreeRunEstimator(model, init='rest')
     health = EstimatorHealth(est)

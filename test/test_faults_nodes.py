@@ -1,6 +1,9 @@
-"""Fault suite, node plumbing: incompatible QoS is reported while it lasts, QoS is changed with
-the standard overrides (retired per-node parameters refused with the new name), an empty-list
-parameter ends in one line, and SIGHUP closes a recording like SIGINT/SIGTERM.
+"""
+Fault suite, node plumbing.
+
+Incompatible QoS is reported while it lasts, QoS is changed with the standard overrides (retired
+per-node parameters refused with the new name), an empty-list parameter ends in one line, and
+SIGHUP closes a recording like SIGINT/SIGTERM.
 
 Covers issue 10 items 4, 5 and 6. DDS tests run in the session's isolated domain (conftest).
 """
@@ -91,8 +94,11 @@ class _Talker(PiezoNode):
 
 
 def test_compatible_subscriber_of_our_publisher_is_not_reported(ctx):
-    """The graph reports a peer's unset deadline/lease as Infinite, ours as 0: both mean
-    'none', and must not read as 'Subscription has a deadline, but publisher does not'."""
+    """
+    The graph reports a peer's unset deadline/lease as Infinite, ours as 0.
+
+    Both mean 'none', and must not read as 'Subscription has a deadline, but publisher does not'.
+    """
     node = _Talker(context=ctx, namespace='/qos6')
     other = Node('plain_listener', namespace='/qos6', context=ctx)
     try:
@@ -156,8 +162,12 @@ def test_empty_list_parameter_is_one_line_not_a_type_error():
 
 @pytest.mark.parametrize('where', ['constructor', 'callback'])
 def test_unexpected_error_in_a_node_exits_1_with_one_line(where):
-    """run_node's last resort: an exception that is not the package's own (a bug) ends the
-    process with exit 1 and one line naming the node and the exception, no traceback."""
+    """
+    run_node's last resort.
+
+    An exception that is not the package's own (a bug) ends the process with exit 1 and one line
+    naming the node and the exception, no traceback.
+    """
     fault = ('raise KeyError("gain")' if where == 'constructor'
              else 'self.timer = self.create_timer(0.05, lambda: 1 / 0)')
     code = ('import sys\n'
@@ -167,7 +177,8 @@ def test_unexpected_error_in_a_node_exits_1_with_one_line(where):
             '    def __init__(self, **kwargs):\n'
             '        super().__init__(**kwargs)\n'
             f'        {fault}\n'
-            f'sys.exit(run_node(Boom, ["boom", "--ros-args", "-r", "__ns:=/boom{os.getpid()}"]))\n')
+            'sys.exit(run_node(Boom, ["boom", "--ros-args", "-r", '
+            f'"__ns:=/boom{os.getpid()}"]))\n')
     done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                           timeout=60)
     assert done.returncode == 1, done.stderr
@@ -241,8 +252,12 @@ def _status_of(col, node_name):
 
 
 def test_live_estimator_refuses_outliers_and_reports_a_second_writer(tmp_path):
-    """Over DDS: a future-stamped command and a second command writer. The estimate follows
-    the first writer exactly and /diagnostics says what happened (items 1 and 3)."""
+    """
+    Over DDS: a future-stamped command and a second command writer.
+
+    The estimate follows the first writer exactly and /diagnostics says what happened (items 1 and
+    3).
+    """
     import numpy as np
     from test_estimator_node import Collector, start_node, stop
 
@@ -295,7 +310,7 @@ def _alive(pid: int) -> bool:
 
 @pytest.mark.skipif(not sys.platform.startswith('linux'), reason='PR_SET_PDEATHSIG is Linux')
 def test_bringup_children_die_with_it_on_kill_9(tmp_path):
-    """kill -9 of `piezo-narx bringup` left its nodes running (about 1.5 cores busy)."""
+    """Before: kill -9 of `piezo-narx bringup` left its nodes running (about 1.5 cores busy)."""
     import re
     launch = tmp_path / 'one.launch.yaml'
     launch.write_text('launch:\n- node: {pkg: piezo_narx_ros, exec: simulator_node, '
@@ -326,8 +341,12 @@ def test_bringup_children_die_with_it_on_kill_9(tmp_path):
 
 
 def test_live_player_loop_feeding_the_estimator_restarts_each_pass(tmp_path):
-    """`player_node loop:=true` replays the same stamps: before, the estimator dropped every
-    command after the first pass as out of order; now each pass is a new stream."""
+    """
+    `player_node loop:=true` replays the same stamps.
+
+    Before, the estimator dropped every command after the first pass as out of order; now each pass
+    is a new stream.
+    """
     import numpy as np
     from test_estimator_node import Collector, start_node, stop
 
@@ -365,9 +384,12 @@ def test_live_player_loop_feeding_the_estimator_restarts_each_pass(tmp_path):
 
 def test_malformed_bytes_reaching_a_running_simulator_and_estimator_are_counted_and_survived(
         tmp_path):
-    """Over DDS, raw CDR that is not a JointState (truncated, a name count running past the
-    end, random bytes) among good commands: both nodes keep running, answer every good command
-    exactly as offline, and count each bad message on /diagnostics."""
+    """
+    Send raw CDR that is not a JointState among good commands, over DDS.
+
+    Truncated, a name count running past the end, random bytes: both nodes keep running, answer
+    every good command exactly as offline, and count each bad message on /diagnostics.
+    """
     import numpy as np
     from test_estimator_node import Collector, start_node, stop
 

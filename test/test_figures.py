@@ -1,6 +1,10 @@
-"""Figures show what they claim: the plotted data, axis ranges, marks and titles of the report
-(figures 6-9), the demo's live figures and the control demo's figures, read back from the
-matplotlib Figure objects as they are saved (a PNG that exists can still show the wrong curve)."""
+"""
+Figures show what they claim.
+
+The plotted data, axis ranges, marks and titles of the report (figures 6-9), the demo's live
+figures and the control demo's figures, read back from the matplotlib Figure objects as they are
+saved (a PNG that exists can still show the wrong curve).
+"""
 import json
 from pathlib import Path
 
@@ -52,7 +56,7 @@ def _data_axes(fig):
 # ----------------------------------------------------------------------------- the report
 @pytest.fixture(scope='module')
 def report(tmp_path_factory):
-    """(result, validation record, paths, figures) of one ARX-grid report (written once)."""
+    """Write one ARX-grid report once: (result, validation record, paths, figures)."""
     rec = arx_record(seed=1)
     cfg = ExperimentConfig(narx=False, arx_na=(1, 2), arx_nb=(0, 1, 2), jobs=1)
     result = run_experiment([rec], cfg)

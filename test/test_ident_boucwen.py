@@ -1,5 +1,7 @@
-"""Bouc-Wen hysteresis benchmark (skips without ../shared): fit a cheap network, and check the
-committed benchmark model fitted by bench/bench_boucwen.py.
+"""
+Bouc-Wen hysteresis benchmark (skips without ../shared).
+
+Fit a cheap network, and check the committed benchmark model fitted by bench/bench_boucwen.py.
 
 The test record starts in periodic steady state, not at rest, so a from-rest free run carries a
 start-up transient that even the true system has (about 4.7e-5 m RMS, see docs/identification.md);

@@ -1,5 +1,8 @@
-"""Billings residual correlation tests: white residuals pass, residuals that keep dynamics fail;
-the AR noise model whitens what noise colours and hides nothing the input explains."""
+"""
+Billings residual correlation tests: white residuals pass, residuals that keep dynamics fail.
+
+The AR noise model whitens what noise colours and hides nothing the input explains.
+"""
 import json
 from math import comb
 
@@ -15,8 +18,12 @@ from piezo_narx_ros.ident.noise_model import ARNoiseModel, fit_ar_noise_model
 
 
 def chance_pass_probability(n_tested, fraction=0.05):
-    """P(a test of white residuals passes): at most floor(fraction n) lags beyond 1.96/sqrt(N)
-    (probability 0.05 each) and none of them beyond 3.29/sqrt(N) (0.001)."""
+    """
+    P(a test of white residuals passes).
+
+    At most floor(fraction n) lags beyond 1.96/sqrt(N) (probability 0.05 each) and none of them
+    beyond 3.29/sqrt(N) (0.001).
+    """
     m = int(np.floor(fraction * n_tested))
     return sum(comb(n_tested, j) * 0.049 ** j * 0.95 ** (n_tested - j) for j in range(m + 1))
 
@@ -128,14 +135,17 @@ LONG_LAGS = ('phi_ue', 'phi_u2e', 'phi_u2e2')  # tested on -L..L (40 lags), the 
 
 
 def _delayed(x, k):
-    """x delayed by k samples along axis 1 (zeros before the start)."""
+    """Delay x by k samples along axis 1 (zeros before the start)."""
     return np.pad(x, ((0, 0), (k, 0)))[:, :-k]
 
 
 def arx_batch(n_seeds, n=2000, defect=None, strength=0.0, seed=0):
-    """(u, y), each (n_seeds, n): the ARX system above driven by white uniform u, with white
-    equation noise v = 0.1 w, plus, when `defect` names a test, the one term that test is built
-    to detect, which an ARX(2, 1) model does not have:
+    """
+    (u, y), each (n_seeds, n).
+
+    The ARX system above driven by white uniform u, with white equation noise v = 0.1 w, plus, when
+    `defect` names a test, the one term that test is built to detect, which an ARX(2, 1) model does
+    not have:
 
     phi_ee    coloured noise         v = 0.1 (w(k) + c w(k-1))           (a missing noise model)
     phi_ue    a further input lag    + c u(k-3)                          (a missing linear term)

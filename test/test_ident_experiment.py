@@ -18,7 +18,7 @@ FAST_TRAINING = {'restarts': 1, 'restart_iter': 2, 'max_iter': 5, 'refine_iter':
 
 
 def arx_record(n=4000, seed=0, noise=0.05):
-    """ARX(na=2, nb=1) system with white equation noise: the correct model's residuals are white."""
+    """ARX(na=2, nb=1) system with white equation noise: the right model's residuals are white."""
     rng = np.random.default_rng(seed)
     u = rng.uniform(-1, 1, n)
     e = noise * rng.standard_normal(n)
@@ -169,7 +169,7 @@ def test_without_noise_model_tests_are_the_raw_verdicts():
 
 
 def test_strict_rule_validates_no_more_than_tolerant_rule():
-    grid = dict(narx=False, arx_na=(2, 3), arx_nb=(1,), jobs=1)
+    grid = {'narx': False, 'arx_na': (2, 3), 'arx_nb': (1,), 'jobs': 1}
     strict_total = tolerant_total = 0
     for rec in arx_records(8, seed=3):
         strict = run_experiment([rec], ExperimentConfig(max_outside_fraction=0.0, **grid))
@@ -187,7 +187,8 @@ def test_strict_rule_validates_no_more_than_tolerant_rule():
 
 def test_parallel_run_equals_serial_run():
     recs = [arx_record(3000, seed=1), arx_record(3000, seed=2)]
-    base = dict(ny=(1,), nu=(1,), hidden=2, arx_na=(1, 2), arx_nb=(1,), training=FAST_TRAINING)
+    base = {'ny': (1,), 'nu': (1,), 'hidden': 2, 'arx_na': (1, 2), 'arx_nb': (1,),
+            'training': FAST_TRAINING}
     serial = run_experiment(recs, ExperimentConfig(jobs=1, **base))
     parallel = run_experiment(recs, ExperimentConfig(jobs=2, **base))
     assert [c.spec for c in serial.candidates] == [c.spec for c in parallel.candidates]
@@ -234,7 +235,7 @@ def test_boucwen_benchmark_arx_baseline(boucwen_dir):
 
 
 def nonlinear_record(n=4000, seed=0):
-    """A NARX system with a saturating nonlinearity that no ARX model can represent."""
+    """Return a NARX system with a saturating nonlinearity that no ARX model can represent."""
     rng = np.random.default_rng(seed)
     u = rng.uniform(-1, 1, n)
     y = np.zeros(n)
@@ -245,8 +246,8 @@ def nonlinear_record(n=4000, seed=0):
 
 def test_selected_network_is_trained_again_and_kept_only_if_no_worse():
     recs = [nonlinear_record()]
-    base = dict(ny=(1,), nu=(1,), hidden=4, arx_na=(1,), arx_nb=(1,), jobs=1,
-                training=FAST_TRAINING)
+    base = {'ny': (1,), 'nu': (1,), 'hidden': 4, 'arx_na': (1,), 'arx_nb': (1,), 'jobs': 1,
+            'training': FAST_TRAINING}
     screened = run_experiment(recs, ExperimentConfig(final_training={}, **base))
     assert screened.best.spec.kind == 'narx' and screened.best.final_fit is None
     final = run_experiment(recs, ExperimentConfig(
@@ -258,13 +259,17 @@ def test_selected_network_is_trained_again_and_kept_only_if_no_worse():
     # Longer training of the winner improves its free run here (0.99987 -> 0.99999 measured).
     assert info['kept'] and final.best.r2() > screened.best.r2()
     assert final.best.r2() == pytest.approx(info['final']['r2_validation_simulation'])
-    assert json.loads(json.dumps(final.to_dict()))['candidates'][final.selected]['final_fit'] == info
+    doc = json.loads(json.dumps(final.to_dict()))
+    assert doc['candidates'][final.selected]['final_fit'] == info
 
 
 def test_free_run_start_up_transient_is_not_taken_for_noise():
-    """The true model of an output-error system: its free-run residual is the white sensor noise
-    plus a start-up transient (the lags start from noisy measurements). The noise model must see
-    white residuals, not fit the transient."""
+    """
+    The true model of an output-error system.
+
+    Its free-run residual is the white sensor noise plus a start-up transient (the lags start from
+    noisy measurements). The noise model must see white residuals, not fit the transient.
+    """
     from piezo_narx_ros.ident.arx import ARXModel
     from piezo_narx_ros.ident.experiment import fit_noise_models
     rng = np.random.default_rng(3)

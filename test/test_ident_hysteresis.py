@@ -1,6 +1,9 @@
-"""The hysteresis-operator NARX (ident/hysteresis.py): exact derivatives, free run = Stepper,
-frozen operators and a bounded free run, identification of the plant, several records, the
-parameter table, and its model file."""
+"""
+The hysteresis-operator NARX (ident/hysteresis.py).
+
+Exact derivatives, free run = Stepper, frozen operators and a bounded free run, identification of
+the plant, several records, the parameter table, and its model file.
+"""
 import json
 import subprocess
 import sys
@@ -21,8 +24,9 @@ FS = 2000.0
 
 
 def random_model(seed=0, scale=1.0, **kw):
-    """A HysteresisNARX with random (not fitted) parameters and stable output dynamics."""
-    args = dict(hidden=4, n_plays=5, n_duhem=2, n_lags=2, na=2, nb=2, creep_taus=(0.01, 0.5))
+    """Return a HysteresisNARX with random (not fitted) parameters and stable output dynamics."""
+    args = {'hidden': 4, 'n_plays': 5, 'n_duhem': 2, 'n_lags': 2, 'na': 2, 'nb': 2,
+            'creep_taus': (0.01, 0.5)}
     args.update(kw)
     m = HysteresisNARX(**args)
     rng = np.random.default_rng(seed)
@@ -36,7 +40,7 @@ def random_model(seed=0, scale=1.0, **kw):
 
 
 def walk(n, seed=0, hold=(0, 0)):
-    """A bounded random walk (V) with a hold over samples hold[0]:hold[1]."""
+    """Return a bounded random walk in volts, held constant over samples hold[0] to hold[1]."""
     rng = np.random.default_rng(seed)
     u = np.clip(np.cumsum(rng.normal(0.0, 3.0, n)), -120.0, 120.0)
     u[hold[0]:hold[1]] = u[hold[0] - 1] if hold[1] else u[hold[0]:hold[1]]
@@ -100,8 +104,8 @@ def test_simulate_stepper_predict_agree():
     a, b, y_off = m._kernel_args[11:]
     k = 1234
     yl = y_meas / m.y_scale_ - y_off
-    manual = sum(b[i] * z[k - i] for i in range(b.size)) - sum(a[j - 1] * yl[k - j]
-                                                                for j in range(1, a.size + 1))
+    manual = (sum(b[i] * z[k - i] for i in range(b.size))
+              - sum(a[j - 1] * yl[k - j] for j in range(1, a.size + 1)))
     assert pred[k] == pytest.approx((manual + y_off) * m.y_scale_, rel=1e-12)
     # With exact output lags the one-step prediction equals the free run.
     np.testing.assert_allclose(m.predict(u, y)[n0:], y[n0:], rtol=0, atol=1e-18)
@@ -145,7 +149,7 @@ def test_free_run_is_bounded_for_any_bounded_input():
 
 @pytest.fixture(scope='module')
 def fitted():
-    """A small model fitted on 8 s of the identification protocol (default plant)."""
+    """Return a small model fitted on 8 s of the identification protocol (default plant)."""
     u = generate('protocol', FS, 8.0, 100.0, seed=3)
     y = PiezoCantilever(fs=FS, seed=3).run(u).y
     return HysteresisNARX(hidden=6, n_plays=8, max_iter=25, seed=0).fit(u, y, fs=FS), u, y

@@ -10,7 +10,7 @@ from piezo_narx_ros.ident.narx import NARXNetwork
 from piezo_narx_ros.ident.regressors import lagged_regressors
 
 # Light training budget: enough for the behaviours asserted here, a few seconds in all.
-FAST = dict(restarts=2, restart_iter=5, max_iter=15, refine_iter=10, n_segments=20)
+FAST = {'restarts': 2, 'restart_iter': 5, 'max_iter': 15, 'refine_iter': 10, 'n_segments': 20}
 
 
 def multisine(n, fs, f_lo, f_hi, n_lines, seed):
@@ -22,8 +22,12 @@ def multisine(n, fs, f_lo, f_hi, n_lines, seed):
 
 
 def piezo_like(n, fs=2000.0, seed=0, amplitude=100.0):
-    """Small stand-in for the piezo plant: rate-independent Bouc-Wen hysteresis, two creep
-    time constants and a lightly damped 765 Hz mode; multisine voltage (V) in, noiseless m out."""
+    """
+    Small stand-in for the piezo plant.
+
+    Rate-independent Bouc-Wen hysteresis, two creep time constants and a lightly damped 765 Hz
+    mode; multisine voltage (V) in, noiseless m out.
+    """
     u = amplitude * multisine(n, fs, 1.0, 100.0, 50, seed)
     d_p, A, B, gamma = 5.2e-7, 0.35, 0.008, 0.004
     du = np.diff(u, prepend=0.0)
@@ -38,7 +42,8 @@ def piezo_like(n, fs=2000.0, seed=0, amplitude=100.0):
         a = np.exp(-1.0 / (fs * tau))
         z += gain * signal.lfilter([1 - a], [1, -a], w)
     wn, zeta = 2 * np.pi * 765.0, 0.02
-    bd, ad, _ = signal.cont2discrete(([wn ** 2], [1, 2 * zeta * wn, wn ** 2]), 1 / fs, method='zoh')
+    bd, ad, _ = signal.cont2discrete(([wn ** 2], [1, 2 * zeta * wn, wn ** 2]), 1 / fs,
+                                     method='zoh')
     return u, signal.lfilter(np.squeeze(bd), ad, z)
 
 
@@ -75,8 +80,12 @@ def test_lagged_regressors_reject_bad_input(u, y, nu, ny, match):
 
 
 def test_predict_and_simulate_name_the_bad_argument():
-    """Bad input to a fitted model's predict/simulate: one line naming the argument and what
-    is wrong with it (ARX(2, 1): n0 = 2, a row needs 3 samples)."""
+    """
+    Bad input to a fitted model's predict/simulate.
+
+    One line naming the argument and what is wrong with it (ARX(2, 1): n0 = 2, a row needs 3
+    samples).
+    """
     model = ARXModel(na=2, nb=1).fit(*arx_system(200)[:2])
     u = np.zeros(10)
     cases = [
@@ -222,8 +231,11 @@ def test_narx_rejects_bad_construction_and_unfitted_use():
 
 # ---------------------------------------------------------------- NARX: training
 def test_narx_identifies_known_nonlinear_narx_system():
-    """Data from a known NARX network (teacher); a student of the same size must reproduce it in
-    free run on fresh input."""
+    """
+    Data from a known NARX network (teacher).
+
+    A student of the same size must reproduce it in free run on fresh input.
+    """
     teacher = random_network(nu=2, ny=2, hidden=4, seed=7)
     u = 2 * multisine(6000, 1000.0, 0.5, 150, 40, 11) + 1.0
     y = teacher.simulate(u)
@@ -237,8 +249,12 @@ def test_narx_identifies_known_nonlinear_narx_system():
 
 
 def test_narx_fits_hysteretic_piezo_like_plant_in_free_run():
-    """Hysteresis + creep + lightly damped mode at 2 kHz: the default (fast) training reaches a
-    free-run R^2 of 0.9999 on a held-out half, where the best linear ARX model stays far below."""
+    """
+    Hysteresis + creep + lightly damped mode at 2 kHz.
+
+    The default (fast) training reaches a free-run R^2 of 0.9999 on a held-out half, where the best
+    linear ARX model stays far below.
+    """
     u, y = piezo_like(24000)
     ue, ye, uv, yv = u[:12000], y[:12000], u[12000:], y[12000:]
     m = NARXNetwork(4, 4, 10, seed=0).fit(ue, ye)
@@ -262,10 +278,13 @@ def test_narx_fit_is_deterministic_for_a_seed():
 
 
 def output_error_system(n, seed, noise):
-    """Saturating nonlinearity into a lightly damped second-order filter, then white sensor noise
-    of `noise` x the output's std: (u, noiseless x, measured y). Its one-step regressors hold
-    noisy past outputs, so a one-step (equation-error) fit is biased; a simulation-error fit is
-    not: the textbook case where the refinement must help."""
+    """
+    Simulate a saturating nonlinearity into a lightly damped second-order filter.
+
+    Then white sensor noise of `noise` x the output's std: (u, noiseless x, measured y). Its
+    one-step regressors hold noisy past outputs, so a one-step (equation-error) fit is biased; a
+    simulation-error fit is not: the textbook case where the refinement must help.
+    """
     rng = np.random.default_rng(seed)
     u = signal.lfilter([0.5], [1, -0.5], rng.uniform(-1, 1, n))
     x = signal.lfilter([0, 0.3], [1, -1.5, 0.7], np.tanh(2 * u))

@@ -1,4 +1,5 @@
-"""An installed (not editable) copy works: it finds its config in share/piezo_narx_ros.
+"""
+An installed (not editable) copy works: it finds its config in share/piezo_narx_ros.
 
 The package is installed from a copy of its own files into a temporary prefix, the way colcon
 (`setup.py install`, scripts in lib/piezo_narx_ros) and pip (`pip install --prefix`, scripts in
@@ -109,8 +110,12 @@ TOOLS = ('piezo-narx', 'fake_rig')
 
 
 def _console_scripts_are_installed(prefix, scripts, env, work):
-    """The installed metadata lists exactly the design's scripts, each target loads (a misspelt
-    module or function in setup.py fails here), and each script file is where it is run from."""
+    """
+    Check the console scripts as installed.
+
+    The installed metadata lists exactly the design's scripts, each target loads (a misspelt module
+    or function in setup.py fails here), and each script file is where it is run from.
+    """
     listed = subprocess.run(
         [sys.executable, '-c', 'from importlib.metadata import distribution\n'
          'd = distribution("piezo_narx_ros")\n'
@@ -127,9 +132,12 @@ def _console_scripts_are_installed(prefix, scripts, env, work):
 
 
 def _every_console_script_starts_its_own_program(scripts, env, work):
-    """Each installed script reaches that program's own main: a node refuses a retired
-    parameter with `NAME: error: ...` and exit 2 (so the line names the node the script
-    started, not just any), the tools print their usage."""
+    """
+    Each installed script reaches that program's own main.
+
+    A node refuses a retired parameter with `NAME: error: ...` and exit 2 (so the line names the
+    node the script started, not just any), the tools print their usage.
+    """
     runs = {}
     for name in NODES:   # in parallel: each start imports rclpy and numba (~1-3 s)
         runs[name] = subprocess.Popen(
@@ -155,8 +163,11 @@ def _every_console_script_starts_its_own_program(scripts, env, work):
 
 
 def test_ament_index_finds_the_installed_prefix(tmp_path):
-    """With the prefix on AMENT_PREFIX_PATH (a sourced workspace), `ros2 run`'s lookup resolves
-    the package there, and share_dir() agrees."""
+    """
+    With the prefix on AMENT_PREFIX_PATH, `ros2 run`'s lookup resolves the package there.
+
+    As in a sourced workspace; share_dir() agrees.
+    """
     prefix, scripts, env = _install(tmp_path, 'setup.py')
     env['AMENT_PREFIX_PATH'] = str(prefix)
     done = subprocess.run(

@@ -78,7 +78,7 @@ def test_parameters_declared_with_descriptor_and_int_accepted_for_float(ctx):
     ({'depth': 0}, 'depth must be >= 1'),
     ({'kind': 'square'}, "kind must be one of ['sine', 'prbs']"),
     ({'axis': ' '}, 'axis must not be empty'),
-    ({'kind': 3}, "parameter kind"),
+    ({'kind': 3}, 'parameter kind'),
     ({'gain': 11.0}, 'gain must be <= 10.0'),
 ])
 def test_bad_start_values_refused_with_one_line_reason(ctx, overrides, fragment):
@@ -121,8 +121,8 @@ def test_diagnostics_status_carries_node_name_level_and_values(ctx):
     node = _make(ctx)
     try:
         state = {'n': 3}
-        diag = common.Diagnostics(node, lambda: (common.DIAG_WARN, 'late', {'count': state['n'],
-                                                                           'rms': 1.5e-7}),
+        diag = common.Diagnostics(node, lambda: (common.DIAG_WARN, 'late',
+                                                 {'count': state['n'], 'rms': 1.5e-7}),
                                   task='sample stream', hardware_id='udp://10.0.0.2:50000')
         arr = diag.build()
         assert len(arr.status) == 1
@@ -156,7 +156,7 @@ def test_cdr_decode_reads_what_rclpy_serialises(names, position, velocity, effor
     msg.header.frame_id = frame
     s = common.decode_joint_state(serialize_message(msg))
     assert (s.t_ns, s.names, s.position, s.effort) == (1_795_241_581_123_456_789, names,
-                                                      position, effort)
+                                                       position, effort)
 
 
 @pytest.mark.parametrize('names, position, effort', [
@@ -181,8 +181,11 @@ def test_cdr_encode_is_read_back_by_rclpy(names, position, effort):
 @pytest.mark.parametrize('little_endian', [False, True])
 def test_cdr_decode_reads_both_byte_orders_as_rosbags_writes_them(
         names, position, velocity, effort, frame, little_endian):
-    """DDS peers may send big-endian CDR (encapsulation 0x0000); rclpy here only writes little
-    endian, so rosbags' serialiser is the reference for both orders."""
+    """
+    DDS peers may send big-endian CDR (encapsulation 0x0000).
+
+    Rclpy here only writes little endian, so rosbags' serialiser is the reference for both orders.
+    """
     from rosbags.typesys import Stores, get_typestore
     store = get_typestore(Stores.ROS2_KILTED)
     JointState = store.types['sensor_msgs/msg/JointState']
@@ -197,7 +200,7 @@ def test_cdr_decode_reads_both_byte_orders_as_rosbags_writes_them(
     assert raw[1] == int(little_endian)          # the encapsulation says which order follows
     s = common.decode_joint_state(raw)
     assert (s.t_ns, s.names, s.position, s.effort) == (1_795_241_581_123_456_789, names,
-                                                      position, effort)
+                                                       position, effort)
 
 
 def test_cdr_decode_refuses_truncated_bytes():

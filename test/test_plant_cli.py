@@ -57,7 +57,8 @@ def test_simulate_playback_and_plant_config(tmp_path):
 def test_simulate_bad_input_exits_2_with_one_line(tmp_path, capsys, argv, words):
     code = run_cli(['simulate', '--out', str(tmp_path / 'x.npz'), '--seconds', '0.1'] + argv)
     err = capsys.readouterr().err.strip()
-    assert code == 2 and err.count('\n') == 0 and err.startswith('piezo-narx: error:') and words in err
+    assert code == 2 and err.count('\n') == 0
+    assert err.startswith('piezo-narx: error:') and words in err
     assert not (tmp_path / 'x.npz').exists()
 
 

@@ -1,4 +1,5 @@
-"""Identification on the simulated plant's default record (the paper's 25 s of multisine at 2 kHz).
+"""
+Identification on the simulated plant's default record (the paper's 25 s of multisine at 2 kHz).
 
 The verdicts here are the project's defaults: free-run (simulation) residuals of the validation
 half, whitened by an AR noise model fitted on the estimation half (NARMAX, Billings ch. 5), judged
@@ -13,7 +14,6 @@ What holds, measured (docs/validation.md "The plant"):
   "NARX passes" needs a model error well below the noise; the last test checks that cause, and
   would have to be turned into a pass test if a process model ever closes that gap.
 """
-import numpy as np
 import pytest
 
 from piezo_narx_ros.ident.data import Record
@@ -39,7 +39,7 @@ def record():
 
 
 def verdicts(model, est, val):
-    """Default pipeline: tests on whitened simulation residuals (and the raw ones)."""
+    """Return the default pipeline: tests on whitened simulation residuals (and the raw ones)."""
     noise = fit_noise_models(model, [est])
     out = evaluate_model(model, [val], noise_models=noise)
     return out['tests']['simulation'], out['tests']['raw']['simulation'], noise['simulation']

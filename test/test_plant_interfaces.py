@@ -1,5 +1,8 @@
-"""One plant, two interfaces: step() and run() agree; seeds reproduce; reset() returns to rest;
-bad commands and parameters raise one-line errors."""
+"""
+One plant, two interfaces: step() and run() agree.
+
+Seeds reproduce; reset() returns to rest; bad commands and parameters raise one-line errors.
+"""
 import numpy as np
 import pytest
 
@@ -16,7 +19,8 @@ def params():
 
 @pytest.fixture(scope='module')
 def u_aprbs():
-    # Steps exercise the slew limit, the mode and hysteresis reversals; 5000 samples > one noise block.
+    # Steps exercise the slew limit, the mode and hysteresis reversals; 5000 samples > one noise
+    # block.
     return generate('aprbs', FS, 2.5, 180.0, seed=7, min_hold=0.002, max_hold=0.05) + \
         generate('sine', FS, 2.5, 60.0, freq=3.0)
 
@@ -78,7 +82,8 @@ def test_bad_command_raises_and_leaves_state(params):
     ({'v_min': 300.0}, 'v_min'), ({'slew_rate': 0.0}, 'slew_rate'), ({'d_p': -1e-7}, 'd_p'),
     ({'B': 0.001, 'gamma': 0.01}, 'gamma'), ({'mode_damping': 0.0}, 'mode_damping'),
     ({'noise_std': -1.0}, 'noise_std'), ({'substeps': 0}, 'substeps'),
-    ({'creep_gains': (0.1,)}, 'creep_time_constants'), ({'mode_frequency': float('nan')}, 'mode_frequency'),
+    ({'creep_gains': (0.1,)}, 'creep_time_constants'),
+    ({'mode_frequency': float('nan')}, 'mode_frequency'),
 ])
 def test_invalid_parameters_name_the_parameter(change, name):
     with pytest.raises(ConfigError, match=name):
@@ -96,7 +101,7 @@ def test_yaml_defaults_match_code_and_errors_name_the_key(tmp_path):
     assert load_plant_params() == PlantParams()
     bad = tmp_path / 'bad.yaml'
     bad.write_text('plant:\n  mode_frequncy: 700\n')
-    with pytest.raises(ConfigError, match="mode_frequncy"):
+    with pytest.raises(ConfigError, match='mode_frequncy'):
         load_plant_params(bad)
     bad.write_text('plant:\n  noise_std: loud\n')
     with pytest.raises(ConfigError, match='noise_std'):

@@ -1,6 +1,8 @@
-"""Physics of the simulated cantilever: hysteresis, rate independence, creep, resonance, sensor, limits.
+"""
+Physics of the simulated cantilever: hysteresis, rate independence, creep, resonance, sensor.
 
-Figures are measured on short signals; the tolerances are stated next to each check and in docs/plant.md.
+Also the amplifier limits. Figures are measured on short signals; the tolerances are stated next to
+each check and in docs/plant.md.
 """
 import numpy as np
 import pytest
@@ -52,13 +54,15 @@ def test_loop_nearly_rate_independent_between_0p1_and_1_hz(params):
 
 def test_creep_after_step_follows_configured_elements(params):
     # 50 V step held 20 s. Between t1 = 0.05 s (mode settled) and t2 = 20 s the configured creep
-    # elements predict y(t2)/y(t1) - 1 = sum k_i (e^-t1/tau_i - e^-t2/tau_i) / (1 + sum k_i (1 - e^-t1/tau_i)).
+    # elements predict
+    # y(t2)/y(t1) - 1 = sum k_i (e^-t1/tau_i - e^-t2/tau_i) / (1 + sum k_i (1 - e^-t1/tau_i)).
     seconds, t1, t2 = 20.0, 0.05, 20.0
     u = generate('steps', FS, seconds, 50.0, levels=[1.0])
     res = PiezoCantilever(params, FS, seed=1).run(u)
     k = np.asarray(params.creep_gains)
     tau = np.asarray(params.creep_time_constants)
-    expected = np.sum(k * (np.exp(-t1 / tau) - np.exp(-t2 / tau))) / (1 + np.sum(k * (1 - np.exp(-t1 / tau))))
+    expected = (np.sum(k * (np.exp(-t1 / tau) - np.exp(-t2 / tau)))
+                / (1 + np.sum(k * (1 - np.exp(-t1 / tau)))))
     win = int(0.01 * FS)  # 10 ms averages of the measured output beat the sensor noise
     i1, i2 = int(t1 * FS), int(t2 * FS) - 1
     y1 = res.y[i1 - win // 2:i1 + win // 2].mean()
@@ -105,7 +109,8 @@ def test_measurement_is_sensor_view_of_true_deflection(params):
     u = generate('multisine', FS, 2.0, 100.0, seed=4)
     res = PiezoCantilever(params, FS, seed=4).run(u)
     err = res.y - res.y_true
-    # Error = noise + sensor lag: small against the stroke, larger than the noise alone is not needed.
+    # Error = noise + sensor lag: small against the stroke, larger than the noise alone is not
+    # needed.
     assert np.std(err) < 3 * params.noise_std + 0.002 * np.std(res.y_true)
     assert np.std(err) > 0.5 * params.noise_std
 
@@ -124,7 +129,8 @@ def test_amplifier_saturates_and_slew_limits(params):
     # tail of the last few volts.
     assert ua[20:23] == pytest.approx([max_step, 2 * max_step, 3 * max_step], rel=1e-9)
     assert 0.9 * params.v_max < ua[23] < params.v_max
-    # A non-saturated small step is bandwidth-bound instead: first-order, 1 - e^-(2 pi f_a / fs) at k=0.
+    # A non-saturated small step is bandwidth-bound instead: first-order, 1 - e^-(2 pi f_a / fs)
+    # at k=0.
     small = PiezoCantilever(params, fs).run(np.full(5, 1.0)).u_applied
     assert small[0] == pytest.approx(1 - np.exp(-2 * np.pi * params.amp_bandwidth / fs), rel=1e-9)
 

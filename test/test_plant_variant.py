@@ -1,5 +1,9 @@
-"""The Preisach plant variant (config/plant_preisach.yaml): a structurally different actuator used to
-check that model families are not tuned to the default plant's Bouc-Wen equations."""
+"""
+The Preisach plant variant (config/plant_preisach.yaml).
+
+A structurally different actuator used to check that model families are not tuned to the default
+plant's Bouc-Wen equations.
+"""
 from pathlib import Path
 
 import numpy as np

@@ -1,5 +1,9 @@
-"""player_node in its own process over DDS: the recorded bytes come back on the selected topics,
-paced by the recorded timing / rate; loop repeats; a bad bag exits 2 with one line."""
+"""
+player_node in its own process over DDS.
+
+The recorded bytes come back on the selected topics, paced by the recorded timing / rate; loop
+repeats; a bad bag exits 2 with one line.
+"""
 import os
 import subprocess
 import sys
@@ -162,9 +166,13 @@ def test_playback_clock_holds_then_follows_the_recorded_time():
 
 
 def test_republishes_with_recorded_qos_and_publishes_clock(tmp_path):
-    """A bag whose command publisher offered reliable + transient_local and whose deflection
-    publisher offered best effort is replayed with exactly those; clock:=true publishes the
-    recorded time on /clock at clock_rate."""
+    """
+    Check that each topic is replayed with its recorded QoS, and /clock.
+
+    A bag whose command publisher offered reliable + transient_local and whose deflection publisher
+    offered best effort is replayed with exactly those; clock:=true publishes the recorded time on
+    /clock at clock_rate.
+    """
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from rosgraph_msgs.msg import Clock
 

@@ -1,6 +1,9 @@
-"""recorder_node in its own process over DDS (isolated domain, see conftest): every published
-message lands in the bag unchanged and in order; SIGTERM closes it; SIGKILL leaves a repairable
-bag; bad parameters refuse to start with one line."""
+"""
+recorder_node in its own process over DDS (isolated domain, see conftest).
+
+Every published message lands in the bag unchanged and in order; SIGTERM closes it; SIGKILL leaves
+a repairable bag; bad parameters refuse to start with one line.
+"""
 import os
 import signal
 import subprocess
@@ -57,7 +60,7 @@ class Publisher:
         return False
 
     def publish_samples(self, k_from, k_to):
-        """Samples k in [k_from, k_to) on all topics at about 2 kHz; returns {topic: [msg]}."""
+        """Publish samples k in [k_from, k_to) on all topics at ~2 kHz; returns them per topic."""
         sent = {t: [] for t in TOPICS}
         start = time.monotonic()
         for k in range(k_from, k_to):

@@ -26,8 +26,8 @@ class Target:
 
 
 def make(**kw):
-    cfg = dict(sample_rate=FS, v_min=-100.0, v_max=100.0, max_slew_rate=1e4, watchdog_timeout=0.05,
-               ramp_rate=500.0, reply_timeout=0.005)
+    cfg = {'sample_rate': FS, 'v_min': -100.0, 'v_max': 100.0, 'max_slew_rate': 1e4,
+           'watchdog_timeout': 0.05, 'ramp_rate': 500.0, 'reply_timeout': 0.005}
     cfg.update(kw)
     target = Target()
     return RigDriver(DriverConfig(**cfg), target), target

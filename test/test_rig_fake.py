@@ -117,10 +117,12 @@ def test_ping_reports_the_last_measurement_without_stepping(rig):
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         first = p.unpack_reply(_exchange(sock, rig.address, p.pack_command(
             p.Command(1, 0, (0.0,), p.FLAG_PING))))
-        cmd = p.unpack_reply(_exchange(sock, rig.address, p.pack_command(p.Command(2, 0, (80.0,)))))
+        cmd = p.unpack_reply(_exchange(sock, rig.address, p.pack_command(
+            p.Command(2, 0, (80.0,)))))
         ping = p.unpack_reply(_exchange(sock, rig.address, p.pack_command(
             p.Command(3, 9, (0.0,), p.FLAG_PING))))
-        nxt = p.unpack_reply(_exchange(sock, rig.address, p.pack_command(p.Command(4, 0, (80.0,)))))
+        nxt = p.unpack_reply(_exchange(sock, rig.address, p.pack_command(
+            p.Command(4, 0, (80.0,)))))
     assert (first.position_m, first.applied_volts) == ((0.0,), (0.0,))
     assert (ping.seq, ping.stamp_ns, ping.position_m, ping.applied_volts) == \
         (3, 9, cmd.position_m, cmd.applied_volts)

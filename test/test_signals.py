@@ -1,4 +1,4 @@
-"""Excitation signals: shape, spectrum, determinism, amplifier limits, playback, parameter errors."""
+"""Excitation signals: shape, spectrum, determinism, amplifier limits, playback, bad parameters."""
 import numpy as np
 import pytest
 
@@ -19,7 +19,8 @@ def test_length_peak_offset_and_determinism(kind):
 
 @pytest.mark.parametrize('kind', ['multisine', 'aprbs'])
 def test_seed_changes_random_signals(kind):
-    assert not np.allclose(generate(kind, FS, 1.0, 1.0, seed=1), generate(kind, FS, 1.0, 1.0, seed=2))
+    assert not np.allclose(generate(kind, FS, 1.0, 1.0, seed=1),
+                           generate(kind, FS, 1.0, 1.0, seed=2))
 
 
 def test_sine_and_triangle_frequency():
@@ -30,7 +31,8 @@ def test_sine_and_triangle_frequency():
         assert abs(u[0]) < 1e-12 and u[1] > 0  # both start at the offset, rising
     tri = generate('triangle', FS, 1.0, 1.0, freq=2.0)
     slopes = np.abs(np.diff(tri))
-    assert np.allclose(slopes[slopes > 0.5 * slopes.max()], 4 * 2.0 / FS, rtol=1e-6)  # constant slope
+    # constant slope
+    assert np.allclose(slopes[slopes > 0.5 * slopes.max()], 4 * 2.0 / FS, rtol=1e-6)
 
 
 def test_multisine_lines_in_band_flat_and_periodic():
@@ -47,7 +49,8 @@ def test_multisine_lines_in_band_flat_and_periodic():
     pink = generate('multisine', FS, 2.0, 1.0, f_min=1.0, f_max=100.0, spectrum='pink')
     ps = np.abs(np.fft.rfft(pink))
     fp = np.fft.rfftfreq(pink.size, 1 / FS)
-    assert ps[np.argmin(np.abs(fp - 4.0))] / ps[np.argmin(np.abs(fp - 64.0))] == pytest.approx(4.0, rel=1e-6)
+    ratio = ps[np.argmin(np.abs(fp - 4.0))] / ps[np.argmin(np.abs(fp - 64.0))]
+    assert ratio == pytest.approx(4.0, rel=1e-6)
 
 
 def test_multisine_default_resolution_is_one_record():
@@ -62,10 +65,12 @@ def test_multisine_default_resolution_is_one_record():
 def test_chirp_sweeps_from_f0_to_f1(method):
     from scipy.signal import hilbert
     u = generate('chirp', FS, 4.0, 1.0, f0=5.0, f1=200.0, method=method)
-    inst = np.diff(np.unwrap(np.angle(hilbert(u)))) * FS / (2 * np.pi)  # instantaneous frequency, Hz
+    # instantaneous frequency, Hz
+    inst = np.diff(np.unwrap(np.angle(hilbert(u)))) * FS / (2 * np.pi)
     duration = (u.size - 1) / FS
     for t in (0.5, 2.0, 3.5):
-        expected = 5.0 + 195.0 * t / duration if method == 'linear' else 5.0 * 40.0 ** (t / duration)
+        expected = (5.0 + 195.0 * t / duration if method == 'linear'
+                    else 5.0 * 40.0 ** (t / duration))
         k = int(t * FS)
         assert np.median(inst[k - 50:k + 50]) == pytest.approx(expected, rel=0.03), t
 
@@ -83,11 +88,13 @@ def test_steps_levels_and_hold():
     u = generate('steps', FS, 1.0, 100.0, offset=5.0, levels=[0, 1, -0.5], hold=0.2)
     assert np.array_equal(np.unique(u), [-45.0, 5.0, 105.0])
     assert np.all(u[:400] == 5.0) and np.all(u[400:800] == 105.0) and np.all(u[800:] == -45.0)
-    assert np.array_equal(generate('steps', FS, 1.0, 2.0, levels='0,1'), np.repeat([0.0, 2.0], 1000))
+    assert np.array_equal(generate('steps', FS, 1.0, 2.0, levels='0,1'),
+                          np.repeat([0.0, 2.0], 1000))
 
 
 def test_limits_clamp_then_slew():
-    u = generate('steps', FS, 0.1, 300.0, levels=[0, 1, -1], u_min=-150.0, u_max=120.0, slew_rate=1e5)
+    u = generate('steps', FS, 0.1, 300.0, levels=[0, 1, -1], u_min=-150.0, u_max=120.0,
+                 slew_rate=1e5)
     assert u.max() == 120.0 and u.min() == -150.0
     assert np.max(np.abs(np.diff(u))) == pytest.approx(1e5 / FS)
     assert u[0] == 0.0  # the slew limit starts from the first sample: no ramp-in
@@ -101,7 +108,8 @@ def test_playback_npz_csv_resample_and_loop(tmp_path):
     assert np.allclose(u[::2], src, atol=1e-12)
     np.savetxt(tmp_path / 'b.csv', np.column_stack([np.arange(500) / FS, src]), delimiter=',',
                header='t,volts', comments='')
-    v = generate('playback', FS, 0.5, 10.0, offset=1.0, path=str(tmp_path / 'b.csv'), column='volts')
+    v = generate('playback', FS, 0.5, 10.0, offset=1.0, path=str(tmp_path / 'b.csv'),
+                 column='volts')
     assert v.size == 1000 and np.array_equal(v[:500], v[500:])  # looped
     assert np.max(np.abs(v - 1.0 - (src - src.mean()).mean())) == pytest.approx(10.0, rel=0.01)
 

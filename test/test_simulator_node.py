@@ -54,8 +54,11 @@ def test_bad_commands_refused_and_state_untouched():
 
 
 def test_one_future_stamp_does_not_stop_the_answers():
-    """Issue 10 item 1 on the simulator: a command stamped 1 h ahead made every later command
-    'not after the previous one'."""
+    """
+    Issue 10 item 1 on the simulator.
+
+    A command stamped 1 h ahead made every later command 'not after the previous one'.
+    """
     u = np.linspace(-50, 50, 200)
     r = _responder()
     answers = []

@@ -1,4 +1,5 @@
-"""Pair command (u) and deflection (y) samples by their header stamps and check the sample clock.
+"""
+Pair command (u) and deflection (y) samples by their header stamps and check the sample clock.
 
 Every node that answers sample k copies the command's stamp t_k, so u(k) and y(k) are matched by
 equal stamps, not by arrival order. These functions are pure numpy: stamps are int64 nanoseconds.
@@ -25,6 +26,7 @@ END_TRIM_SAMPLES = 20
 @dataclass
 class StreamCheck:
     """What `clean_stream` found in one topic's stamps."""
+
     received: int = 0          # messages read
     reordered: int = 0         # messages whose stamp is earlier than the one received before
     duplicates: int = 0        # repeated stamps dropped (first occurrence kept)
@@ -35,6 +37,7 @@ class StreamCheck:
 @dataclass
 class PairingReport:
     """Non-fatal findings of `pair_by_stamp`; `issues()` gives one line per finding."""
+
     command: StreamCheck = field(default_factory=StreamCheck)
     deflection: StreamCheck = field(default_factory=StreamCheck)
     paired: int = 0
@@ -52,7 +55,7 @@ class PairingReport:
 
     @property
     def missing_samples(self) -> int:
-        """Samples absent inside the paired sequence (sum over gaps)."""
+        """Count the samples absent inside the paired sequence (sum over gaps)."""
         return int(sum(n for _, n in self.gaps))
 
     def issues(self) -> list[str]:
@@ -93,7 +96,8 @@ class PairingReport:
 
 def clean_stream(stamps_ns: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray,
                                                                      StreamCheck]:
-    """Sort one topic's samples by stamp and drop repeated stamps (first received kept).
+    """
+    Sort one topic's samples by stamp and drop repeated stamps (first received kept).
 
     stamps_ns: (n,) int64 header stamps in arrival order; values: (n,) float64.
     Returns (stamps (m,) strictly increasing, values (m,), StreamCheck).
@@ -118,7 +122,8 @@ def clean_stream(stamps_ns: np.ndarray, values: np.ndarray) -> tuple[np.ndarray,
 
 def sample_clock(stamps_ns: np.ndarray, period_ns: float | None = None
                  ) -> tuple[float, list[tuple[float, int]], float]:
-    """Nominal rate, gaps and jitter of a strictly increasing stamp sequence (int64 ns, n >= 2).
+    """
+    Nominal rate, gaps and jitter of a strictly increasing stamp sequence (int64 ns, n >= 2).
 
     period_ns: the nominal period (ns) when known (e.g. the command stream's); by default the
     median period of these stamps. Returns (fs Hz = 1 / period, [(t s from the first stamp,
@@ -140,7 +145,8 @@ def sample_clock(stamps_ns: np.ndarray, period_ns: float | None = None
 
 def pair_by_stamp(t_u_ns: np.ndarray, u: np.ndarray, t_y_ns: np.ndarray, y: np.ndarray,
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, PairingReport]:
-    """Match command samples u (V) and deflection samples y (m) with equal header stamps.
+    """
+    Match command samples u (V) and deflection samples y (m) with equal header stamps.
 
     Inputs are in arrival order (int64 ns stamps, float64 values). Returns (t_ns (N,) int64 sorted,
     u (N,), y (N,), PairingReport). The rate is the command stream's (the clock every node copies),

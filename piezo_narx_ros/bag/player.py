@@ -1,4 +1,5 @@
-"""Replay timing for a bag (no ROS here): which messages are due at a given time.
+"""
+Replay timing for a bag (no ROS here): which messages are due at a given time.
 
 Messages keep their recorded spacing (receive times) divided by `rate`; with `loop`, the bag
 starts over one mean message period after its last message.
@@ -14,7 +15,8 @@ from piezo_narx_ros.errors import BagError
 
 
 class BagSchedule:
-    """Iterate (due time s from the start of playback, topic, type, CDR bytes) of a bag.
+    """
+    Iterate (due time s from the start of playback, topic, type, CDR bytes) of a bag.
 
     topics: only these (None = all); rate: speed factor (> 0); loop: repeat forever.
     The bag is streamed, never loaded whole.
@@ -64,8 +66,11 @@ def topic_types(path: str | Path, topics: list[str] | None = None) -> dict[str, 
 
 
 def topic_offered_qos(path: str | Path, topics: list[str] | None = None) -> dict[str, list]:
-    """{absolute topic: [rosbags Qos, ...]} as recorded (the publishers' offered profiles; an
-    empty list when the bag has none)."""
+    """
+    Return the publishers' offered QoS profiles as recorded, per topic.
+
+    {absolute topic: [rosbags Qos, ...]}; an empty list when the bag has none.
+    """
     from piezo_narx_ros.bag.reader import find_topic, open_bag
     from piezo_narx_ros.bag.writer import absolute_topic
     out: dict[str, list] = {}
@@ -82,6 +87,7 @@ def topic_offered_qos(path: str | Path, topics: list[str] | None = None) -> dict
 @dataclass(frozen=True)
 class ReplayQos:
     """The QoS to republish a topic with (rclpy-free numbers: rmw enum values, depth)."""
+
     reliability: int     # rmw value: 1 reliable, 2 best effort
     durability: int      # rmw value: 1 transient local, 2 volatile
     depth: int
@@ -89,12 +95,15 @@ class ReplayQos:
 
 
 def replay_qos(offered: list, fallback_reliable: bool, depth: int) -> ReplayQos:
-    """What `ros2 bag play` does with the recorded offers (rosbag2_transport's
-    adapt_offer_to_recorded_offers): when every publisher offered the same reliability and
-    durability, republish with them; otherwise (different offers, or none recorded) reliable or
-    best effort per `fallback_reliable`, volatile. The depth is not taken from the recording (the
-    middleware does not report a remote publisher's depth, and a small recorded one would drop
-    samples for a slow subscriber): it is `depth`."""
+    """
+    Return the QoS `ros2 bag play` replays with, given the recorded offers.
+
+    As rosbag2_transport's adapt_offer_to_recorded_offers: when every publisher offered the same
+    reliability and durability, republish with them; otherwise (different offers, or none recorded)
+    reliable or best effort per `fallback_reliable`, volatile. The depth is not taken from the
+    recording (the middleware does not report a remote publisher's depth, and a small recorded one
+    would drop samples for a slow subscriber): it is `depth`.
+    """
     known = [q for q in offered if q.reliability.value in (1, 2) and q.durability.value in (1, 2)]
     if not known or len({(q.reliability, q.durability) for q in known}) != 1:
         return ReplayQos(1 if fallback_reliable else 2, 2, int(depth), False)
@@ -102,14 +111,16 @@ def replay_qos(offered: list, fallback_reliable: bool, depth: int) -> ReplayQos:
 
 
 class PlaybackClock:
-    """The recorded time (ns) that playback has reached, for /clock (`ros2 bag play --clock`).
+    """
+    The recorded time (ns) that playback has reached, for /clock (`ros2 bag play --clock`).
 
     `anchor(mono_s, bag_ns)` when the message recorded at bag_ns goes out at monotonic mono_s;
     `now(mono_s)` extrapolates at `rate` recorded seconds per second, but not past the next
     message (`next_due(bag_ns)`) while it has not gone out, nor past the anchor while the next
     message is unknown (a stalled player or a loop reopening the bag must not run the clock ahead
     of the messages, or backwards when they catch up); before the first anchor it holds
-    `start_ns`, after `finish()` the last anchored time."""
+    `start_ns`, after `finish()` the last anchored time.
+    """
 
     def __init__(self, start_ns: int, rate: float = 1.0):
         self.rate = float(rate)
@@ -118,14 +129,17 @@ class PlaybackClock:
         self._next: int | None = None
 
     def anchor(self, mono_s: float, bag_ns: int) -> None:
-        """The message recorded at bag_ns (ns) is published at monotonic mono_s (s)."""
+        """Note that the message recorded at bag_ns (ns) is published at monotonic mono_s (s)."""
         self._anchor = (float(mono_s), int(bag_ns))
         self._held = None
         self._next = int(bag_ns)   # held there until the next message is known
 
     def next_due(self, bag_ns: int) -> None:
-        """The next message to go out was recorded at bag_ns (ns): the clock may advance up to
-        it; when it lies before the last anchor (a loop starts over) the clock holds there."""
+        """
+        Note that the next message to go out was recorded at bag_ns (ns).
+
+        When it lies before the last anchor (a loop starts over) the clock holds there.
+        """
         self._next = int(bag_ns)
 
     def finish(self) -> None:
@@ -134,7 +148,7 @@ class PlaybackClock:
             self._held = self._anchor[1]
 
     def now(self, mono_s: float) -> int:
-        """Recorded time (ns) reached at monotonic mono_s (s)."""
+        """Return the recorded time (ns) reached at monotonic mono_s (s)."""
         if self._held is not None or self._anchor is None:
             return int(self._held)
         t0, ns0 = self._anchor

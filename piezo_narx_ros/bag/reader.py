@@ -1,4 +1,5 @@
-"""Read rosbag2 bags (MCAP or sqlite3 storage, a bag directory or a lone .mcap/.db3 file).
+"""
+Read rosbag2 bags (MCAP or sqlite3 storage, a bag directory or a lone .mcap/.db3 file).
 
 Reading never executes code from the bag: messages are decoded only with the `rosbags` built-in
 type store (ROS 2 Kilted definitions shipped with the library), never with definitions taken from
@@ -37,9 +38,13 @@ def _storage_file(directory: Path) -> Path | None:
 
 @contextmanager
 def open_bag(path: str | Path):
-    """Open a bag for reading with rosbags' `Reader` (a directory with metadata.yaml, or one
-    .mcap/.db3 file; a directory whose metadata.yaml is missing is read through its single
-    storage file). Every failure is a one-line BagError naming the bag."""
+    """
+    Open a bag for reading with rosbags' `Reader`.
+
+    A directory with metadata.yaml, or one .mcap/.db3 file; a directory whose metadata.yaml is
+    missing is read through its single storage file. Every failure is a one-line BagError naming
+    the bag.
+    """
     from rosbags.rosbag2 import Reader, ReaderError
     path = Path(path)
     if not path.exists():
@@ -78,7 +83,7 @@ def _one_line(exc: BaseException) -> str:
 
 
 def _messages(reader, connections, path) -> Iterator[tuple[object, int, bytes]]:
-    """rosbags' message iterator with storage errors turned into one-line BagErrors."""
+    """Iterate rosbags' messages with storage errors turned into one-line BagErrors."""
     from rosbags.rosbag2 import ReaderError
     try:
         yield from reader.messages(connections=connections)
@@ -88,8 +93,11 @@ def _messages(reader, connections, path) -> Iterator[tuple[object, int, bytes]]:
 
 
 def find_topic(reader, topic: str, msgtype: str | None = None, path='bag') -> list:
-    """The connections of `topic` (with or without leading '/'); BagError naming the available
-    topics when it is absent, or when its type is not `msgtype`."""
+    """
+    Return the connections of `topic` (with or without leading '/').
+
+    BagError naming the available topics when it is absent, or when its type is not `msgtype`.
+    """
     name = absolute_topic(topic)
     conns = [c for c in reader.connections if absolute_topic(c.topic) == name]
     if not conns:
@@ -109,11 +117,13 @@ def find_topic(reader, topic: str, msgtype: str | None = None, path='bag') -> li
 
 
 def decode_cdr(raw: bytes, typename: str):
-    """Decode CDR bytes of a built-in type with the rosbags type store.
+    """
+    Decode CDR bytes of a built-in type with the rosbags type store.
 
     Trailing bytes after a complete message are tolerated: rclpy's serialize_message with this
     rmw returns buffers 8 bytes longer than the message, and a bag of republished bytes keeps
-    them, while rosbags refuses more than 3 bytes of end padding."""
+    them, while rosbags refuses more than 3 bytes of end padding.
+    """
     from rosbags.serde import SerdeError
     store = typestore()
     try:
@@ -129,8 +139,13 @@ def decode_cdr(raw: bytes, typename: str):
 # ------------------------------------------------------------------------------- JointState data
 @dataclass
 class JointSeries:
-    """One JointState topic's values in arrival order: header stamps (ns), receive times (ns),
-    the chosen field of the chosen axis, and how many messages lacked it."""
+    """
+    One JointState topic's values in arrival order.
+
+    Header stamps (ns), receive times (ns), the chosen field of the chosen axis, and how many
+    messages lacked it.
+    """
+
     topic: str
     stamps_ns: np.ndarray      # (n,) int64
     log_ns: np.ndarray         # (n,) int64, rosbag2 receive timestamps
@@ -140,7 +155,8 @@ class JointSeries:
 
 def read_joint_series(path: str | Path, fields: dict[str, str], axis: int = 0
                       ) -> dict[str, JointSeries]:
-    """Read JointState topics of a bag in one pass.
+    """
+    Read JointState topics of a bag in one pass.
 
     fields: {topic: 'position' | 'effort'}; axis: index into that array. Returns {topic (as given):
     JointSeries}. Messages lacking field[axis] are counted in `malformed`, not raised.
@@ -202,7 +218,8 @@ def read_uy_report(path: str | Path, command_topic: str = COMMAND_TOPIC,
 
 def read_uy(path: str | Path, command_topic: str = COMMAND_TOPIC,
             deflection_topic: str = DEFLECTION_TOPIC, axis: int = 0):
-    """Identification record (u in V, y in m) from a bag, samples paired by header.stamp.
+    """
+    Identification record (u in V, y in m) from a bag, samples paired by header.stamp.
 
     u is effort[axis] of the command topic, y is position[axis] of the deflection topic; topic
     names may have a leading '/'. fs (Hz) is inferred from the stamps; `Record.t` is seconds since
@@ -218,8 +235,12 @@ def read_uy(path: str | Path, command_topic: str = COMMAND_TOPIC,
 # ------------------------------------------------------------------------------------- summary
 @dataclass
 class TopicInfo:
-    """One topic of a bag. Stamp figures come from header.stamp for JointState topics and from
-    the receive time otherwise."""
+    """
+    One topic of a bag.
+
+    Stamp figures come from header.stamp for JointState topics and from the receive time otherwise.
+    """
+
     name: str
     msgtype: str
     count: int
@@ -240,6 +261,7 @@ class TopicInfo:
 @dataclass
 class BagInfo:
     """What `bag_info` reports about a bag."""
+
     path: str
     storage: str
     message_count: int
@@ -254,8 +276,11 @@ class BagInfo:
 
 
 def bag_info(path: str | Path) -> BagInfo:
-    """Topics, counts, duration, per-topic rate, gaps and stamp order of a bag (reads every
-    message; JointState topics are decoded for their header stamps)."""
+    """
+    Summarise a bag: topics, counts, duration, per-topic rate, gaps and stamp order.
+
+    Reads every message; JointState topics are decoded for their header stamps.
+    """
     store = typestore()
     path = Path(path)
     with open_bag(path) as reader:
@@ -298,8 +323,12 @@ def bag_info(path: str | Path) -> BagInfo:
 
 def iter_raw(path: str | Path, topics: list[str] | None = None
              ) -> Iterator[tuple[str, str, int, bytes]]:
-    """(absolute topic, type, receive time ns, CDR bytes) of every message in receive-time order,
-    optionally only of `topics` (BagError when one is absent). Nothing is decoded."""
+    """
+    Iterate the raw messages of a bag in receive-time order.
+
+    (absolute topic, type, receive time ns, CDR bytes) of every message, optionally only of
+    `topics` (BagError when one is absent). Nothing is decoded.
+    """
     with open_bag(path) as reader:
         conns = reader.connections
         if topics:

@@ -1,4 +1,5 @@
-"""Queue + writer thread between subscription callbacks and a `BagWriter` (no ROS here).
+"""
+Queue + writer thread between subscription callbacks and a `BagWriter` (no ROS here).
 
 Callbacks only append (topic, receive time, bytes) to a queue, which costs about a microsecond, so
 the executor keeps up with several kHz; a background thread drains the queue into the bag in
@@ -24,6 +25,7 @@ def _one_line(exc: BaseException) -> str:
 @dataclass
 class RecorderStats:
     """Counters of a BagRecorder (messages, not bytes)."""
+
     written: int = 0         # messages handed to the bag
     failed: int = 0          # messages refused by the bag (see error)
     queue_peak: int = 0      # largest backlog seen by the writer thread
@@ -32,7 +34,8 @@ class RecorderStats:
 
 
 class BagRecorder:
-    """Record serialized messages to a rosbag2 MCAP bag from any thread.
+    """
+    Record serialized messages to a rosbag2 MCAP bag from any thread.
 
     `add_topic` then `put` from callbacks; `close()` drains the queue, writes the summary and
     metadata.yaml, and returns the stats. Safe to call `close()` more than once.
@@ -64,14 +67,20 @@ class BagRecorder:
             return self._bag.add_topic(topic, msgtype, reliable, depth, offered)
 
     def put(self, topic: str, log_time_ns: int, data: bytes) -> None:
-        """Queue one serialized message of a registered topic (absolute name) received at
-        `log_time_ns` (ns since the epoch). Cheap; safe from any thread."""
+        """
+        Queue one serialized message of a registered topic (absolute name).
+
+        Received at `log_time_ns` (ns since the epoch). Cheap; safe from any thread.
+        """
         self._queue.put((topic, log_time_ns, data))  # SimpleQueue.put is thread-safe
 
     @property
     def received(self) -> int:
-        """Messages put so far (written + failed + still queued); counted by the writer thread
-        only, so that put() stays lock-free."""
+        """
+        Messages put so far (written + failed + still queued).
+
+        Counted by the writer thread only, so that put() stays lock-free.
+        """
         return self.stats.written + self.stats.failed + self.backlog
 
     @property
@@ -141,14 +150,16 @@ class BagRecorder:
         return False
 
 
-
 AUTO_TYPE = 'auto'
 
 
 def expand_types(topics: list[str], types: list[str]) -> list[str]:
-    """Type per topic from the `types` parameter: one entry applies to every topic, otherwise one
-    per topic; 'auto' (or '') means discover it from the ROS graph. Raises BagError on a length
-    mismatch."""
+    """
+    Type per topic from the `types` parameter.
+
+    One entry applies to every topic, otherwise one per topic; 'auto' (or '') means discover it
+    from the ROS graph. Raises BagError on a length mismatch.
+    """
     if len(types) == 1:
         types = list(types) * len(topics)
     if len(types) != len(topics):
@@ -159,9 +170,12 @@ def expand_types(topics: list[str], types: list[str]) -> list[str]:
 
 def discovered_types(wanted: dict[str, str], graph: list[tuple[str, list[str]]]
                      ) -> dict[str, str]:
-    """Resolve 'auto' entries of {absolute topic: type} from get_topic_names_and_types() output;
-    returns only the topics that now have a type (first advertised type wins)."""
-    advertised = {name: kinds for name, kinds in graph}
+    """
+    Resolve 'auto' entries of {absolute topic: type} from get_topic_names_and_types() output.
+
+    Returns only the topics that now have a type (first advertised type wins).
+    """
+    advertised = dict(graph)
     found = {}
     for topic, kind in wanted.items():
         if kind != AUTO_TYPE:

@@ -1,4 +1,5 @@
-"""Make an interrupted MCAP recording readable again.
+"""
+Make an interrupted MCAP recording readable again.
 
 A recorder killed with SIGKILL leaves `NAME.mcap` without its summary and footer (and the bag
 without metadata.yaml); only the chunks completed before the kill are in the file. `repair_bag`
@@ -24,6 +25,7 @@ from piezo_narx_ros.errors import BagError
 @dataclass
 class RepairReport:
     """What `repair_bag` recovered."""
+
     bag: Path
     mcap: Path
     backup: Path | None
@@ -54,9 +56,12 @@ def _locate(path: Path) -> tuple[Path, Path]:
 
 
 def _scan(mcap_path: Path):
-    """Read records until the end or the first damaged one.
+    """
+    Read records until the end or the first damaged one.
+
     Returns (schemas {id: Schema}, channels {id: Channel}, messages [Message], rosbag2 metadata
-    dict or None, bytes parsed, stop reason)."""
+    dict or None, bytes parsed, stop reason).
+    """
     from mcap.exceptions import McapError
     from mcap.records import Channel, Footer, Message, Metadata, Schema
     from mcap.stream_reader import StreamReader
@@ -104,8 +109,11 @@ def _type_hash(msgtype: str) -> str:
 
 
 def _metadata_problem(bag_dir: Path) -> str:
-    """Why metadata.yaml of a bag directory cannot be read as rosbag2 metadata ('' when it
-    can): missing, not UTF-8, not YAML, or without the rosbag2 keys a reader needs."""
+    """
+    Why metadata.yaml of a bag directory cannot be read as rosbag2 metadata ('' when it can).
+
+    Missing, not UTF-8, not YAML, or without the rosbag2 keys a reader needs.
+    """
     from rosbags.rosbag2 import Reader, ReaderError
     meta = bag_dir / 'metadata.yaml'
     if not meta.is_file():
@@ -120,8 +128,10 @@ def _metadata_problem(bag_dir: Path) -> str:
 
 
 def repair_bag(path: str | Path, backup: bool = True) -> RepairReport:
-    """Rebuild an MCAP bag (directory or lone .mcap) whose recording was interrupted, or whose
-    metadata.yaml is missing or unreadable.
+    """
+    Rebuild an MCAP bag (directory or lone .mcap) whose recording was interrupted.
+
+    Also one whose metadata.yaml is missing or unreadable.
 
     An intact bag (footer present, metadata.yaml readable) is left untouched (`intact`). A
     truncated file is replaced by the recovered messages; with `backup` the damaged original is
@@ -157,7 +167,7 @@ def _repair(path: Path, bag_dir: Path, mcap_path: Path, backup: bool) -> RepairR
         report.intact = True
         report.messages = len(messages)
         return report
-    counts = {cid: 0 for cid in channels}
+    counts = dict.fromkeys(channels, 0)
     t_min, t_max = 2**63 - 1, 0
     for m in messages:
         if m.channel_id not in channels:
@@ -187,8 +197,11 @@ def _repair(path: Path, bag_dir: Path, mcap_path: Path, backup: bool) -> RepairR
 
 def _rewrite_mcap(mcap_path: Path, schemas: dict, channels: dict, messages: list, info: dict,
                   report: RepairReport, backup: bool) -> None:
-    """Write the recovered records (bytes, times and sequence numbers unchanged) into a new
-    complete MCAP file that replaces `mcap_path`."""
+    """
+    Write the recovered records into a new complete MCAP file that replaces `mcap_path`.
+
+    Bytes, times and sequence numbers are unchanged.
+    """
     from mcap.writer import CompressionType, Writer
     tmp = mcap_path.with_name(mcap_path.name + '.repairing')
     with tmp.open('wb') as out:
@@ -246,4 +259,3 @@ def _metadata(file_name: str, channels: dict, types: dict, counts: dict, t_min: 
         'custom_data': None,
         'ros_distro': distro or os.environ.get('ROS_DISTRO', ''),
     }
-

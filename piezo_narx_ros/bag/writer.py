@@ -1,4 +1,5 @@
-"""Write rosbag2 bags (MCAP storage, metadata version 9) with `rosbags`.
+"""
+Write rosbag2 bags (MCAP storage, metadata version 9) with `rosbags`.
 
 A bag written here is a directory `NAME/` holding `NAME.mcap` (profile `ros2`, `ros2msg` schemas,
 `cdr` messages, channel metadata `offered_qos_profiles` and `topic_type_hash`, a `rosbag2`
@@ -28,15 +29,23 @@ ESTIMATE_TOPIC = 'piezo/deflection_estimate'
 
 @lru_cache(maxsize=1)
 def typestore():
-    """The built-in `rosbags` type store (ROS 2 Kilted); never extended with types from a bag,
-    because registering a definition generates and executes Python code."""
+    """
+    Return the built-in type store of rosbags (ROS 2 Kilted).
+
+    Never extended with types from a bag, because registering a definition generates and executes
+    Python code.
+    """
     from rosbags.typesys import Stores, get_typestore
     return get_typestore(Stores.ROS2_KILTED)
 
 
 def absolute_topic(name: str) -> str:
-    """'piezo/deflection' or '/piezo/deflection' -> '/piezo/deflection' (rosbag2 stores absolute
-    names). Raises BagError on an empty name."""
+    """
+    Return the absolute topic name (rosbag2 stores absolute names).
+
+    'piezo/deflection' or '/piezo/deflection' -> '/piezo/deflection'. Raises BagError on an empty
+    name.
+    """
     stripped = str(name).strip().strip('/')
     if not stripped:
         raise BagError(f'empty topic name {name!r}')
@@ -44,8 +53,11 @@ def absolute_topic(name: str) -> str:
 
 
 def check_type(msgtype: str, topic: str = '') -> None:
-    """BagError unless `msgtype` is a built-in ROS 2 Kilted type (the only ones a bag here can
-    carry: their definitions are embedded, never taken from elsewhere)."""
+    """
+    Raise BagError unless `msgtype` is a built-in ROS 2 Kilted type.
+
+    The only ones a bag here can carry: their definitions are embedded, never taken from elsewhere.
+    """
     if msgtype not in typestore().fielddefs:
         where = f' for topic {topic}' if topic else ''
         raise BagError(f'unknown message type {msgtype!r}{where} '
@@ -53,14 +65,22 @@ def check_type(msgtype: str, topic: str = '') -> None:
 
 
 def ros_distro() -> str:
-    """The distribution written in a bag's metadata: $ROS_DISTRO as rosbag2 does, else 'kilted',
-    the distribution of the rclpy wheels and of the message definitions this writer embeds."""
+    """
+    Return the distribution written in a bag's metadata.
+
+    $ROS_DISTRO as rosbag2 does, else 'kilted', the distribution of the rclpy wheels and of the
+    message definitions this writer embeds.
+    """
     return os.environ.get('ROS_DISTRO', '').strip() or 'kilted'
 
 
 def offered_qos(reliable: bool = True, depth: int = 100):
-    """One rosbags `Qos` (keep-last `depth`, reliable or best effort, volatile) as offered by the
-    project's publishers; stored per topic so `ros2 bag play` republishes with the same QoS."""
+    """
+    Return the rosbags `Qos` the project's publishers offer.
+
+    Keep-last `depth`, reliable or best effort, volatile; stored per topic so `ros2 bag play`
+    republishes with the same QoS.
+    """
     from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                     QosReliability, QosTime)
     zero = QosTime(0, 0)  # 0 = rmw default (infinite) for deadline, lifespan and lease
@@ -70,9 +90,12 @@ def offered_qos(reliable: bool = True, depth: int = 100):
 
 
 def lock_recording(mcap_path: Path):
-    """An open handle holding an exclusive flock on `mcap_path` (released when closed or when
-    the process dies), or None where flock is unavailable. Raises BagError when another process
-    holds it: the file is being recorded (or repaired) right now."""
+    """
+    Return an open handle holding an exclusive flock on `mcap_path`.
+
+    Released when closed or when the process dies; None where flock is unavailable. Raises BagError
+    when another process holds it: the file is being recorded (or repaired) right now.
+    """
     try:
         import fcntl
     except ImportError:   # not POSIX: no live-recording protection
@@ -88,7 +111,7 @@ def lock_recording(mcap_path: Path):
 
 
 def is_being_recorded(mcap_path: Path) -> bool:
-    """True while a BagWriter (in any process) has `mcap_path` open for recording."""
+    """Return True while a BagWriter (in any process) has `mcap_path` open for recording."""
     try:
         handle = lock_recording(mcap_path)
     except BagError:
@@ -101,7 +124,8 @@ def is_being_recorded(mcap_path: Path) -> bool:
 
 
 class BagWriter:
-    """rosbag2 bag writer (MCAP, version 9) taking already-serialized CDR messages.
+    """
+    rosbag2 bag writer (MCAP, version 9) taking already-serialized CDR messages.
 
     Use as a context manager, or call `close()`: metadata.yaml and the MCAP summary are written on
     close. Pending messages are cut into an MCAP chunk and handed to the OS at least every
@@ -141,11 +165,14 @@ class BagWriter:
 
     def add_topic(self, topic: str, msgtype: str, reliable: bool = True, depth: int = 100,
                   offered: list | None = None) -> str:
-        """Register `topic` of ROS 2 type `msgtype` (e.g. 'sensor_msgs/msg/JointState'); returns
-        the absolute topic name. `offered`: the QoS profiles its publishers offer (rosbags `Qos`,
-        see `qos_from_rclpy`), as `ros2 bag record` stores them; None: one reliable/best-effort
-        keep-last `depth` profile. Raises BagError for an unknown type or a topic already added
-        with another type."""
+        """
+        Register `topic` of ROS 2 type `msgtype` (e.g. 'sensor_msgs/msg/JointState').
+
+        Returns the absolute topic name. `offered`: the QoS profiles its publishers offer (rosbags
+        `Qos`, see `qos_from_rclpy`), as `ros2 bag record` stores them; None: one
+        reliable/best-effort keep-last `depth` profile. Raises BagError for an unknown type or a
+        topic already added with another type.
+        """
         name = absolute_topic(topic)
         if name in self._connections:
             if self._connections[name].msgtype != msgtype:
@@ -161,8 +188,11 @@ class BagWriter:
 
     # ---------------------------------------------------------------------------------- messages
     def write(self, topic: str, log_time_ns: int, data: bytes) -> None:
-        """Append one serialized (CDR) message of an added topic; `log_time_ns` is its receive
-        time in ns since the epoch (rosbag2's message timestamp)."""
+        """
+        Append one serialized (CDR) message of an added topic.
+
+        `log_time_ns` is its receive time in ns since the epoch (rosbag2's message timestamp).
+        """
         conn = self._connections.get(topic)
         if conn is None:
             conn = self._connections.get(absolute_topic(topic))
@@ -173,8 +203,11 @@ class BagWriter:
             self.flush()
 
     def flush(self) -> None:
-        """Cut the pending messages into a complete MCAP chunk and hand it to the OS, so that it
-        survives the process being killed."""
+        """
+        Cut the pending messages into a complete MCAP chunk and hand it to the OS.
+
+        So that it survives the process being killed.
+        """
         self._last_flush = time.monotonic()
         storage = self._writer.storage
         # rosbags writes a chunk only when it exceeds 1 MiB; closing it early is what bounds the
@@ -228,10 +261,13 @@ def _set_distro(metadata_yaml: str, distro: str) -> str:
 
 
 def _write_type_hash_in_channels(storage) -> None:
-    """Make this rosbags MCAP storage write `topic_type_hash` (the RIHS01 hash of the type) next to
-    `offered_qos_profiles` in each channel's metadata, as rosbag2_storage_mcap does; rosbags 0.11
-    writes only the QoS. Same record layout as rosbags' own add_connection (pinned version; the
-    bag tests read both keys back)."""
+    """
+    Make this rosbags MCAP storage write `topic_type_hash` in each channel's metadata.
+
+    The RIHS01 hash of the type, next to `offered_qos_profiles`, as rosbag2_storage_mcap does;
+    rosbags 0.11 writes only the QoS. Same record layout as rosbags' own add_connection (pinned
+    version; the bag tests read both keys back).
+    """
     from io import BytesIO
 
     from rosbags.rosbag2 import storage_mcap as mcap_storage
@@ -252,9 +288,12 @@ def _write_type_hash_in_channels(storage) -> None:
 
 
 def qos_from_rclpy(profile):
-    """rclpy QoSProfile (e.g. a publisher's, from Node.get_publishers_info_by_topic) -> rosbags
-    `Qos` for `BagWriter.add_topic(offered=...)`. Durations are kept as the middleware reports
-    them (sec, nsec; infinite ones as its largest value, like rosbag2)."""
+    """
+    Convert an rclpy QoSProfile to a rosbags `Qos` for `BagWriter.add_topic(offered=...)`.
+
+    The profile is e.g. a publisher's, from Node.get_publishers_info_by_topic. Durations are kept
+    as the middleware reports them (sec, nsec; infinite ones as its largest value, like rosbag2).
+    """
     from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                     QosReliability, QosTime)
 
@@ -274,8 +313,12 @@ def qos_from_rclpy(profile):
 def joint_state_cdr(stamp_ns: int, names: Sequence[str] = ('x',),
                     position: Iterable[float] = (), effort: Iterable[float] = (),
                     velocity: Iterable[float] = ()) -> bytes:
-    """CDR bytes of one sensor_msgs/JointState: header.stamp = `stamp_ns` (ns since the epoch),
-    positions in m, efforts in V (the project's units)."""
+    """
+    CDR bytes of one sensor_msgs/JointState.
+
+    Header.stamp = `stamp_ns` (ns since the epoch), positions in m, efforts in V (the project's
+    units).
+    """
     store = typestore()
     types = store.types
     sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
@@ -293,10 +336,13 @@ def write_uy_bag(path: str | Path, u: np.ndarray, y: np.ndarray, fs: float,
                  t0_ns: int = 1_700_000_000_000_000_000, axis: str = 'x',
                  command_topic: str = COMMAND_TOPIC, deflection_topic: str = DEFLECTION_TOPIC,
                  latency_ns: int = 0) -> Path:
-    """Write a bag like a recording of the command and simulator nodes: sample k is stamped
-    t_k = t0_ns + round(k * 1e9 / fs) on both topics; u (N,) volts goes to the command's effort,
-    y (N,) metres to the deflection's position (its effort repeats u). Receive times are t_k plus
-    `latency_ns`. Returns the bag path."""
+    """
+    Write a bag like a recording of the command and simulator nodes.
+
+    Sample k is stamped t_k = t0_ns + round(k * 1e9 / fs) on both topics; u (N,) volts goes to the
+    command's effort, y (N,) metres to the deflection's position (its effort repeats u). Receive
+    times are t_k plus `latency_ns`. Returns the bag path.
+    """
     u = np.asarray(u, dtype=np.float64).ravel()
     y = np.asarray(y, dtype=np.float64).ravel()
     if u.shape != y.shape:

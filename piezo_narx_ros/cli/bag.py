@@ -6,7 +6,7 @@ import sys
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    """The `bag` subcommand and its three actions (light imports only)."""
+    """Return the `bag` subcommand and its three actions (light imports only)."""
     parser = subparsers.add_parser(
         'bag', help='inspect, repair or export rosbag2 bags (MCAP or sqlite3)',
         description='Inspect, repair or export rosbag2 bags (a bag directory, .mcap or .db3).')
@@ -52,7 +52,7 @@ def _info(args) -> int:
             order = 'receive time'
         else:
             notes = [f'{n} {what}' for n, what in ((t.check.reordered, 'reordered'),
-                                                  (t.check.duplicates, 'duplicate'))
+                                                   (t.check.duplicates, 'duplicate'))
                      if n]
             order = 'header' + (' (' + ', '.join(notes) + ')' if notes else '')
         print(f'{t.name:<{width}}  {t.msgtype:<36} {t.count:>8} {t.rate_hz:>10.6g} '

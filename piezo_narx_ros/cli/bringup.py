@@ -1,6 +1,8 @@
-"""`piezo-narx bringup LAUNCH [NAME:=VALUE ...]`: start the nodes of a ROS 2 YAML launch file as
-processes (ros2 launch does not exist here; in a ROS install `ros2 launch piezo_narx_ros LAUNCH`
-reads the same file).
+"""
+`piezo-narx bringup LAUNCH [NAME:=VALUE ...]`: start a YAML launch file's nodes as processes.
+
+ros2 launch does not exist here; in a ROS install `ros2 launch piezo_narx_ros LAUNCH` reads the
+same file.
 
 LAUNCH is a path, or the name of a launch file of this package (share/piezo_narx_ros/launch, e.g.
 `sim.launch.yaml`). NAME:=VALUE sets launch arguments as with ros2 launch; `--param
@@ -41,6 +43,7 @@ _NOT_ROS = {'fake_rig'}   # plain command-line programs: an `executable` action,
 @dataclass
 class NodeSpec:
     """One process to start: command line and log prefix."""
+
     name: str
     argv: list[str]
     env: dict = field(default_factory=dict)
@@ -49,7 +52,7 @@ class NodeSpec:
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser('bringup', help='start the nodes of a ROS 2 YAML launch file as '
                               'processes and stop them together',
-                              description=__doc__.split('\n\n')[0])
+                              description=__doc__.strip().split('\n\n')[0])
     p.add_argument('launch', help='launch file: a path, or a name in share/piezo_narx_ros/launch '
                    '(sim.launch.yaml, rig.launch.yaml, record.launch.yaml, estimate.launch.yaml, '
                    'control.launch.yaml)')
@@ -89,7 +92,7 @@ def _overrides(items: list[str]) -> dict[str, dict]:
 
 
 def resolve_launch(name) -> Path:
-    """A launch file path as given, or NAME in this package's share/piezo_narx_ros/launch."""
+    """Resolve a launch file: a path as given, or NAME in share/piezo_narx_ros/launch."""
     path = Path(name)
     if path.exists() or os.sep in str(name):
         return path
@@ -99,9 +102,12 @@ def resolve_launch(name) -> Path:
 
 def load_launch(path, arguments: dict[str, str] | None = None,
                 overrides: dict[str, dict] | None = None) -> list[NodeSpec]:
-    """Read a YAML launch file; returns the processes to start, in order. `arguments`: launch
-    arguments {name: value}; `overrides`: {node name: {parameter: value}} added last (so they
-    win). ConfigError (one line) on a bad file, argument or override."""
+    """
+    Read a YAML launch file; returns the processes to start, in order.
+
+    `arguments`: launch arguments {name: value}; `overrides`: {node name: {parameter: value}} added
+    last (so they win). ConfigError (one line) on a bad file, argument or override.
+    """
     from piezo_narx_ros.demo.launch_file import LaunchFile, _yaml_flow
     launch = LaunchFile(resolve_launch(path), arguments, NODES)
     overrides = dict(overrides or {})
@@ -154,8 +160,12 @@ class Bringup:
         stream.close()
 
     def start(self) -> None:
-        """Start every process (from the thread that will outlive them: the children's
-        parent-death signal fires when the thread that forked them ends)."""
+        """
+        Start every process.
+
+        From the thread that will outlive them: the children's parent-death signal fires when the
+        thread that forked them ends.
+        """
         env = dict(os.environ, PYTHONUNBUFFERED='1', **{PARENT_PID_ENV: str(os.getpid())})
         for spec in self.specs:
             proc = subprocess.Popen(spec.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
@@ -167,8 +177,11 @@ class Bringup:
             self._threads.append(t)
 
     def watch(self, duration: float | None = None) -> tuple[str, int] | None:
-        """Wait for a stop request, the duration, or a node exiting; returns (name, code) of a
-        node that exited on its own, else None."""
+        """
+        Wait for a stop request, the duration, or a node exiting.
+
+        Returns (name, code) of a node that exited on its own, else None.
+        """
         end = None if duration is None else time.monotonic() + duration
         while not self.stop_requested.is_set():
             for name, proc in self.procs.items():
@@ -242,10 +255,13 @@ _PR_SET_PDEATHSIG = 1   # linux/prctl.h
 
 
 def die_with_parent(parent_pid: str | None) -> None:
-    """Ask Linux to send this process SIGTERM when its parent dies (prctl PR_SET_PDEATHSIG),
-    so that `kill -9` of bringup does not leave its nodes running; then exit at once if the
-    parent (pid `parent_pid`, as a string) already died before the request. Elsewhere than
-    Linux this does nothing."""
+    """
+    Ask Linux to send this process SIGTERM when its parent dies (prctl PR_SET_PDEATHSIG).
+
+    So that `kill -9` of bringup does not leave its nodes running; then exit at once if the parent
+    (pid `parent_pid`, as a string) already died before the request. Elsewhere than Linux this does
+    nothing.
+    """
     if not sys.platform.startswith('linux'):
         return
     import ctypes
@@ -257,7 +273,8 @@ def die_with_parent(parent_pid: str | None) -> None:
 
 
 def _child_main(argv: list[str]) -> None:
-    """`python -m piezo_narx_ros.cli.bringup MODULE ARGS...`: run MODULE.main() with ARGS.
+    """
+    `python -m piezo_narx_ros.cli.bringup MODULE ARGS...`: run MODULE.main() with ARGS.
 
     Importing a node takes a second or two (rclpy, numba); a stop request in that window would
     print a KeyboardInterrupt traceback from the middle of an import. This exits quietly (130).

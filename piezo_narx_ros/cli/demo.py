@@ -1,4 +1,5 @@
-"""`piezo-narx demo`: the whole method end to end, with real node processes over DDS.
+"""
+`piezo-narx demo`: the whole method end to end, with real node processes over DDS.
 
     1 record    command_node (multisine, 25 s at 2 kHz, no loop) -> simulator_node -> recorder_node
     2 fit       `piezo-narx fit` on that bag: NARX ny,nu 1..4 x 10 units, ARX 1..10 x 1..10, 50/50
@@ -20,7 +21,7 @@ def add_parser(subparsers):
     p = subparsers.add_parser(
         'demo', help='record, identify and run the estimator live on the simulated piezo; '
                      'prints a summary and writes a report folder',
-        description=__doc__.split('\n\n')[0])
+        description=__doc__.strip().split('\n\n')[0])
     p.add_argument('--out', metavar='DIR', help='report folder (default '
                    'reports/demo-YYYYmmdd-HHMMSS); must not hold an earlier demo')
     p.add_argument('--config', metavar='YAML', help='settings file (default: built-in, the same '

@@ -1,4 +1,5 @@
-"""`piezo-narx evaluate MODEL INPUT...`: score a saved model on recorded data.
+"""
+`piezo-narx evaluate MODEL INPUT...`: score a saved model on recorded data.
 
 Runs the model in one-step prediction and in free-run simulation (initialised from the first n0
 measured outputs of each input) over every sample of the inputs, and applies the five correlation
@@ -47,7 +48,8 @@ def add_parser(subparsers):
 
 
 def stored_noise_models(model) -> dict:
-    """{residual kind: ARNoiseModel} read from the model file's test record (may be empty).
+    """
+    {residual kind: ARNoiseModel} read from the model file's test record (may be empty).
 
     Only numbers are read (coefficients as a float list); anything malformed is a ModelFileError.
     """
@@ -71,8 +73,12 @@ def stored_noise_models(model) -> dict:
 
 
 def range_warnings(model, records, margin: float = 0.1) -> list[str]:
-    """One line per record whose input leaves the model's trained input range (V) by more than
-    `margin` times its span: the scores then measure extrapolation, not the model."""
+    """
+    Warn, one line per record, when the input leaves the model's trained input range.
+
+    When it leaves the range (V) by more than `margin` times its span: the scores then measure
+    extrapolation, not the model.
+    """
     rng = getattr(model, 'input_range', None)
     if rng is None:
         return []
@@ -131,7 +137,7 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
                                 noise_models=noise)
     r2 = scores['prediction']['r2']
     if r2 is None or not math.isfinite(r2):
-        raise DataError(f'the model\'s one-step predictions are not finite on '
+        raise DataError("the model's one-step predictions are not finite on "
                         f'{", ".join(r.source for r in records)}: no score can be computed'
                         + (' (input far outside the trained range)' if notes else ''))
     tests = scores.pop('tests')

@@ -1,4 +1,5 @@
-"""`piezo-narx fit`: run the identification experiment and save the selected model.
+"""
+`piezo-narx fit`: run the identification experiment and save the selected model.
 
     piezo-narx fit INPUT... --out DIR [--preset paper|envelope] [--ny 1-4 --nu 1-4 --hidden 10 ...]
 
@@ -20,7 +21,6 @@ Settings come from, in increasing precedence: the preset's built-in values (Expe
 defaults with the preset's changes; config/fit.yaml spells out the paper preset), `--config FILE`,
 then the command-line options.
 """
-import argparse
 import contextlib
 
 # Keys a --config YAML file may hold (config/fit.yaml lists them all with their defaults).
@@ -58,7 +58,7 @@ def add_parser(subparsers):
                    help='overwrite the model, candidates and report already in DIR')
     p.add_argument('--config', metavar='YAML', help='settings file (see config/fit.yaml)')
     p.add_argument('--preset', choices=PRESET_NAMES,
-                   help='paper (default): the paper\'s NARX lag grid and ARX baseline, selected '
+                   help="paper (default): the paper's NARX lag grid and ARX baseline, selected "
                         'by the correlation tests; envelope: the hysteresis-operator NARX, '
                         'accurate on slow, step and hold moves too, selected on the worst case')
     p.add_argument('--ny', metavar='RANGE', help='NARX output lags, e.g. 1-4 or 2 or 1,3 '
@@ -125,8 +125,12 @@ def parse_range(text, name: str) -> tuple:
 
 
 def preset_settings(preset: str) -> dict:
-    """Built-in settings of a preset: ExperimentConfig's defaults, the preset's changes
-    (PRESETS), and the command line's own keys (CLI_DEFAULTS)."""
+    """
+    Built-in settings of a preset.
+
+    ExperimentConfig's defaults, the preset's changes (PRESETS), and the command line's own keys
+    (CLI_DEFAULTS).
+    """
     from dataclasses import fields
 
     from piezo_narx_ros.errors import ConfigError
@@ -143,7 +147,7 @@ def preset_settings(preset: str) -> dict:
 
 
 def load_settings(args) -> dict:
-    """Merged settings dict: preset < --config file < command-line options."""
+    """Merge the settings: preset < --config file < command-line options."""
     from piezo_narx_ros.errors import ConfigError
     doc = {}
     if args.config:
@@ -168,7 +172,7 @@ def load_settings(args) -> dict:
 
 
 def experiment_config(settings: dict, progress: bool):
-    """ExperimentConfig from merged settings (ConfigError on bad values)."""
+    """Build the ExperimentConfig from merged settings (ConfigError on bad values)."""
     from piezo_narx_ros.errors import ConfigError
     from piezo_narx_ros.ident.experiment import ExperimentConfig
     try:
@@ -240,7 +244,7 @@ def _run(args) -> int:
 
 
 def _load(args, settings, config, inputs):
-    """Records of `inputs` (DataError/BagError on the first bad one), identifiability warned."""
+    """Load the records of `inputs`, warning on identifiability (errors on the first bad one)."""
     import warnings
 
     from piezo_narx_ros.ident.data import check_identifiable, load_records
@@ -253,8 +257,11 @@ def _load(args, settings, config, inputs):
 
 
 def _write_fit(out, result, records, config, settings, report: bool):
-    """DIR/model.json (+ .npz), DIR/candidates.json and, if `report`, DIR/report/; returns
-    (model path, report paths)."""
+    """
+    DIR/model.json (+ .npz), DIR/candidates.json and, if `report`, DIR/report/.
+
+    Returns (model path, report paths).
+    """
     from piezo_narx_ros.ident.experiment import split_records
     from piezo_narx_ros.ident.model_io import save_model
     from piezo_narx_ros.ident.report import write_json, write_report
@@ -333,9 +340,13 @@ def recording_names(paths) -> list[str]:
 
 
 def _run_fleet(args, settings, config, inputs, executor, out) -> int:
-    """--per-record: one experiment per recording, all on one executor; DIR/NAME/ each and
-    DIR/summary.csv. Recordings that cannot be loaded or fitted are rows with their error; the
-    others complete. Exit 0 when every recording was fitted, else a one-line error (exit 2)."""
+    """
+    --per-record: one experiment per recording, all on one executor.
+
+    DIR/NAME/ each and DIR/summary.csv. Recordings that cannot be loaded or fitted are rows with
+    their error; the others complete. Exit 0 when every recording was fitted, else a one-line error
+    (exit 2).
+    """
     from piezo_narx_ros.errors import ConfigError, DataError, PiezoNarxError
     from piezo_narx_ros.ident.experiment import run_experiments
     names = recording_names(inputs)

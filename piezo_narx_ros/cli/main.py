@@ -1,4 +1,5 @@
-"""`piezo-narx` entry point: dispatches to one module per subcommand.
+"""
+`piezo-narx` entry point: dispatches to one module per subcommand.
 
 Each subcommand module defines
     add_parser(subparsers) -> argparse.ArgumentParser   (must import nothing heavy)
@@ -10,11 +11,11 @@ import importlib
 import os
 import sys
 
+from piezo_narx_ros.errors import PiezoNarxError   # imports nothing (numpy not loaded yet)
+
 # Before numpy loads: OpenBLAS's per-core spinning threads fight the fit's own worker processes
 # (measured: ARX(10,10) fit 427 ms with default threads vs 20 ms with one, on a busy 2-core box).
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
-
-from piezo_narx_ros.errors import PiezoNarxError
 
 # name -> module under piezo_narx_ros.cli; order is the order shown in --help.
 SUBCOMMANDS = {

@@ -1,4 +1,5 @@
-"""`piezo-narx simulate`: excite the simulated cantilever and write the record as .npz.
+"""
+`piezo-narx simulate`: excite the simulated cantilever and write the record as .npz.
 
 Writes u (commanded V), u_applied (V), y (measured m), y_true (m), t (s), fs (Hz) and meta (a JSON
 string with the signal and plant parameters). Imports nothing heavy until run().
@@ -20,19 +21,22 @@ SIGNAL_FLAGS = {
 def add_parser(subparsers) -> argparse.ArgumentParser:
     """Register `simulate` (light imports only)."""
     p = subparsers.add_parser(
-        'simulate', help='simulate the piezo cantilever under an excitation and write an .npz record',
-        description='Simulate the piezo cantilever (config/plant.yaml) under an excitation signal and '
-                    'write u, u_applied, y, y_true, t, fs to an .npz file. Units: V, m, s, Hz.')
+        'simulate',
+        help='simulate the piezo cantilever under an excitation and write an .npz record',
+        description='Simulate the piezo cantilever (config/plant.yaml) under an excitation signal '
+                    'and write u, u_applied, y, y_true, t, fs to an .npz file. Units: V, m, s, '
+                    'Hz.')
     p.add_argument('--signal', choices=KINDS, default='multisine',
-                   help='excitation kind (default multisine; protocol: the identification protocol '
-                        'covering fast, slow, step and hold moves, docs/envelope.md)')
+                   help='excitation kind (default multisine; protocol: the identification '
+                        'protocol covering fast, slow, step and hold moves, docs/envelope.md)')
     p.add_argument('--seconds', type=float, default=None,
                    help='duration, s (default 25; playback: the file length)')
     p.add_argument('--fs', type=float, default=2000.0, help='sample rate, Hz (default 2000)')
     p.add_argument('--amplitude', type=float, default=None,
                    help='peak deviation from the offset, V (default 100; playback: as recorded)')
     p.add_argument('--offset', type=float, default=0.0, help='offset, V (default 0)')
-    p.add_argument('--seed', type=int, default=0, help='seed of the signal and of the sensor noise')
+    p.add_argument('--seed', type=int, default=0,
+                   help='seed of the signal and of the sensor noise')
     p.add_argument('--plant-config', default=None, help='plant YAML (default config/plant.yaml)')
     p.add_argument('--out', required=True, help='output file, .npz')
     g = p.add_argument_group('signal options (defaults: piezo_narx_ros.plant.signals.OPTIONS)')
@@ -41,18 +45,21 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     g.add_argument('--f-min', type=float, help='multisine lowest line, Hz (0.1)')
     g.add_argument('--f-max', type=float, help='multisine highest line, Hz (100)')
     g.add_argument('--f-res', type=float, help='multisine line spacing, Hz (1/seconds)')
-    g.add_argument('--spectrum', choices=('flat', 'pink', 'brown'), help='multisine amplitude spectrum (flat)')
+    g.add_argument('--spectrum', choices=('flat', 'pink', 'brown'),
+                   help='multisine amplitude spectrum (flat)')
     g.add_argument('--f0', type=float, help='chirp start frequency, Hz (1)')
     g.add_argument('--f1', type=float, help='chirp end frequency, Hz (0.45*fs)')
     g.add_argument('--method', choices=('linear', 'logarithmic'), help='chirp sweep (linear)')
     g.add_argument('--min-hold', type=float, help='APRBS shortest hold, s (0.01)')
     g.add_argument('--max-hold', type=float, help='APRBS longest hold, s (0.5)')
-    g.add_argument('--levels', help='steps: comma-separated levels, in units of the amplitude (0,1,0,-1,0)')
+    g.add_argument('--levels',
+                   help='steps: comma-separated levels, in units of the amplitude (0,1,0,-1,0)')
     g.add_argument('--hold', type=float, help='steps: hold per level, s (even split)')
     g.add_argument('--file', help='playback: .npz (key --key) or .csv (column --column)')
     g.add_argument('--key', help='playback .npz key (u)')
     g.add_argument('--column', help='playback .csv column name or index (u, else 0)')
-    g.add_argument('--file-fs', type=float, help='playback file sample rate, Hz (its fs key, else --fs)')
+    g.add_argument('--file-fs', type=float,
+                   help='playback file sample rate, Hz (its fs key, else --fs)')
     g.add_argument('--cycles', type=int, help='protocol: repeats of the section sequence (2)')
     g.add_argument('--slow-freq', type=float, help='protocol: slow-loop frequency, Hz (0.5)')
     g.add_argument('--u-min', type=float, help='command clamp, V (-200)')
@@ -84,7 +91,8 @@ def run(args) -> int:
     if args.seed < 0:
         raise ConfigError(f'--seed must be a non-negative integer, got {args.seed}')
     params = load_plant_params(args.plant_config)
-    u = generate(args.signal, args.fs, seconds, amplitude, offset=args.offset, seed=args.seed, **options)
+    u = generate(args.signal, args.fs, seconds, amplitude, offset=args.offset, seed=args.seed,
+                 **options)
     plant = PiezoCantilever(params, fs=args.fs, seed=args.seed)
     res = plant.run(u)
     meta = {'signal': args.signal, 'seconds': u.size / args.fs, 'amplitude_V': amplitude,

@@ -1,4 +1,5 @@
-"""Which received command stamps belong to the stream, ROS-free.
+"""
+Which received command stamps belong to the stream, ROS-free.
 
 Every command of a stream sits on one sample grid, t_k = t0 + k/fs. A receiver (the estimator,
 the simulator) must tell apart a stamp that is merely off (a command stamped in the future or the
@@ -26,7 +27,8 @@ GRID_TOLERANCE = 0.25
 
 
 class StampGate:
-    """Classifies command stamps (integer ns) of a stream with period `period_ns` (ns).
+    """
+    Classifies command stamps (integer ns) of a stream with period `period_ns` (ns).
 
     max_fill: longest gap (samples) accepted as a gap of the running stream; confirm: commands
     that must agree before a jump is a new stream. `outliers` and `restarts` count the verdicts.
@@ -58,8 +60,12 @@ class StampGate:
         return k if k >= 1 and abs(d - k) <= GRID_TOLERANCE else None
 
     def push(self, t_ns: int, item: Any = None) -> list[tuple]:
-        """One received command; returns the events now decided, in order (often just
-        [(SAMPLE, t_ns, item)], [] while a stamp is held)."""
+        """
+        One received command.
+
+        Returns the events now decided, in order (often just [(SAMPLE, t_ns, item)], [] while a
+        stamp is held).
+        """
         if self.last is None or self.steps(self.last, t_ns) == 1:   # first, or it continues
             self._drop_held()
             self.last = t_ns
@@ -74,8 +80,11 @@ class StampGate:
         return []
 
     def flush(self) -> list[tuple]:
-        """Decide now (no more commands are coming): held commands that are a gap within
-        max_fill pass, others are outliers."""
+        """
+        Decide now (no more commands are coming).
+
+        Held commands that are a gap within max_fill pass, others are outliers.
+        """
         if not self._held:
             return []
         k = self.steps(self.last, self._held[0][0])

@@ -1,4 +1,5 @@
-"""Drift-free sample clock and voltage-command streaming, ROS-free.
+"""
+Drift-free sample clock and voltage-command streaming, ROS-free.
 
 The command node asks `CommandStreamer.poll(now)` on every timer tick and publishes what it gets.
 Sample k is stamped t_k = t0 + k/fs exactly (integer nanoseconds, no accumulated float error), and
@@ -18,8 +19,11 @@ NS = 1_000_000_000
 
 
 class SampleClock:
-    """Sample index <-> time for a rate fs (Hz) anchored at stamp t0_ns (ns, the stamp of sample 0)
-    and monotonic instant mono0_ns (ns, when sample 0 is due).
+    """
+    Map sample index <-> time for a rate fs (Hz).
+
+    Anchored at stamp t0_ns (ns, the stamp of sample 0) and monotonic instant mono0_ns (ns, when
+    sample 0 is due).
 
     fs is kept as an exact fraction so stamps stay exact for any run length.
     """
@@ -42,7 +46,7 @@ class SampleClock:
         return self.t0_ns + self.offset_ns(k)
 
     def due_count(self, now_mono_ns: int) -> int:
-        """Number of samples due at monotonic time now (ns): samples 0..n-1 are due by then."""
+        """Count the samples due at monotonic time now (ns): samples 0..n-1 are due by then."""
         elapsed = int(now_mono_ns) - self.mono0_ns
         if elapsed < 0:
             return 0
@@ -50,7 +54,8 @@ class SampleClock:
 
 
 class CommandStreamer:
-    """Streams a voltage signal at fs: clamp to [u_min, u_max], slew limit, loop or stop at the end.
+    """
+    Streams a voltage signal at fs: clamp to [u_min, u_max], slew limit, loop or stop at the end.
 
     signal: (N, n_axes) or (N,) volts, one period/record of the excitation; the clamp is applied
     once, the slew limit (V/s) sample by sample from `u_start` (V, the amplifier at rest), also
@@ -93,12 +98,12 @@ class CommandStreamer:
 
     @property
     def running(self) -> bool:
-        """True between start() and stop()/the end of a non-looping signal."""
+        """Return True between start() and stop()/the end of a non-looping signal."""
         return self.clock is not None and not self.finished
 
     @property
     def finished(self) -> bool:
-        """True when a non-looping signal has been streamed entirely."""
+        """Return True when a non-looping signal has been streamed entirely."""
         return not self.loop and self.position >= self.signal.shape[0]
 
     def start(self, t0_ns: int, mono0_ns: int) -> None:
@@ -111,9 +116,12 @@ class CommandStreamer:
         self.clock = None
 
     def poll(self, now_mono_ns: int) -> tuple[np.ndarray, np.ndarray]:
-        """Samples due at now (monotonic ns) not yet returned: (stamps (n,) int ns, volts
-        (n, n_axes)). At most max_burst per call, so the caller stays responsive after a long
-        stall; the rest comes out on the next call (nothing is dropped)."""
+        """
+        Return the samples due at now (monotonic ns) not yet returned.
+
+        (stamps (n,) int ns, volts (n, n_axes)). At most max_burst per call, so the caller stays
+        responsive after a long stall; the rest comes out on the next call (nothing is dropped).
+        """
         if not self.running:
             return np.empty(0, dtype=np.int64), np.empty((0, self.n_axes))
         n = self.clock.due_count(now_mono_ns) - self._k
@@ -148,7 +156,8 @@ class CommandStreamer:
 
 def make_signal(kind: str, fs: float, seconds: float, amplitude: float, offset: float = 0.0,
                 seed: int = 0, n_axes: int = 1, **options) -> np.ndarray:
-    """(N, n_axes) volts from plant.signals.generate, axis i with seed + i.
+    """
+    (N, n_axes) volts from plant.signals.generate, axis i with seed + i.
 
     Options not used by `kind` are ignored (a node declares them all); None values mean "default".
     """

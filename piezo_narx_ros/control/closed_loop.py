@@ -1,4 +1,5 @@
-"""A controller driving the simulated plant sample by sample, without DDS (bench and tests).
+"""
+A controller driving the simulated plant sample by sample, without DDS (bench and tests).
 
 Sample k: the reference r(k) goes to the controller, its command u(k) to the plant, and the plant's
 measured deflection for that command comes back to the controller before sample k+1, as over DDS
@@ -14,8 +15,13 @@ import numpy as np
 
 @dataclass
 class LoopRun:
-    """(N,) arrays of one closed-loop run: reference r (m), command u (V), measured y (m), true
-    deflection y_true (m), the controller's compute time per sample (ns)."""
+    """
+    (N,) arrays of one closed-loop run.
+
+    Reference r (m), command u (V), measured y (m), true deflection y_true (m), the controller's
+    compute time per sample (ns).
+    """
+
     r: np.ndarray
     u: np.ndarray
     y: np.ndarray
@@ -29,9 +35,11 @@ class LoopRun:
 
 
 def run_loop(controller, plant, ref, measure: bool = True, t0_ns: int = 0) -> LoopRun:
-    """Drive `plant` (PiezoCantilever) through `controller` (PositionController) with the
-    references `ref` (N,) m, stamps t0 + k/fs. measure=False: no deflection goes back (no
-    sensor)."""
+    """
+    Drive `plant` (PiezoCantilever) through `controller` (PositionController).
+
+    References `ref` (N,) m, stamps t0 + k/fs. measure=False: no deflection goes back (no sensor).
+    """
     ref = np.asarray(ref, dtype=float)
     n = ref.size
     u, y, yt, dt = np.empty(n), np.empty(n), np.empty(n), np.empty(n)

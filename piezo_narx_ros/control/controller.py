@@ -1,4 +1,5 @@
-"""Sensorless position control, ROS-free: the controller node's whole logic.
+"""
+Sensorless position control, ROS-free: the controller node's whole logic.
 
 `PositionController.on_reference(t_ns, r)` takes one position reference (stamp in integer ns,
 metres) and returns the voltage commands to publish, [(t_ns, u V)], with the reference's stamp;
@@ -45,6 +46,7 @@ FEEDBACK_MODES = ('inverse_feedback', BASELINE)
 @dataclass
 class ControllerStats:
     """Counters shown on /diagnostics (samples unless said)."""
+
     references: int = 0          # references received
     commands: int = 0            # commands returned for publication
     rejected_nonfinite: int = 0  # NaN/inf references: the previous reference is held
@@ -66,7 +68,8 @@ class ControllerStats:
 
 
 class PositionController:
-    """Position reference in, voltage command out, through `model` (ARX, NARX, HysteresisNARX).
+    """
+    Position reference in, voltage command out, through `model` (ARX, NARX, HysteresisNARX).
 
     mode: MODES or 'feedback'; fs: sample rate, Hz (the model's when None); u_min, u_max: V;
     slew_rate: V/s (inf: none); y_min, y_max: accepted references, m (None: the model's trained
@@ -141,30 +144,36 @@ class PositionController:
         self._refs.clear()
 
     def request_reset(self) -> None:
-        """The actuator is at rest now (amplifier at 0 V, e.g. after it was switched off): the
-        model restarts from rest and the integrator is cleared (the node's ~/reset)."""
+        """
+        Note that the actuator is at rest now (amplifier at 0 V, e.g. after it was switched off).
+
+        The model restarts from rest and the integrator is cleared (the node's ~/reset).
+        """
         self._reset_state()
         self.stats.requested_resets += 1
 
     @property
     def holding(self) -> int:
-        """References held back while their stamps are ambiguous (StampGate)."""
+        """Count the references held back while their stamps are ambiguous (StampGate)."""
         return self.gate.holding
 
     @property
     def y_model(self) -> float:
-        """The model's free-run output for the last command, m (a sensorless estimate)."""
+        """Return the model's free-run output for the last command, m (a sensorless estimate)."""
         return self.inverse.y_model
 
     @property
     def u_last(self) -> float:
-        """The last command, V."""
+        """Return the last command, V."""
         return self.inverse.u_prev
 
     # ------------------------------------------------------------------------------- inputs
     def on_reference(self, t_ns: int, r: float) -> list[tuple[int, float]]:
-        """One reference (stamp ns, m) -> commands to publish [(t_ns, u V)], usually one; none
-        while the stamp is held, several when held references are released."""
+        """
+        One reference (stamp ns, m) -> commands to publish [(t_ns, u V)], usually one.
+
+        None while the stamp is held, several when held references are released.
+        """
         self.stats.references += 1
         out: list[tuple[int, float]] = []
         self._apply(self.gate.push(t_ns, r), out)
@@ -177,8 +186,11 @@ class PositionController:
         return out
 
     def on_measurement(self, t_ns: int, y: float) -> None:
-        """One measured deflection (stamp of the command it answers, m): tracking error and,
-        in the feedback modes, the PI update."""
+        """
+        One measured deflection (stamp of the command it answers, m).
+
+        Tracking error and, in the feedback modes, the PI update.
+        """
         r = self._refs.pop(t_ns, None)
         if r is None or not math.isfinite(y):
             self.stats.measurements_rejected += 1

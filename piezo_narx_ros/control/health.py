@@ -1,4 +1,5 @@
-"""The controller's /diagnostics status, ROS-free: what happened since the previous tick.
+"""
+The controller's /diagnostics status, ROS-free: what happened since the previous tick.
 
 As for the estimator (estimator/health.py), the level covers every reference and command since the
 last tick: a burst of unreachable references between two ticks is a WARN tick even if the sample
@@ -47,10 +48,12 @@ class ControllerHealth:
                                                                 'not_invertible'])
 
     def tick(self, reference_publishers: int | None = None) -> tuple[int, str, dict]:
-        """(level OK/WARN, message, values) for the period since the previous call.
+        """
+        (level OK/WARN, message, values) for the period since the previous call.
 
         reference_publishers: writers matched on the reference topic (None: unknown); more than
-        one is a WARN, since their samples interleave."""
+        one is a WARN, since their samples interleave.
+        """
         d = self._since.tick()
         ctl, st = self.ctl, self.ctl.stats
         miss = ctl.take_peak_miss()

@@ -1,4 +1,5 @@
-"""The identified model inverted one sample at a time, ROS-free.
+"""
+The identified model inverted one sample at a time, ROS-free.
 
 `ModelInverse` keeps the model's own free run (its Stepper, fed with the inputs actually sent) as
 the state, and at each sample finds the input u(k) (V) within the voltage limits and the slew
@@ -33,9 +34,14 @@ REACHED, VOLTAGE, SLEW, NOT_INVERTIBLE = 'reached', 'voltage', 'slew', 'not_inve
 
 @dataclass(slots=True)
 class Solution:
-    """One sample's answer: u (V), the model's achieved value for it (m, in the target's sense),
-    the signed miss achieved - target (m), why it missed (`limit`: REACHED, VOLTAGE, SLEW or
-    NOT_INVERTIBLE) and the model evaluations it took."""
+    """
+    One sample's answer.
+
+    u (V), the model's achieved value for it (m, in the target's sense), the signed miss achieved -
+    target (m), why it missed (`limit`: REACHED, VOLTAGE, SLEW or NOT_INVERTIBLE) and the model
+    evaluations it took.
+    """
+
     u: float
     achieved: float
     miss: float
@@ -44,7 +50,8 @@ class Solution:
 
 
 class ModelInverse:
-    """Sample-by-sample inverse of `model` (ARXModel, NARXNetwork or HysteresisNARX).
+    """
+    Sample-by-sample inverse of `model` (ARXModel, NARXNetwork or HysteresisNARX).
 
     u_min, u_max: voltage limits, V; slew_rate: largest change of u, V/s (inf: none); fs: sample
     rate, Hz (the model's when None); target: 'output' or 'quasi_static' (module docstring);
@@ -66,7 +73,8 @@ class ModelInverse:
                               'hysteresis_narx)')
         if target == 'quasi_static' and kind != 'hysteresis_narx':
             raise ConfigError("target 'quasi_static' needs a hysteresis_narx model (its input "
-                              f"chain is separate from its output dynamics); this one is {kind}")
+                              'chain is separate from its output dynamics); this one is '
+                              f'{kind}')
         if not u_min < u_max:
             raise ConfigError(f'u_min ({u_min:g} V) must be below u_max ({u_max:g} V)')
         if not slew_rate > 0:
@@ -91,8 +99,11 @@ class ModelInverse:
 
     # ------------------------------------------------------------------------------- state
     def reset(self, u_past=None, y_past=None) -> None:
-        """Back to the model's rest (or the given histories, as Stepper.reset); u(k-1) = 0 V or
-        the last of u_past."""
+        """
+        Back to the model's rest (or the given histories, as Stepper.reset).
+
+        u(k-1) = 0 V or the last of u_past.
+        """
         self.stepper.reset(u_past, y_past)
         self._sv[:] = 0.0          # also the remembered slope: a reset run repeats a fresh one
         self.u_prev = float(u_past[-1]) if u_past is not None and len(u_past) else 0.0
@@ -129,13 +140,16 @@ class ModelInverse:
 
     # ------------------------------------------------------------------------------ solving
     def window(self) -> tuple[float, float]:
-        """The inputs allowed now: voltage limits intersected with the slew window, V."""
+        """Return the inputs allowed now: voltage limits intersected with the slew window, V."""
         return (max(self.u_min, self.u_prev - self.max_step),
                 min(self.u_max, self.u_prev + self.max_step))
 
     def solve(self, target: float) -> Solution:
-        """The input (V) whose model value is closest to `target` (m) in the allowed window;
-        the model state is not changed (call `commit`)."""
+        """
+        Return the input (V) whose model value is closest to `target` (m) in the allowed window.
+
+        The model state is not changed (call `commit`).
+        """
         lo, hi = self.window()
         u, miss, nev = self._solve(float(target), lo, hi, self.u_prev, 1e-9, self.tol,
                                    self.max_iter, self.n_grid, *self._args)
@@ -148,7 +162,7 @@ class ModelInverse:
         return Solution(u, float(target) + miss, miss, limit, nev)
 
     def value(self, u: float) -> float:
-        """The model's value for input u (V) in the target's sense (m), state untouched."""
+        """Return the model's value for input u (V) in the target's sense (m), state untouched."""
         if self.kind == 'hysteresis_narx':
             (static, st, s1, s2, u_scale, y_scale, radii, n_lags, dh, rho, W1, b1, w2, c, w_rest,
              g, lam, a, b, y_off) = self._args[3:]
@@ -159,11 +173,14 @@ class ModelInverse:
         return self.stepper.peek(u)
 
     def estimate_advance(self, freq: float = 5.0, seconds: float = 1.0) -> float:
-        """How far the model's output leads its quasi-static value, samples: tau in
-        y(k) ~ y_qs(k) + tau (y_qs(k) - y_qs(k-1)), least squares over a `freq` Hz sine of half
-        the trained input range (second half of `seconds`). The fast dynamics the quasi-static
-        target lets pass shift the output by about this much; the controller compensates it.
-        0 for the 'output' target. The inverse is reset afterwards."""
+        """
+        How far the model's output leads its quasi-static value, samples.
+
+        Tau in y(k) ~ y_qs(k) + tau (y_qs(k) - y_qs(k-1)), least squares over a `freq` Hz sine of
+        half the trained input range (second half of `seconds`). The fast dynamics the quasi-static
+        target lets pass shift the output by about this much; the controller compensates it. 0 for
+        the 'output' target. The inverse is reset afterwards.
+        """
         if self.target == 'output':
             return 0.0
         lo, hi = getattr(self.model, 'input_range', None) or (self.u_min, self.u_max)
@@ -181,23 +198,29 @@ class ModelInverse:
         return tau if math.isfinite(tau) else 0.0
 
     def clamp(self, u: float) -> float:
-        """u (V) limited to the allowed window (for modes that do not solve)."""
+        """Limit u (V) to the allowed window (for modes that do not solve)."""
         lo, hi = self.window()
         return min(max(u, lo), hi)
 
     def commit(self, u: float) -> float:
-        """Send u (V, finite): the model advances one sample; returns its free-run output y(k)
-        (m), as the model's Stepper.step would (its state arrays are the ones advanced; its
-        u_past / y_past copies are not kept up to date)."""
+        """
+        Send u (V, finite): the model advances one sample.
+
+        Returns its free-run output y(k) (m), as the model's Stepper.step would (its state arrays
+        are the ones advanced; its u_past / y_past copies are not kept up to date).
+        """
         self.y_model = self._advance(float(u))
         self.u_prev = float(u)
         return self.y_model
 
 
 def static_gain(model, fs: float | None = None, freq: float = 0.5, periods: int = 2):
-    """(gain m/V, offset m) of the straight line y = gain*u + offset through the model's free
-    run on a slow full-range sine (`freq` Hz over its trained input range, last period used):
-    the scale a user applies without an inverse. ARX: its exact DC gain and offset."""
+    """
+    Fit a straight line y = gain*u + offset to the model's free run: (gain m/V, offset m).
+
+    On a slow full-range sine (`freq` Hz over its trained input range, last period used): the scale
+    a user applies without an inverse. ARX: its exact DC gain and offset.
+    """
     if getattr(model, 'kind', None) == 'arx':
         den = 1.0 + float(np.sum(model.a))
         return float(np.sum(model.b)) / den, float(model.c) / den

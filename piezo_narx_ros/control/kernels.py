@@ -1,5 +1,8 @@
-"""Compiled one-sample inversion: find the input u (V) in [lo, hi] whose model output g(u) (m)
-equals a target, trying candidates on copies of the model state (numba; never torch).
+"""
+Compiled one-sample inversion.
+
+Find the input u (V) in [lo, hi] whose model output g(u) (m) equals a target, trying candidates on
+copies of the model state (numba; never torch).
 
 The search is bounded and allocation-free, and the same for every model family: a small state
 machine (`begin` / `update`) proposes candidate inputs, a family kernel evaluates them with the
@@ -62,7 +65,7 @@ def begin(sv, cand, target, lo, hi, u_prev, tol_u, tol_y, max_iter, n_grid):
 
 @njit(cache=True)
 def _bracket(sv, cand, g, n):
-    """The grid's sign change nearest u_prev -> (found, a, fa, b, fb)."""
+    """Return the grid's sign change nearest u_prev -> (found, a, fa, b, fb)."""
     t = sv[_T]
     up, fup = sv[_UP], sv[_FUP]
     best_d = math.inf
@@ -116,8 +119,11 @@ def _refine(sv, cand, a, fa, b, fb):
 
 @njit(cache=True)
 def _secant(sv, cand, x0, e0, slope):
-    """Next local guess x0 - e0/slope within [lo, hi] (written to cand[0]); 0 when there is none
-    (no usable slope, or the guess is x0 itself: the window's edge)."""
+    """
+    Next local guess x0 - e0/slope within [lo, hi] (written to cand[0]).
+
+    0 when there is none (no usable slope, or the guess is x0 itself: the window's edge).
+    """
     if not (math.isfinite(slope) and slope != 0.0):
         return 0
     x = min(max(x0 - e0 / slope, sv[_LO]), sv[_HI])
@@ -137,8 +143,12 @@ def _done(sv):
 
 @njit(cache=True)
 def update(sv, cand, g, n):
-    """Take the outputs g[:n] of the candidates cand[:n]; returns how many new candidates were
-    written to cand (0: finished, the answer is in sv, see `result`)."""
+    """
+    Take the outputs g[:n] of the candidates cand[:n].
+
+    Returns how many new candidates were written to cand (0: finished, the answer is in sv, see
+    `result`).
+    """
     t = sv[_T]
     up = sv[_UP]
     for j in range(n):
@@ -209,8 +219,11 @@ def result(sv):
 def solve_hysteresis(target, lo, hi, u_prev, tol_u, tol_y, max_iter, n_grid, sv, cand, g, static,
                      st, scratch, scratch2, u_scale, y_scale, radii, n_lags, duhem, rho, W1, b1,
                      w2, c, w_rest, gc, lam, a, b, y_off):
-    """Solve a HysteresisNARX (state st, normalised units) for g(u) = target (m), u in [lo, hi]
-    V: its next output y(k), or with `static` its quasi-static output (hk.peek_static, b = [G])."""
+    """
+    Solve a HysteresisNARX (state st, normalised units) for g(u) = target (m), u in [lo, hi] V.
+
+    Its next output y(k), or with `static` its quasi-static output (hk.peek_static, b = [G]).
+    """
     n = begin(sv, cand, target, lo, hi, u_prev, tol_u, tol_y, max_iter, n_grid)
     while n > 0:
         for j in range(n):
@@ -241,8 +254,12 @@ def solve_narx(target, lo, hi, u_prev, tol_u, tol_y, max_iter, n_grid, sv, cand,
 @njit(cache=True)
 def solve_arx(target, lo, hi, u_prev, tol_u, tol_y, max_iter, n_grid, sv, cand, g, ubuf, ybuf,
               scratch, bu, ay, c):
-    """Solve an ARX model for y(k) = target (m), u in [lo, hi] (a line: one regula falsi
-    step is exact, the state machine keeps the limits and reporting the same)."""
+    """
+    Solve an ARX model for y(k) = target (m), u in [lo, hi].
+
+    A line: one regula falsi step is exact, the state machine keeps the limits and reporting the
+    same.
+    """
     n = begin(sv, cand, target, lo, hi, u_prev, tol_u, tol_y, max_iter, n_grid)
     while n > 0:
         for j in range(n):

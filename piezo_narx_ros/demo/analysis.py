@@ -1,4 +1,5 @@
-"""What the demo measures on a live recording, ROS-free: free-run accuracy, latency and loss.
+"""
+What the demo measures on a live recording, ROS-free: free-run accuracy, latency and loss.
 
 The input is a bag recorded by recorder_node with voltage_command, deflection and
 deflection_estimate (JointState; stamps t_k shared by the three streams, receive times = the
@@ -21,13 +22,15 @@ ESTIMATE = 'piezo/deflection_estimate'
 
 @dataclass
 class LiveRun:
-    """Samples of one live run, paired by stamp (arrays (n,) in stamp order).
+    """
+    Samples of one live run, paired by stamp (arrays (n,) in stamp order).
 
     t_s: seconds since the first command stamp; u: V; y: measured m; y_hat: estimated m;
     log_*_ns: the recorder's receive time of each message, ns (same clock for all three).
     first_estimate: index of the first sample with an estimate (samples before it were not
     estimated: the estimator waits for its first measured window).
     """
+
     stamps_ns: np.ndarray
     t_s: np.ndarray
     u: np.ndarray
@@ -51,7 +54,8 @@ def _unique(stamps: np.ndarray, *arrays: np.ndarray):
 
 
 def load_live_run(bag, expected: int | None = None, fs: float | None = None) -> LiveRun:
-    """Read the three streams of a live run from `bag` and pair them by stamp.
+    """
+    Read the three streams of a live run from `bag` and pair them by stamp.
 
     expected: samples the command node published (from its diagnostics); None = the number of
     distinct stamps seen on any stream. Lost samples per stream: expected minus distinct stamps
@@ -107,7 +111,8 @@ def percentiles_us(delays_ns: np.ndarray) -> dict:
 
 
 def live_figures(run: LiveRun, skip: int = 0, input_range: tuple | None = None) -> dict:
-    """Free-run accuracy and latency of a live run.
+    """
+    Free-run accuracy and latency of a live run.
 
     skip: paired samples left out of R²/RMSE at the start (the estimator's first n0 outputs are
     copies of the measurement when it initialises from it). Returns a JSON-ready dict: r2, rmse_m,
@@ -148,9 +153,13 @@ def live_figures(run: LiveRun, skip: int = 0, input_range: tuple | None = None) 
 
 
 def offline_difference(run: LiveRun, model, skip: int) -> float | None:
-    """Largest |live estimate - model.simulate| (m) over the scored samples, the offline free run
-    started from the live estimate's first n0 values; None when samples are missing in between
-    (the live estimator then held the command, which the offline run cannot know)."""
+    """
+    Return the largest |live estimate - model.simulate| (m) over the scored samples.
+
+    The offline free run is started from the live estimate's first n0 values; None when samples are
+    missing in between (the live estimator then held the command, which the offline run cannot
+    know).
+    """
     if np.any(np.diff(run.stamps_ns) > 1.5e9 / run.fs):
         return None
     n0 = int(model.n0)
@@ -192,8 +201,11 @@ def plot_tracking(run: LiveRun, skip: int, zoom_s: float = 0.25):
 
 
 def plot_hysteresis(run: LiveRun, skip: int, input_range: tuple | None = None):
-    """Deflection against command voltage, measured and estimated, and the estimate's error
-    against voltage (the model's training input range shaded)."""
+    """
+    Plot deflection against command voltage, measured and estimated.
+
+    And the estimate's error against voltage (the model's training input range shaded).
+    """
     plt = _pyplot()
     fig, ax = plt.subplots(1, 2, figsize=(12, 4.8), constrained_layout=True)
     u = run.u[skip:]
@@ -237,8 +249,11 @@ def plot_latency(run: LiveRun):
 
 def write_figures(run: LiveRun, skip: int, out_dir,
                   input_range: tuple | None = None) -> dict[str, Path]:
-    """live_tracking.png, live_hysteresis.png, live_latency.png in out_dir; returns
-    {name: path}."""
+    """
+    Save live_tracking.png, live_hysteresis.png, live_latency.png in out_dir.
+
+    Returns {name: path}.
+    """
     plt = _pyplot()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -1,4 +1,5 @@
-"""`piezo-narx demo --control`: sensorless position control end to end, real nodes over DDS.
+"""
+`piezo-narx demo --control`: sensorless position control end to end, real nodes over DDS.
 
     1 record    command_node (identification protocol, 25 s at 2 kHz) -> simulator_node ->
                 recorder_node                                          (skipped with --model)
@@ -29,7 +30,7 @@ STREAMS = {'reference': ('position_reference', 'position'),
 
 
 def check_control_settings(c) -> None:
-    """ConfigError naming the first bad key of the demo's `control` settings."""
+    """Raise ConfigError naming the first bad key of the demo's `control` settings."""
     from piezo_narx_ros.control.controller import MODES
     from piezo_narx_ros.plant.signals import KINDS
     from piezo_narx_ros.settings import check_known
@@ -57,9 +58,13 @@ def check_control_settings(c) -> None:
 # ------------------------------------------------------------------------------------ analysis
 @dataclass
 class ControlRun:
-    """One mode's live run paired by stamp ((n,) arrays in stamp order): t_s since the first
-    reference, r (m), u (V), y measured (m), the recorder's receive times of the reference and
-    the command (ns, one clock), and the samples lost per stream."""
+    """
+    One mode's live run paired by stamp ((n,) arrays in stamp order).
+
+    t_s since the first reference, r (m), u (V), y measured (m), the recorder's receive times of
+    the reference and the command (ns, one clock), and the samples lost per stream.
+    """
+
     stamps_ns: np.ndarray
     t_s: np.ndarray
     r: np.ndarray
@@ -72,9 +77,13 @@ class ControlRun:
 
 
 def load_control_run(bag, namespace: str = 'piezo', expected: int | None = None) -> ControlRun:
-    """The three streams of a control run, paired by stamp. expected: references the command
-    node published (None: the distinct stamps seen); lost = expected - distinct stamps received,
-    per stream. DataError when a stream is empty or fewer than 2 samples pair up."""
+    """
+    Return the three streams of a control run, paired by stamp.
+
+    expected: references the command node published (None: the distinct stamps seen); lost =
+    expected - distinct stamps received, per stream. DataError when a stream is empty or fewer than
+    2 samples pair up.
+    """
     from piezo_narx_ros.bag.reader import read_joint_series
     prefix = f'{namespace.strip("/")}/' if namespace.strip('/') else ''
     fields = {prefix + topic: field for topic, field in STREAMS.values()}
@@ -106,9 +115,13 @@ def load_control_run(bag, namespace: str = 'piezo', expected: int | None = None)
 
 
 def control_figures(run: ControlRun, skip_s: float = 1.0) -> dict:
-    """JSON-ready figures of one run: tracking RMS and peak of y - r (nm, after skip_s s),
-    latency reference -> command (command minus reference receive time at the recorder, µs),
-    lateness (command receive time minus its stamp, µs), lost samples, command range (V)."""
+    """
+    JSON-ready figures of one run.
+
+    Tracking RMS and peak of y - r (nm, after skip_s s), latency reference -> command (command
+    minus reference receive time at the recorder, µs), lateness (command receive time minus its
+    stamp, µs), lost samples, command range (V).
+    """
     sel = run.t_s >= skip_s
     if np.count_nonzero(sel) < 2:
         raise DataError(f'too few samples after {skip_s:g} s to score ({run.t_s.size})')
@@ -125,8 +138,12 @@ def control_figures(run: ControlRun, skip_s: float = 1.0) -> dict:
 
 
 def write_control_figures(runs: dict, out_dir, skip_s: float = 1.0) -> dict[str, Path]:
-    """control_tracking.png (reference and deflection over two periods, error vs time,
-    deflection vs reference, every mode) and control_latency.png; returns {name: path}."""
+    """
+    Save control_tracking.png and control_latency.png; returns {name: path}.
+
+    Tracking: reference and deflection over two periods, error vs time, deflection vs reference,
+    every mode.
+    """
     from piezo_narx_ros.demo.analysis import _pyplot
     plt = _pyplot()
     out_dir = Path(out_dir)
@@ -174,9 +191,12 @@ def write_control_figures(runs: dict, out_dir, skip_s: float = 1.0) -> dict[str,
 
 # ------------------------------------------------------------------------------- the DDS runs
 def _control_phase(demo, mode: str, bag: Path, model: Path, c: dict) -> dict:
-    """command (position) -> controller -> simulator, recorder on the three streams, until the
-    reference has been answered and recorded; returns {'published', 'expected', 'received',
-    'controller': its last /diagnostics values, 'codes'}."""
+    """
+    Run command (position) -> controller -> simulator, recorder on the three streams.
+
+    Until the reference has been answered and recorded; returns {'published', 'expected',
+    'received', 'controller': its last /diagnostics values, 'codes'}.
+    """
     s = demo.s
     seconds, seed = float(c['seconds']), int(c['seed'])
     topics = [t for t, _ in STREAMS.values()]
@@ -212,13 +232,16 @@ def _control_phase(demo, mode: str, bag: Path, model: Path, c: dict) -> dict:
 
 
 def _wait_answered(demo, phase: str, seconds: float) -> dict:
-    """Until the command node has finished and every reference was answered and recorded (or
-    nothing new reached the recorder for settle_s)."""
+    """
+    Wait until the command node has finished and every reference was answered and recorded.
+
+    Or until nothing new reached the recorder for settle_s.
+    """
     from piezo_narx_ros.demo.runner import PhaseFailed
     s = demo.s
     fs, n_total = s['fs'], int(round(seconds * s['fs']))
     cmd, ctl, sim, rec = (demo.fq(n) for n in ('command_node', 'controller_node',
-                                                'simulator_node', 'recorder_node'))
+                                               'simulator_node', 'recorder_node'))
     limit = s['startup_timeout_s'] + 3 * seconds + 30
     deadline = time.monotonic() + limit
     last_line = last_change = time.monotonic()
@@ -251,8 +274,11 @@ def _wait_answered(demo, phase: str, seconds: float) -> dict:
 
 
 def run_control_demo(settings: dict, out: Path, model: Path | None = None) -> int:
-    """Phases 1-4 (1-2 skipped with `model`) into `out`; returns 0. PhaseFailed / Interrupted
-    propagate after every child has been stopped."""
+    """
+    Phases 1-4 (1-2 skipped with `model`) into `out`; returns 0.
+
+    PhaseFailed / Interrupted propagate after every child has been stopped.
+    """
     from piezo_narx_ros.demo.main import _say
     from piezo_narx_ros.demo.runner import (Demo, PhaseFailed, install_signal_handlers,
                                             restore_signal_handlers)

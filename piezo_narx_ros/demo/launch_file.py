@@ -1,5 +1,5 @@
-"""Read a ROS 2 YAML launch file into the processes `piezo-narx bringup` starts (no ros2 launch
-here).
+"""
+Read a ROS 2 YAML launch file into the processes `piezo-narx bringup` starts (no ros2 launch here).
 
 The same file serves `ros2 launch piezo_narx_ros NAME.launch.yaml` in a ROS install, so only the
 launch_ros frontend's own schema is accepted (ros2/launch_ros, launch_ros/actions/node.py; launch,
@@ -50,11 +50,14 @@ _EXECUTABLE_KEYS = {'cmd', 'name', 'env', 'output', 'if', 'unless', 'launch-pref
 
 @dataclass
 class Process:
-    """One process of a launch file: the executable of this package, its arguments, environment.
+    """
+    One process of a launch file: the executable of this package, its arguments, environment.
 
     `argv` holds everything after the executable (command-line arguments, then --ros-args ...).
     `ros` is False for a plain executable (fake_rig). `prefix`: the launch-prefix's words (a
-    command that runs the process, e.g. `chrt -f 80` for a real-time priority; empty: none)."""
+    command that runs the process, e.g. `chrt -f 80` for a real-time priority; empty: none).
+    """
+
     name: str
     executable: str
     argv: list[str]
@@ -142,7 +145,7 @@ class LaunchFile:
         return out
 
     def _value(self, value, where: str):
-        """A parameter value: YAML-typed as written, or read as YAML after substitution."""
+        """Return a parameter value: YAML-typed as written, or read as YAML after substitution."""
         import yaml
         if isinstance(value, list):
             return [self._value(v, where) for v in value]
@@ -294,14 +297,14 @@ def _list(value, where: str) -> list:
 
 
 def _scalar_text(value) -> str:
-    """A YAML scalar as launch reads it: booleans as true/false, numbers as written."""
+    """Return a YAML scalar as launch reads it: booleans as true/false, numbers as written."""
     if isinstance(value, bool):
         return 'true' if value else 'false'
     return str(value)
 
 
 def _yaml_flow(value) -> str:
-    """A value in ROS 2 `-p name:=value` syntax (YAML flow)."""
+    """Return a value in ROS 2 `-p name:=value` syntax (YAML flow)."""
     import yaml
     text = yaml.safe_dump(value, default_flow_style=True).strip()
     return text[:-4].strip() if text.endswith('\n...') or text.endswith(' ...') else text

@@ -24,8 +24,11 @@ def _header(n: int, title: str) -> None:
 
 
 def run_demo(settings: dict, out: Path) -> int:
-    """All five phases into `out`; returns 0. PhaseFailed / Interrupted propagate after every
-    child has been stopped."""
+    """
+    All five phases into `out`; returns 0.
+
+    PhaseFailed / Interrupted propagate after every child has been stopped.
+    """
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f'--out {out}: exists and is not a directory')
@@ -146,7 +149,7 @@ def _range(r) -> str:
 
 
 def print_table(summary: dict) -> None:
-    """The final summary table on stdout."""
+    """Print the final summary table on stdout."""
     live, w = summary['live'], summary['wall_seconds']
     lat, late = live['latency_us'], live['lateness_us']
     rows = [

@@ -1,4 +1,5 @@
-"""A listener on /diagnostics, so the demo knows when nodes are up and when a run is complete.
+"""
+A listener on /diagnostics, so the demo knows when nodes are up and when a run is complete.
 
 The nodes publish one DiagnosticStatus each about once a second (nodes/common.Diagnostics); the
 demo reads the command node's `published` count and state, and the recorder's `received` count.
@@ -50,7 +51,7 @@ class DiagnosticsProbe:
         return None if item is None else item[:2]
 
     def value(self, name: str, key: str, default: int = 0) -> int:
-        """An integer diagnostic value of a node (default when absent or not an integer)."""
+        """Return an integer diagnostic value of a node (default when absent or not an integer)."""
         st = self.status(name)
         try:
             return int(st[1][key]) if st else default

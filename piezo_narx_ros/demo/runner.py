@@ -1,8 +1,10 @@
-"""The demo's phases: record (nodes over DDS), fit (`piezo-narx fit`), live (estimator over DDS),
-analysis. Processes are started and stopped with the bringup machinery (cli/bringup.py): a ROS 2
-YAML launch file per phase is written to the output folder and loaded with `load_launch`, so every
-phase can be rerun by hand with `piezo-narx bringup OUT/<phase>.launch.yaml` (or `ros2 launch` in
-a ROS install).
+"""
+The demo's phases.
+
+Record (nodes over DDS), fit (`piezo-narx fit`), live (estimator over DDS), analysis. Processes are
+started and stopped with the bringup machinery (cli/bringup.py): a ROS 2 YAML launch file per phase
+is written to the output folder and loaded with `load_launch`, so every phase can be rerun by hand
+with `piezo-narx bringup OUT/<phase>.launch.yaml` (or `ros2 launch` in a ROS install).
 """
 from __future__ import annotations
 
@@ -69,8 +71,11 @@ def _merge(base: dict, over: dict) -> dict:
 
 
 def load_settings(path=None, quick: bool = False, **overrides) -> dict:
-    """Demo settings: DEFAULTS < YAML file < quick section (if quick) < non-None overrides.
-    ConfigError names an unknown key or a bad value."""
+    """
+    Demo settings: DEFAULTS < YAML file < quick section (if quick) < non-None overrides.
+
+    ConfigError names an unknown key or a bad value.
+    """
     settings = copy.deepcopy(DEFAULTS)
     if path is not None:
         doc = read_yaml_mapping(path, 'demo settings', known=DEFAULTS)
@@ -129,6 +134,7 @@ class _Group(Bringup):
 @dataclass
 class PhaseTimes:
     """Wall time of each phase, s."""
+
     seconds: dict = field(default_factory=dict)
 
     def add(self, name: str, t0: float) -> None:
@@ -169,7 +175,7 @@ class Demo:
         return group
 
     def check_alive(self, phase: str) -> None:
-        """PhaseFailed when a process of a running group has exited."""
+        """Raise PhaseFailed when a process of a running group has exited."""
         for g in self.groups:
             died = g.exited()
             if died is not None:
@@ -220,8 +226,11 @@ class Demo:
     def stream(self, phase: str, bag: Path, seconds: float, seed: int, model: Path | None = None,
                kind: str | None = None, extra_command: dict | None = None,
                extra_simulator: dict | None = None) -> dict:
-        """Run command -> simulator (-> estimator) -> recorder until the excitation has been
-        recorded; returns {'published': N, 'received': messages recorded, 'codes': exit codes}."""
+        """
+        Run command -> simulator (-> estimator) -> recorder until the excitation has been recorded.
+
+        Returns {'published': N, 'received': messages recorded, 'codes': exit codes}.
+        """
         s = self.s
         topics = ['voltage_command', 'deflection'] + (['deflection_estimate'] if model else [])
         listeners = [{'executable': 'simulator_node',
@@ -277,11 +286,14 @@ class Demo:
         self.wait(0.5)   # discovery of the subscriptions among the nodes
 
     def _wait_recorded(self, phase: str, seconds: float, estimator: bool) -> dict:
-        """Until the command node has finished and the recorder has everything (or nothing new
-        arrived for settle_s). Prints a progress line every few seconds."""
+        """
+        Wait until the command node has finished and the recorder has everything.
+
+        Or until nothing new arrived for settle_s. Prints a progress line every few seconds.
+        """
         fs, n_total = self.s['fs'], int(round(seconds * self.s['fs']))
         cmd, sim, est, rec = (self.fq(n) for n in ('command_node', 'simulator_node',
-                                                    'estimator_node', 'recorder_node'))
+                                                   'estimator_node', 'recorder_node'))
         limit = self.s['startup_timeout_s'] + 3 * seconds + 30
         deadline = time.monotonic() + limit
         last_line = last_change = time.monotonic()
@@ -387,4 +399,3 @@ def child_environment() -> None:
     """Children discover only on this host unless the caller chose otherwise."""
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     os.environ.setdefault('MPLBACKEND', 'Agg')
-

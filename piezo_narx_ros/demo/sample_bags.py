@@ -1,7 +1,9 @@
-"""`piezo-narx demo --make-sample-bags DIR`: the repository's sample bags, recorded through the
-real nodes (command_node -> simulator_node -> recorder_node over DDS), and the model fitted from
-them. Short on purpose: MCAP chunks are written uncompressed (about 0.2 MB per second of one
-2 kHz JointState stream), and the bags live in git.
+"""
+`piezo-narx demo --make-sample-bags DIR`: record the sample bags and fit their model.
+
+The repository's sample bags, recorded through the real nodes (command_node -> simulator_node ->
+recorder_node over DDS), and the model fitted from them. Short on purpose: MCAP chunks are written
+uncompressed (about 0.2 MB per second of one 2 kHz JointState stream), and the bags live in git.
 
     DIR/estimation   multisine, seed 0       -> `piezo-narx fit` (its own 50/50 split selects)
     DIR/validation   multisine, seed 1       -> held out: `piezo-narx evaluate` only
@@ -30,8 +32,11 @@ TOPICS_UY = {'piezo/voltage_command': 'effort', 'piezo/deflection': 'position'}
 
 
 def make_sample_bags(settings: dict, dest: Path, bags=SAMPLE_BAGS) -> int:
-    """Record `bags` into dest, fit dest/model.json from dest/estimation, score it on
-    dest/validation; prints what it did. Returns 0; PhaseFailed/Interrupted propagate."""
+    """
+    Record `bags` into dest, fit dest/model.json from dest/estimation, score it on dest/validation.
+
+    Prints what it did. Returns 0; PhaseFailed/Interrupted propagate.
+    """
     dest = Path(dest)
     taken = [name for name, *_ in bags if (dest / name).exists()]
     if taken or (dest / 'model.json').exists():
@@ -68,8 +73,11 @@ def make_sample_bags(settings: dict, dest: Path, bags=SAMPLE_BAGS) -> int:
 
 
 def evaluate(model_path: Path, bag: Path) -> dict:
-    """`piezo-narx evaluate`'s scores of a model file on one bag (whole record, free run from
-    the first n0 measured outputs)."""
+    """
+    Return `piezo-narx evaluate`'s scores of a model file on one bag.
+
+    Whole record, free run from the first n0 measured outputs.
+    """
     from piezo_narx_ros.cli.evaluate import evaluate as evaluate_model
     from piezo_narx_ros.ident.data import load_records
     from piezo_narx_ros.ident.model_io import load_model
@@ -78,8 +86,11 @@ def evaluate(model_path: Path, bag: Path) -> dict:
 
 
 def sine_loop_figure(model_path: Path, bag: Path, png: Path) -> Path:
-    """The hysteresis loop of the sine bag, measured and the model's free run (from the first n0
-    measured outputs), with the error in nm; saved to png."""
+    """
+    Plot the sine bag's hysteresis loop, measured and the model's free run; saved to png.
+
+    The free run starts from the first n0 measured outputs; the error is shown in nm.
+    """
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt

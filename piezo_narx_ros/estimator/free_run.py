@@ -1,4 +1,5 @@
-"""Free-run deflection estimator, ROS-free: the estimator node's whole logic.
+"""
+Free-run deflection estimator, ROS-free: the estimator node's whole logic.
 
 `FreeRunEstimator.on_command(t_ns, u)` takes one voltage command (stamp in integer ns, volts) and
 returns the estimates to publish as [(t_ns, y_hat_m), ...]; `on_measurement(t_ns, y)` takes a
@@ -33,14 +34,16 @@ INIT_MODES = ('auto', 'rest', 'measurement')
 @dataclass
 class EstimatorStats:
     """Counters shown on /diagnostics (samples unless said)."""
+
     commands: int = 0          # commands received
     estimates: int = 0         # estimates returned for publication
     rejected_nonfinite: int = 0
     rejected_range: int = 0
     gaps: int = 0              # stamp gaps detected (events)
     filled: int = 0            # samples estimated from a held command (gaps + rejected)
-    stamp_outliers: int = 0    # commands refused: their stamp continues neither the running
-                               # stream nor a new one (future/past/duplicate/interleaved)
+    # commands refused: their stamp continues neither the running stream nor a new one
+    # (future/past/duplicate/interleaved)
+    stamp_outliers: int = 0
     stream_restarts: int = 0   # new streams recognised (loop, new run, jump beyond max_fill)
     out_of_range: int = 0      # estimates outside the model's trained output range (+ margin)
     reanchors: int = 0
@@ -50,7 +53,8 @@ class EstimatorStats:
 
 
 class FreeRunEstimator:
-    """Runs `model` (NARXNetwork/ARXModel: nu, ny, n0, stepper(), output_range) in free run.
+    """
+    Runs `model` (NARXNetwork/ARXModel: nu, ny, n0, stepper(), output_range) in free run.
 
     fs: command rate, Hz (gap detection). init: 'rest', 'measurement' (wait for n0 measured
     samples, at most init_timeout s, then rest), or 'auto' (measurement when the caller says a
@@ -101,7 +105,8 @@ class FreeRunEstimator:
         self.stats = EstimatorStats()
         self.excursion = 0.0      # largest distance beyond the range (m) since take_excursion()
         self.gate = StampGate(self.period_ns, self.max_fill, confirm)
-        self._hist = max(self.n0, 1) + 64 + self.reanchor_every  # u/t history kept for re-anchoring
+        # u/t history kept for re-anchoring
+        self._hist = max(self.n0, 1) + 64 + self.reanchor_every
         self._err = deque(maxlen=self.window)
         self._ymeas = deque(maxlen=self.window)
         self.restart()
@@ -130,16 +135,23 @@ class FreeRunEstimator:
         self.stats.init = 'waiting'
 
     def start(self, measurement_available: bool) -> None:
-        """Tell an 'auto' estimator whether a deflection source exists (call before the first
-        command; later calls are ignored)."""
+        """
+        Tell an 'auto' estimator whether a deflection source exists.
+
+        Call before the first command; later calls are ignored.
+        """
         if not self._decided:
             self._wait = bool(measurement_available)
             self._decided = True
 
     def request_restart(self, from_measurement: bool) -> None:
-        """Restart the free run at the next command: from rest (all past u, y = 0), or from the
-        next n0 measured samples (`from_measurement`; still from rest after init_timeout without
-        them). The estimator node's ~/reset and ~/reinitialize services."""
+        """
+        Restart the free run at the next command.
+
+        From rest (all past u, y = 0), or from the next n0 measured samples (`from_measurement`;
+        still from rest after init_timeout without them). The estimator node's ~/reset and
+        ~/reinitialize services.
+        """
         if from_measurement and self.init_mode == 'rest':
             raise ConfigError("init is 'rest': this estimator never initialises from measurement")
         self.restart(from_measurement)
@@ -168,16 +180,22 @@ class FreeRunEstimator:
         return self.gate.holding
 
     def flush(self) -> list[tuple[int, float]]:
-        """Decide on held commands when no more commands come (the stream stopped): a gap
-        within max_fill is estimated, anything else refused as outliers. Returns the estimates
-        that became ready. The node calls it when commands have stopped for a while."""
+        """
+        Decide on held commands when no more commands come (the stream stopped).
+
+        A gap within max_fill is estimated, anything else refused as outliers. Returns the
+        estimates that became ready. The node calls it when commands have stopped for a while.
+        """
         out: list[tuple[int, float]] = []
         self._apply(self.gate.flush(), out)
         return out
 
     def take_excursion(self) -> float:
-        """Largest distance (m) of an estimate beyond the flagged range since the last call;
-        resets it (read once per diagnostics tick)."""
+        """
+        Largest distance (m) of an estimate beyond the flagged range since the last call.
+
+        Resets it (read once per diagnostics tick).
+        """
         value, self.excursion = self.excursion, 0.0
         return value
 
@@ -194,8 +212,11 @@ class FreeRunEstimator:
         self.stats.stream_restarts = self.gate.restarts
 
     def _accept(self, t_ns: int, u: float, out: list) -> None:
-        """Estimate one command whose stamp is known to be on the stream (after _last_t, or
-        the first), filling any gap by holding the last good command."""
+        """
+        Estimate one command whose stamp is known to be on the stream.
+
+        After _last_t, or the first; any gap is filled by holding the last good command.
+        """
         st = self.stats
         good = True
         if not math.isfinite(u):
@@ -216,9 +237,12 @@ class FreeRunEstimator:
         self._advance(t_ns, u_eff, not good, out)
 
     def on_measurement(self, t_ns: int, y: float) -> list[tuple[int, float]]:
-        """One measured deflection (stamp ns, m) for initialisation, running error and
-        re-anchoring. Returns the estimates that became ready (those held back while waiting for
-        the initial measurements), usually none."""
+        """
+        One measured deflection (stamp ns, m) for initialisation, running error and re-anchoring.
+
+        Returns the estimates that became ready (those held back while waiting for the initial
+        measurements), usually none.
+        """
         out: list[tuple[int, float]] = []
         if not math.isfinite(y):
             return out
@@ -293,10 +317,13 @@ class FreeRunEstimator:
         self._ymeas.append(y)
 
     def _try_init_from_measurement(self) -> bool:
-        """Initialise at the first n0 consecutive pending commands that all have a measurement
-        (usually the first n0; later ones when the first measurements were lost, e.g. while the
-        deflection subscription was still being matched). Earlier commands get no estimate and
-        are counted as `unestimated`."""
+        """
+        Initialise at the first n0 consecutive pending commands that all have a measurement.
+
+        Usually the first n0; later ones when the first measurements were lost, e.g. while the
+        deflection subscription was still being matched. Earlier commands get no estimate and are
+        counted as `unestimated`.
+        """
         n0, pending, meas = self.n0, self._pending, self._meas
         run = 0
         for j, (t, _, _) in enumerate(pending):
@@ -333,8 +360,11 @@ class FreeRunEstimator:
             self._emit(t, self._stepper.step(u), out)
 
     def _reanchor(self) -> bool:
-        """Restart the recursion at the latest stamp s whose ny preceding outputs are measured,
-        then re-step the commands after s. Returns False when the measurements are not there."""
+        """
+        Restart the recursion at the latest stamp s whose ny preceding outputs are measured.
+
+        Then re-step the commands after s. Returns False when the measurements are not there.
+        """
         ts, us = list(self._t_hist), list(self._u_hist)
         ny, nu = self.ny, self.nu
         for j in range(len(ts), max(nu, ny) - 1, -1):   # j: first sample to re-step

@@ -1,4 +1,5 @@
-"""The estimator's /diagnostics status, ROS-free: what happened since the previous tick.
+"""
+The estimator's /diagnostics status, ROS-free: what happened since the previous tick.
 
 The level reflects every estimate and command since the last tick, not the last sample: a runaway
 that leaves the trained output range for 2,807 samples between two ticks is a WARN tick even if
@@ -33,10 +34,12 @@ class EstimatorHealth:
                             [name for name, _ in _WARN_ON] + ['estimates', 'commands'])
 
     def tick(self, command_publishers: int | None = None) -> tuple[int, str, dict]:
-        """(level OK/WARN, message, values) for the period since the previous call.
+        """
+        (level OK/WARN, message, values) for the period since the previous call.
 
         command_publishers: writers matched on the command topic (None: unknown); more than one
-        is a WARN, since their samples interleave."""
+        is a WARN, since their samples interleave.
+        """
         d = self._since.tick()
         st = self.est.stats
         excursion = self.est.take_excursion()

@@ -1,4 +1,5 @@
-"""A stable NARX network with random weights, for tests and benchmarks of the estimator path.
+"""
+A stable NARX network with random weights, for tests and benchmarks of the estimator path.
 
 It is not an identified model: it has the structure and cost of one (same kernels as a fitted
 NARXNetwork, piezo-like scales: ±100 V in, µm out) so the nodes can be exercised without training.
@@ -9,7 +10,8 @@ import numpy as np
 
 
 def toy_narx(nu: int = 4, ny: int = 4, hidden: int = 10, fs: float = 2000.0, seed: int = 0):
-    """NARXNetwork with random weights whose output feedback gain is < 0.5 (stable free run).
+    """
+    Return a NARXNetwork with random weights whose output feedback gain is < 0.5 (stable free run).
 
     Normalisation: u 0 ± 100 V, y 0 ± 1e-6 m. input_range ±150 V; output_range is set from a
     free run on a ±150 V random input, so a ±150 V command stays in range.

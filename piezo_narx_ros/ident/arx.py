@@ -1,4 +1,5 @@
-"""Linear ARX baseline fitted by least squares.
+"""
+Linear ARX baseline fitted by least squares.
 
     y(k) + a1 y(k-1) + ... + a_na y(k-na) = b0 u(k) + b1 u(k-1) + ... + b_nb u(k-nb) + c
 
@@ -14,7 +15,8 @@ from .regressors import LaggedModel, check_orders, lagged_regressors
 
 
 class ARXModel(LaggedModel):
-    """ARX(na, nb) model; after fit, ``a`` (na,), ``b`` (nb+1,) and intercept ``c`` (m) are set.
+    """
+    ARX(na, nb) model; after fit, ``a`` (na,), ``b`` (nb+1,) and intercept ``c`` (m) are set.
 
     fit_intercept : estimate the constant c (absorbs sensor/voltage offsets); False forces c = 0.
     """
@@ -31,16 +33,19 @@ class ARXModel(LaggedModel):
 
     @property
     def n_params(self):
-        """Number of estimated coefficients."""
+        """Return the number of estimated coefficients."""
         return self.na + self.nb + 1 + int(self.fit_intercept)
 
     def _is_fitted(self):
         return self.a is not None
 
     def fit(self, u, y, u_val=None, y_val=None, fs=None):
-        """Least-squares fit on estimation data u (V), y (m): 1-D arrays, or lists of arrays for
-        several records (each record's regressor rows come from that record only); u_val/y_val
-        are unused (no tuning)."""
+        """
+        Least-squares fit on estimation data u (V), y (m).
+
+        1-D arrays, or lists of arrays for several records (each record's regressor rows come from
+        that record only); u_val/y_val are unused (no tuning).
+        """
         u_list, y_list = as_record_list(u, y, min_len=self.n0 + 1)
         rows = [lagged_regressors(ur, yr, self.nu, self.ny) for ur, yr in zip(u_list, y_list)]
         X = np.vstack([r[0] for r in rows])

@@ -1,4 +1,5 @@
-"""What every model family implements, and the parameter-rule table their constructors check.
+"""
+What every model family implements, and the parameter-rule table their constructors check.
 
 Every family (ARX, the paper's NARX network, the hysteresis-operator NARX) is a `DynamicModel`:
 fit / predict / simulate on numpy arrays in SI units (V in, m out), a `Stepper` for the estimator's
@@ -41,7 +42,7 @@ class Interval:
         return value
 
     def describe(self) -> str:
-        """The rule in words, e.g. 'an integer in [1, 200]'."""
+        """Return the rule in words, e.g. 'an integer in [1, 200]'."""
         what = 'an integer' if self.kind is int else 'a number'
         lo = '-inf' if self.low is None else f'{self.low:g}'
         hi = 'inf' if self.high is None else f'{self.high:g}'
@@ -71,14 +72,17 @@ class Tuple:
         return items
 
     def describe(self) -> str:
-        """The rule in words."""
+        """Return the rule in words."""
         return (f'{self.min_len}-{self.max_len} values, each {self.item.describe()}'
                 + (', increasing' if self.increasing else ''))
 
 
 def check_parameters(cls, values: dict) -> dict:
-    """Every constructor value checked against `cls._parameter_constraints`; returns them
-    converted. ConfigError on the first bad one (its name, the rule and the value)."""
+    """
+    Every constructor value checked against `cls._parameter_constraints`; returns them converted.
+
+    ConfigError on the first bad one (its name, the rule and the value).
+    """
     rules = cls._parameter_constraints
     unknown = set(values) - set(rules)
     if unknown:
@@ -87,7 +91,8 @@ def check_parameters(cls, values: dict) -> dict:
 
 
 class DynamicModel:
-    """Base class of every model family: the interface the rest of the package relies on.
+    """
+    Base class of every model family: the interface the rest of the package relies on.
 
     Attributes (set by fit or by model_io.load_model):
       kind : str, the model file's structure.kind;
@@ -146,8 +151,12 @@ class DynamicModel:
 
 
 def as_record_list(u, y, min_len=1):
-    """(list of u arrays V, list of y arrays m) from one record (1-D arrays) or several (a list
-    or tuple of 1-D arrays each). DataError on mismatched or bad arrays."""
+    """
+    Return (list of u arrays V, list of y arrays m) from one record or several.
+
+    One record: 1-D arrays; several: a list or tuple of 1-D arrays each. DataError on mismatched or
+    bad arrays.
+    """
     from .regressors import as_signal
     several = isinstance(u, (list, tuple))
     if several != isinstance(y, (list, tuple)):

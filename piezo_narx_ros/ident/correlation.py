@@ -1,7 +1,9 @@
-"""Billings' residual correlation tests for nonlinear model validity.
+"""
+Billings' residual correlation tests for nonlinear model validity.
 
-Billings (Nonlinear System Identification, 2013, ch. 5; Billings & Voon 1986) calls a model adequate
-when its residuals ε hold nothing that the input u or the residuals themselves could still predict:
+Billings (Nonlinear System Identification, 2013, ch. 5; Billings & Voon 1986) calls a model
+adequate when its residuals ε hold nothing that the input u or the residuals themselves could still
+predict:
 
     φεε(τ)      = δ(τ)           ε(k) vs ε(k-τ)                     tested on τ = 1..L
     φuε(τ)      = 0              u(k-τ) vs ε(k)                      tested on τ = -L..L, τ != 0
@@ -39,11 +41,11 @@ from piezo_narx_ros.errors import DataError
 # Names used in metrics.json, `piezo-narx evaluate` output and figure titles, in Billings' order.
 TEST_NAMES = ('phi_ee', 'phi_ue', 'phi_u2e', 'phi_u2e2', 'phi_e_eu')
 TEST_LABELS = {
-    'phi_ee': r"$\phi_{\varepsilon\varepsilon}(\tau)$",
-    'phi_ue': r"$\phi_{u\varepsilon}(\tau)$",
-    'phi_u2e': r"$\phi_{u^{2\prime}\varepsilon}(\tau)$",
-    'phi_u2e2': r"$\phi_{u^{2\prime}\varepsilon^{2}}(\tau)$",
-    'phi_e_eu': r"$\phi_{\varepsilon(\varepsilon u)}(\tau)$",
+    'phi_ee': r'$\phi_{\varepsilon\varepsilon}(\tau)$',
+    'phi_ue': r'$\phi_{u\varepsilon}(\tau)$',
+    'phi_u2e': r'$\phi_{u^{2\prime}\varepsilon}(\tau)$',
+    'phi_u2e2': r'$\phi_{u^{2\prime}\varepsilon^{2}}(\tau)$',
+    'phi_e_eu': r'$\phi_{\varepsilon(\varepsilon u)}(\tau)$',
 }
 _TWO_SIDED = {'phi_ue', 'phi_u2e', 'phi_u2e2'}
 
@@ -51,6 +53,7 @@ _TWO_SIDED = {'phi_ue', 'phi_u2e', 'phi_u2e2'}
 @dataclass
 class CorrelationTest:
     """One test: φ(τ) for every lag, which lags are tested, and the verdict."""
+
     name: str
     lags: np.ndarray        # (M,) integer lags in samples, including 0 for reference
     values: np.ndarray      # (M,) normalised correlation in [-1, 1]; NaN when undefined
@@ -68,6 +71,7 @@ class CorrelationTest:
 @dataclass
 class CorrelationResult:
     """The five tests on one residual sequence."""
+
     n: int                   # number of residual samples used
     band: float              # half-width of the 95 % band, 1.96/sqrt(n)
     hard_band: float         # with a tolerance, no lag may exceed this (99.9 %, 3.29/sqrt(n))
@@ -77,7 +81,7 @@ class CorrelationResult:
 
     @property
     def passed(self) -> bool:
-        """True when all five tests pass."""
+        """Return True when all five tests pass."""
         return all(t.passed for t in self.tests.values())
 
     def verdicts(self) -> dict[str, bool]:
@@ -117,7 +121,8 @@ def _correlate(spec_a, spec_b, lags: np.ndarray, n_fft: int) -> np.ndarray:
 
 
 def cross_correlation(a, b, max_lag: int) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised cross-correlation φab(τ) = Σk a'(k-τ) b'(k) / sqrt(Σa'² Σb'²), τ = -L..L.
+    """
+    Normalised cross-correlation φab(τ) = Σk a'(k-τ) b'(k) / sqrt(Σa'² Σb'²), τ = -L..L.
 
     a' and b' are a and b with their means removed. Returns (lags (2L+1,), values (2L+1,)); the
     values are NaN when either sequence is constant (the correlation is undefined).
@@ -131,7 +136,8 @@ def cross_correlation(a, b, max_lag: int) -> tuple[np.ndarray, np.ndarray]:
 
 def correlation_tests(residuals, u, max_lag: int = 20,
                       max_outside_fraction: float = 0.05) -> CorrelationResult:
-    """Run the five Billings tests on residuals ε (m) against input u (V), equal-length 1-D arrays.
+    """
+    Run the five Billings tests on residuals ε (m) against input u (V), equal-length 1-D arrays.
 
     `max_lag` (samples, >= 1) is L; `max_outside_fraction` in [0, 1) is the fraction of tested
     lags allowed outside ±1.96/sqrt(N) (0 = strict: every lag inside; > 0: none beyond

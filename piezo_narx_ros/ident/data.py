@@ -1,4 +1,5 @@
-"""Input/output records for identification: load (u, y, fs) from NPZ, CSV or rosbag2 MCAP.
+"""
+Input/output records for identification: load (u, y, fs) from NPZ, CSV or rosbag2 MCAP.
 
 Every problem raises `DataError` (or `BagError` for bags) with a one-line message that names the
 file and the problem, so `piezo-narx fit` can print it as is.
@@ -84,7 +85,8 @@ def load_npz(path, fs: float | None = None) -> Record:
 
 
 def load_csv(path, fs: float | None = None) -> Record:
-    """Record from a CSV with columns t,u,y (fs from the stamps) or u,y (fs required).
+    """
+    Record from a CSV with columns t,u,y (fs from the stamps) or u,y (fs required).
 
     A header row naming the columns is allowed (any order; optional y_true column); without one
     the columns are taken as t,u,y (3 columns) or u,y (2 columns).
@@ -149,7 +151,8 @@ def load_bag(path, command_topic: str, deflection_topic: str) -> Record:
     try:
         from piezo_narx_ros.bag.reader import read_uy
     except ImportError:
-        raise BagError('bag support not available (piezo_narx_ros.bag.reader is missing)') from None
+        raise BagError('bag support not available '
+                       '(piezo_narx_ros.bag.reader is missing)') from None
     record = read_uy(path, command_topic, deflection_topic)
     # Re-validate through the same checks as files so every source obeys one contract.
     return _make(record.u, record.y, record.fs, record.source or str(path), record.t,
@@ -184,10 +187,13 @@ RECORDING_SUFFIXES = ('.npz', '.csv', '.mcap')
 
 
 def expand_inputs(paths) -> list[Path]:
-    """Input paths with each folder of recordings replaced by the recordings in it, sorted by
-    name: rosbag2 bags (directories or .mcap files), .npz and .csv files. A folder that is itself
-    a bag stays one input; an .npz beside a .json of the same stem is a model's weights and is
-    left out. DataError for a folder holding no recording."""
+    """
+    Input paths with each folder of recordings replaced by the recordings in it, sorted by name.
+
+    rosbag2 bags (directories or .mcap files), .npz and .csv files. A folder that is itself a bag
+    stays one input; an .npz beside a .json of the same stem is a model's weights and is left out.
+    DataError for a folder holding no recording.
+    """
     if isinstance(paths, (str, Path)):
         paths = [paths]
     out = []
@@ -209,8 +215,13 @@ def expand_inputs(paths) -> list[Path]:
 
 def load_records(paths, fs: float | None = None, command_topic: str = 'piezo/voltage_command',
                  deflection_topic: str = 'piezo/deflection') -> list[Record]:
-    """Records from every path (a folder of recordings gives each one in it, `expand_inputs`);
-    all must share one sample rate (Hz), else DataError."""
+    """
+    Load the records from every path.
+
+    A folder of recordings gives each one in it (`expand_inputs`).
+
+    All must share one sample rate (Hz), else DataError.
+    """
     records = [load_record(p, fs, command_topic, deflection_topic)
                for p in expand_inputs(paths)]
     if not records:
@@ -224,8 +235,12 @@ def load_records(paths, fs: float | None = None, command_topic: str = 'piezo/vol
 
 
 def check_length(record: Record, n0: int, max_lag: int = 20, what: str = 'lags') -> None:
-    """DataError unless each half of `record` holds n0 start-up samples (the deepest lag) plus
-    the 4 * max_lag samples the correlation tests need."""
+    """
+    Raise DataError unless each half of `record` is long enough for the tests.
+
+    Each half must hold n0 start-up samples (the deepest lag) plus the 4 * max_lag samples the
+    correlation tests need.
+    """
     need = max(MIN_SAMPLES, 2 * (n0 + 4 * max_lag))
     if len(record) < need:
         raise DataError(f'{record.source}: {len(record)} samples are too few for {what} up to '
@@ -233,12 +248,13 @@ def check_length(record: Record, n0: int, max_lag: int = 20, what: str = 'lags')
 
 
 def _constant(x: np.ndarray) -> bool:
-    """True when x does not vary beyond float rounding (relative spread <= 1e-9)."""
+    """Return True when x does not vary beyond float rounding (relative spread <= 1e-9)."""
     return bool(np.ptp(x) <= 1e-9 * np.max(np.abs(x)))
 
 
 def check_identifiable(record: Record, split: float = 0.5) -> list[str]:
-    """Refuse a record from which nothing can be identified; warn about a weak one.
+    """
+    Refuse a record from which nothing can be identified; warn about a weak one.
 
     The first `split` of the samples estimates, the rest validates. Raises DataError when the
     estimation input is constant (an idle rig excites nothing: any model fits it) or the output of

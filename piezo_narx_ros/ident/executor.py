@@ -1,4 +1,5 @@
-"""Where the candidate fits of a search run: a local process pool or a Ray cluster.
+"""
+Where the candidate fits of a search run: a local process pool or a Ray cluster.
 
 An executor maps a task function over tasks that share data::
 
@@ -49,11 +50,12 @@ _WORKER: dict = {}
 @dataclass(frozen=True)
 class TaskFailure:
     """The slot of a task that raised or whose worker died; `message` is one line."""
+
     message: str
 
 
 def in_worker() -> bool:
-    """True inside a worker process of an executor (not in the process that called map)."""
+    """Return True inside a worker process of an executor (not in the process that called map)."""
     return bool(_WORKER.get('worker'))
 
 
@@ -80,11 +82,17 @@ def environment(values: dict):
 
 class Executor:
     """Interface of the executors (see the module docstring); a context manager that closes."""
+
     name = 'executor'
 
-    def map(self, fn, tasks: list, data: dict, done=None) -> list:
-        """[fn(payload, data[key]) or TaskFailure for (key, payload) in tasks]; `done(index,
-        result)` is called in this process as each task finishes."""
+    # `map` shadows a builtin as concurrent.futures.Executor.map does: the name users of an
+    # executor expect.
+    def map(self, fn, tasks: list, data: dict, done=None) -> list:  # noqa: A003
+        """
+        [fn(payload, data[key]) or TaskFailure for (key, payload) in tasks].
+
+        `done(index, result)` is called in this process as each task finishes.
+        """
         raise NotImplementedError
 
     def describe(self) -> str:
@@ -117,12 +125,14 @@ def _report(results, index, result, done):
 
 
 class LocalExecutor(Executor):
-    """`jobs` spawned worker processes on this machine.
+    """
+    `jobs` spawned worker processes on this machine.
 
     A worker that dies breaks the pool: the tasks it had not started run again without a mark;
     the ones running then (which one killed it is unknown) are suspects, run again one at a time
     so a death is pinned on its task, and reported as failures after `retries` more deaths.
     """
+
     name = 'local'
 
     def __init__(self, jobs: int = 2, retries: int = 1):
@@ -135,7 +145,7 @@ class LocalExecutor(Executor):
         """'N local worker process(es)'."""
         return f'{self.jobs} local worker process{"es" if self.jobs > 1 else ""}'
 
-    def map(self, fn, tasks, data, done=None):
+    def map(self, fn, tasks, data, done=None):  # noqa: A003 - Executor.map
         """See Executor.map; in this process when jobs = 1 or there is one task."""
         results = [None] * len(tasks)
         if self.jobs == 1 or len(tasks) == 1:
@@ -193,8 +203,11 @@ class LocalExecutor(Executor):
 
 
 def _probe(address: str, timeout: float = 5.0) -> None:
-    """ConfigError unless something accepts TCP connections at a HOST:PORT address (Ray itself
-    retries an absent cluster for minutes). 'auto' and other forms are left to Ray."""
+    """
+    Raise ConfigError unless something accepts TCP connections at a HOST:PORT address.
+
+    Ray itself retries an absent cluster for minutes. 'auto' and other forms are left to Ray.
+    """
     import socket
     host, _, port = address.rpartition('://')[2].rpartition(':')
     if not host or not port.isdigit():
@@ -207,9 +220,12 @@ def _probe(address: str, timeout: float = 5.0) -> None:
 
 
 def _has_token() -> bool:
-    """A Ray authentication token is at hand: RAY_AUTH_TOKEN, RAY_AUTH_TOKEN_PATH or the
-    default file ~/.ray/auth_token (where `ray start` and `ray get-auth-token --generate` put
-    it)."""
+    """
+    Tell whether a Ray authentication token is at hand.
+
+    RAY_AUTH_TOKEN, RAY_AUTH_TOKEN_PATH or the default file ~/.ray/auth_token (where `ray start`
+    and `ray get-auth-token --generate` put it).
+    """
     return bool(os.environ.get('RAY_AUTH_TOKEN') or os.environ.get('RAY_AUTH_TOKEN_PATH')
                 or os.path.isfile(os.path.join(os.path.expanduser('~'), '.ray', 'auth_token')))
 
@@ -265,7 +281,8 @@ def _data_bytes(data: dict) -> int:
 
 
 class RayExecutor(Executor):
-    """Each task a Ray task (one CPU); the data put in the object store once per map.
+    """
+    Each task a Ray task (one CPU); the data put in the object store once per map.
 
     `address` None starts a local Ray instance with `num_cpus` CPUs (default: all), no
     dashboard and an object store sized from the data (at least `min_store` bytes), stopped on
@@ -277,6 +294,7 @@ class RayExecutor(Executor):
     fit is deterministic). In a process already connected to Ray (ray.init done by the caller)
     the existing connection is used and left open.
     """
+
     name = 'ray'
 
     def __init__(self, address: str | None = None, num_cpus: int | None = None,
@@ -291,11 +309,11 @@ class RayExecutor(Executor):
         self._cpus = 0
 
     def describe(self) -> str:
-        """'Ray cluster at ADDR (N CPUs)' or 'local Ray (N CPUs)'."""
+        """Describe the executor: 'Ray cluster at ADDR (N CPUs)' or 'local Ray (N CPUs)'."""
         where = f'Ray cluster at {self.address}' if self.address else 'local Ray'
         return f'{where} ({self._cpus} CPUs)' if self._cpus else where
 
-    def open(self, store_bytes: int = 0):
+    def open(self, store_bytes: int = 0):  # noqa: A003 - pairs with close()
         """Connect (or start the local instance); returns the ray module."""
         if self._ray is not None:
             return self._ray
@@ -314,9 +332,9 @@ class RayExecutor(Executor):
             self._ray = ray
             self._cpus = int(ray.cluster_resources().get('CPU', 0))
             return ray
-        options = dict(include_dashboard=False, log_to_driver=False,
-                       logging_level=logging.WARNING,
-                       runtime_env={'env_vars': dict(SINGLE_THREAD_ENV)})
+        options = {'include_dashboard': False, 'log_to_driver': False,
+                   'logging_level': logging.WARNING,
+                   'runtime_env': {'env_vars': dict(SINGLE_THREAD_ENV)}}
         failure, interrupted = None, []
         # Ctrl-C is held until the start is over: cut half way, the start left Ray's agent
         # processes running for good (measured); after it, shutdown() stops everything.
@@ -362,7 +380,7 @@ class RayExecutor(Executor):
         raise ConfigError(f'--ray-address {self.address}: cannot connect to a Ray cluster '
                           f'({why}){hint}') from None
 
-    def map(self, fn, tasks, data, done=None):
+    def map(self, fn, tasks, data, done=None):  # noqa: A003 - Executor.map
         """See Executor.map."""
         ray = self.open(_data_bytes(data))
         if self._data is not data:
@@ -400,8 +418,12 @@ class RayExecutor(Executor):
 
     @staticmethod
     def _cancel(ray, pending) -> None:
-        """Stop the cluster's work on an interrupt: queued tasks are dropped, running ones
-        killed (force), so a cluster is not left computing for nobody."""
+        """
+        Stop the cluster's work on an interrupt.
+
+        Queued tasks are dropped, running ones killed (force), so a cluster is not left computing
+        for nobody.
+        """
         for ref in pending:
             with contextlib.suppress(Exception):
                 ray.cancel(ref, force=True)
@@ -416,8 +438,12 @@ class RayExecutor(Executor):
 
 
 def make_executor(name: str = 'local', jobs: int = 2, address: str | None = None) -> Executor:
-    """Executor by name: 'local' (`jobs` processes) or 'ray' (`address`, or a local Ray instance
-    of `jobs` CPUs). ConfigError for anything else."""
+    """
+    Executor by name.
+
+    'local' (`jobs` processes) or 'ray' (`address`, or a local Ray instance of `jobs` CPUs).
+    ConfigError for anything else.
+    """
     if name == 'local':
         if address:
             raise ConfigError('--ray-address needs --executor ray')

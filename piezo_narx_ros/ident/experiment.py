@@ -1,5 +1,8 @@
-"""The paper's identification experiment: a grid of NARX networks and ARX baselines, judged on R²
-and the Billings correlation tests, and the choice of one model.
+"""
+The paper's identification experiment.
+
+A grid of NARX networks and ARX baselines, judged on R² and the Billings correlation tests, and the
+choice of one model.
 
 Protocol
 --------
@@ -73,9 +76,14 @@ SELECTIONS = ('tests', 'worst_case')
 
 @dataclass(frozen=True)
 class CandidateSpec:
-    """One model of the grid. For ARX, ny = na and nu = nb; `hidden` is None. For the
-    hysteresis-operator NARX, `options` holds its constructor arguments besides hidden and seed
-    (sorted (name, value) pairs) and nu, ny are its n_lags and na."""
+    """
+    One model of the grid.
+
+    For ARX, ny = na and nu = nb; `hidden` is None. For the hysteresis-operator NARX, `options`
+    holds its constructor arguments besides hidden and seed (sorted (name, value) pairs) and nu, ny
+    are its n_lags and na.
+    """
+
     kind: str           # 'narx', 'arx' or 'hysteresis_narx'
     nu: int
     ny: int
@@ -96,7 +104,7 @@ class CandidateSpec:
         return f'NARX(ny={self.ny}, nu={self.nu}, H={self.hidden}{seed})'
 
     def build(self, training_options: dict | None = None):
-        """An unfitted model for this spec (imports the model classes lazily)."""
+        """Return an unfitted model for this spec (imports the model classes lazily)."""
         if self.kind == 'arx':
             from piezo_narx_ros.ident.arx import ARXModel
             return ARXModel(na=self.ny, nb=self.nu)
@@ -114,6 +122,7 @@ class CandidateSpec:
 @dataclass
 class ExperimentConfig:
     """Settings of the lag-grid experiment (orders in samples, fraction unit-free)."""
+
     ny: tuple = (1, 2, 3, 4)            # NARX output lags
     nu: tuple = (1, 2, 3, 4)            # NARX input lags
     hidden: int = 10                    # sigmoid units of the hidden layer
@@ -160,7 +169,7 @@ class ExperimentConfig:
         return out
 
     def validate(self) -> None:
-        """ConfigError naming the first bad setting."""
+        """Raise ConfigError naming the first bad setting."""
         for name in ('ny', 'nu', 'arx_na', 'arx_nb'):
             vals = getattr(self, name)
             if any(int(v) != v or v < (0 if name in ('nu', 'arx_nb') else 1) for v in vals):
@@ -193,7 +202,8 @@ class ExperimentConfig:
         if not 0.1 <= self.split <= 0.9:
             raise ConfigError(f'split must be in [0.1, 0.9], got {self.split}')
         if self.residuals not in RESIDUAL_KINDS:
-            raise ConfigError(f'residuals must be prediction or simulation, got {self.residuals!r}')
+            raise ConfigError('residuals must be prediction or simulation, got '
+                              f'{self.residuals!r}')
         if self.noise_model not in NOISE_MODELS:
             raise ConfigError(f'noise_model must be one of {", ".join(NOISE_MODELS)}, got '
                               f'{self.noise_model!r}')
@@ -242,6 +252,7 @@ PRESETS = {
 @dataclass
 class CandidateResult:
     """Scores of one fitted candidate; `model` is the fitted object (not serialised)."""
+
     spec: CandidateSpec
     n_params: int | None = None
     scores: dict = field(default_factory=dict)  # [estimation|validation][prediction|simulation]
@@ -258,12 +269,15 @@ class CandidateResult:
         return -np.inf if value is None else value
 
     def free_run_r2(self) -> float:
-        """Worst-case free-run R²: the lowest of the pooled estimation halves and of each
-        validation record. The estimation half starts from rest with the excitation switching
-        on, a start the validation half never shows; a network that falls into a limit cycle
-        there (measured: R² -119 on its own estimation data with 0.99993 on validation) must
-        not win on the validation half alone; nor may a model that is good on most records
-        and fails one (a kind of move the user makes)."""
+        """
+        Worst-case free-run R².
+
+        The lowest of the pooled estimation halves and of each validation record. The estimation
+        half starts from rest with the excitation switching on, a start the validation half never
+        shows; a network that falls into a limit cycle there (measured: R² -119 on its own
+        estimation data with 0.99993 on validation) must not win on the validation half alone; nor
+        may a model that is good on most records and fails one (a kind of move the user makes).
+        """
         per_record = [-np.inf if r['simulation']['r2'] is None else r['simulation']['r2']
                       for r in self.scores.get('validation', {}).get('records', [])]
         return min([self.r2('estimation'), self.r2('validation')] + per_record)
@@ -279,6 +293,7 @@ class CandidateResult:
 @dataclass
 class ExperimentResult:
     """Every candidate, the selected one, and what the experiment ran on."""
+
     config: ExperimentConfig
     candidates: list[CandidateResult]
     selected: int                 # index into candidates
@@ -291,11 +306,11 @@ class ExperimentResult:
 
     @property
     def best(self) -> CandidateResult:
-        """The selected candidate."""
+        """Return the selected candidate."""
         return self.candidates[self.selected]
 
     def rule(self) -> str:
-        """The selection rule in words."""
+        """Return the selection rule in words."""
         worst = ('free-run R² in the worst case (the lowest of the pooled estimation halves '
                  'and each validation record)')
         if self.config.selection == 'worst_case':
@@ -326,7 +341,8 @@ def split_records(records: list[Record],
 
 
 def free_run(model, record: Record) -> tuple[np.ndarray, np.ndarray]:
-    """(one-step prediction, free run), (N,) m each, of a model on a record.
+    """
+    (one-step prediction, free run), (N,) m each, of a model on a record.
 
     The free run starts from the record's first n0 measured outputs, as the paper does. A model
     whose state is a function of the whole input history (`state_from_input`) is instead run
@@ -356,7 +372,8 @@ def outputs_by_record(model, records: list[Record]) -> list[dict[str, np.ndarray
 
 
 def model_outputs(model, records: list[Record]) -> dict[str, np.ndarray]:
-    """Pooled samples k >= n0 of every record: 'u' (V), 'y' (m), 'prediction', 'simulation' (m).
+    """
+    Pooled samples k >= n0 of every record: 'u' (V), 'y' (m), 'prediction', 'simulation' (m).
 
     Each record is predicted from its measured past and simulated from its first n0 outputs.
     """
@@ -365,8 +382,12 @@ def model_outputs(model, records: list[Record]) -> dict[str, np.ndarray]:
 
 
 def _residual(part: dict, mode: str) -> np.ndarray:
-    """y - ŷ of one record (m); a free run without its start-up transient (SIMULATION_BURN_IN),
-    kept whole when the record is too short to spare it."""
+    """
+    Return the residual y - ŷ of one record (m).
+
+    A free run without its start-up transient (SIMULATION_BURN_IN), kept whole when the record is
+    too short to spare it.
+    """
     e = part['y'] - part[mode]
     skip = SIMULATION_BURN_IN if mode == 'simulation' else 0
     return e[skip:] if e.size > 10 * skip else e
@@ -374,7 +395,8 @@ def _residual(part: dict, mode: str) -> np.ndarray:
 
 def fit_noise_models(model, records: list[Record], max_order: int = 20,
                      max_lag: int = 20) -> dict[str, ARNoiseModel | None]:
-    """AR noise model of the model's residuals on (estimation) records, per residual kind.
+    """
+    AR noise model of the model's residuals on (estimation) records, per residual kind.
 
     The order is capped by `max_order` and by what the data allow (10 samples per coefficient,
     and 4 * max_lag samples left per record after whitening). None for a kind whose output is not
@@ -406,8 +428,12 @@ def _mode_scores(out: dict) -> dict:
 
 
 def _scores(parts: list[dict], sources: list[str] | None = None) -> dict:
-    """Scores pooled over the records; with several records also 'records': one entry each
-    (source, samples, prediction and simulation scores)."""
+    """
+    Scores pooled over the records.
+
+    With several records also 'records': one entry each (source, samples, prediction and simulation
+    scores).
+    """
     out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     result = _mode_scores(out)
     if sources is not None and len(parts) > 1:
@@ -422,8 +448,11 @@ def _failed_tests(reason: str) -> dict:
 
 def residual_correlations(parts: list[dict], mode: str, max_lag: int,
                           max_outside_fraction: float, noise_model: ARNoiseModel | None = None):
-    """CorrelationResult of the residuals of `mode` pooled over records (each record whitened on
-    its own by `noise_model`, its first `order` samples dropped); None when not finite."""
+    """
+    Test the residuals of `mode` pooled over records: a CorrelationResult, None when not finite.
+
+    Each record is whitened on its own by `noise_model`, its first `order` samples dropped.
+    """
     resid, u = [], []
     for p in parts:
         e = _residual(p, mode)
@@ -440,8 +469,11 @@ def residual_correlations(parts: list[dict], mode: str, max_lag: int,
 def evaluate_model(model, records: list[Record], max_lag: int = 20,
                    max_outside_fraction: float = 0.05, with_tests: bool = True,
                    noise_models: dict | None = None) -> dict:
-    """Scores of a fitted model on records: {'prediction': scores, 'simulation': scores,
-    'tests': {...}} (tests omitted when with_tests is False).
+    """
+    Scores of a fitted model on records.
+
+    {'prediction': scores, 'simulation': scores, 'tests': {...}} (tests omitted when with_tests is
+    False).
 
     `noise_models` ({'prediction'|'simulation': ARNoiseModel | None}) whitens the residuals before
     the tests; then tests[mode] holds the verdicts on the innovations with the noise model that
@@ -475,8 +507,11 @@ def evaluate_model(model, records: list[Record], max_lag: int = 20,
 
 def fit_candidate(spec: CandidateSpec, est: list[Record], val: list[Record],
                   config: ExperimentConfig) -> CandidateResult:
-    """Fit one candidate on the estimation records and score it on both (the same code on every
-    executor); a PiezoNarxError becomes the result's `error`."""
+    """
+    Fit one candidate on the estimation records and score it on both.
+
+    The same code on every executor; a PiezoNarxError becomes the result's `error`.
+    """
     res = CandidateResult(spec=spec)
     t0 = time.perf_counter()
     try:
@@ -516,15 +551,18 @@ def fit_task(payload: tuple, data: tuple) -> CandidateResult:
 
 
 def _as_result(spec: CandidateSpec, outcome) -> CandidateResult:
-    """A task's outcome as a CandidateResult: a TaskFailure becomes the candidate's error."""
+    """Return a task's CandidateResult: a TaskFailure becomes the candidate's error."""
     if isinstance(outcome, TaskFailure):
         return CandidateResult(spec=spec, error=outcome.message)
     return outcome
 
 
 def select(candidates: list[CandidateResult], rule: str = 'tests') -> tuple[int, bool]:
-    """(index, validated) by the selection rule of this module ('tests' or 'worst_case');
-    DataError when nothing fitted."""
+    """
+    (index, validated) by the selection rule of this module ('tests' or 'worst_case').
+
+    DataError when nothing fitted.
+    """
     ok = [i for i, c in enumerate(candidates) if c.error is None]
     if not ok:
         raise DataError('no candidate model could be fitted: ' + (candidates[0].error or '?'))
@@ -545,9 +583,13 @@ def _final_config(config: ExperimentConfig) -> ExperimentConfig:
 
 def keep_final(screened: CandidateResult, final: CandidateResult,
                config: ExperimentConfig) -> CandidateResult:
-    """The final fit if its free-run R² on both halves (the worse of the two) is at least the
-    screened one's and its test verdict is no worse, else the screened fit; the returned result
-    records both fits under 'final_fit'."""
+    """
+    Return the final fit if it is at least as good as the screened one, else the screened fit.
+
+    At least as good: its free-run R² on both halves (the worse of the two) is at least the
+    screened one's and its test verdict is no worse. The returned result records both fits under
+    'final_fit'.
+    """
     keep = (final.error is None and final.free_run_r2() >= screened.free_run_r2()
             and (final.validated or not screened.validated))
     chosen = final if keep else screened
@@ -565,15 +607,19 @@ def keep_final(screened: CandidateResult, final: CandidateResult,
 
 def final_fit(screened: CandidateResult, est: list[Record], val: list[Record],
               config: ExperimentConfig) -> CandidateResult:
-    """Train the selected network again with `config.final_training` (longer, to convergence),
-    in this process, and keep the better fit (`keep_final`)."""
+    """
+    Train the selected network again with `config.final_training` (longer, to convergence).
+
+    In this process; the better fit is kept (`keep_final`).
+    """
     final = fit_candidate(screened.spec, est, val, _final_config(config))
     return keep_final(screened, final, config)
 
 
 def run_experiment(records: list[Record], config: ExperimentConfig | None = None,
                    executor: Executor | None = None) -> ExperimentResult:
-    """Fit and score the whole grid on records (split per `config.split`) and select one model.
+    """
+    Fit and score the whole grid on records (split per `config.split`) and select one model.
 
     The fits run on `executor` (default: a LocalExecutor of `config.jobs` processes, closed at
     the end); the result does not depend on the executor.
@@ -586,8 +632,11 @@ def run_experiment(records: list[Record], config: ExperimentConfig | None = None
 
 def run_experiments(groups: list[list[Record]], config: ExperimentConfig | None = None,
                     executor: Executor | None = None) -> list:
-    """One experiment per group of records (e.g. one per recording of a fleet), all candidate
-    fits of every group in one pass over the executor, then the final fits in a second.
+    """
+    Run one experiment per group of records (e.g. one per recording of a fleet).
+
+    All candidate fits of every group in one pass over the executor, then the final fits in a
+    second.
 
     Returns, per group, its ExperimentResult or the PiezoNarxError that stopped it (too short,
     nothing fitted); the other groups complete. `wall_seconds` is the time of the whole call.

@@ -1,5 +1,8 @@
-"""Hysteresis-operator NARX: a sigmoid network over rate-independent operator states of the input,
-followed by learned creep and linear output dynamics (the `--preset envelope` family).
+"""
+Hysteresis-operator NARX.
+
+A sigmoid network over rate-independent operator states of the input, followed by learned creep and
+linear output dynamics (the `--preset envelope` family).
 
     y(k) = -sum_j a_j y(k-j) + sum_i b_i z(k-i) + y_off                      (output lags: linear)
     z(k) = w(k) + sum_l g_l x_l(k),   x_l: first-order lags of w, time constants creep_taus (s)
@@ -34,7 +37,8 @@ DEFAULT_CREEP_TAUS = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
 
 
 class HysteresisNARX(DynamicModel):
-    """Sigmoid network over hysteresis-operator states + creep + linear output dynamics.
+    """
+    Sigmoid network over hysteresis-operator states + creep + linear output dynamics.
 
     hidden : sigmoid units; n_plays : play operators (radii (i/n_plays)^2 of the input scale,
     i = 0..n_plays-1, denser where small reversals are); n_duhem : learned Duhem states;
@@ -69,10 +73,10 @@ class HysteresisNARX(DynamicModel):
     def __init__(self, hidden=10, n_plays=12, n_duhem=1, n_lags=3, na=3, nb=3,
                  creep_taus=DEFAULT_CREEP_TAUS, seed=0, max_iter=60, val_fraction=0.0,
                  max_fail=8, hessian_stride=2):
-        values = check_parameters(type(self), dict(
-            hidden=hidden, n_plays=n_plays, n_duhem=n_duhem, n_lags=n_lags, na=na, nb=nb,
-            creep_taus=creep_taus, seed=seed, max_iter=max_iter, val_fraction=val_fraction,
-            max_fail=max_fail, hessian_stride=hessian_stride))
+        values = check_parameters(type(self), {
+            'hidden': hidden, 'n_plays': n_plays, 'n_duhem': n_duhem, 'n_lags': n_lags,
+            'na': na, 'nb': nb, 'creep_taus': creep_taus, 'seed': seed, 'max_iter': max_iter,
+            'val_fraction': val_fraction, 'max_fail': max_fail, 'hessian_stride': hessian_stride})
         for name, value in values.items():
             setattr(self, name, value)
         self.theta_ = None
@@ -96,7 +100,7 @@ class HysteresisNARX(DynamicModel):
 
     @property
     def n_params(self):
-        """Number of estimated parameters."""
+        """Return the number of estimated parameters."""
         return hk.layout(self.hidden, self.n_inputs, self.n_duhem, len(self.creep_taus),
                          self.na, self.nb)[1]
 
@@ -104,14 +108,17 @@ class HysteresisNARX(DynamicModel):
         return self.theta_ is not None
 
     def params_dict(self):
-        """Constructor arguments (for model files and reports)."""
+        """Return the constructor arguments (for model files and reports)."""
         return {name: getattr(self, name) for name in self._parameter_constraints}
 
     # ------------------------------------------------------------------ fitting
     def fit(self, u, y, fs=None):
-        """Train on one record (u V, y m: 1-D arrays) or several (lists of arrays; no state
-        crosses records); fs (Hz) is required (creep time constants are in seconds). Each
-        record should start at rest, as the free run does. Returns self."""
+        """
+        Train on one record (u V, y m: 1-D arrays) or several (lists of arrays).
+
+        No state crosses records; fs (Hz) is required (creep time constants are in seconds). Each
+        record should start at rest, as the free run does. Returns self.
+        """
         from .hysteresis_training import train
         us, ys = as_record_list(u, y, min_len=max(self.n0, 1) + 20)
         if fs is None:
@@ -140,8 +147,11 @@ class HysteresisNARX(DynamicModel):
         return np.exp(-1.0 / (np.asarray(self.creep_taus, dtype=float) * self.fs))
 
     def set_theta(self, theta, u_scale=None, y_scale=None, radii=None, fs=None):
-        """Set every parameter from the flat vector theta (normalised units; layout in
-        hysteresis_kernels), and optionally the scales (V, m), radii and fs (Hz)."""
+        """
+        Set every parameter from the flat vector theta (normalised units).
+
+        Layout in hysteresis_kernels; optionally also the scales (V, m), radii and fs (Hz).
+        """
         if u_scale is not None:
             self.u_scale_, self.y_scale_ = float(u_scale), float(y_scale)
             self.radii_ = np.array(radii, dtype=np.float64)
@@ -187,13 +197,15 @@ class HysteresisNARX(DynamicModel):
                              self.na, self.nb)
 
     def _initial_state(self, u_past, y_past):
-        """Free-run state after rest, then the inputs u_past (V).
+        """
+        Free-run state after rest, then the inputs u_past (V).
 
         y_past is not used: the operators' memory cannot be read from a few outputs, and
         writing measured outputs into the output dynamics' history alone gives a state that
         belongs to no input history. Measured on the demo's live multisine, which starts with a
         15 V jump that rings the plant's mode: doing so cost a 5.6 um transient (live R²
-        0.99989 instead of 0.99994 from rest)."""
+        0.99989 instead of 0.99994 from rest).
+        """
         st = np.zeros(self._state_size())
         if u_past is not None and len(u_past):
             hk.simulate(np.asarray(u_past, dtype=np.float64) / self.u_scale_, st,
@@ -201,7 +213,8 @@ class HysteresisNARX(DynamicModel):
         return st
 
     def simulate(self, u, y0=None):
-        """Free run from the input alone: u (N,) V -> (N,) m.
+        """
+        Free run from the input alone: u (N,) V -> (N,) m.
 
         y0=None starts from rest (every operator, creep state and past output 0). y0 (the first
         n0 measured outputs, m) is copied to the output for k < n0; the model then runs from rest
@@ -224,8 +237,11 @@ class HysteresisNARX(DynamicModel):
         return out
 
     def predict(self, u, y):
-        """One step ahead: the operators free-run on u (V); the output lags are the measured y
-        (m). Returns (N,) m with [:n0] = y[:n0]."""
+        """
+        One step ahead: the operators free-run on u (V); the output lags are the measured y (m).
+
+        Returns (N,) m with [:n0] = y[:n0].
+        """
         from .regressors import as_signal
         self._require_fitted()
         u = as_signal(u, 'u', min_len=self.n0 + 1)
@@ -244,9 +260,12 @@ class HysteresisNARX(DynamicModel):
         return out
 
     def stepper(self, u_past=None, y_past=None):
-        """Per-sample free run (the estimator's loop), started like simulate(): rest, then
-        u_past (V, nu samples) through the model; y_past (m, ny samples) is checked and kept
-        as `y_past` but does not set the state (see simulate)."""
+        """
+        Per-sample free run (the estimator's loop), started like simulate().
+
+        Rest, then u_past (V, nu samples) through the model; y_past (m, ny samples) is checked and
+        kept as `y_past` but does not set the state (see simulate).
+        """
         self._require_fitted()
         return HysteresisStepper(self, u_past, y_past)
 
@@ -257,8 +276,11 @@ class HysteresisNARX(DynamicModel):
 
 
 class HysteresisStepper:
-    """Stepper of a HysteresisNARX: step(u_k V) -> y_k m, reset(u_past, y_past); one compiled
-    call per step on a preallocated state."""
+    """
+    Stepper of a HysteresisNARX: step(u_k V) -> y_k m, reset(u_past, y_past).
+
+    One compiled call per step on a preallocated state.
+    """
 
     def __init__(self, model, u_past=None, y_past=None):
         self._model = model
@@ -277,8 +299,11 @@ class HysteresisStepper:
         self._y_hist = deque(np.zeros(self.ny) if yp is None else yp, maxlen=self.ny)
 
     def step(self, u_k):
-        """Feed one input sample u_k (V); returns the free-run output y(k) (m). A non-finite
-        u_k raises DataError and leaves the state untouched."""
+        """
+        Feed one input sample u_k (V); returns the free-run output y(k) (m).
+
+        A non-finite u_k raises DataError and leaves the state untouched.
+        """
         u = _finite_input(u_k)
         y = hk.step(u / self._u_scale, self._st, *self._args) * self._y_scale
         self._u_hist.append(u)
@@ -286,15 +311,18 @@ class HysteresisStepper:
         return y
 
     def peek(self, u_k):
-        """The output step(u_k) would return (m), without changing the state."""
+        """Return the output step(u_k) would return (m), without changing the state."""
         return hk.peek(_finite_input(u_k) / self._u_scale, self._st, self._scratch,
                        *self._args) * self._y_scale
 
     @property
     def kernel_state(self):
-        """The live state array the compiled step advances (normalised units, layout in
-        hysteresis_kernels) and the kernel parameters, for compiled code that evaluates
-        candidate inputs without committing them (control/kernels.py). Read, never write."""
+        """
+        Return the live state array the compiled step advances and the kernel parameters.
+
+        Normalised units, layout in hysteresis_kernels; for compiled code that evaluates candidate
+        inputs without committing them (control/kernels.py). Read, never write.
+        """
         return (self._st,), self._args
 
     @property

@@ -1,4 +1,5 @@
-"""Compiled kernels of the hysteresis-operator NARX (numpy + numba only, never torch).
+"""
+Compiled kernels of the hysteresis-operator NARX (numpy + numba only, never torch).
 
 Everything here works in normalised units: un = u / u_scale, yn = y / y_scale. One sample k:
 
@@ -57,7 +58,7 @@ def _sig(z):
 
 @njit(cache=True)
 def _network(phi, W1, b1, w2, c, w_rest):
-    """w = sum_h w2_h sig(b1_h + W1_h . phi) + c . phi - w_rest (the network, zero at rest)."""
+    """Evaluate w = sum_h w2_h sig(b1_h + W1_h . phi) + c . phi - w_rest (zero at rest)."""
     w = -w_rest
     for h in range(W1.shape[0]):
         zh = b1[h]
@@ -134,10 +135,10 @@ def step(un_k, st, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, 
     st[0] = un_k
     w = _network(phi, W1, b1, w2, c, w_rest)
     z = w
-    for l in range(nl):
-        x = lam[l] * st[i_x + l] + (1.0 - lam[l]) * w
-        st[i_x + l] = x
-        z += g[l] * x
+    for il in range(nl):
+        x = lam[il] * st[i_x + il] + (1.0 - lam[il]) * w
+        st[i_x + il] = x
+        z += g[il] * x
     yl = b[0] * z
     for i in range(nb):
         yl += b[i + 1] * st[i_z + i]
@@ -157,8 +158,11 @@ def step(un_k, st, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, 
 @njit(cache=True)
 def peek(un_k, st, scratch, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, b,
          y_off):
-    """yn(k) that `step` would return for un_k, leaving st untouched (scratch: same size as
-    st). For solvers that try candidate inputs (control/)."""
+    """
+    yn(k) that `step` would return for un_k, leaving st untouched (scratch: same size as st).
+
+    For solvers that try candidate inputs (control/).
+    """
     for i in range(st.size):
         scratch[i] = st[i]
     return step(un_k, scratch, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, b,
@@ -168,11 +172,15 @@ def peek(un_k, st, scratch, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g,
 @njit(cache=True)
 def peek_static(un_k, st, scratch, scratch2, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g,
                 lam, gain, y_off):
-    """gain*z(k) + y_off for un_k with the input increments at their held value 0: the output the
-    rate-independent operators (plays and Duhem states moved along un(k-1) -> un_k) and the creep
-    settle to, without the drive's short-term dynamics (its slew limit included) or the output
-    dynamics. st is untouched (scratch, scratch2: same size as st); gain: [G], the output
-    dynamics' DC gain; rho is taken for the signature's sake (the settled drive reaches un_k)."""
+    """
+    gain*z(k) + y_off for un_k with the input increments at their held value 0.
+
+    The output the rate-independent operators (plays and Duhem states moved along un(k-1) -> un_k)
+    and the creep settle to, without the drive's short-term dynamics (its slew limit included) or
+    the output dynamics. st is untouched (scratch, scratch2: same size as st); gain: [G], the
+    output dynamics' DC gain; rho is taken for the signature's sake (the settled drive reaches
+    un_k).
+    """
     lh = max(n_lags, 1)
     hi = lh + radii.size + duhem.shape[0]
     no_a = gain[:0]
@@ -202,8 +210,12 @@ def simulate(un, st, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a
 
 @njit(cache=True)
 def operator_chain(un, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam):
-    """z(k) (N,) of the operator/network/creep chain from rest: what the output dynamics are
-    driven by (it does not depend on the output, so one-step prediction can reuse it)."""
+    """
+    z(k) (N,) of the operator/network/creep chain from rest.
+
+    What the output dynamics are driven by (it does not depend on the output, so one-step
+    prediction can reuse it).
+    """
     m = radii.size
     q = duhem.shape[0]
     nl = lam.size
@@ -242,8 +254,11 @@ def drive(un, rho):
 
 @njit(cache=True)
 def features(v, radii, n_lags, dv):
-    """Network inputs (N, m + n_lags) from rest: plays of the drive v, then its increments; and
-    their derivatives (N, m + n_lags) with respect to rho given dv = dv/drho."""
+    """
+    Network inputs (N, m + n_lags) from rest: plays of the drive v, then its increments.
+
+    And their derivatives (N, m + n_lags) with respect to rho given dv = dv/drho.
+    """
     n = v.size
     m = radii.size
     F = np.empty((n, m + n_lags))
@@ -274,9 +289,12 @@ def features(v, radii, n_lags, dv):
 
 @njit(cache=True)
 def duhem_states(v, duhem, with_jac, dv):
-    """Duhem states S (N, q) of the drive v from rest and, when with_jac, their derivatives
-    J (N, q, 6) with respect to each state's parameters and SR (N, q) with respect to rho
-    (given dv = dv/drho)."""
+    """
+    Integrate the Duhem states S (N, q) of the drive v from rest.
+
+    When with_jac, also their derivatives J (N, q, 6) with respect to each state's parameters and
+    SR (N, q) with respect to rho (given dv = dv/drho).
+    """
     n = v.size
     q = duhem.shape[0]
     S = np.zeros((n, q))
@@ -352,9 +370,9 @@ def forward(F, S, W1, b1, w2, c, g, lam, a, b, y_off):
             phi[df + i] = S[k, i]
         w = _network(phi, W1, b1, w2, c, w_rest)
         z = w
-        for l in range(nl):
-            x[l] = lam[l] * x[l] + (1.0 - lam[l]) * w
-            z += g[l] * x[l]
+        for il in range(nl):
+            x[il] = lam[il] * x[il] + (1.0 - lam[il]) * w
+            z += g[il] * x[il]
         zs[k] = z
         yl = 0.0
         for i in range(nb + 1):
@@ -371,9 +389,12 @@ def forward(F, S, W1, b1, w2, c, g, lam, a, b, y_off):
 # (step / simulate), which the estimator and the scores use, stays exact IEEE arithmetic.
 @njit(cache=True, fastmath=True)
 def jacobian(F, S, JD, DF, SR, rho, W1, b1, w2, c, g, lam, a, b, y_off, J):
-    """Free-run output yn (N,) and its exact derivative J (N, P) with respect to theta (layout in
-    the module docstring), from the features F, Duhem states S, their derivatives JD (Duhem
-    parameters) and DF, SR (rho), and rho itself (the drive parameter is log rho)."""
+    """
+    Compute the free-run output yn (N,) and its exact derivative J (N, P) w.r.t. theta.
+
+    Layout in the module docstring; from the features F, Duhem states S, their derivatives JD
+    (Duhem parameters) and DF, SR (rho), and rho itself (the drive parameter is log rho).
+    """
     n = F.shape[0]
     H, d = W1.shape
     df = F.shape[1]
@@ -440,22 +461,22 @@ def jacobian(F, S, JD, DF, SR, rho, W1, b1, w2, c, g, lam, a, b, y_off, J):
                     r[o_dh + 6 * j + p] = mi * JD[k, j, p]
         r[o_dr] = rho * drho
         z = w
-        for l in range(nl):
-            x[l] = lam[l] * x[l] + (1.0 - lam[l]) * w
-            z += g[l] * x[l]
+        for il in range(nl):
+            x[il] = lam[il] * x[il] + (1.0 - lam[il]) * w
+            z += g[il] * x[il]
         zs[k] = z
         zr = ZR[k % (nb + 1)]
         for p in range(o_g):
             zr[p] = r[p]
-        for l in range(nl):
-            lm, gl = lam[l], g[l]
-            Xl = X[l]
+        for il in range(nl):
+            lm, gl = lam[il], g[il]
+            Xl = X[il]
             for p in range(o_g):
                 v = lm * Xl[p] + (1.0 - lm) * r[p]
                 Xl[p] = v
                 zr[p] += gl * v
-        for l in range(nl):
-            zr[o_g + l] = x[l]
+        for il in range(nl):
+            zr[o_g + il] = x[il]
         yl = 0.0
         for i in range(nb + 1):
             if k - i >= 0:

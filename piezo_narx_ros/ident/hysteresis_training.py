@@ -1,4 +1,5 @@
-"""Training of the hysteresis-operator NARX (HysteresisNARX.fit): output-error Levenberg-Marquardt.
+"""
+Training of the hysteresis-operator NARX (HysteresisNARX.fit): output-error Levenberg-Marquardt.
 
 The loss is the free-run (simulation) error of every estimation record, each simulated from rest
 on its own: no state and no regressor crosses from one record to the next. Because the model's
@@ -8,8 +9,9 @@ states (creep, hysteresis memory) over the full length of each record.
 
 Start: the drive's rate limit at half the largest input step (so that the largest jumps of the
 data are limited and its derivative is informative); a seeded random hidden layer; the output
-layer (w2, c) by least squares on the static map from the operators to the output; the output dynamics (a, b) by least squares (ARX) on that
-static prediction, replaced by a static gain when unstable. Then Marquardt's LM (the damping
+layer (w2, c) by least squares on the static map from the operators to the output; the output
+dynamics (a, b) by least squares (ARX) on that static prediction, replaced by a static gain when
+unstable. Then Marquardt's LM (the damping
 scaled by diag(J^T J)) until the error stops falling, `max_iter`, or `max_fail` iterations without
 improvement of the held-out tail of each record (when `val_fraction` > 0). A step that would make
 the output dynamics unstable (a root of A(q) on or outside 0.9999) is refused like one that
@@ -36,8 +38,12 @@ def _split_theta(theta, lay, H, d, q):
 
 
 def operator_features(un, radii, n_lags, duhem, rho, with_jac=False):
-    """(phi (N, d), parts) of one normalised record: the drive, its plays and increments, the
-    Duhem states; parts = (F, S, JD, DF, SR) for the Jacobian kernel."""
+    """
+    (phi (N, d), parts) of one normalised record.
+
+    The drive, its plays and increments, the Duhem states; parts = (F, S, JD, DF, SR) for the
+    Jacobian kernel.
+    """
     v, dv = hk.drive(un, rho)
     F, DF = hk.features(v, radii, n_lags, dv)
     S, JD, SR = hk.duhem_states(v, duhem, with_jac, dv)
@@ -49,8 +55,11 @@ def _stable(a):
 
 
 def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng):
-    """Starting parameters (see the module docstring) for records of inputs uns and outputs yns
-    (normalised)."""
+    """
+    Return starting parameters for records of inputs uns and outputs yns (normalised).
+
+    See the module docstring.
+    """
     rho = 0.5 * max(float(np.max(np.abs(np.diff(np.r_[0.0, un])))) for un in uns)
     rho = max(rho, 1e-6)
     duhem = np.array([[1.0, 1.0] + [np.sqrt(1.0 + 2.0 * j)] * 4 for j in range(q)]).reshape(q, 6)
@@ -85,7 +94,8 @@ def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng):
 
 def train(uns, yns, radii, n_lags, hidden, n_duhem, lam, na, nb, seed, max_iter=60,
           val_fraction=0.0, max_fail=8, hessian_stride=2, tol=1e-7):
-    """Fit on normalised records (lists of (N_r,) arrays); returns (theta, info).
+    """
+    Fit on normalised records (lists of (N_r,) arrays); returns (theta, info).
 
     radii: play radii (normalised); lam: creep filter poles exp(-1/(tau fs)); the rest as
     HysteresisNARX. info: iterations, losses (normalised mean squares), seconds, stop reason.
@@ -97,7 +107,8 @@ def train(uns, yns, radii, n_lags, hidden, n_duhem, lam, na, nb, seed, max_iter=
     lay, P = hk.layout(H, d, q, lam.size, na, nb)
     splits = [un.size - int(round(val_fraction * un.size)) if val_fraction > 0 else un.size
               for un in uns]
-    theta = initial_theta([u[:s] for u, s in zip(uns, splits)], [y[:s] for y, s in zip(yns, splits)],
+    theta = initial_theta([u[:s] for u, s in zip(uns, splits)],
+                          [y[:s] for y, s in zip(yns, splits)],
                           radii, n_lags, H, q, lam.size, na, nb, rng)
     n_train = sum(splits)
     n_hold = sum(un.size for un in uns) - n_train

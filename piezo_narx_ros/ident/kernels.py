@@ -1,4 +1,5 @@
-"""Compiled free-run kernels and the per-sample Stepper (numpy + numba only, never torch).
+"""
+Compiled free-run kernels and the per-sample Stepper (numpy + numba only, never torch).
 
 The models hand these kernels their weights "folded" into raw units (V in, m out) and ordered in
 time, so one evaluation reads a contiguous window of the input and output histories:
@@ -69,8 +70,11 @@ def narx_step(u_k, ubuf, ybuf, Wu, Wy, b1, w2, b2):
 
 @njit(cache=True)
 def narx_peek(u_k, ubuf, ybuf, scratch, Wu, Wy, b1, w2, b2):
-    """y(k) (m) that narx_step would return for u_k (V), leaving ubuf and ybuf untouched
-    (scratch: (nu+1,) work array). For solvers that try candidate inputs (control/)."""
+    """
+    Return y(k) (m) that narx_step would return for u_k (V), leaving ubuf and ybuf untouched.
+
+    Scratch: (nu+1,) work array. For solvers that try candidate inputs (control/).
+    """
     for i in range(ubuf.size - 1):
         scratch[i] = ubuf[i + 1]
     scratch[ubuf.size - 1] = u_k
@@ -129,7 +133,7 @@ def arx_peek(u_k, ubuf, ybuf, scratch, bu, ay, c):
 
 
 def _history(x, n, name):
-    """Validated (n,) float64 history; None means rest (zeros)."""
+    """Validate an (n,) float64 history; None means rest (zeros)."""
     if x is None:
         return np.zeros(n)
     try:
@@ -144,7 +148,8 @@ def _history(x, n, name):
 
 
 class Stepper:
-    """Free-run a model one sample at a time (the estimator's inner loop).
+    """
+    Free-run a model one sample at a time (the estimator's inner loop).
 
     ``u_past`` holds ``[u(k-nu) ... u(k-1)]`` and ``y_past`` ``[y(k-ny) ... y(k-1)]`` in time order
     (None = rest, zeros). ``step(u_k)`` returns the model output y(k) in m for the new input u_k
@@ -177,9 +182,12 @@ class Stepper:
 
     @property
     def kernel_state(self):
-        """The live arrays the compiled step advances, (ubuf (nu+1,) V, ybuf (ny,) m), and the
-        kernel parameters: for compiled code that evaluates candidate inputs without
-        committing them (control/kernels.py). Read them, never write them."""
+        """
+        Return the live arrays the compiled step advances and the kernel parameters.
+
+        (ubuf (nu+1,) V, ybuf (ny,) m): for compiled code that evaluates candidate inputs without
+        committing them (control/kernels.py). Read them, never write them.
+        """
         return (self._ubuf, self._ybuf), self._params
 
 
@@ -195,15 +203,17 @@ class NARXStepper(Stepper):
     """Stepper of a NARXNetwork (see Stepper)."""
 
     def step(self, u_k):
-        """Feed one input sample u_k (V); returns the free-run output y(k) (m).
+        """
+        Feed one input sample u_k (V); returns the free-run output y(k) (m).
 
-        A non-finite u_k raises DataError and leaves the histories untouched."""
+        A non-finite u_k raises DataError and leaves the histories untouched.
+        """
         u = _finite_input(u_k)
         Wu, Wy, b1, w2, b2 = self._params
         return narx_step(u, self._ubuf, self._ybuf, Wu, Wy, b1, w2, b2)
 
     def peek(self, u_k):
-        """The output step(u_k) would return (m), without changing the histories."""
+        """Return the output step(u_k) would return (m), without changing the histories."""
         Wu, Wy, b1, w2, b2 = self._params
         return narx_peek(_finite_input(u_k), self._ubuf, self._ybuf, self._scratch, Wu, Wy,
                          b1, w2, b2)
@@ -213,14 +223,16 @@ class ARXStepper(Stepper):
     """Stepper of an ARXModel (see Stepper)."""
 
     def step(self, u_k):
-        """Feed one input sample u_k (V); returns the free-run output y(k) (m).
+        """
+        Feed one input sample u_k (V); returns the free-run output y(k) (m).
 
-        A non-finite u_k raises DataError and leaves the histories untouched."""
+        A non-finite u_k raises DataError and leaves the histories untouched.
+        """
         u = _finite_input(u_k)
         bu, ay, c = self._params
         return arx_step(u, self._ubuf, self._ybuf, bu, ay, c)
 
     def peek(self, u_k):
-        """The output step(u_k) would return (m), without changing the histories."""
+        """Return the output step(u_k) would return (m), without changing the histories."""
         bu, ay, c = self._params
         return arx_peek(_finite_input(u_k), self._ubuf, self._ybuf, self._scratch, bu, ay, c)

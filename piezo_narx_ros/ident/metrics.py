@@ -1,4 +1,5 @@
-"""Goodness-of-fit figures for one-step prediction and free-run simulation.
+"""
+Goodness-of-fit figures for one-step prediction and free-run simulation.
 
 All functions take the measured output `y` and the model output `y_hat` as 1-D arrays of the same
 length (metres, or any unit: R², NRMSE and fit % are unit-free, RMSE has the unit of `y`). `start`
@@ -24,7 +25,8 @@ def _pair(y, y_hat, start: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def r2(y, y_hat, start: int = 0) -> float:
-    """Coefficient of determination, paper eq. (3): 1 - sum((y - y_hat)^2) / sum((y - mean y)^2).
+    """
+    Coefficient of determination, paper eq. (3): 1 - sum((y - y_hat)^2) / sum((y - mean y)^2).
 
     1 is a perfect fit, 0 is no better than the mean, negative is worse than the mean.
     """

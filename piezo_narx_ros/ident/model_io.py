@@ -1,11 +1,12 @@
-"""Model files: a JSON document plus its weights in an .npz beside it (same stem).
+"""
+Model files: a JSON document plus its weights in an .npz beside it (same stem).
 
 Loading never executes code from the files (json + np.load(allow_pickle=False)) and never imports
 torch. The JSON records the structure, activation, normalisation, sample rate, units, the input and
 output ranges seen in training, the training settings, and (when given) the data the model was
 fitted on, its metrics and test results. The .npz holds every weight array, so a save/load round
-trip is bit-exact; the JSON also stores the .npz's SHA-256 so a changed or truncated weights file is
-caught.
+trip is bit-exact; the JSON also stores the .npz's SHA-256 so a changed or truncated weights file
+is caught.
 """
 import hashlib
 import json
@@ -64,8 +65,12 @@ def _weights_of(model):
 
 
 def weights_sha256(model) -> str:
-    """SHA-256 (hex) of a fitted model's weights: every array save_model writes, by name, with
-    its dtype and shape, so two fits compare bit for bit."""
+    """
+    SHA-256 (hex) of a fitted model's weights.
+
+    Every array save_model writes, by name, with its dtype and shape, so two fits compare bit for
+    bit.
+    """
     h = hashlib.sha256()
     for name, value in sorted(_weights_of(model).items()):
         arr = np.ascontiguousarray(value)
@@ -89,7 +94,8 @@ def _structure_of(model):
 
 
 def save_model(model, path, data=None, metrics=None, tests=None):
-    """Write ``path`` (.json) and its weights ``path`` with suffix .npz.
+    """
+    Write ``path`` (.json) and its weights ``path`` with suffix .npz.
 
     data : provenance of the estimation data (e.g. {'source': ..., 'samples': ...});
     metrics, tests : results to record (JSON-serialisable dicts). None keeps what the model carries
@@ -210,8 +216,8 @@ def _read_json(path):
                              f'(format is {doc.get("format")!r}, expected {FORMAT!r})')
     version = _get(doc, 'format_version', name, (int,))
     if version > FORMAT_VERSION:
-        raise ModelFileError(f'{name}: format_version {version} is newer than this reader supports '
-                             f'({FORMAT_VERSION}); upgrade piezo_narx_ros')
+        raise ModelFileError(f'{name}: format_version {version} is newer than this reader '
+                             f'supports ({FORMAT_VERSION}); upgrade piezo_narx_ros')
     if version < 1:
         raise ModelFileError(f'{name}: invalid format_version {version}')
     return doc
@@ -238,7 +244,8 @@ def _array(arrays, key, shape, wpath):
         raise ModelFileError(f'{wpath}: missing weight array {key!r}')
     a = arrays[key]
     if a.dtype != np.float64:
-        raise ModelFileError(f'{wpath}: weight array {key!r} has dtype {a.dtype}, expected float64')
+        raise ModelFileError(f'{wpath}: weight array {key!r} has dtype {a.dtype}, '
+                             'expected float64')
     if a.shape != tuple(shape):
         raise ModelFileError(f'{wpath}: weight array {key!r} has shape {a.shape}, '
                              f'expected {tuple(shape)}')
@@ -248,7 +255,7 @@ def _array(arrays, key, shape, wpath):
 
 
 def _load_hnarx(doc, name, arrays, wpath, fs):
-    """A HysteresisNARX from its JSON document and weight arrays (see save_model)."""
+    """Return a HysteresisNARX from its JSON document and weight arrays (see save_model)."""
     struct = _get(doc, 'structure', name, (dict,))
     keys = ('hidden', 'n_plays', 'n_duhem', 'n_lags', 'na', 'nb', 'creep_taus')
     missing = [k for k in keys if k not in struct]
@@ -288,8 +295,10 @@ def _load_hnarx(doc, name, arrays, wpath, fs):
 
 
 def load_model(path):
-    """Load a model saved by save_model; returns a NARXNetwork, ARXModel or HysteresisNARX ready
-    to simulate.
+    """
+    Load a model saved by save_model.
+
+    Returns a NARXNetwork, ARXModel or HysteresisNARX ready to simulate.
 
     Raises ModelFileError (one line naming the file and the problem) on anything malformed.
     """

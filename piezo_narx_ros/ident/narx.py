@@ -1,4 +1,5 @@
-"""NARX network: one hidden layer of logistic (sigmoid) units and a linear output.
+"""
+NARX network: one hidden layer of logistic (sigmoid) units and a linear output.
 
     y(k) = f(u(k), ..., u(k-nu), y(k-1), ..., y(k-ny))
     f(x) = ym + ys * (w2 . sigmoid(W1 xn + b1) + b2),   xn = (x - mean) / std   per signal (u or y)
@@ -59,7 +60,8 @@ def _check_options(options):
 
 
 class NARXNetwork(LaggedModel):
-    """Single-hidden-layer sigmoid NARX model (scikit-learn style fit/predict/simulate).
+    """
+    Single-hidden-layer sigmoid NARX model (scikit-learn style fit/predict/simulate).
 
     nu, ny : input/output lags; hidden : number of sigmoid units H; seed : training RNG seed.
     training_options : see TRAINING_DEFAULTS. After fit: ``training_info_`` (dict of losses, times,
@@ -89,7 +91,7 @@ class NARXNetwork(LaggedModel):
 
     @property
     def n_params(self):
-        """Number of trainable weights H (d + 1) + H + 1."""
+        """Return the number of trainable weights H (d + 1) + H + 1."""
         return self.hidden * (self.n_inputs + 2) + 1
 
     def _is_fitted(self):
@@ -97,7 +99,8 @@ class NARXNetwork(LaggedModel):
 
     # ---------------------------------------------------------------- weights
     def set_weights(self, W1, b1, w2, b2, normalisation):
-        """Set the weights in normalised units.
+        """
+        Set the weights in normalised units.
 
         W1 : (H, nu+1+ny) input weights, columns in regressor order
              [u(k)..u(k-nu), y(k-1)..y(k-ny)];
@@ -137,13 +140,16 @@ class NARXNetwork(LaggedModel):
 
     # ---------------------------------------------------------------- training
     def fit(self, u, y, u_val=None, y_val=None, fs=None):
-        """Train on estimation data u (V), y (m): 1-D arrays, or lists of arrays for several
-        records (no regressor row or free-run segment spans two records); returns self.
+        """
+        Train on estimation data u (V), y (m).
+
+        1-D arrays, or lists of arrays for several records (no regressor row or free-run segment
+        spans two records); returns self.
 
         Stage 1: Levenberg-Marquardt on the one-step error (seeded restarts, early stopping on a
-        held-out tail). Stage 2: simulation-error LM on free-run segments, kept only if the held-out
-        free-run error improves. u_val/y_val (if given) are only scored into ``training_info_``,
-        never used for a choice, so they stay an honest validation set.
+        held-out tail). Stage 2: simulation-error LM on free-run segments, kept only if the
+        held-out free-run error improves. u_val/y_val (if given) are only scored into
+        ``training_info_``, never used for a choice, so they stay an honest validation set.
         """
         from . import training  # torch lives there; inference never imports it
 

@@ -1,4 +1,5 @@
-"""Linear noise model of the residuals, so that the correlation tests judge the innovations.
+"""
+Linear noise model of the residuals, so that the correlation tests judge the innovations.
 
 Billings (Nonlinear System Identification, 2013, ch. 5) applies the correlation tests to the
 residuals of the process model *plus its noise model* (NARMAX): a residual that is coloured only
@@ -34,18 +35,22 @@ NOISE_MODELS = ('none', 'ar')
 @dataclass(frozen=True)
 class ARNoiseModel:
     """Whitening filter e(k) = ε(k) - Σ_j coef[j-1] ε(k-j), j = 1..order (coef unit-free)."""
+
     coef: np.ndarray          # (order,) AR coefficients a1..ap
     residual_std: float       # std of the estimation innovations, m
     input_std: float          # std of the estimation residuals it was fitted on, m
 
     @property
     def order(self) -> int:
-        """Number of AR coefficients p (samples of residual history the filter needs)."""
+        """Return the number of AR coefficients p (the residual history the filter needs)."""
         return int(self.coef.size)
 
     def whiten(self, residuals) -> np.ndarray:
-        """Innovations (N - order,) of residuals (N,): the first `order` samples only fill the
-        filter's history, so they are dropped."""
+        """
+        Innovations (N - order,) of residuals (N,).
+
+        The first `order` samples only fill the filter's history, so they are dropped.
+        """
         e = np.asarray(residuals, dtype=np.float64)
         p = self.order
         if e.ndim != 1 or e.size <= p:
@@ -86,7 +91,8 @@ def _lagged(e: np.ndarray, p: int, start: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def fit_ar_noise_model(residuals, max_order: int = 20, criterion: str = 'bic') -> ARNoiseModel:
-    """AR noise model of estimation residuals ε (m), order 0..max_order chosen by BIC or AIC.
+    """
+    AR noise model of estimation residuals ε (m), order 0..max_order chosen by BIC or AIC.
 
     Every order is scored on the same samples k >= max_order, so the criteria compare like with
     like. Order 0 (no filter) is chosen when the residuals are already white.

@@ -1,4 +1,5 @@
-"""Lagged regressors of the NARX/ARX models (the paper's eq. (1)).
+"""
+Lagged regressors of the NARX/ARX models (the paper's eq. (1)).
 
     y(k) = f(u(k), u(k-1), ..., u(k-nu), y(k-1), ..., y(k-ny))
 
@@ -41,16 +42,23 @@ def as_signal(x, name, n=None, min_len=1):
 
 
 def lagged_regressors(u, y, nu, ny):
-    """Build the regressor matrix and target of eq. (1).
+    """
+    Build the regressor matrix and target of eq. (1).
 
     Parameters
     ----------
-    u : (N,) input (V), y : (N,) output (m), nu, ny : input and output lag orders.
+    u : (N,) array
+        Input (V).
+    y : (N,) array
+        Output (m).
+    nu, ny : int
+        Input and output lag orders.
 
     Returns
     -------
     X : (N - n0, nu + 1 + ny) rows ``[u(k), ..., u(k-nu), y(k-1), ..., y(k-ny)]`` for k = n0..N-1
     target : (N - n0,) ``y(k)`` for the same k, with ``n0 = max(nu, ny)``.
+
     """
     nu, ny = check_orders(nu, ny)
     n0 = max(nu, ny)
@@ -67,7 +75,8 @@ def lagged_regressors(u, y, nu, ny):
 
 
 class LaggedModel(DynamicModel):
-    """Shared predict/simulate/stepper plumbing of ARXModel and NARXNetwork.
+    """
+    Shared predict/simulate/stepper plumbing of ARXModel and NARXNetwork.
 
     Subclasses set ``nu``, ``ny`` and implement ``_one_step(u, y, start)`` (one-step outputs),
     ``_simulate_inplace(u, y, start)`` (free run filling y[start:]) and ``_make_stepper(u_past,
@@ -76,7 +85,8 @@ class LaggedModel(DynamicModel):
     """
 
     def predict(self, u, y):
-        """One-step-ahead prediction from measured past outputs.
+        """
+        One-step-ahead prediction from measured past outputs.
 
         u : (N,) input, V; y : (N,) measured output, m. Returns (N,) m with ``[:n0] = y[:n0]``.
         """
@@ -86,10 +96,11 @@ class LaggedModel(DynamicModel):
         return self._one_step(u, y, self.n0)
 
     def simulate(self, u, y0=None):
-        """Free-run simulation from the input alone.
+        """
+        Free-run simulation from the input alone.
 
-        u : (N,) input, V. y0 : None to start from rest (every u, y before k = 0 is 0; all N samples
-        simulated), or the first n0 measured outputs (m), copied to the output for k < n0.
+        u : (N,) input, V. y0 : None to start from rest (every u, y before k = 0 is 0; all N
+        samples simulated), or the first n0 measured outputs (m), copied to the output for k < n0.
         Returns (N,) simulated output, m.
         """
         self._require_fitted()
@@ -108,7 +119,8 @@ class LaggedModel(DynamicModel):
         return y
 
     def stepper(self, u_past=None, y_past=None):
-        """A Stepper (free-run one sample at a time) started from the given histories.
+        """
+        Return a Stepper (free-run one sample at a time) started from the given histories.
 
         u_past : [u(k-nu) ... u(k-1)] (V), y_past : [y(k-ny) ... y(k-1)] (m), None = rest.
         """

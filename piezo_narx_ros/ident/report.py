@@ -1,8 +1,10 @@
-"""Report folder of an identification experiment: metrics.json and the paper-style figures.
+"""
+Report folder of an identification experiment: metrics.json and the paper-style figures.
 
     metrics.json               every candidate's scores and test verdicts, the selection, and the
                                selected model's correlation functions (values per lag)
-    fig6_narx_r2_grid.png      R² over the NARX lag grid, prediction/simulation x estimation/validation
+    fig6_narx_r2_grid.png      R² over the NARX lag grid, prediction/simulation x
+                               estimation/validation
     fig6_arx_r2_grid.png       the same for the ARX (na, nb) grid
     fig7_correlation.png       the five Billings tests of the selected model with the 95 % band
     fig8_simulation.png        measured vs free-run output on validation data, residual, and a zoom
@@ -54,8 +56,12 @@ def write_json(obj, path) -> Path:
 
 
 def selected_correlations(result: ExperimentResult, validation: list[Record]) -> dict:
-    """Correlation functions of the selected model on the validation data, per residual kind,
-    whitened by the same noise model as the verdicts (so Fig. 7 shows what was judged)."""
+    """
+    Compute the correlation functions of the selected model on the validation data.
+
+    Per residual kind, whitened by the same noise model as the verdicts (so Fig. 7 shows what was
+    judged).
+    """
     parts = outputs_by_record(result.best.model, validation)
     cfg = result.config
     corr = {}
@@ -72,7 +78,8 @@ MAX_RECORD_FIGURES = 4
 
 
 def write_report(result: ExperimentResult, validation: list[Record], out_dir) -> dict[str, Path]:
-    """Write metrics.json and the figures for `result` into out_dir (created); returns the paths.
+    """
+    Write metrics.json and the figures for `result` into out_dir (created); returns the paths.
 
     `validation` are the validation halves the experiment scored (figures 7-9 use the selected
     model on them; figures 8-9 show each record, the first as fig8_simulation.png /
@@ -139,7 +146,8 @@ def _grid(result: ExperimentResult, kind: str):
 
 
 def plot_r2_grid(result: ExperimentResult, kind: str = 'narx'):
-    """Fig. 6: R² heat maps over the lag grid; colour = -log10(1 - R²) ("nines"), text = R².
+    """
+    Fig. 6: R² heat maps over the lag grid; colour = -log10(1 - R²) ("nines"), text = R².
 
     Returns a matplotlib Figure, or None when the experiment has no candidate of `kind`.
     """
@@ -193,9 +201,11 @@ def plot_r2_grid(result: ExperimentResult, kind: str = 'narx'):
 
 
 def plot_correlation(corr, label: str, mode: str, noise=None):
-    """Fig. 7: the five correlation functions with the ±1.96/sqrt(N) band; returns the Figure.
+    """
+    Fig. 7: the five correlation functions with the ±1.96/sqrt(N) band; returns the Figure.
 
-    `noise` is the AR noise model that whitened the residuals (None: raw residuals)."""
+    `noise` is the AR noise model that whitened the residuals (None: raw residuals).
+    """
     plt = _pyplot()
     fig, axes = plt.subplots(3, 2, figsize=(10, 8.4), constrained_layout=True)
     flat = axes.ravel()
@@ -267,8 +277,11 @@ def _zoom_window(n: int, n0: int) -> slice:
 
 
 def plot_hysteresis(rec: Record, sim: np.ndarray, label: str, n0: int):
-    """Fig. 9: hysteresis loop, deflection (µm) against input (V), measured and simulated; the whole
-    validation record and, to see single loops, the zoom window of Fig. 8."""
+    """
+    Fig. 9: hysteresis loop, deflection (µm) against input (V), measured and simulated.
+
+    The whole validation record and, to see single loops, the zoom window of Fig. 8.
+    """
     plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 5), constrained_layout=True)
     for ax, cut, title in ((axes[0], slice(n0, None), 'whole validation record'),

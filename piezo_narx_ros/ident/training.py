@@ -1,4 +1,5 @@
-"""Training of the single-hidden-layer NARX network (imported only by NARXNetwork.fit()).
+"""
+Training of the single-hidden-layer NARX network (imported only by NARXNetwork.fit()).
 
 Everything here works on normalised signals (zero mean, unit variance) and on one flat float64
 parameter vector theta = [W1 (H*d, row-major), b1 (H), w2 (H), b2 (1)], d = nu + 1 + ny inputs in
@@ -7,8 +8,9 @@ the regressor order of eq. (1).
 Both stages are Levenberg-Marquardt as MATLAB's trainlm does it: exact Jacobian, mu adaptation
 (x10 on a failed step, x0.1 on a successful one) and early stopping on a held-out tail.
 
-* Stage 1 minimises the one-step (series-parallel) error. Seeded restarts (Nguyen-Widrow-like hidden
-  layer, output layer by least squares) are screened on a row subsample; the best one continues.
+* Stage 1 minimises the one-step (series-parallel) error. Seeded restarts (Nguyen-Widrow-like
+  hidden layer, output layer by least squares) are screened on a row subsample; the best one
+  continues.
 * Stage 2 minimises the free-run (parallel) error on many segments started from measured outputs,
   with the exact recursive sensitivity
       dy(k)/dtheta = df/dtheta + sum_j df/dy(k-j) * dy(k-j)/dtheta,
@@ -84,8 +86,11 @@ def _onestep_jac(X, t, theta, H, J, e):
 
 @njit(cache=True)
 def _segments(u, y, starts, L, nu, ny, theta, H, J, e, with_jac):
-    """Free-run every segment [s, s+L) from measured y(s-ny..s-1); fill errors e (B*L,) and, when
-    with_jac, the recursive sensitivities J (B*L, P). Returns the SSE."""
+    """
+    Free-run every segment [s, s+L) from measured y(s-ny..s-1); returns the SSE.
+
+    Fills the errors e (B*L,) and, when with_jac, the recursive sensitivities J (B*L, P).
+    """
     d = nu + 1 + ny
     x = np.empty(d)
     s = np.empty(H)
@@ -108,7 +113,8 @@ def _segments(u, y, starts, L, nu, ny, theta, H, J, e, with_jac):
             if with_jac:
                 row = J[r]
                 _jac_row(x, s, theta, H, d, row)
-                # df/dy(k-j) = sum_h w2[h] s_h (1 - s_h) W1[h, nu+j]; measured past: no sensitivity.
+                # df/dy(k-j) = sum_h w2[h] s_h (1 - s_h) W1[h, nu+j]; measured past: no
+                # sensitivity.
                 for j in range(1, ny + 1):
                     g[j - 1] = 0.0
                     for h in range(H):
@@ -147,7 +153,7 @@ def _init_theta(H, X, t, rng):
 
 
 def _solve(JtJ, g, mu):
-    """delta from (JtJ + mu I) delta = g (torch Cholesky); None if not positive definite."""
+    """Solve (JtJ + mu I) delta = g for delta (torch Cholesky); None if not positive definite."""
     A = JtJ + mu * torch.eye(JtJ.shape[0], dtype=JtJ.dtype)
     L, info = torch.linalg.cholesky_ex(A)
     if int(info) != 0:
@@ -156,10 +162,14 @@ def _solve(JtJ, g, mu):
 
 
 def _normal_equations(J, e, stride=1):
-    """Gauss-Newton matrix and gradient. The gradient J^T e uses every row; with stride > 1 the
-    matrix J^T J is estimated from every stride-th row (times stride): neighbouring rows of densely
-    sampled data are nearly collinear, so this halves the dominant cost for little curvature
-    information, and accepting a step still requires the exact error to fall."""
+    """
+    Gauss-Newton matrix and gradient.
+
+    The gradient J^T e uses every row; with stride > 1 the matrix J^T J is estimated from every
+    stride-th row (times stride): neighbouring rows of densely sampled data are nearly collinear,
+    so this halves the dominant cost for little curvature information, and accepting a step still
+    requires the exact error to fall.
+    """
     Jt = torch.from_numpy(J)
     g = Jt.T @ torch.from_numpy(e)
     if stride > 1 and J.shape[0] >= 4 * stride * J.shape[1]:
@@ -169,9 +179,13 @@ def _normal_equations(J, e, stride=1):
 
 
 def _levenberg_marquardt(theta, jacobian, sse_of, score, n_iter, max_fail, mu, stride=1):
-    """Generic LM loop. jacobian(theta) -> (J (N, P), e (N,), sse); sse_of(theta) -> SSE;
-    score(theta) -> held-out error used for early stopping and to pick the returned iterate;
-    stride: see _normal_equations. Returns (best theta, its score, iterations run)."""
+    """
+    Run the generic Levenberg-Marquardt loop.
+
+    jacobian(theta) -> (J (N, P), e (N,), sse); sse_of(theta) -> SSE; score(theta) -> held-out
+    error used for early stopping and to pick the returned iterate; stride: see _normal_equations.
+    Returns (best theta, its score, iterations run).
+    """
     best_theta, best_score = theta, score(theta)
     fails, it = 0, 0
     J, e, sse = jacobian(theta)
@@ -240,10 +254,14 @@ def _pooled_freerun_mse(theta, H, uns, yns, nu, ny, k_starts):
 def train_narx(un, yn, nu, ny, hidden, seed, restarts=3, restart_iter=8, restart_samples=2000,
                max_iter=25, onestep_samples=4000, val_fraction=0.15, max_fail=6, refine_iter=40,
                refine_max_fail=40, segment_length=200, n_segments=40, hessian_stride=2, threads=1):
-    """Fit the network on normalised signals un, yn: (N,) arrays, or lists of them for several
-    records (no regressor row, free-run segment or score crosses from one record to the next;
-    each record keeps its own held-out tail). See the module docstring and
-    narx.TRAINING_DEFAULTS for the options. Returns (W1 (H, d), b1 (H,), w2 (H,), b2, info)."""
+    """
+    Fit the network on normalised signals un, yn.
+
+    (N,) arrays, or lists of them for several records (no regressor row, free-run segment or score
+    crosses from one record to the next; each record keeps its own held-out tail). See the module
+    docstring and narx.TRAINING_DEFAULTS for the options. Returns (W1 (H, d), b1 (H,), w2 (H,), b2,
+    info).
+    """
     t_start = time.perf_counter()
     n_threads = torch.get_num_threads()
     torch.set_num_threads(max(1, int(threads)))

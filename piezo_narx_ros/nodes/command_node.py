@@ -1,5 +1,8 @@
-"""command_node: streams voltage_command (JointState, effort = V) at the sample rate, or in
-position mode (`output:=position`) position_reference (position = m) for controller_node.
+"""
+command_node: the excitation signal streamed at the sample rate.
+
+Streams voltage_command (JointState, effort = V) at the sample rate, or in position mode
+(`output:=position`) position_reference (position = m) for controller_node.
 
 The excitation comes from piezo_narx_ros.plant.signals.generate (kind and options from
 parameters); the clock, catch-up, limits and looping live in command.stream.CommandStreamer. The
@@ -131,16 +134,22 @@ class CommandNode(PiezoNode):
                     self.streamer.stop()
 
     def on_set_running(self, request, response):
-        """~/set_running (std_srvs/SetBool): the same as setting the `running` parameter, so the
-        parameter always tells the state."""
+        """
+        ~/set_running (std_srvs/SetBool).
+
+        The same as setting the `running` parameter, so the parameter always tells the state.
+        """
         result = self.set_parameters([Parameter('running', value=bool(request.data))])[0]
         response.success = result.successful
         response.message = self.status()[1] if result.successful else result.reason
         return response
 
     def _pace_ns(self) -> int | None:
-        """The clock the samples are due on (ns): the node clock under use_sim_time (None until
-        the first /clock), else the monotonic clock."""
+        """
+        Return the clock the samples are due on (ns).
+
+        The node clock under use_sim_time (None until the first /clock), else the monotonic clock.
+        """
         if not self.sim_time:
             return time.monotonic_ns()
         now = self.get_clock().now().nanoseconds

@@ -1,11 +1,12 @@
-"""Plumbing shared by every node: QoS, validated parameters, /diagnostics, JointState, main().
+"""
+Plumbing shared by every node: QoS, validated parameters, /diagnostics, JointState, main().
 
 Nodes stay thin: they declare parameters through `declare_parameters` (one `ParamSpec` each), build
 their QoS with `sample_qos`, convert messages with `make_joint_state` / `parse_joint_state`, report
 health through `Diagnostics`, and start from `run_node`.
 
-Stamps are carried as integer nanoseconds (`int`) inside the nodes, so that t_k = t0 + k/fs is exact
-and never accumulates float error over long runs.
+Stamps are carried as integer nanoseconds (`int`) inside the nodes, so that t_k = t0 + k/fs is
+exact and never accumulates float error over long runs.
 """
 from __future__ import annotations
 
@@ -61,9 +62,12 @@ SAMPLE_DEPTH = 10000
 
 
 def sample_qos(depth: int = SAMPLE_DEPTH) -> QoSProfile:
-    """QoS of the per-sample streams: reliable, keep-last `depth`, volatile (identification must
-    lose nothing). Users change it with the standard QoS overrides (see `qos_overriding`), not
-    with per-node parameters."""
+    """
+    Return the QoS of the per-sample streams.
+
+    Reliable, keep-last `depth`, volatile (identification must lose nothing). Users change it with
+    the standard QoS overrides (see `qos_overriding`), not with per-node parameters.
+    """
     if depth < 1:
         raise ConfigError(f'qos depth must be >= 1, got {depth}')
     return QoSProfile(
@@ -75,17 +79,24 @@ def sample_qos(depth: int = SAMPLE_DEPTH) -> QoSProfile:
 
 
 def qos_overriding() -> QoSOverridingOptions:
-    """rclpy's standard QoS overrides (history, depth, reliability) for one publisher or
-    subscription: read-only parameters `qos_overrides./TOPIC.publisher.reliability` etc., set with
-    `-p` or a params file like any parameter (docs/nodes.md)."""
+    """
+    Return rclpy's standard QoS overrides (history, depth, reliability) for one endpoint.
+
+    One publisher or subscription: read-only parameters
+    `qos_overrides./TOPIC.publisher.reliability` etc., set with `-p` or a params file like any
+    parameter (docs/nodes.md).
+    """
     return QoSOverridingOptions.with_default_policies()
 
 
 def _unset_infinite(profile: QoSProfile) -> QoSProfile:
-    """A copy of `profile` with infinite deadline, lifespan and liveliness lease written as
-    unset (0). The graph reports a peer's unset durations as Infinite while our own profiles hold
-    0; both mean 'none', but rmw's compatibility check reads Infinite-against-0 as 'Subscription
-    has a deadline, but publisher does not'."""
+    """
+    Copy `profile` with infinite deadline, lifespan and liveliness lease written as unset (0).
+
+    The graph reports a peer's unset durations as Infinite while our own profiles hold 0; both mean
+    'none', but rmw's compatibility check reads Infinite-against-0 as 'Subscription has a deadline,
+    but publisher does not'.
+    """
     out = copy.copy(profile)
     for name in ('deadline', 'lifespan', 'liveliness_lease_duration'):
         if getattr(out, name) == Infinite:
@@ -94,7 +105,8 @@ def _unset_infinite(profile: QoSProfile) -> QoSProfile:
 
 
 class QosWatch:
-    """Incompatible QoS between a node's sample streams and their peers, for /diagnostics.
+    """
+    Incompatible QoS between a node's sample streams and their peers, for /diagnostics.
 
     Endpoints registered with `add` get rclpy's incompatible-QoS event callback, which logs the
     moment it happens, and are checked against the ROS graph at every diagnostics tick
@@ -109,7 +121,7 @@ class QosWatch:
         self.events = 0
 
     def callbacks(self, kind: str, topic: str):
-        """The event callbacks to pass to create_publisher / create_subscription."""
+        """Return the event callbacks to pass to create_publisher / create_subscription."""
         def on_incompatible(status) -> None:
             self.events += 1
             policy = getattr(status.last_policy_kind, 'name', str(status.last_policy_kind))
@@ -154,12 +166,14 @@ class QosWatch:
 # ------------------------------------------------------------------------------------- parameters
 @dataclass(frozen=True)
 class ParamSpec:
-    """One node parameter: default (its type fixes the parameter type), description and limits.
+    """
+    One node parameter: default (its type fixes the parameter type), description and limits.
 
     `low`/`high` are inclusive bounds for numbers (published in the descriptor so that tools show
     them), `choices` a closed set for strings, `check` an extra predicate with its reason, e.g.
     `(lambda v: v > 0, 'must be > 0')`.
     """
+
     name: str
     default: Any
     description: str
@@ -174,12 +188,14 @@ class ParamSpec:
         return isinstance(self.default, float)
 
     def descriptor(self, final: bool = True) -> ParameterDescriptor:
-        """ParameterDescriptor carrying the description, the range and the read-only flag.
+        """
+        Return the ParameterDescriptor carrying the description, the range and the read-only flag.
 
         `final=False` is the descriptor used to declare the parameter: writable, no range, and
         dynamically typed for floats, so that `-p fs:=500` (an integer) reaches our own check and
         its one-line message. `declare_parameters` then applies the final descriptor, which fixes
-        the type (a float parameter holds 500.0), the range and the read-only flag."""
+        the type (a float parameter holds 500.0), the range and the read-only flag.
+        """
         d = ParameterDescriptor(name=self.name, description=self.description,
                                 read_only=self.read_only and final,
                                 dynamic_typing=self.is_float and not final)
@@ -232,8 +248,12 @@ class ParamSpec:
 
 
 def declare_parameters(node: Node, specs: Iterable[ParamSpec]) -> dict[str, Any]:
-    """Declare every spec on `node`, validate the start-up values, and keep validating later
-    `set_parameters` calls. Returns {name: value}. Raises ConfigError (one line) on a bad value."""
+    """
+    Declare every spec on `node` and validate the start-up values and later changes.
+
+    Later `set_parameters` calls are validated too. Returns {name: value}. Raises ConfigError (one
+    line) on a bad value.
+    """
     specs = list(specs)
     by_name = {s.name: s for s in specs}
     values: dict[str, Any] = {}
@@ -290,7 +310,7 @@ def stamp_to_ns(stamp) -> int:
 
 def make_joint_state(t_ns: int, names: Sequence[str], position: Sequence[float] | None = None,
                      effort: Sequence[float] | None = None) -> JointState:
-    """JointState for one sample: stamp t_ns (ns), axis names, position (m) and/or effort (V)."""
+    """Build the JointState of one sample: stamp t_ns (ns), names, position (m), effort (V)."""
     msg = JointState()
     msg.header.stamp.sec, msg.header.stamp.nanosec = ns_to_stamp(t_ns)
     msg.name = list(names)
@@ -304,13 +324,14 @@ def make_joint_state(t_ns: int, names: Sequence[str], position: Sequence[float] 
 @dataclass
 class Sample:
     """One parsed JointState: stamp (ns), axis names, positions (m) and efforts (V)."""
+
     t_ns: int
     names: list[str]
     position: list[float]
     effort: list[float]
 
     def value(self, field: str, axis: str) -> float:
-        """The `field` ('position' or 'effort') of `axis`; raises DataError when absent."""
+        """Return the `field` ('position' or 'effort') of `axis`; raises DataError when absent."""
         seq = self.position if field == 'position' else self.effort
         if not self.names:
             i = 0  # an unnamed single-axis message
@@ -325,7 +346,7 @@ class Sample:
 
 
 def parse_joint_state(msg: JointState) -> Sample:
-    """JointState -> Sample (no validation of values; see Sample.value)."""
+    """Convert a JointState to a Sample (no validation of values; see Sample.value)."""
     return Sample(stamp_to_ns(msg.header.stamp), list(msg.name), list(msg.position),
                   list(msg.effort))
 
@@ -343,8 +364,11 @@ _STAMP = struct.Struct('<iI')
 
 
 def decode_joint_state(buf: bytes) -> Sample:
-    """Serialized JointState (CDR, as from a raw=True subscription) -> Sample. Raises DataError
-    on a truncated or malformed buffer."""
+    """
+    Decode a serialized JointState (CDR, as from a raw=True subscription) to a Sample.
+
+    Raises DataError on a truncated or malformed buffer.
+    """
     try:
         little = buf[1] == 1
         e = '<' if little else '>'
@@ -379,7 +403,7 @@ def decode_joint_state(buf: bytes) -> Sample:
 
 def encode_joint_state(t_ns: int, names: Sequence[str], position: Sequence[float] = (),
                        effort: Sequence[float] = ()) -> bytes:
-    """JointState CDR bytes (little endian, empty frame_id and velocity) for Publisher.publish."""
+    """Encode JointState CDR (little endian, empty frame_id and velocity) for Publisher.publish."""
     sec, nsec = divmod(int(t_ns), 1_000_000_000)
     out = bytearray(b'\x00\x01\x00\x00')
     out += _STAMP.pack(sec, nsec)
@@ -400,7 +424,8 @@ def encode_joint_state(t_ns: int, names: Sequence[str], position: Sequence[float
 
 # ---------------------------------------------------------------------------------- diagnostics
 class Diagnostics:
-    """Publishes one DiagnosticStatus for `node` on /diagnostics every `period` s.
+    """
+    Publishes one DiagnosticStatus for `node` on /diagnostics every `period` s.
 
     `provider()` returns (level, message, {key: value}); level is DIAG_OK/WARN/ERROR. The provider
     is read only at publication time, so the nodes' hot paths just bump counters.
@@ -422,8 +447,12 @@ class Diagnostics:
         self._timer = node.create_timer(period, self.publish)
 
     def build(self) -> DiagnosticArray:
-        """The DiagnosticArray that would be published now (the provider's status, raised to
-        WARN while a QoS incompatibility with a peer lasts, see QosWatch)."""
+        """
+        Return the DiagnosticArray that would be published now.
+
+        The provider's status, raised to WARN while a QoS incompatibility with a peer lasts (see
+        QosWatch).
+        """
         level, message, values = self._provider()
         watch = getattr(self._node, 'qos_watch', None)
         problems = watch.problems() if watch is not None else []
@@ -446,13 +475,16 @@ class Diagnostics:
 
 
 def status_name(node_fqn: str, task: str) -> str:
-    """'/piezo/driver_node', 'rig link' -> 'piezo/driver_node: rig link' (diagnostic_updater's
-    naming)."""
+    """
+    Name a status as diagnostic_updater does.
+
+    '/piezo/driver_node', 'rig link' -> 'piezo/driver_node: rig link'.
+    """
     return f'{node_fqn.lstrip("/")}: {task}'
 
 
 def status_node(name: str) -> str:
-    """The fully qualified node name of a status named by `status_name` ('/piezo/driver_node')."""
+    """Return the node of a status named by `status_name` ('/piezo/driver_node')."""
     return '/' + name.split(': ', 1)[0].lstrip('/')
 
 
@@ -469,8 +501,12 @@ def diagnostic_values(status: DiagnosticStatus) -> dict[str, str]:
 
 # ---------------------------------------------------------------------------------------- main
 def make_executor(kind: str = 'events'):
-    """'events' -> rclpy.experimental.EventsExecutor (C++ event loop; pub->sub latency ~14 us here
-    against ~92 us with the single-threaded executor), 'single' -> SingleThreadedExecutor."""
+    """
+    Return the executor of a name.
+
+    'events' -> rclpy.experimental.EventsExecutor (C++ event loop; pub->sub latency ~14 us here
+    against ~92 us with the single-threaded executor), 'single' -> SingleThreadedExecutor.
+    """
     if kind == 'events':
         from rclpy.experimental import EventsExecutor
         return EventsExecutor()
@@ -482,7 +518,8 @@ def make_executor(kind: str = 'events'):
 
 def run_node(node_cls: Callable[..., Node], args: list[str] | None = None,
              executor: str | None = None) -> int:
-    """Main of a node process: init, construct, spin, clean shutdown. Returns the exit code.
+    """
+    Run a node process: init, construct, spin, clean shutdown. Returns the exit code.
 
     SIGINT/SIGTERM/SIGHUP stop the spin and exit 0 (SIGHUP: the terminal was closed; a recorder
     must close its bag then, not die); a node that refuses to start (ConfigError or any
@@ -545,9 +582,12 @@ RETIRED_QOS_PARAMETERS = ('best_effort', 'qos_depth', 'depth')
 
 
 def check_overrides(node: Node) -> None:
-    """Refuse retired QoS parameters with a hint; warn about other parameters that were given
-    but that `node` does not declare (ROS 2 ignores them silently; a typo then looks like a
-    setting that took effect)."""
+    """
+    Refuse retired QoS parameters with a hint.
+
+    Warn about other parameters that were given but that `node` does not declare (ROS 2 ignores
+    them silently; a typo then looks like a setting that took effect).
+    """
     given = set(getattr(node, '_parameter_overrides', {}))   # rclpy keeps no public copy
     declared = {name for name in given if node.has_parameter(name)}
     pending = node.pending_parameter_prefixes() if hasattr(
@@ -563,15 +603,19 @@ def check_overrides(node: Node) -> None:
 
 
 def main_for(node_cls) -> Callable[[list[str] | None], None]:
-    """`main` for a console script: exits the process with run_node's code."""
+    """Return the `main` of a console script: it exits the process with run_node's code."""
     def main(args: list[str] | None = None) -> None:
         sys.exit(run_node(node_cls, args))
     return main
 
 
 class PiezoNode(Node):
-    """Node base: default namespace `piezo` (a `__ns:=` remap still wins), `close()` hook called
-    once on shutdown, and start-up parameters declared from `PARAMS` (a list of ParamSpec)."""
+    """
+    Node base.
+
+    Default namespace `piezo` (a `__ns:=` remap still wins), `close()` hook called once on
+    shutdown, and start-up parameters declared from `PARAMS` (a list of ParamSpec).
+    """
 
     NODE_NAME = 'piezo_node'
     PARAMS: Sequence[ParamSpec] = ()
@@ -584,8 +628,12 @@ class PiezoNode(Node):
 
     def sample_publisher(self, topic: str, msg_type=JointState, depth: int = SAMPLE_DEPTH,
                          qos: QoSProfile | None = None):
-        """Publisher of a per-sample stream: `sample_qos` (or `qos`, e.g. a bag's recorded
-        profile), the standard QoS overrides, and incompatible-QoS reporting (QosWatch)."""
+        """
+        Create the publisher of a per-sample stream.
+
+        `sample_qos` (or `qos`, e.g. a bag's recorded profile), the standard QoS overrides, and
+        incompatible-QoS reporting (QosWatch).
+        """
         pub = self.create_publisher(msg_type, topic, qos or sample_qos(depth),
                                     qos_overriding_options=qos_overriding(),
                                     event_callbacks=self.qos_watch.callbacks('publisher', topic))
@@ -594,8 +642,11 @@ class PiezoNode(Node):
 
     def sample_subscription(self, topic: str, callback, msg_type=JointState, raw: bool = True,
                             depth: int = SAMPLE_DEPTH):
-        """Subscription to a per-sample stream (raw CDR bytes by default), with the same QoS
-        handling as `sample_publisher`."""
+        """
+        Create the subscription to a per-sample stream (raw CDR bytes by default).
+
+        With the same QoS handling as `sample_publisher`.
+        """
         sub = self.create_subscription(
             msg_type, topic, callback, sample_qos(depth), raw=raw,
             qos_overriding_options=qos_overriding(),
@@ -604,8 +655,11 @@ class PiezoNode(Node):
         return sub
 
     def pending_parameter_prefixes(self) -> list[str]:
-        """Prefixes of parameters declared later than construction (QoS overrides of
-        subscriptions made on demand); run_node does not call them unknown."""
+        """
+        Return the prefixes of parameters declared later than construction.
+
+        QoS overrides of subscriptions made on demand; run_node does not call them unknown.
+        """
         return []
 
     def close(self) -> None:

@@ -1,4 +1,5 @@
-"""controller_node: position_reference in, voltage_command out, through the identified model.
+"""
+controller_node: position_reference in, voltage_command out, through the identified model.
 
 Loads a model file (JSON + .npz, never a pickle, never torch) and answers every position
 reference (JointState, position = m) with a voltage command (effort = V) carrying the reference's
@@ -48,7 +49,7 @@ class ControllerNode(PiezoNode):
                   read_only=True),
         ParamSpec('slew_rate', 1e5, 'largest command rate of change, V/s (0: no limit)',
                   low=0.0, high=1e12, read_only=True),
-        ParamSpec('y_min', 0.0, 'lowest accepted reference, m (y_min = y_max = 0: the model\'s '
+        ParamSpec('y_min', 0.0, "lowest accepted reference, m (y_min = y_max = 0: the model's "
                   'trained output range widened by range_margin)', low=-1.0, high=1.0,
                   read_only=True),
         ParamSpec('y_max', 0.0, 'highest accepted reference, m', low=-1.0, high=1.0,
@@ -85,8 +86,8 @@ class ControllerNode(PiezoNode):
         if p['mode'] == 'inverse_feedback' and not p['use_deflection']:
             raise ConfigError('mode inverse_feedback needs use_deflection:=true (its PI acts on '
                               'the measured deflection)')
-        limits = {} if p['y_min'] == p['y_max'] == 0.0 else {'y_min': p['y_min'],
-                                                              'y_max': p['y_max']}
+        limits = ({} if p['y_min'] == p['y_max'] == 0.0
+                  else {'y_min': p['y_min'], 'y_max': p['y_max']})
         self.model = load_model(p['model'])
         self.ctl = PositionController(
             self.model, mode=p['mode'], fs=p['fs'] or None, u_min=p['u_min'], u_max=p['u_max'],
@@ -115,10 +116,10 @@ class ControllerNode(PiezoNode):
                                        hardware_id=f"model {p['model']}")
         c = self.ctl
         self.get_logger().info(
-            f"{p['mode']} with {type(self.model).__name__} ({p['model']}) at {c.fs:g} Hz, "
-            f"target {c.inverse.target}, advance {c.advance:.3f} samples, static gain "
-            f"{c.gain * 1e6:.4g} um/V, references [{c.y_min * 1e6:.1f}, {c.y_max * 1e6:.1f}] "
-            f"um, commands [{p['u_min']:g}, {p['u_max']:g}] V")
+            f'{p["mode"]} with {type(self.model).__name__} ({p["model"]}) at {c.fs:g} Hz, '
+            f'target {c.inverse.target}, advance {c.advance:.3f} samples, static gain '
+            f'{c.gain * 1e6:.4g} um/V, references [{c.y_min * 1e6:.1f}, {c.y_max * 1e6:.1f}] '
+            f'um, commands [{p["u_min"]:g}, {p["u_max"]:g}] V')
 
     def on_wait_check(self) -> None:
         """Subscribe to the references once the commands have their listeners."""
@@ -132,8 +133,12 @@ class ControllerNode(PiezoNode):
         return [f'qos_overrides.{self.resolve_topic_name(TOPIC_REFERENCE)}.subscription.']
 
     def on_reset(self, _request, response):
-        """~/reset (std_srvs/Trigger): the actuator is at rest now (0 V): the model restarts
-        from rest and the integrator is cleared."""
+        """
+        ~/reset (std_srvs/Trigger).
+
+        The actuator is at rest now (0 V): the model restarts from rest and the integrator is
+        cleared.
+        """
         self.ctl.request_reset()
         response.success = True
         response.message = 'model restarted from rest (actuator at 0 V), integrator cleared'
@@ -164,7 +169,7 @@ class ControllerNode(PiezoNode):
         self.ctl.on_measurement(*got)
 
     def on_idle_check(self) -> None:
-        """References stopped while one was held back: decide on it now."""
+        """Decide on a held-back reference now that references have stopped coming."""
         n = self.ctl.stats.references
         if n == self._references_at_last_check and self.ctl.holding:
             self.publish(self.ctl.flush())

@@ -1,4 +1,5 @@
-"""driver_node: the simulator node's contract for a real rig, over UDP to a real-time target.
+"""
+driver_node: the simulator node's contract for a real rig, over UDP to a real-time target.
 
 A managed (lifecycle) node, as ros2/demos' lifecycle talker:
   unconfigured  parameters checked, nothing open;
@@ -40,9 +41,11 @@ def _nonempty(value: str) -> bool:
 
 
 class DriverNode(PiezoNode, LifecycleNode):
-    """Thin wiring: lifecycle transitions -> RigClient/RigDriver; topics and timers -> driver
-    calls. Every parameter is read-only: the limits are safety settings, the socket is bound by
-    configure."""
+    """
+    Thin wiring: lifecycle transitions -> RigClient/RigDriver; topics and timers -> driver calls.
+
+    Every parameter is read-only: the limits are safety settings, the socket is bound by configure.
+    """
 
     NODE_NAME = 'driver_node'
     PARAMS = (

@@ -1,4 +1,5 @@
-"""estimator_node: free-run deflection estimate from the voltage commands alone.
+"""
+estimator_node: free-run deflection estimate from the voltage commands alone.
 
 Loads a model file (JSON + .npz, never a pickle, never torch), runs it in free run on
 voltage_command and publishes deflection_estimate with each command's stamp. When a deflection
@@ -29,7 +30,7 @@ class EstimatorNode(PiezoNode):
                   check=(lambda v: bool(v.strip()), 'must name a model file (.json)')),
         ParamSpec('axis', 'x', 'axis read from voltage_command/deflection and published',
                   read_only=True, check=(lambda v: bool(v.strip()), 'must not be empty')),
-        ParamSpec('fs', 0.0, 'command sample rate, Hz (0: the model file\'s fs)', low=0.0,
+        ParamSpec('fs', 0.0, "command sample rate, Hz (0: the model file's fs)", low=0.0,
                   high=100000.0, read_only=True),
         ParamSpec('init', 'auto', 'initial state: rest, measurement (first n0 measured samples), '
                   'or auto (measurement when deflection has a publisher)', choices=INIT_MODES,
@@ -89,8 +90,11 @@ class EstimatorNode(PiezoNode):
         return response
 
     def on_reinitialize(self, _request, response):
-        """~/reinitialize (std_srvs/Trigger): restart from the next n0 measured samples; refused
-        when nothing publishes deflection."""
+        """
+        ~/reinitialize (std_srvs/Trigger): restart from the next n0 measured samples.
+
+        Refused when nothing publishes deflection.
+        """
         if self.sub_meas.get_publisher_count() == 0:
             response.success = False
             response.message = 'no deflection publisher to initialise from (~/reset restarts ' \

@@ -1,4 +1,5 @@
-"""player_node: publish a bag's topics with their recorded timing (like `ros2 bag play`).
+"""
+player_node: publish a bag's topics with their recorded timing (like `ros2 bag play`).
 
 Messages are published serialized, exactly as recorded, from a pacing thread that sleeps until
 each message is due (recorded receive-time spacing / rate). Remap topics with --ros-args -r.

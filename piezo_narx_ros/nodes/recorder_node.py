@@ -1,4 +1,5 @@
-"""recorder_node: record topics to a rosbag2 MCAP bag (like `ros2 bag record -s mcap`).
+"""
+recorder_node: record topics to a rosbag2 MCAP bag (like `ros2 bag record -s mcap`).
 
 Subscriptions are raw (serialized CDR, never decoded); each message is stamped with its receive
 time (system clock, ns) and handed to a BagRecorder, whose writer thread does the file work. A
@@ -31,8 +32,11 @@ _TYPE_NAME = re.compile(r'^([a-z][a-z0-9_]*)/msg/([A-Z][A-Za-z0-9]*)$')
 
 
 def message_class(msgtype: str):
-    """The installed rclpy message class of 'pkg/msg/Name'. Only names of that exact form are
-    imported (from installed packages); ConfigError otherwise."""
+    """
+    Return the installed rclpy message class of 'pkg/msg/Name'.
+
+    Only names of that exact form are imported (from installed packages); ConfigError otherwise.
+    """
     m = _TYPE_NAME.match(msgtype)
     if not m:
         raise ConfigError(f'not a ROS 2 message type name: {msgtype!r}')
@@ -43,12 +47,14 @@ def message_class(msgtype: str):
 
 
 class _Sink:
-    """Raw subscription callback for one topic: bytes -> recorder queue, stamped on receipt.
+    """
+    Raw subscription callback for one topic: bytes -> recorder queue, stamped on receipt.
 
     The first message registers the topic in the bag (`register()` -> its bag name): by then its
     publisher has been discovered, so its offered QoS is known. The receive time is taken here,
     not from MessageInfo: callbacks taking MessageInfo fail with a SystemError under the
-    EventsExecutor of these rclpy wheels."""
+    EventsExecutor of these rclpy wheels.
+    """
 
     def __init__(self, recorder: BagRecorder, register):
         self.recorder, self.register, self.name = recorder, register, None
@@ -117,7 +123,7 @@ class RecorderNode(PiezoNode):
             self._discovery.cancel()
 
     def pending_parameter_prefixes(self) -> list[str]:
-        """QoS overrides of the topics whose type is not discovered yet (subscribed later)."""
+        """Return the QoS overrides of the topics whose type is not discovered yet."""
         return [f'qos_overrides.{t}.subscription.' for t in self._wanted if t not in self._subs]
 
     def _register(self, topic: str, kind: str) -> str:
@@ -138,8 +144,9 @@ class RecorderNode(PiezoNode):
     def _status(self):
         s = self.recorder.stats
         values = {'path': str(self.recorder.path), 'received': self.recorder.received,
-                  'written': s.written, 'backlog': self.recorder.backlog, 'queue_peak': s.queue_peak,
-                  'topics': len(self._subs), 'waiting_for': len(self._wanted) - len(self._subs)}
+                  'written': s.written, 'backlog': self.recorder.backlog,
+                  'queue_peak': s.queue_peak, 'topics': len(self._subs),
+                  'waiting_for': len(self._wanted) - len(self._subs)}
         if s.error:
             return DIAG_ERROR, f'writer stopped: {s.error}', values
         if len(self._subs) < len(self._wanted):

@@ -1,4 +1,5 @@
-"""simulator_node: the piezo plant answering each voltage_command with a deflection.
+"""
+simulator_node: the piezo plant answering each voltage_command with a deflection.
 
 One PiezoCantilever per axis. Each command sample advances the plant one period and is answered
 on deflection with the command's stamp (position = measured m, effort = volts applied). Missing
@@ -19,7 +20,8 @@ from piezo_narx_ros.nodes.common import (DIAG_OK, DIAG_WARN, TOPIC_COMMAND, TOPI
 
 
 class PlantResponder:
-    """Plants (one per axis) driven by stamped commands; ROS-free.
+    """
+    Plants (one per axis) driven by stamped commands; ROS-free.
 
     plants: {axis: PiezoCantilever}; fs: command rate, Hz; max_fill: longest gap (samples)
     bridged by holding the command. Stamps go through a `command.stamps.StampGate`: an isolated
@@ -35,7 +37,7 @@ class PlantResponder:
         self.max_fill = max_fill
         self.gate = StampGate(self.period_ns, max_fill)
         self.last_t: int | None = None
-        self.last_u = {a: 0.0 for a in self.axes}
+        self.last_u = dict.fromkeys(self.axes, 0.0)
         self.received = 0
         self.answered = 0
         self.rejected = 0
@@ -51,10 +53,14 @@ class PlantResponder:
         return self.gate.restarts
 
     def on_command(self, t_ns: int, volts: dict) -> list[tuple[int, list[float], list[float]]]:
-        """Apply {axis: V} at stamp t_ns; returns the answers now due, [(stamp, y_meas m per
-        axis, u_applied V per axis)] in self.axes order: usually one, none while the stamp is
-        held (see StampGate), several when held commands are released. Raises DataError for a
-        non-finite command or a missing axis (the plant is not touched)."""
+        """
+        Apply {axis: V} at stamp t_ns.
+
+        Returns the answers now due, [(stamp, y_meas m per axis, u_applied V per axis)] in
+        self.axes order: usually one, none while the stamp is held (see StampGate), several when
+        held commands are released. Raises DataError for a non-finite command or a missing axis
+        (the plant is not touched).
+        """
         self.received += 1
         try:
             u = [float(volts[a]) for a in self.axes]

@@ -1,4 +1,5 @@
-"""Simulated piezo cantilever (plant) and excitation signals; ROS-free.
+"""
+Simulated piezo cantilever (plant) and excitation signals; ROS-free.
 
     from piezo_narx_ros.plant import PiezoCantilever, load_plant_params, generate
 """

@@ -1,4 +1,5 @@
-"""Measure the plant's behaviour and draw the figures of docs/plant.md.
+"""
+Measure the plant's behaviour and draw the figures of docs/plant.md.
 
     python -m piezo_narx_ros.plant.figures [OUTDIR]      (default docs/figures)
 
@@ -20,7 +21,8 @@ FS = 2000.0
 
 
 def loop_width(u, y, bins=None):
-    """Loop width of one sine period: max(descending - ascending branch) / peak-to-peak y.
+    """
+    Loop width of one sine period: max(descending - ascending branch) / peak-to-peak y.
 
     Branches are averaged in voltage bins (default min(80, samples/8)), ignoring the 5 % of the
     range at each end where they meet. Returns (width, bin centres V, ascending m, descending m).
@@ -30,8 +32,9 @@ def loop_width(u, y, bins=None):
     edges = np.linspace(u.min(), u.max(), bins + 1)
     edges = edges[bins // 20:bins + 1 - bins // 20]
     centre = 0.5 * (edges[:-1] + edges[1:])
-    up = np.array([y[rising & (u >= a) & (u < b)].mean() for a, b in zip(edges[:-1], edges[1:])])
-    down = np.array([y[~rising & (u >= a) & (u < b)].mean() for a, b in zip(edges[:-1], edges[1:])])
+    bins = list(zip(edges[:-1], edges[1:]))
+    up = np.array([y[rising & (u >= a) & (u < b)].mean() for a, b in bins])
+    down = np.array([y[~rising & (u >= a) & (u < b)].mean() for a, b in bins])
     return float(np.max(down - up) / np.ptp(y)), centre, up, down
 
 
@@ -54,7 +57,7 @@ def frf_from_chirp(params, amplitude=3.0, seconds=8.0, f0=100.0, f1=990.0, seed=
 
 
 def measure(params=None) -> dict:
-    """The figures quoted in docs/plant.md, measured on the simulated plant."""
+    """Return the figures quoted in docs/plant.md, measured on the simulated plant."""
     params = params or load_plant_params()
     out = {}
     for amp in (25.0, 50.0, 100.0, 200.0):
@@ -79,7 +82,8 @@ def measure(params=None) -> dict:
     f, h = frf_from_chirp(params)
     mag = np.abs(h)
     out['resonance_Hz'] = float(f[np.argmax(mag)])
-    out['resonance_peak_over_200Hz_gain'] = float(mag.max() / np.median(mag[(f > 150) & (f < 250)]))
+    out['resonance_peak_over_200Hz_gain'] = float(mag.max()
+                                                  / np.median(mag[(f > 150) & (f < 250)]))
     rest = PiezoCantilever(params, FS, seed=3).run(np.zeros(40000))
     out['noise_std_m'] = float(np.std(rest.y))
     u = generate('multisine', FS, 25.0, 100.0, seed=0)
@@ -105,7 +109,8 @@ def draw(outdir: Path, params=None) -> list[Path]:
         u, y, _ = sine_period(params, amp, 0.1)
         w, *_ = loop_width(u, y)
         ax1.plot(u, 1e6 * y, lw=0.8, label=f'±{amp:g} V: width {100 * w:.1f} %')
-    ax1.set(xlabel='command u (V)', ylabel='measured deflection y (µm)', title='Sine 0.1 Hz, several amplitudes')
+    ax1.set(xlabel='command u (V)', ylabel='measured deflection y (µm)',
+            title='Sine 0.1 Hz, several amplitudes')
     ax1.legend(fontsize=8)
     for freq in (0.1, 1.0, 10.0):
         u, y, _ = sine_period(params, 100.0, freq)
@@ -126,12 +131,14 @@ def draw(outdir: Path, params=None) -> list[Path]:
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4.2))
     ax1.plot(1e3 * t[:60], 1e6 * res.y[:60], '.-', ms=3, lw=0.8, label='measured y')
     ax1.plot(1e3 * t[:60], 1e6 * res.y_true[:60], lw=0.8, label='true y')
-    ax1.set(xlabel='time after the step (ms)', ylabel='deflection (µm)', title='0 → 50 V step: first 30 ms')
+    ax1.set(xlabel='time after the step (ms)', ylabel='deflection (µm)',
+            title='0 → 50 V step: first 30 ms')
     ax1.legend(fontsize=8)
     keep = t >= 0.05  # after the ring-down of the mode (1/(zeta*wn) = 10 ms)
     ax2.semilogx(t[keep], 1e6 * res.y[keep], lw=0.5, label='measured y')
     ax2.semilogx(t[keep], 1e6 * res.y_true[keep], lw=1.0, label='true y')
-    ax2.set(xlabel='time after the step (s, log)', ylabel='deflection (µm)', title='Creep over 100 s')
+    ax2.set(xlabel='time after the step (s, log)', ylabel='deflection (µm)',
+            title='Creep over 100 s')
     ax2.legend(fontsize=8)
     for ax in (ax1, ax2):
         ax.grid(alpha=0.3, which='both')
@@ -154,10 +161,12 @@ def draw(outdir: Path, params=None) -> list[Path]:
     h_lin *= np.sinc(x) * np.exp(-1j * np.pi * x) * np.exp(2j * np.pi * x)
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
     ax1.semilogy(f, 1e6 * np.abs(h), lw=0.8, label='from a ±3 V chirp (H1, measured y)')
-    ax1.semilogy(f, 1e6 * np.abs(h_lin), '--', lw=0.8, label='linearised model, ZOH-sampled (no aliasing)')
+    ax1.semilogy(f, 1e6 * np.abs(h_lin), '--', lw=0.8,
+                 label='linearised model, ZOH-sampled (no aliasing)')
     ax1.axvline(params.mode_frequency, color='k', lw=0.5)
-    ax1.set(ylabel='|y/u| (µm/V)', title=f'Frequency response: first mode at {params.mode_frequency:g} Hz, '
-                                          f'ζ = {params.mode_damping:g}')
+    ax1.set(ylabel='|y/u| (µm/V)',
+            title=f'Frequency response: first mode at {params.mode_frequency:g} Hz, '
+                  f'ζ = {params.mode_damping:g}')
     ax1.legend(fontsize=8)
     ax2.plot(f, np.degrees(np.unwrap(np.angle(h))), lw=0.8)
     ax2.plot(f, np.degrees(np.unwrap(np.angle(h_lin))), '--', lw=0.8)
@@ -176,7 +185,8 @@ def draw(outdir: Path, params=None) -> list[Path]:
     t = np.arange(u.size) / FS
     fig, (ax1, ax2, ax3) = plt.subplots(3, 1, figsize=(9, 7))
     ax1.plot(t, u, lw=0.3)
-    ax1.set(ylabel='u (V)', title='Default identification record: multisine 0.1–100 Hz, peak 100 V, 25 s')
+    ax1.set(ylabel='u (V)',
+            title='Default identification record: multisine 0.1–100 Hz, peak 100 V, 25 s')
     ax2.plot(t, 1e6 * res.y, lw=0.3)
     ax2.set(ylabel='y (µm)', xlabel='time (s)')
     sel = slice(int(10 * FS), int(10.5 * FS))

@@ -1,4 +1,5 @@
-"""Compiled per-sample kernels of the plant and of the amplifier limits (numba, cache=True).
+"""
+Compiled per-sample kernels of the plant and of the amplifier limits (numba, cache=True).
 
 One kernel per hysteresis model, `advance` (Bouc-Wen) and `advance_preisach` (Preisach), serves
 both PiezoCantilever.run() (loop over N samples inside numba) and PiezoCantilever.step() (N = 1),
@@ -19,7 +20,8 @@ S_V, S_H, S_LIN = 0, 1, 2
 
 @njit(cache=True)
 def bouc_wen_increment(h, dv, a, b, gamma):
-    """Bouc-Wen state after the input moves monotonically by dv (V); exact for exponent n = 1.
+    """
+    Bouc-Wen state after the input moves monotonically by dv (V); exact for exponent n = 1.
 
     Along the path length s = |v - v0| the model dh/dt = a*dv/dt - b*|dv/dt|*h - gamma*dv/dt*|h|
     becomes the linear ODE dh/ds = sv*a - (b + gamma*sv*sign(h))*h, solved in closed form on each
@@ -61,7 +63,8 @@ def bouc_wen_increment(h, dv, a, b, gamma):
 
 @njit(cache=True)
 def amplifier_substep(v, target, w_a, slew, h):
-    """Amplifier output after h s: exact solution of dv/dt = clip(w_a*(target - v), -slew, slew).
+    """
+    Amplifier output after h s: exact solution of dv/dt = clip(w_a*(target - v), -slew, slew).
 
     v, target in V; w_a = 2*pi*bandwidth in rad/s; slew in V/s (inf: none). While the first-order
     rate exceeds the slew limit the output ramps at the limit; from |target - v| = slew/w_a on it
@@ -80,8 +83,11 @@ def amplifier_substep(v, target, w_a, slew, h):
 
 @njit(cache=True)
 def _linear_substep(lin, tmp, phi, g0, g1, w0, w1):
-    """Linear states lin after one sub-step (exact first-order hold of w from w0 to w1, m);
-    tmp: scratch of lin's size."""
+    """
+    Linear states lin after one sub-step (exact first-order hold of w from w0 to w1, m).
+
+    Tmp: scratch of lin's size.
+    """
     n_lin = lin.shape[0]
     for i in range(n_lin):
         acc = g0[i] * w0 + g1[i] * (w1 - w0)
@@ -94,7 +100,7 @@ def _linear_substep(lin, tmp, phi, g0, g1, w0, w1):
 
 @njit(cache=True)
 def _outputs(lin, noise, quant):
-    """(true tip deflection m, measured m): the sensor state plus noise (m), quantised."""
+    """Return (true tip deflection m, measured m): the sensor state plus noise (m), quantised."""
     meas = lin[lin.shape[0] - 1] + noise
     if quant > 0.0:
         meas = quant * math.floor(meas / quant + 0.5)
@@ -103,15 +109,16 @@ def _outputs(lin, noise, quant):
 
 @njit(cache=True)
 def advance(u_cmd, noise, n_sub, consts, phi, g0, g1, state, work, y_meas, y_true, u_applied):
-    """Advance the plant over len(u_cmd) samples; writes the three output arrays in place.
+    """
+    Advance the plant over len(u_cmd) samples; writes the three output arrays in place.
 
     u_cmd (N,) V is held (zero-order hold) over each sample period, which is split in n_sub
     sub-steps. Per sub-step: amplifier (clamp, then the exact slew-limited first-order response),
-    Bouc-Wen (exact increment), then the linear creep/mode/sensor part with its exact first-order-hold
-    discretisation (phi, g0, g1) on the hysteretic deflection w = d_p*v - h. Outputs are taken at the
-    end of the sample period: y_meas (m, noisy and quantised sensor), y_true (m, tip), u_applied (V).
-    noise (N,) holds standard normal draws. state is updated in place; work is scratch of phi's size
-    (passed in so that a one-sample call allocates nothing).
+    Bouc-Wen (exact increment), then the linear creep/mode/sensor part with its exact
+    first-order-hold discretisation (phi, g0, g1) on the hysteretic deflection w = d_p*v - h.
+    Outputs are taken at the end of the sample period: y_meas (m, noisy and quantised sensor),
+    y_true (m, tip), u_applied (V). noise (N,) holds standard normal draws. state is updated in
+    place; work is scratch of phi's size (passed in so that a one-sample call allocates nothing).
     """
     vmin, vmax = consts[C_VMIN], consts[C_VMAX]
     slew, w_a, h = consts[C_SLEW], consts[C_AMP_W], consts[C_H]
@@ -139,12 +146,14 @@ def advance(u_cmd, noise, n_sub, consts, phi, g0, g1, state, work, y_meas, y_tru
 
 @njit(cache=True)
 def preisach_output(plays, weights, centres, spread):
-    """Irreversible Preisach deflection (m) from the play outputs (V) of every radius.
+    """
+    Irreversible Preisach deflection (m) from the play outputs (V) of every radius.
 
     A relay of half-width r and centre c is up exactly when the play of radius r is above c, so a
     Preisach operator is a sum over radii of a function of that radius' play (Krejci's
     representation). With relay centres normally distributed (mean centres[i] V, std spread V)
-    and total weight weights[i] m per radius, that function is weights[i] * erf((p - c) / (s*sqrt2)).
+    and total weight weights[i] m per radius, that function is
+    weights[i] * erf((p - c) / (s*sqrt2)).
     """
     acc = 0.0
     k = 1.0 / (spread * math.sqrt(2.0))
@@ -156,7 +165,8 @@ def preisach_output(plays, weights, centres, spread):
 @njit(cache=True)
 def advance_preisach(u_cmd, noise, n_sub, consts, phi, g0, g1, state, work, y_meas, y_true,
                      u_applied, radii, weights, centres, creep_gains, creep_decay):
-    """Like `advance`, with a Preisach operator instead of Bouc-Wen and creep on the voltage.
+    """
+    Like `advance`, with a Preisach operator instead of Bouc-Wen and creep on the voltage.
 
     The hysteresis input is the creeping drive v_c = v + sum_i creep_gains[i]*(x_i - v), where
     x_i follow v through first-order lags (creep_decay[i] = exp(-h/tau_i) per sub-step): a voltage
@@ -204,7 +214,7 @@ def advance_preisach(u_cmd, noise, n_sub, consts, phi, g0, g1, state, work, y_me
 
 @njit(cache=True)
 def slew_limit(u, max_step, u0):
-    """Copy of u (V) whose sample-to-sample change is at most max_step (V), starting from u0 (V)."""
+    """Return u (V) limited to sample-to-sample changes of max_step (V), starting from u0 (V)."""
     out = np.empty_like(u)
     prev = u0
     for k in range(u.shape[0]):

@@ -1,4 +1,5 @@
-"""Physical parameters of the simulated PZT/nickel unimorph cantilever and their validation.
+"""
+Physical parameters of the simulated PZT/nickel unimorph cantilever and their validation.
 
 Every value lives in config/plant.yaml (SI units), where each is documented with its source or
 reason; docs/plant.md derives the beam-theory figures. This module only reads and checks them.
@@ -12,14 +13,17 @@ from pathlib import Path
 
 from piezo_narx_ros.errors import ConfigError
 
+
 @dataclass(frozen=True)
 class PlantParams:
-    """Parameters of the plant; SI units (V, m, s, Hz).
+    """
+    Parameters of the plant; SI units (V, m, s, Hz).
 
     Amplifier: output clamped to [v_min, v_max] V, slew-limited to slew_rate V/s, first-order
     small-signal bandwidth amp_bandwidth Hz.
     Hysteresis, `hysteresis` = 'bouc_wen' (Rakotondrabe's form): w = d_p*v - h,
-    dh/dt = A*d_p*dv/dt - B*|dv/dt|*h - gamma*dv/dt*|h|; d_p in m/V, A dimensionless, B and gamma in 1/V.
+    dh/dt = A*d_p*dv/dt - B*|dv/dt|*h - gamma*dv/dt*|h|; d_p in m/V, A dimensionless, B and gamma
+    in 1/V.
     Or 'preisach' (a structurally different plant for checking model families, docs/envelope.md):
     w = preisach_d_rev*v + sum over preisach_radii relay half-widths r_i (uniform up to
     preisach_r_max V) of weights_i*erf((play_r_i(v) - c_i)/(preisach_spread*sqrt2)), weights_i
@@ -32,6 +36,7 @@ class PlantParams:
     Sensor: first-order low-pass sensor_bandwidth Hz, white noise noise_std m, quantisation step m.
     substeps: integration sub-steps per sample (linear parts are exact per sub-step).
     """
+
     v_min: float = -200.0
     v_max: float = 200.0
     slew_rate: float = 1.0e5
@@ -63,7 +68,7 @@ class PlantParams:
         validate(self)
 
     def replace(self, **changes) -> 'PlantParams':
-        """Copy with some fields changed (validated), e.g. params.replace(noise_std=0.0)."""
+        """Return a copy with some fields changed (validated), e.g. noise_std=0.0."""
         return dataclasses.replace(self, **changes)
 
     def as_dict(self) -> dict:
@@ -81,7 +86,8 @@ def _finite(name, value, lo=None, hi=None, lo_open=False):
     if not math.isfinite(value):
         raise ConfigError(f'plant parameter {name} must be finite, got {value!r}')
     if lo is not None and (value <= lo if lo_open else value < lo):
-        raise ConfigError(f'plant parameter {name} must be {">" if lo_open else ">="} {lo}, got {value!r}')
+        raise ConfigError(f'plant parameter {name} must be {">" if lo_open else ">="} {lo}, '
+                          f'got {value!r}')
     if hi is not None and value > hi:
         raise ConfigError(f'plant parameter {name} must be <= {hi}, got {value!r}')
     return value
@@ -95,8 +101,8 @@ _STRING_FIELDS = ('hysteresis', 'creep_input')
 def validate(p: PlantParams) -> None:
     """Raise ConfigError naming the first invalid parameter."""
     if p.hysteresis not in HYSTERESIS_KINDS:
-        raise ConfigError(f'plant parameter hysteresis must be one of {", ".join(HYSTERESIS_KINDS)}, '
-                          f'got {p.hysteresis!r}')
+        raise ConfigError('plant parameter hysteresis must be one of '
+                          f'{", ".join(HYSTERESIS_KINDS)}, got {p.hysteresis!r}')
     if p.creep_input not in CREEP_INPUTS:
         raise ConfigError(f'plant parameter creep_input must be one of {", ".join(CREEP_INPUTS)}, '
                           f'got {p.creep_input!r}')
@@ -114,20 +120,25 @@ def validate(p: PlantParams) -> None:
         _finite(name, getattr(p, name))
     if not p.v_min < p.v_max:
         raise ConfigError(f'plant parameter v_min ({p.v_min}) must be below v_max ({p.v_max})')
-    if not (isinstance(p.slew_rate, (int, float)) and p.slew_rate > 0 and not math.isnan(p.slew_rate)):
-        raise ConfigError(f'plant parameter slew_rate must be > 0 V/s (.inf for none), got {p.slew_rate!r}')
+    if not (isinstance(p.slew_rate, (int, float)) and p.slew_rate > 0
+            and not math.isnan(p.slew_rate)):
+        raise ConfigError('plant parameter slew_rate must be > 0 V/s (.inf for none), got '
+                          f'{p.slew_rate!r}')
     for name in ('amp_bandwidth', 'mode_frequency', 'sensor_bandwidth'):
         _finite(name, getattr(p, name), 0.0, lo_open=True)
     _finite('d_p', p.d_p, 0.0, lo_open=True)
     _finite('A', p.A, 0.0)
     # B > 0 and |gamma| <= B keep the Bouc-Wen state bounded and the loop passive.
     if not (p.B > 0 and abs(p.gamma) <= p.B):
-        raise ConfigError(f'plant parameters B ({p.B}) and gamma ({p.gamma}) must satisfy B > 0 and |gamma| <= B')
+        raise ConfigError(f'plant parameters B ({p.B}) and gamma ({p.gamma}) must satisfy B > 0 '
+                          'and |gamma| <= B')
     _finite('mode_damping', p.mode_damping, 0.0, lo_open=True)
     _finite('noise_std', p.noise_std, 0.0)
     _finite('quantisation', p.quantisation, 0.0)
-    if isinstance(p.substeps, bool) or not isinstance(p.substeps, int) or not 1 <= p.substeps <= 1000:
-        raise ConfigError(f'plant parameter substeps must be an integer in 1..1000, got {p.substeps!r}')
+    if (isinstance(p.substeps, bool) or not isinstance(p.substeps, int)
+            or not 1 <= p.substeps <= 1000):
+        raise ConfigError('plant parameter substeps must be an integer in 1..1000, got '
+                          f'{p.substeps!r}')
     gains, taus = p.creep_gains, p.creep_time_constants
     if not isinstance(gains, (tuple, list)) or not isinstance(taus, (tuple, list)):
         raise ConfigError('plant parameters creep_gains and creep_time_constants must be lists')
@@ -140,10 +151,12 @@ def validate(p: PlantParams) -> None:
 
 
 def load_plant_params(path=None) -> PlantParams:
-    """Read plant parameters from a YAML file (config/plant.yaml by default).
+    """
+    Read plant parameters from a YAML file (config/plant.yaml by default).
 
-    The file holds a mapping `plant:` of PlantParams fields (SI units); fields it leaves out keep their
-    defaults. Unknown keys, wrong types and out-of-range values raise ConfigError naming the key.
+    The file holds a mapping `plant:` of PlantParams fields (SI units); fields it leaves out keep
+    their defaults. Unknown keys, wrong types and out-of-range values raise ConfigError naming the
+    key.
     """
     import yaml
 
@@ -162,7 +175,8 @@ def load_plant_params(path=None) -> PlantParams:
     try:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise ConfigError(f'plant config {path} is not valid YAML: {str(exc).splitlines()[0]}') from None
+        raise ConfigError(f'plant config {path} is not valid YAML: '
+                          f'{str(exc).splitlines()[0]}') from None
     if isinstance(doc, dict) and 'plant' in doc:
         doc = doc['plant']
     if not isinstance(doc, dict):
@@ -175,7 +189,8 @@ def load_plant_params(path=None) -> PlantParams:
     for key in ('creep_gains', 'creep_time_constants'):
         if key in values:
             if not isinstance(values[key], (list, tuple)):
-                raise ConfigError(f'plant config {path}: {key} must be a list, got {values[key]!r}')
+                raise ConfigError(f'plant config {path}: {key} must be a list, got '
+                                  f'{values[key]!r}')
             values[key] = tuple(values[key])
     for key, value in values.items():
         # YAML reads `1e5` (no dot) as a string; accept numeric strings for float fields.
@@ -183,7 +198,8 @@ def load_plant_params(path=None) -> PlantParams:
             try:
                 values[key] = float(value)
             except ValueError:
-                raise ConfigError(f'plant config {path}: {key} must be a number, got {value!r}') from None
+                raise ConfigError(f'plant config {path}: {key} must be a number, got '
+                                  f'{value!r}') from None
     try:
         return PlantParams(**values)
     except ConfigError as exc:

@@ -1,4 +1,5 @@
-"""Simulated piezoelectric unimorph cantilever: amplifier, hysteresis, creep, first mode, sensor.
+"""
+Simulated piezoelectric unimorph cantilever: amplifier, hysteresis, creep, first mode, sensor.
 
 Signal chain (continuous time, integrated per sample with sub-steps):
 
@@ -8,8 +9,8 @@ Signal chain (continuous time, integrated per sample with sub-steps):
     z -> first bending mode (2nd order, unit static gain) -> y_true (m, tip deflection)
     y_true -> sensor: first-order low-pass, white noise, quantisation -> y (m, measured)
 
-Sample k holds u_cmd[k] over [t_k, t_k + 1/fs] and reports y, y_true and v at the end of that period,
-so y[k] depends on u[k] (the NARX regressor includes u(k)).
+Sample k holds u_cmd[k] over [t_k, t_k + 1/fs] and reports y, y_true and v at the end of that
+period, so y[k] depends on u[k] (the NARX regressor includes u(k)).
 """
 from __future__ import annotations
 
@@ -25,18 +26,21 @@ from piezo_narx_ros.plant.params import PlantParams, load_plant_params
 
 _NOISE_STREAM = 0x5E50  # tags the sensor-noise seed sequence (see reset())
 
-_NOISE_BLOCK = 4096  # standard normals drawn at a time by step(); the stream is block-size independent
+# Standard normals drawn at a time by step(); the stream does not depend on the block size.
+_NOISE_BLOCK = 4096
 
 
 class PlantRun(NamedTuple):
     """Result of PiezoCantilever.run(): (N,) arrays."""
+
     u_applied: np.ndarray  # V, amplifier output at the end of each sample period
     y: np.ndarray          # m, measured deflection (sensor: low-pass, noise, quantisation)
     y_true: np.ndarray     # m, true tip deflection
 
 
 def linear_system(p: PlantParams):
-    """Continuous state-space (A, B) of the linear part, input w (m) from the hysteresis.
+    """
+    Continuous state-space (A, B) of the linear part, input w (m) from the hysteresis.
 
     States: creep x_1..x_m (m; none when creep acts on the voltage), tip deflection y (m), tip
     velocity (m/s), sensor output (m).
@@ -63,7 +67,8 @@ def linear_system(p: PlantParams):
 
 
 def foh_discretise(a, b, h):
-    """Exact discretisation for an input linear in time over a step of h s (first-order hold).
+    """
+    Exact discretisation for an input linear in time over a step of h s (first-order hold).
 
     Returns (phi, g0, g1) with x(t+h) = phi x(t) + g0 w(t) + g1 (w(t+h) - w(t)).
     """
@@ -77,10 +82,12 @@ def foh_discretise(a, b, h):
 
 
 class PiezoCantilever:
-    """The plant, with a per-sample interface (step) and an array interface (run) on one state.
+    """
+    The plant, with a per-sample interface (step) and an array interface (run) on one state.
 
-    params: PlantParams (None: config/plant.yaml); fs: sample rate, Hz; seed: seed of the sensor noise.
-    run(u) advances the state exactly as len(u) calls of step() would (same numbers to the last bit).
+    params: PlantParams (None: config/plant.yaml); fs: sample rate, Hz; seed: seed of the sensor
+    noise. run(u) advances the state exactly as len(u) calls of step() would (same numbers to the
+    last bit).
     """
 
     def __init__(self, params: PlantParams | None = None, fs: float = 2000.0, seed: int = 0):
@@ -88,7 +95,8 @@ class PiezoCantilever:
             params = load_plant_params()
         if not isinstance(params, PlantParams):
             raise ConfigError(f'params must be a PlantParams, got {type(params).__name__}')
-        if isinstance(fs, bool) or not isinstance(fs, (int, float)) or not math.isfinite(fs) or fs <= 0:
+        if (isinstance(fs, bool) or not isinstance(fs, (int, float)) or not math.isfinite(fs)
+                or fs <= 0):
             raise ConfigError(f'plant sample rate fs must be a positive number of Hz, got {fs!r}')
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ConfigError(f'plant seed must be a non-negative integer, got {seed!r}')
@@ -131,7 +139,7 @@ class PiezoCantilever:
         self.reset()
 
     def _setup_preisach(self, p: PlantParams, h: float, consts: np.ndarray) -> None:
-        """Relay radii (V), weights (m) and centres (V) of the Preisach variant; see PlantParams."""
+        """Set the relay radii (V), weights (m) and centres (V) of the Preisach variant."""
         n = p.preisach_radii
         radii = (np.arange(n) + 0.5) * (p.preisach_r_max / n)
         weights = np.exp(-radii / p.preisach_r0)
@@ -164,8 +172,12 @@ class PiezoCantilever:
 
     @property
     def state(self) -> np.ndarray:
-        """Copy of the state. Bouc-Wen: [v (V), h (m), creep states (m)..., y (m), dy/dt (m/s),
-        sensor (m)]; Preisach: [v (V), voltage creep lags (V)..., plays (V)..., y, dy/dt, sensor]."""
+        """
+        Copy of the state.
+
+        Bouc-Wen: [v (V), h (m), creep states (m)..., y (m), dy/dt (m/s), sensor (m)]; Preisach: [v
+        (V), voltage creep lags (V)..., plays (V)..., y, dy/dt, sensor].
+        """
         return self._state.copy()
 
     @property
@@ -185,7 +197,8 @@ class PiezoCantilever:
         return np.concatenate([left, fresh])
 
     def step(self, u_cmd: float) -> tuple[float, float, float]:
-        """Apply command u_cmd (V) for one sample period; returns (y_meas m, y_true m, u_applied V).
+        """
+        Apply command u_cmd (V) for one sample period; returns (y_meas m, y_true m, u_applied V).
 
         A non-finite command raises DataError and leaves the state untouched.
         """
@@ -205,9 +218,11 @@ class PiezoCantilever:
         return float(self._y1[0]), float(self._yt1[0]), float(self._ua1[0])
 
     def run(self, u_cmd) -> PlantRun:
-        """Apply a whole command array u_cmd (N,) V from the current state; returns a PlantRun.
+        """
+        Apply a whole command array u_cmd (N,) V from the current state; returns a PlantRun.
 
-        Non-finite or non-1-D input raises DataError (naming the first bad index) before any change.
+        Non-finite or non-1-D input raises DataError (naming the first bad index) before any
+        change.
         """
         try:
             u = np.ascontiguousarray(u_cmd, dtype=float)

@@ -1,9 +1,11 @@
-"""Excitation signals (volts) for the plant, the command node and offline data sets.
+"""
+Excitation signals (volts) for the plant, the command node and offline data sets.
 
 generate(kind, fs, seconds, amplitude, offset=0.0, seed=0, **options) returns (N,) volts with
 N = round(seconds*fs), deterministic for a given seed. Every kind takes the amplifier limits
-u_min, u_max (V, clamp) and slew_rate (V/s, sample-to-sample limit, starting from the first sample so
-that the array loops without a ramp-in). Kind-specific options and their defaults are in OPTIONS.
+u_min, u_max (V, clamp) and slew_rate (V/s, sample-to-sample limit, starting from the first sample
+so that the array loops without a ramp-in). Kind-specific options and their defaults are in
+OPTIONS.
 """
 from __future__ import annotations
 
@@ -24,7 +26,8 @@ OPTIONS = {
     'multisine': {'f_min': 0.1, 'f_max': 100.0, 'f_res': None, 'spectrum': 'flat'},
     'chirp': {'f0': 1.0, 'f1': None, 'method': 'linear'},          # f1 None: 0.45*fs
     'aprbs': {'min_hold': 0.01, 'max_hold': 0.5},                   # s
-    'steps': {'levels': (0.0, 1.0, 0.0, -1.0, 0.0), 'hold': None},  # levels x amplitude; hold None: even split
+    # levels x amplitude; hold None: even split
+    'steps': {'levels': (0.0, 1.0, 0.0, -1.0, 0.0), 'hold': None},
     'playback': {'path': None, 'key': 'u', 'column': None, 'file_fs': None},
     # The identification protocol (docs/envelope.md): `cycles` repeats of [hold, multisine up to
     # f_max, slow sine at slow_freq decaying from full to a fifth of the amplitude, steps held
@@ -40,21 +43,23 @@ IDENT_DEFAULTS = {'kind': 'multisine', 'seconds': 25.0, 'fs': 2000.0, 'amplitude
 
 
 def _num(name, value, lo=None, hi=None, lo_open=False):
-    """Validated float; ConfigError names the parameter."""
+    """Validate a float; ConfigError names the parameter."""
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise ConfigError(f'signal parameter {name} must be a number, got {value!r}')
     value = float(value)
     if math.isnan(value) or (math.isinf(value) and name != 'slew_rate'):
         raise ConfigError(f'signal parameter {name} must be finite, got {value!r}')
     if lo is not None and (value <= lo if lo_open else value < lo):
-        raise ConfigError(f'signal parameter {name} must be {">" if lo_open else ">="} {lo:g}, got {value:g}')
+        raise ConfigError(f'signal parameter {name} must be {">" if lo_open else ">="} {lo:g}, '
+                          f'got {value:g}')
     if hi is not None and value > hi:
         raise ConfigError(f'signal parameter {name} must be <= {hi:g}, got {value:g}')
     return value
 
 
 def generate(kind, fs, seconds, amplitude, offset=0.0, seed=0, **options) -> np.ndarray:
-    """Excitation signal, (N,) V, N = round(seconds*fs).
+    """
+    Excitation signal, (N,) V, N = round(seconds*fs).
 
     kind: one of KINDS; fs: sample rate, Hz; seconds: duration, s (playback: None = file length);
     amplitude: peak deviation from offset, V (playback: None = as recorded, else rescaled to this
@@ -114,7 +119,8 @@ def _n_samples(seconds, fs):
     _check_size(seconds * fs, seconds, fs)
     n = int(round(seconds * fs))
     if n < 1:
-        raise ConfigError(f'signal parameter seconds ({seconds:g}) gives no sample at fs = {fs:g} Hz')
+        raise ConfigError(f'signal parameter seconds ({seconds:g}) gives no sample at '
+                          f'fs = {fs:g} Hz')
     return n
 
 
@@ -141,28 +147,34 @@ def _triangle(t, fs, opt, rng):
 
 
 def _multisine(t, fs, opt, rng):
-    """Random-phase multisine on the lines k*f_res inside [f_min, f_max], spanning exactly [-1, 1].
+    """
+    Random-phase multisine on the lines k*f_res inside [f_min, f_max], spanning exactly [-1, 1].
 
     Scaled by its span rather than its peak so that BOTH extremes reach the amplitude: a model
     identified on it has then seen the whole commanded range (peak scaling left one side at ~84 %,
-    and a fresh multisine of the same amplitude then drove the model outside what it was fitted on).
+    and a fresh multisine of the same amplitude then drove the model outside what it was fitted
+    on).
     The price is a small DC offset, (max + min) / (max - min) of the amplitude.
     """
     n = t.size
     f_min = _check_freq('f_min', opt['f_min'], fs)
     f_max = _check_freq('f_max', opt['f_max'], fs)
     if not f_min < f_max:
-        raise ConfigError(f'signal parameter f_min ({f_min:g} Hz) must be below f_max ({f_max:g} Hz)')
+        raise ConfigError(f'signal parameter f_min ({f_min:g} Hz) must be below '
+                          f'f_max ({f_max:g} Hz)')
     spectrum = opt['spectrum']
     if spectrum not in SPECTRA:
-        raise ConfigError(f'signal parameter spectrum must be one of {", ".join(SPECTRA)}, got {spectrum!r}')
+        raise ConfigError(f'signal parameter spectrum must be one of {", ".join(SPECTRA)}, '
+                          f'got {spectrum!r}')
     f_res = fs / n if opt['f_res'] is None else _num('f_res', opt['f_res'], 0.0, lo_open=True)
-    # The period must be a whole number of samples for an exact periodic signal (IFFT on one period).
+    # The period must be a whole number of samples for an exact periodic signal (IFFT on one
+    # period).
     period = max(int(round(fs / f_res)), 2)
     lines = np.arange(period // 2 + 1) * fs / period
     on = (lines >= f_min - 1e-9) & (lines <= f_max + 1e-9) & (lines > 0)
     if not on.any():
-        raise ConfigError(f'signal parameter f_res ({f_res:g} Hz) puts no line in {f_min:g}-{f_max:g} Hz')
+        raise ConfigError(f'signal parameter f_res ({f_res:g} Hz) puts no line in '
+                          f'{f_min:g}-{f_max:g} Hz')
     mag = np.zeros(lines.size)
     mag[on] = {'flat': 1.0, 'pink': lines[on] ** -0.5, 'brown': 1.0 / lines[on]}[spectrum]
     phases = rng.uniform(0.0, 2.0 * np.pi, size=lines.size)
@@ -178,7 +190,8 @@ def _chirp(t, fs, opt, rng):
     f1 = _check_freq('f1', 0.45 * fs if opt['f1'] is None else opt['f1'], fs)
     method = opt['method']
     if method not in CHIRP_METHODS:
-        raise ConfigError(f'signal parameter method must be one of {", ".join(CHIRP_METHODS)}, got {method!r}')
+        raise ConfigError('signal parameter method must be one of '
+                          f'{", ".join(CHIRP_METHODS)}, got {method!r}')
     duration = t[-1] if t.size > 1 else 1.0 / fs
     # phi=-90 deg starts the sweep at 0 V (a sine), not with a jump to the peak.
     return chirp(t, f0=f0, t1=duration, f1=f1, method=method, phi=-90.0)
@@ -190,7 +203,8 @@ PROTOCOL_SECTIONS = (('hold', 0.02), ('multisine', 0.36), ('slow loops', 0.20), 
 
 
 def _protocol(t, fs, opt, rng):
-    """The operating envelope in one record, in units of the amplitude (within [-1, 1]).
+    """
+    Return the operating envelope in one record, in units of the amplitude (within [-1, 1]).
 
     A positioning stage sees fast small moves, slow full-range moves, nested minor loops, holds
     and steps; a model identified on one kind only is not trustworthy on the others
@@ -225,7 +239,7 @@ def _protocol(t, fs, opt, rng):
 
 
 def _random_holds(n, fs, rng):
-    """n samples of levels uniform in [-1, 1] held 0.15-1 s each."""
+    """Return n samples of levels uniform in [-1, 1] held 0.15-1 s each."""
     out = np.empty(n)
     k = 0
     while k < n:
@@ -236,7 +250,7 @@ def _random_holds(n, fs, rng):
 
 
 def _random_ramps(n, fs, rng, start):
-    """n samples of ramps from `start` between random levels at random rates, random holds."""
+    """Return n samples of ramps from `start` between random levels, rates and holds."""
     out = np.empty(n)
     k, cur = 0, start
     while k < n:
@@ -252,7 +266,7 @@ def _random_ramps(n, fs, rng, start):
 
 
 def _aprbs(t, fs, opt, rng):
-    """Steps of random level (uniform in [-1, 1]) held for random times in [min_hold, max_hold] s."""
+    """Return steps of random level in [-1, 1] held for random times in [min_hold, max_hold] s."""
     lo = _num('min_hold', opt['min_hold'], 1.0 / fs)
     hi = _num('max_hold', opt['max_hold'], lo)
     n = t.size
@@ -271,7 +285,8 @@ def _steps(t, fs, opt, rng):
         try:
             levels = [float(x) for x in levels.split(',')]
         except ValueError:
-            raise ConfigError(f'signal parameter levels must be numbers separated by commas, got {levels!r}') from None
+            raise ConfigError('signal parameter levels must be numbers separated by commas, '
+                              f'got {levels!r}') from None
     levels = [_num(f'levels[{i}]', v) for i, v in enumerate(levels)]
     if not levels:
         raise ConfigError('signal parameter levels must hold at least one level')
@@ -282,7 +297,7 @@ def _steps(t, fs, opt, rng):
 
 
 def _playback(fs, n, opt):
-    """Samples from a file: .npz key `key` (default u) or a .csv column (name or index)."""
+    """Read samples from a file: .npz key `key` (default u) or a .csv column (name or index)."""
     path = opt['path']
     if not path:
         raise ConfigError('signal parameter path (the file to play back) is required for playback')
@@ -307,7 +322,8 @@ def _playback(fs, n, opt):
     else:
         raise ConfigError(f'playback file {path} must be .npz or .csv')
     if u.ndim != 1 or u.size < 1:
-        raise ConfigError(f'playback file {path}: the signal must be a non-empty 1-D array, got shape {u.shape}')
+        raise ConfigError(f'playback file {path}: the signal must be a non-empty 1-D array, '
+                          f'got shape {u.shape}')
     if not np.all(np.isfinite(u)):
         raise ConfigError(f'playback file {path}: the signal has non-finite values')
     if opt['file_fs'] is not None:
@@ -336,7 +352,8 @@ def _csv_column(path, column):
         column = 'u' if 'u' in names else 0
     if isinstance(column, str) and not column.isdigit():
         if column not in names:
-            raise ConfigError(f'playback file {path} has no column {column!r} (columns: {", ".join(names)})')
+            raise ConfigError(f'playback file {path} has no column {column!r} '
+                              f'(columns: {", ".join(names)})')
         idx = names.index(column)
     else:
         idx = int(column)

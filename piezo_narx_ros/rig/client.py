@@ -1,4 +1,4 @@
-"""UDP transport of the driver: sends command datagrams, receives replies on a background thread."""
+"""UDP transport of the driver: command datagrams out, replies received on a background thread."""
 from __future__ import annotations
 
 import socket
@@ -12,7 +12,8 @@ _MAX_DATAGRAM = 65535
 
 
 class RigClient:
-    """A UDP socket bound to (local_host, local_port) that talks to (target_host, target_port).
+    """
+    A UDP socket bound to (local_host, local_port) that talks to (target_host, target_port).
 
     `send(data)` may raise OSError (the driver counts it). `start(on_datagram)` runs a thread that
     calls on_datagram(data, t_monotonic_s) for every datagram received from the target address;
@@ -41,7 +42,7 @@ class RigClient:
 
     @property
     def local_port(self) -> int:
-        """The UDP port actually bound (useful when local_port=0 picked a free one)."""
+        """Return the UDP port actually bound (useful when local_port=0 picked a free one)."""
         return self.sock.getsockname()[1]
 
     def send(self, data: bytes) -> None:

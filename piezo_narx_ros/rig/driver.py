@@ -1,8 +1,10 @@
-"""ROS-free logic of driver_node: limits, watchdog ramp, datagrams out, replies matched back.
+"""
+ROS-free logic of driver_node: limits, watchdog ramp, datagrams out, replies matched back.
 
 RigDriver is driven by three calls, each given the monotonic time `now` (s) so tests control time:
   command(volts, stamp_ns, now)  a command sample arrived: limit it and send it to the target;
-  receive(data, now)             a datagram arrived from the target: the Sample to publish, or None;
+  receive(data, now)             a datagram arrived from the target: the Sample to publish, or
+                                 None;
   tick(now)                      periodic: expire unanswered commands, run the watchdog ramp.
 Outgoing datagrams go through the `send(bytes)` callable (a UDP socket in the node, a list in
 tests).
@@ -34,6 +36,7 @@ STATE_PARKED = 'parked'        # watchdog ramp finished: output held at 0 V
 @dataclass(frozen=True)
 class DriverConfig:
     """Driver limits and timing; every field in SI units."""
+
     n_axes: int = 1
     v_min: float = -200.0          # V, lowest voltage ever sent
     v_max: float = 200.0           # V, highest voltage ever sent
@@ -59,6 +62,7 @@ class DriverConfig:
 @dataclass(frozen=True)
 class Sample:
     """One measured sample to publish on deflection: the stamp of the command it answers."""
+
     seq: int
     stamp_ns: int
     position_m: tuple[float, ...]
@@ -137,7 +141,8 @@ class RigDriver:
 
     # ----------------------------------------------------------------------------- commands
     def command(self, volts, stamp_ns: int, now: float) -> np.ndarray:
-        """Limit one command sample (V per axis) and send it; returns the volts sent.
+        """
+        Limit one command sample (V per axis) and send it; returns the volts sent.
 
         Raises DataError (and counts it) for a wrong axis count or a non-finite value; the caller
         logs it and carries on.
@@ -165,12 +170,15 @@ class RigDriver:
 
     @property
     def connected(self) -> bool:
-        """True once the target has answered any datagram (a ping, typically)."""
+        """Return True once the target has answered any datagram (a ping, typically)."""
         return self._last_reply is not None
 
     def ping(self, now: float, stamp_ns: int = 0) -> None:
-        """Ask the target for its current measurement without applying anything (start-up check
-        that it is there); the reply is accounted like any other but not published."""
+        """
+        Ask the target for its current measurement without applying anything.
+
+        A start-up check that it is there; the reply is accounted like any other but not published.
+        """
         with self._lock:
             self._send(self.limiter.output.copy(), int(stamp_ns), now, flags=protocol.FLAG_PING,
                        publish=False)
@@ -181,30 +189,37 @@ class RigDriver:
             self.counts['commands_rejected'] += 1
 
     def stop_output(self) -> None:
-        """From now on tick() ramps to 0 V as if the watchdog had tripped, and commands are
-        ignored (counted in commands_blocked) until enable_output(). `parked` tells when the
-        output has reached 0 V."""
+        """
+        Ramp to 0 V from now on, as if the watchdog had tripped.
+
+        tick() ramps down and commands are ignored (counted in commands_blocked) until
+        enable_output(). `parked` tells when the output has reached 0 V.
+        """
         with self._lock:
             self._stopping = True
 
     def enable_output(self) -> None:
-        """Undo stop_output(): commands are applied again (from the output where it is, within
-        the slew limit)."""
+        """
+        Undo stop_output().
+
+        Commands are applied again (from the output where it is, within the slew limit).
+        """
         with self._lock:
             self._stopping = False
 
     @property
     def output_enabled(self) -> bool:
-        """False after stop_output() until enable_output()."""
+        """Return False after stop_output() until enable_output()."""
         return not self._stopping
 
     @property
     def parked(self) -> bool:
-        """True when the output is at 0 V on every axis."""
+        """Return True when the output is at 0 V on every axis."""
         return not np.any(self.limiter.output)
 
     def tick(self, now: float, stamp_ns: int = 0) -> None:
-        """Expire unanswered commands; when the watchdog has tripped, send the next ramp step.
+        """
+        Expire unanswered commands; when the watchdog has tripped, send the next ramp step.
 
         stamp_ns is put in ramp datagrams (there is no command stamp to copy).
         """
@@ -249,7 +264,8 @@ class RigDriver:
 
     # ------------------------------------------------------------------------------ replies
     def receive(self, data: bytes, now: float) -> Sample | None:
-        """Account for one datagram from the target; the Sample to publish, or None.
+        """
+        Account for one datagram from the target; the Sample to publish, or None.
 
         Replies to commands are published even when late (the measurement and its stamp are still
         right); duplicates, unknown sequence numbers, ramp replies and malformed datagrams are not.
@@ -305,7 +321,7 @@ class RigDriver:
 
     # -------------------------------------------------------------------------- diagnostics
     def report(self, now: float) -> tuple[int, str, dict]:
-        """(level, one-line message, {key: value}) for /diagnostics; compares with the last call."""
+        """Return (level, one-line message, {key: value}) for /diagnostics, since the last call."""
         with self._lock:
             self._expire(now)
             c = self.counts
@@ -325,12 +341,12 @@ class RigDriver:
                 answered = delta['replies'] + delta['replies_late']
                 if answered == 0:
                     level = DIAG_ERROR
-                    problems.append(f"target not replying: {delta['reply_timeouts']} reply "
-                                    f"timeouts (> {self.config.reply_timeout:g} s)")
+                    problems.append(f'target not replying: {delta["reply_timeouts"]} reply '
+                                    f'timeouts (> {self.config.reply_timeout:g} s)')
                 else:
                     level = max(level, DIAG_WARN)
-                    problems.append(f"reply timeout: {delta['reply_timeouts']} replies later than "
-                                    f"{self.config.reply_timeout:g} s or lost")
+                    problems.append(f'reply timeout: {delta["reply_timeouts"]} replies later '
+                                    f'than {self.config.reply_timeout:g} s or lost')
             if delta['send_errors']:
                 level = DIAG_ERROR
                 problems.append(f"{delta['send_errors']} datagrams could not be sent")

@@ -1,4 +1,5 @@
-"""A fake real-time target: a UDP server that answers command datagrams with the simulated plant.
+"""
+A fake real-time target: a UDP server that answers command datagrams with the simulated plant.
 
 Each command datagram advances one PiezoCantilever per axis by one step (so the stream is
 deterministic for a seed, whatever the wall-clock timing) and is answered with the measured
@@ -74,7 +75,7 @@ class FakeRig:
         return self.sock.getsockname()
 
     def handle(self, data: bytes) -> bytes | None:
-        """The reply datagram for one received datagram, or None when it is malformed."""
+        """Return the reply datagram for one received datagram, or None when it is malformed."""
         try:
             cmd = protocol.unpack_command(data, self.n_axes)
         except protocol.DatagramError:
@@ -153,7 +154,7 @@ class FakeRig:
 
 def build_parser() -> argparse.ArgumentParser:
     """Command-line options of fake_rig."""
-    p = argparse.ArgumentParser(prog='fake_rig', description=__doc__.split('\n\n')[0])
+    p = argparse.ArgumentParser(prog='fake_rig', description=__doc__.strip().split('\n\n')[0])
     p.add_argument('--host', default='127.0.0.1', help='address to listen on (default 127.0.0.1)')
     p.add_argument('--port', type=int, default=50000, help='UDP port to listen on (default 50000)')
     p.add_argument('--seed', type=int, default=0, help='plant noise seed (axis i uses seed+i)')
@@ -167,7 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Console script: serve until SIGINT/SIGTERM; a bad option or a busy port exits 2, one line."""
+    """Serve until SIGINT/SIGTERM (console script); a bad option or busy port exits 2, one line."""
     args = build_parser().parse_args(argv)
     try:
         if not 0 <= args.port <= 65535:

@@ -1,4 +1,5 @@
-"""Output safety for the rig driver: voltage window, slew-rate limit and a command watchdog.
+"""
+Output safety for the rig driver: voltage window, slew-rate limit and a command watchdog.
 
 The driver applies these itself, whatever the command says, because a controller or a replayed bag
 may send anything; the target should still have its own hardware limits (docs/driver.md).
@@ -13,7 +14,8 @@ from piezo_narx_ros.errors import ConfigError
 
 
 class SlewLimiter:
-    """Clamps each axis to [v_min, v_max] V and its change to max_slew_rate V/s x dt.
+    """
+    Clamps each axis to [v_min, v_max] V and its change to max_slew_rate V/s x dt.
 
     The output starts at v0 (0 V: the amplifier's state at power-up) and moves only through apply()
     or toward(), so the slew limit also holds across a watchdog ramp and its recovery.
@@ -35,7 +37,8 @@ class SlewLimiter:
         self.output = np.full(n_axes, min(max(v0, v_min), v_max), dtype=float)
 
     def apply(self, v_cmd, dt: float) -> tuple[np.ndarray, bool, bool]:
-        """Next output (V, shape (n_axes,)) for command v_cmd after dt s.
+        """
+        Next output (V, shape (n_axes,)) for command v_cmd after dt s.
 
         Returns (output, clamped, slewed): whether the voltage window or the slew limit changed it.
         """
@@ -74,12 +77,13 @@ class Watchdog:
         self._tripped = False
 
     def feed(self, now: float) -> None:
-        """A valid command arrived at time now (s)."""
+        """Note that a valid command arrived at time now (s)."""
         self.last_feed = now
         self._tripped = False
 
     def expired(self, now: float) -> bool:
-        """True once commands have been missing for more than timeout s; counts each trip once.
+        """
+        Return True once commands have been missing for more than timeout s; counts each trip once.
 
         Before the first command it is not expired: the output is already at rest (0 V).
         """

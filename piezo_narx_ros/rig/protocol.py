@@ -1,4 +1,5 @@
-"""UDP datagrams between driver_node and a real-time rig target (docs/driver.md, byte by byte).
+"""
+UDP datagrams between driver_node and a real-time rig target (docs/driver.md, byte by byte).
 
 Every datagram is little-endian and starts with the same 24-byte header, so a target written in C
 can read it with one packed struct (or memcpy per field):
@@ -42,12 +43,13 @@ _F64 = 8
 
 
 class DatagramError(DataError):
-    """A datagram that is not a valid command or reply (bad magic, version, kind, size or value)."""
+    """A datagram that is no valid command or reply (bad magic, version, kind, size or value)."""
 
 
 @dataclass(frozen=True)
 class Command:
     """Driver -> target: volts to output on each axis for the sample stamped stamp_ns."""
+
     seq: int
     stamp_ns: int
     volts: tuple[float, ...]
@@ -57,6 +59,7 @@ class Command:
 @dataclass(frozen=True)
 class Reply:
     """Target -> driver: measured deflection (m) and applied volts (V) per axis for command seq."""
+
     seq: int
     stamp_ns: int
     position_m: tuple[float, ...]
@@ -101,7 +104,7 @@ def pack_command(cmd: Command) -> bytes:
 
 
 def pack_reply(reply: Reply) -> bytes:
-    """Encode a reply datagram; position and applied volts interleave per axis (m, V, m, V, ...)."""
+    """Encode a reply datagram; position and applied volts interleave per axis (m, V, m, V...)."""
     n = len(reply.position_m)
     if len(reply.applied_volts) != n:
         raise DatagramError(f'{n} positions but {len(reply.applied_volts)} applied volts')
