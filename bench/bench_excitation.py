@@ -131,7 +131,7 @@ def score(model, tests):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--quick', action='store_true', help='NARX(4,3,10) only')
     ap.add_argument('--seeds', type=int, nargs='+', default=[0, 2, 4, 6, 8],
                     help='identification seeds (excitation and plant noise)')

@@ -41,7 +41,7 @@ def run_grid(record, jobs):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--samples', type=int, default=50000)
     ap.add_argument('--jobs', type=int, default=2)
     ap.add_argument('--repeats', type=int, default=1)

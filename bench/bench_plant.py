@@ -18,7 +18,7 @@ from piezo_narx_ros.plant import PiezoCantilever, generate, load_plant_params  #
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--seconds', type=float, default=25.0, help='simulated duration per run, s')
     ap.add_argument('--fs', type=float, default=2000.0, help='sample rate, Hz')
     ap.add_argument('--repeats', type=int, default=7)

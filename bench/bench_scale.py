@@ -1,6 +1,9 @@
-"""Scaling of the candidate search: the same search on 1 and 2 local worker processes and on a
-local Ray of the same 2 CPUs, side by side, with the per-task overhead and the data shipping of
-each executor, and an estimate of the wall time with N workers built from those figures.
+"""
+Scaling of the candidate search: local worker processes against Ray on the same 2 CPUs.
+
+The same search on 1 and 2 local worker processes and on a local Ray of the same 2 CPUs, side by
+side, with the per-task overhead and the data shipping of each executor, and an estimate of the
+wall time with N workers built from those figures.
 
 The search is the paper preset (16 NARX networks + 100 ARX, final fit of the winner; 116
 candidate tasks) on 50,000 piezo samples (25,000 estimate, 25,000 validate). Per repeat, in
@@ -57,7 +60,7 @@ class Stamped:
         self.executor = executor
         self.maps = []
 
-    def map(self, fn, tasks, data, done=None):
+    def map(self, fn, tasks, data, done=None):  # noqa: A003 - Executor.map
         stamps, t0 = [], time.perf_counter()
 
         def seen(i, result):
@@ -123,7 +126,7 @@ def shipping(data) -> dict:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--samples', type=int, default=50000)
     ap.add_argument('--repeats', type=int, default=3)
     ap.add_argument('--tasks', type=int, default=1000, help='no-op tasks for the overhead')
@@ -185,7 +188,7 @@ def main(argv=None):
             print(f'weights differ between {first!r} and {run!r}: {", ".join(differ)}')
     print(f'\nsearch: {kinds.count("narx")} NARX + {kinds.count("arx")} ARX = {n_tasks} '
           f'candidate tasks + the final fit; selected {result.best.spec.label}; every '
-          f'candidate\'s weights SHA-256 equal in all {len(digests)} runs: '
+          f"candidate's weights SHA-256 equal in all {len(digests)} runs: "
           f'{len({tuple(d) for d in digests.values()}) == 1}')
     print(f'medians over {args.repeats} repeat(s), wall time of run_experiment:')
     print(f'  local, 1 worker (this process):     {med["local jobs=1"]:7.2f} s')
@@ -227,7 +230,7 @@ def main(argv=None):
     # What Ray adds to this search on 2 workers, from the per-task figures alone (independent
     # of the load on the box): its per-task cost over the pool's on every task, and the put.
     extra = (ray_task - pool_task) * n_tasks / 2 + med['ray put']
-    print(f'Ray\'s own cost in this search from the per-task figures: {1e3 * extra:+.0f} ms on '
+    print(f"Ray's own cost in this search from the per-task figures: {1e3 * extra:+.0f} ms on "
           f'2 workers = {100 * extra / med["local jobs=2"]:+.2f} % of the local wall (plus '
           f'{med["ray start"]:.1f} s to start a local instance, which the pool does not pay; '
           f'the pool pays its own {pool_start:.1f} s start on every search)')
