@@ -265,7 +265,7 @@ def live(model_path: Path, seconds: float, mode: str = 'inverse') -> dict:
     import os
     import sys
     sys.path.insert(0, str(Path(__file__).parent))
-    from bench_live import Probe, cpu_seconds, run_rate, start, stop
+    from bench_live import Probe, cpu_seconds, not_up, run_rate, start, stop
     os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 100))
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     ns, n = '/benchctl', int(round(seconds * FS))
@@ -280,7 +280,7 @@ def live(model_path: Path, seconds: float, mode: str = 'inverse') -> dict:
     try:
         if not probe.spin_until(lambda: probe.subs['voltage_command'].get_publisher_count() >= 1
                                 and probe.subs['deflection'].get_publisher_count() >= 1, 60.0):
-            raise RuntimeError('simulator/controller did not come up')
+            raise not_up('simulator/controller', procs)
         procs['command'] = start('command_node', ns, 'output:=position', 'kind:=sine',
                                  'freq:=1.0', f'amplitude:={AMP}', f'fs:={FS}', 'loop:=false',
                                  f'seconds:={seconds}', 'wait_for_subscribers:=2')

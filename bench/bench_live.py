@@ -130,6 +130,15 @@ def start(module: str, ns: str, *params: str) -> subprocess.Popen:
     return subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
 
+def not_up(what: str, procs: dict) -> RuntimeError:
+    """Build the error for nodes that did not come up: who exited, with what, its last line."""
+    dead = [f'{name} exited {p.returncode}: '
+            f'{(p.stderr.read().strip().splitlines() or ["(no output)"])[-1]}'
+            for name, p in procs.items() if p.poll() is not None]
+    tail = ': ' + ' | '.join(dead) if dead else ' within the timeout (all still running)'
+    return RuntimeError(f'{what} did not come up{tail}')
+
+
 def stop(procs) -> list[int]:
     for p in procs:
         if p.poll() is None:
@@ -165,9 +174,7 @@ def run_rate(fs: float, seconds: float, model_path: Path, publish_period: float,
         ok = probe.spin_until(lambda: all(probe.subs[t].get_publisher_count() >= 1 for t in
                                           ('deflection', 'deflection_estimate')), 60.0)
         if not ok:
-            raise RuntimeError('simulator/estimator did not come up: ' +
-                               ' | '.join(p.stderr.read() for p in procs.values()
-                                          if p.poll() is not None))
+            raise not_up('simulator/estimator', procs)
         probe.spin_until(lambda: False, 0.5)
         procs['command'] = start('command_node', ns, f'fs:={fs}', 'loop:=false',
                                  f'seconds:={seconds}', 'wait_for_subscribers:=3',
