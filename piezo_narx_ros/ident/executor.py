@@ -243,6 +243,32 @@ def _hold_interrupts(caught: list):
         signal.signal(signal.SIGINT, previous)
 
 
+@contextlib.contextmanager
+def _note_interrupts(caught: list):
+    """
+    Inside, SIGINT is recorded in `caught` and then raises as usual (main thread only).
+
+    Ray's compiled calls (wait, get) run their own loops; the record lets the caller see a
+    Ctrl-C even if one of them turned the KeyboardInterrupt into something else.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGINT)
+
+    def handler(signum, frame):
+        caught.append(True)
+        if callable(previous):
+            previous(signum, frame)
+        else:
+            raise KeyboardInterrupt
+    signal.signal(signal.SIGINT, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 _AUTH_LOGGER = 'ray._private.authentication.authentication_token_setup'
 
 
@@ -392,12 +418,15 @@ class RayExecutor(Executor):
                             retry_exceptions=False)(_ray_call)
         pending = {remote.remote(fn, payload, refs[key]): i
                    for i, (key, payload) in enumerate(tasks)}
-        results = [None] * len(tasks)
+        results, interrupted = [None] * len(tasks), []
         try:
-            while pending:
-                ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=0.2)
-                for ref in ready:
-                    _report(results, pending.pop(ref), self._get(ray, ref), done)
+            with _note_interrupts(interrupted):
+                while pending and not interrupted:
+                    ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=0.2)
+                    for ref in ready:
+                        _report(results, pending.pop(ref), self._get(ray, ref), done)
+                if interrupted:
+                    raise KeyboardInterrupt
         except BaseException:
             self._cancel(ray, pending)
             raise
