@@ -274,6 +274,16 @@ def _cmdline(pid: int) -> str:
         return ''
 
 
+def _terminal_sigint():
+    """
+    Give the child SIGINT as a terminal does.
+
+    A suite started in the background (nohup, `&` in a script) runs with SIGINT ignored, and an
+    ignored SIGINT is inherited and respected (tested below).
+    """
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.parametrize('whom, when', [('group', 'ray::_ray_call'), ('driver', 'ray::_ray_call'),
                                         ('driver', 'gcs_server')])
 def test_ctrl_c_stops_the_local_ray_cleanly(tmp_path, whom, when):
@@ -289,7 +299,8 @@ def test_ctrl_c_stops_the_local_ray_cleanly(tmp_path, whom, when):
         [sys.executable, '-m', 'piezo_narx_ros.cli.main', 'fit', str(tmp_path / 'r.npz'),
          '--executor', 'ray', '--jobs', '2', '--ny', '1-4', '--nu', '1-4', '--no-report',
          '--out', str(tmp_path / 'out')],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        preexec_fn=_terminal_sigint)
     family = set()
     try:
         deadline = time.monotonic() + 120
@@ -426,3 +437,27 @@ def test_without_address_a_local_ray_is_started_and_stopped(tmp_path):
         time.sleep(0.5)
     assert not [p for p in family if _alive(p)], 'the local Ray outlived the command'
     assert (tmp_path / 'o' / 'model.json').is_file()
+
+
+def test_an_ignored_sigint_stays_ignored_by_the_ray_search():
+    """A fit started with SIGINT ignored (nohup, a background job) is not stopped by one."""
+    from piezo_narx_ros.ident import executor
+    caught = []
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        for hold in (executor._hold_interrupts, executor._note_interrupts):
+            with hold(caught):
+                assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.05)
+        assert caught == []
+        # Python's default disposition (a terminal's): recorded and raised.
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        with executor._note_interrupts(caught):
+            with pytest.raises(KeyboardInterrupt):
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(1.0)
+        assert caught == [True]
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, previous)

@@ -233,8 +233,9 @@ def _has_token() -> bool:
 @contextlib.contextmanager
 def _hold_interrupts(caught: list):
     """Inside, SIGINT only appends to `caught` (main thread only; elsewhere nothing changes)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        yield          # ignored SIGINT (nohup, a background job) stays ignored
         return
     previous = signal.signal(signal.SIGINT, lambda *_: caught.append(True))
     try:
@@ -251,10 +252,11 @@ def _note_interrupts(caught: list):
     Ray's compiled calls (wait, get) run their own loops; the record lets the caller see a
     Ctrl-C even if one of them turned the KeyboardInterrupt into something else.
     """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
     previous = signal.getsignal(signal.SIGINT)
+    if threading.current_thread() is not threading.main_thread() or \
+            previous is signal.SIG_IGN:
+        yield          # ignored SIGINT (nohup, a background job) stays ignored
+        return
 
     def handler(signum, frame):
         caught.append(True)
