@@ -202,3 +202,262 @@ def test_requested_restart_from_rest_and_from_measurement(model):
     rest_only = FreeRunEstimator(model, init='rest')
     with pytest.raises(ConfigError, match="init is 'rest'"):
         rest_only.request_restart(from_measurement=True)
+
+
+# ------------------------------------------------------------------ exact behaviour, small cases
+
+class _Echo:
+    """A stand-in model whose estimate is the (held) command itself, y(k) = u(k)."""
+
+    nu, ny, n0, fs = 0, 1, 1, 2000.0
+    output_range = (-1.0, 1.0)
+
+    def stepper(self, u_past=None, y_past=None):
+        return _EchoStepper()
+
+
+class _EchoStepper:
+
+    def step(self, u):
+        return float(u)
+
+    def reset(self, u_past=None, y_past=None):
+        pass
+
+
+def _ys(out):
+    return [y for _, y in out]
+
+
+def test_configuration_limits_are_inclusive_and_each_bad_value_refused(model):
+    est = FreeRunEstimator(model, fs=0.5, max_fill=0, window=2, reanchor_every=0,
+                           init_timeout=0.0, confirm=1)
+    assert est.fs == 0.5 and est.period_ns == 2e9
+    for bad in ({'fs': -2000.0}, {'fs': math.inf}, {'u_min': 1.0, 'u_max': 1.0},
+                {'max_fill': -1}, {'window': 1}, {'reanchor_every': -1}, {'init_timeout': -0.1},
+                {'confirm': 0}):
+        with pytest.raises(ConfigError):
+            FreeRunEstimator(model, **bad)
+
+    class NoRate:                      # no fs attribute at all, and none given
+        nu, ny, n0 = 1, 1, 1
+
+        def stepper(self):
+            pass
+    with pytest.raises(ConfigError, match='sample rate unknown'):
+        FreeRunEstimator(NoRate())
+
+
+def test_defaults_are_the_estimator_nodes():
+    # One set of defaults: the class used as a library behaves as the node started without
+    # parameters.
+    import inspect
+
+    from piezo_narx_ros.nodes.estimator_node import EstimatorNode
+    node = {spec.name: spec.default for spec in EstimatorNode.PARAMS}
+    sig = inspect.signature(FreeRunEstimator).parameters
+    shared = ('init', 'u_min', 'u_max', 'max_fill', 'range_margin', 'window', 'reanchor_every',
+              'init_timeout')
+    assert {k: sig[k].default for k in shared} == {k: node[k] for k in shared}
+
+
+def test_command_limits_are_inclusive_and_rejections_counted():
+    est = FreeRunEstimator(_Echo(), init='rest', u_min=-1.0, u_max=1.0)
+    out = _feed(est, [-1.0, 1.0, 1.5, -2.0, math.nan, 0.5])
+    assert _ys(out) == [-1.0, 1.0, 1.0, 1.0, 1.0, 0.5]       # rejected ones hold the last
+    s = est.stats
+    assert (s.rejected_range, s.rejected_nonfinite, s.filled) == (2, 1, 3)
+
+
+def test_a_bad_first_command_is_held_at_rest_also_after_a_restart():
+    est = FreeRunEstimator(_Echo(), init='rest')
+    assert _ys(est.on_command(0, math.nan)) == [0.0]
+    est.on_command(P, 0.5)
+    est.restart()
+    assert _ys(est.on_command(2 * P, math.nan)) == [0.0]      # not the 0.5 of the last run
+
+
+def test_output_range_flag_boundaries_and_excursion():
+    est = FreeRunEstimator(_Echo(), init='rest', u_min=-10.0, u_max=10.0, range_margin=0.1)
+    assert (est.y_lo, est.y_hi) == (pytest.approx(-1.2), pytest.approx(1.2))
+    _feed(est, [est.y_hi, est.y_lo])                          # on the limits: not flagged
+    assert est.stats.out_of_range == 0 and not est.out_of_range_now
+    _feed(est, [1.5, -2.0, 1.3], t0=2 * P)
+    assert est.stats.out_of_range == 3 and est.out_of_range_now
+    assert est.take_excursion() == pytest.approx(0.8)         # -2.0 is 0.8 below -1.2
+    assert est.take_excursion() == 0.0                        # reset by reading it
+    _feed(est, [1.7], t0=5 * P)
+    assert est.take_excursion() == pytest.approx(0.5)         # above: 1.7 - 1.2
+    est.restart()
+    assert not est.out_of_range_now and est.stats.init == 'waiting'
+
+
+def test_a_model_without_a_trained_range_flags_nothing():
+    class Unranged:
+        nu, ny, n0, fs = 0, 1, 1, 2000.0
+        stepper = _Echo.stepper
+    est = FreeRunEstimator(Unranged(), init='rest', u_min=-1e12, u_max=1e12)
+    _feed(est, [1e9, -1e9])
+    assert est.stats.out_of_range == 0 and est.take_excursion() == 0.0
+
+
+def test_confirm_sets_how_many_commands_make_a_new_stream():
+    # A jump is held until a second command continues it: with confirm <= 2 that pair is a new
+    # stream at once, with the default 3 it waits for a third.
+    for confirm, held in ((1, 0), (3, 2)):
+        est = FreeRunEstimator(_Echo(), init='rest', max_fill=10, confirm=confirm)
+        est.on_command(0, 0.1)
+        out = est.on_command(1000 * P, 0.2) + est.on_command(1001 * P, 0.3)
+        assert est.holding == held and len(out) == 2 - held
+
+
+def test_initial_measurement_timeout_is_counted_in_samples():
+    est = FreeRunEstimator(_Echo(), init='measurement', init_timeout=0.005)    # 10 samples
+    out = _feed(est, [0.1] * 9)
+    assert out == [] and est.stats.init == 'waiting'
+    out = est.on_command(9 * P, 0.2)
+    assert out == [(k * P, 0.1) for k in range(9)] + [(9 * P, 0.2)]
+    assert est.stats.init == 'rest (no measurement)'
+
+
+def test_measurements_before_their_commands_initialise_at_the_n0th_command(model):
+    u = _u(50, 12)
+    y_meas = model.simulate(u) + 2e-8
+    est = FreeRunEstimator(model, init='measurement')
+    out = []
+    for k in range(50):
+        out += est.on_measurement(k * P, float(y_meas[k]))
+        out += est.on_command(k * P, float(u[k]))
+    assert [t for t, _ in out] == [k * P for k in range(50)]
+    assert np.max(np.abs(np.array(_ys(out)) - model.simulate(u, y_meas[:model.n0]))) <= 1e-12
+
+
+def test_measurements_lagging_their_commands_release_the_held_estimates(model):
+    # The sensor's first samples arrive after several commands: the measurement that completes
+    # the first n0 releases every command held so far, in order.
+    u = _u(60, 13)
+    y_meas = model.simulate(u) + 2e-8
+    est = FreeRunEstimator(model, init='measurement')
+    assert _feed(est, u[:8]) == []
+    out = []
+    for k in range(model.n0):
+        out += est.on_measurement(k * P, float(y_meas[k]))
+    assert [t for t, _ in out] == [k * P for k in range(8)]
+    out += _feed(est, u[8:], t0=8 * P)
+    ref = model.simulate(u, y_meas[:model.n0])
+    assert np.max(np.abs(np.array(_ys(out)) - ref)) <= 1e-12
+
+
+def test_commands_without_measurement_are_counted_over_every_initialisation(model):
+    u = _u(40, 14)
+    y_meas = model.simulate(u)
+    est = FreeRunEstimator(model, init='measurement')
+    for k in range(20):
+        est.on_command(k * P, float(u[k]))
+        if k >= 2:                                      # the first 2 never measured
+            est.on_measurement(k * P, float(y_meas[k]))
+    assert est.stats.unestimated == 2
+    est.request_restart(from_measurement=True)
+    for k in range(20, 40):
+        est.on_command(k * P, float(u[k]))
+        if k >= 23:                                     # 3 more lost after the restart
+            est.on_measurement(k * P, float(y_meas[k]))
+    assert est.stats.unestimated == 5 and est.stats.init == 'measurement'
+
+
+def test_how_each_init_mode_decides():
+    # auto: the first command decides (rest) unless start() came first, and start() after it is
+    # ignored; measurement: start() never changes it; rest: never waits, whatever is asked.
+    auto = FreeRunEstimator(_Echo(), init='auto')
+    assert _ys(auto.on_command(0, 0.3)) == [0.3]
+    auto.start(measurement_available=True)                   # too late: ignored
+    assert _ys(auto.on_command(P, 0.4)) == [0.4]
+    meas = FreeRunEstimator(_Echo(), init='measurement')
+    meas.start(measurement_available=False)                  # not 'auto': ignored
+    assert meas.on_command(0, 0.3) == []
+    rest = FreeRunEstimator(_Echo(), init='rest')
+    rest.restart(wait_for_measurement=True)
+    assert _ys(rest.on_command(0, 0.3)) == [0.3]
+    from_rest = FreeRunEstimator(_Echo(), init='measurement')
+    from_rest.restart(wait_for_measurement=False)
+    assert _ys(from_rest.on_command(0, 0.3)) == [0.3] and from_rest.stats.init == 'rest'
+
+
+@pytest.mark.parametrize('sensor', [True, False])
+def test_a_new_stream_initialises_as_the_first_did(model, sensor):
+    # An 'auto' estimator told whether a sensor exists keeps that choice for a new stream (a
+    # player loop, a new run): from the measured outputs again, or from rest at once. Before,
+    # the choice was forgotten at the new stream: with a sensor the estimator went on from rest
+    # and never published the commands held while the new stream was confirmed.
+    u = _u(40, 15)
+    y_meas = model.simulate(u) + 1e-8
+    est = FreeRunEstimator(model, init='auto', max_fill=10, confirm=1)
+    est.start(measurement_available=sensor)
+    _feed(est, u[:20], meas=y_meas[:20] if sensor else None)
+    t1 = 10_000 * P                                            # far beyond max_fill
+    out = _feed(est, u[20:], t0=t1, meas=y_meas[20:] if sensor else None)
+    assert est.stats.stream_restarts == 1
+    assert [t for t, _ in out] == [t1 + k * P for k in range(20)]
+    ref = model.simulate(u[20:], y_meas[20:20 + model.n0] if sensor else None)
+    assert np.max(np.abs(np.array(_ys(out)) - ref)) <= 1e-12
+    assert est.stats.init == ('measurement' if sensor else 'rest')
+
+
+def test_running_error_from_two_samples_over_the_last_window_exactly():
+    est = FreeRunEstimator(_Echo(), init='rest', window=3, u_min=-10.0, u_max=10.0)
+    est.on_command(0, 0.0)
+    est.on_measurement(0, 0.5)
+    assert math.isnan(est.running_error()[0])                 # one sample: too few
+    y_meas = [0.5, 1.0, 3.0, 2.0]
+    u = [0.0, 1.5, 2.0, 2.5]
+    for k in range(1, 4):
+        est.on_command(k * P, u[k])
+        est.on_measurement(k * P, y_meas[k])
+        if k == 1:
+            rms, r2, n = est.running_error()
+            assert n == 2 and rms == pytest.approx(math.sqrt((0.25 + 0.25) / 2))
+            assert r2 == pytest.approx(1 - 0.5 / 0.125)
+    e = np.subtract(y_meas[1:], u[1:])                        # the last 3 only
+    y = np.array(y_meas[1:])
+    rms, r2, n = est.running_error()
+    assert n == 3 and rms == pytest.approx(np.sqrt(np.mean(e ** 2)))
+    assert r2 == pytest.approx(1 - np.sum(e ** 2) / np.sum((y - y.mean()) ** 2))
+    flat = FreeRunEstimator(_Echo(), init='rest')
+    _feed(flat, [0.1, 0.2], meas=[0.3, 0.3])                  # constant measurement: no R²
+    rms, r2, n = flat.running_error()
+    assert n == 2 and rms == pytest.approx(math.sqrt((0.04 + 0.01) / 2)) and math.isnan(r2)
+
+
+def test_reanchoring_schedule_and_state_equal_an_offline_free_run():
+    # Every `reanchor_every` estimates (retrying at every sample while the measured outputs are
+    # not there), the recursion restarts from the measured outputs before the newest sample and
+    # re-steps that sample: later estimates are the offline free run from those measurements.
+    from piezo_narx_ros.ident.arx import ARXModel
+    m = ARXModel(na=2, nb=2).set_coefficients(a=[-1.2, 0.5], b=[1e-8, 5e-9, -2e-9])
+    m.fs, m.output_range = 2000.0, (-1e-3, 1e-3)
+    n, every, first_measured = 80, 7, 10
+    u = _u(n, 16)
+    y_meas = m.simulate(u) + 4e-8 * np.sin(np.arange(n) / 5.0)   # the plant is not the model
+    est = FreeRunEstimator(m, init='rest', reanchor_every=every)
+    out = []
+    for k in range(n):
+        out += est.on_command(k * P, float(u[k]))
+        if k >= first_measured:
+            est.on_measurement(k * P, float(y_meas[k]))
+    anchors, since = [], 0                  # the documented schedule, sample by sample
+    for k in range(n):
+        since += 1
+        measured = all(j >= first_measured for j in range(k - m.ny, k))
+        if since >= every and measured:
+            anchors.append(k)
+            since = 0
+    assert est.stats.reanchors == len(anchors) == 10 and anchors[0] == 12
+    for k in range(n):
+        before = [a for a in anchors if a < k]
+        if not before:
+            ref = m.simulate(u[:k + 1])[-1]
+        else:
+            a = before[-1]
+            ref = m.simulate(u[a - m.n0:k + 1], y_meas[a - m.n0:a])[-1]
+        assert out[k][1] == pytest.approx(ref, abs=1e-18, rel=1e-12), k
+    FreeRunEstimator(m, init='rest', reanchor_every=1000)    # a long interval is a valid one

@@ -206,7 +206,11 @@ class FreeRunEstimator:
                 self._accept(t, item, out)
             else:   # RESTART: item lists the new stream's stamps seen so far
                 keep = {s: self._meas[s] for s in item if s in self._meas}
+                decided = self._decided
                 self._new_run(self._wait)
+                # A new stream keeps the decision of an 'auto' estimator (sensor or not): the
+                # node tells it only before the first command.
+                self._decided = decided
                 self._meas.update(keep)      # its measurements that arrived while it was held
         self.stats.stamp_outliers = self.gate.outliers
         self.stats.stream_restarts = self.gate.restarts
