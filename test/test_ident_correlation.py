@@ -35,10 +35,91 @@ def test_cross_correlation_matches_direct_sum():
     lags, vals = cross_correlation(a, b, 6)
     a0, b0 = a - a.mean(), b - b.mean()
     den = np.sqrt(np.sum(a0 ** 2) * np.sum(b0 ** 2))
+    np.testing.assert_array_equal(lags, np.arange(-6, 7))
     for tau, v in zip(lags, vals):
         direct = sum(a0[k - tau] * b0[k] for k in range(300) if 0 <= k - tau < 300) / den
         assert v == pytest.approx(direct, abs=1e-12)
     assert lags[np.argmax(vals)] == 3      # b follows a by 3 samples
+
+
+def test_correlations_are_computed_in_double_whatever_the_input_type():
+    # float32 residuals (a model run in single precision) and integer inputs give the values of
+    # their float64 equivalents: the FFTs run in double, not in the input's precision.
+    rng = np.random.default_rng(5)
+    e = rng.standard_normal(3000).astype(np.float32)
+    u = rng.integers(-100, 100, 3000)
+    ref = correlation_tests(e.astype(np.float64), u.astype(np.float64), max_lag=10)
+    got = correlation_tests(e, u, max_lag=10)
+    for name in TEST_NAMES:
+        np.testing.assert_allclose(got.tests[name].values, ref.tests[name].values, rtol=0,
+                                   atol=1e-13, err_msg=name)
+    _, ref_cc = cross_correlation(e.astype(np.float64), u.astype(np.float64), 5)
+    np.testing.assert_allclose(cross_correlation(e, u, 5)[1], ref_cc, rtol=0, atol=1e-13)
+
+
+def test_unit_energy_and_overflowing_sequences():
+    # Normalised by sqrt(energy a * energy b): a pair of unit-energy sequences is an ordinary case
+    # (lag 0 of a with itself is exactly 1); energies that overflow leave the correlation
+    # undefined (NaN), never a silent 0.
+    a = np.array([1.0, -1.0, 1.0, -1.0]) / 2.0
+    lags, vals = cross_correlation(a, a, 1)
+    assert vals[lags == 0][0] == pytest.approx(1.0, abs=1e-15)
+    assert vals[lags == 1][0] == pytest.approx(-0.75, abs=1e-15)
+    huge = np.array([1e200, -1e200, 3e200, -2e200])
+    with np.errstate(over='ignore'):    # the energy overflows: that is the case
+        assert np.all(np.isnan(cross_correlation(huge, huge, 1)[1]))
+
+
+def test_rest_periods_and_exact_zeros_keep_the_tests_defined(recwarn):
+    # A record whose input rests at 0 V and whose residual is exactly 0 over the copied start-up
+    # samples (simulate copies y0) is an ordinary record: every test is defined, and a constant
+    # sequence is undefined quietly (NaN, no numpy warning).
+    rng = np.random.default_rng(6)
+    u = rng.uniform(-1, 1, 2000)
+    u[:300] = 0.0
+    e = rng.standard_normal(2000)
+    e[:4] = 0.0
+    res = correlation_tests(e, u)
+    assert all(np.all(np.isfinite(t.values)) for t in res.tests.values())
+    correlation_tests(e, np.ones(2000))
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
+
+
+def test_smallest_lag_and_record_length_accepted():
+    # max_lag >= 1 and N >= 4 max_lag, both boundaries included (and one sample fewer refused).
+    rng = np.random.default_rng(8)
+    e, u = rng.standard_normal(40), rng.standard_normal(40)
+    assert correlation_tests(e, u, max_lag=1).tests['phi_ee'].lags.tolist() == [0, 1]
+    assert correlation_tests(e, u, max_lag=10).n == 40
+    with pytest.raises(DataError, match='too few'):
+        correlation_tests(e[:39], u[:39], max_lag=10)
+
+
+def test_result_describes_itself_for_metrics_json():
+    # The document written to metrics.json (and model files): every figure under its key, NaN
+    # values as null, and with_values=False keeping the verdicts and counts only.
+    rng = np.random.default_rng(9)
+    n, L = 500, 7
+    e, u = rng.standard_normal(n), rng.standard_normal(n)
+    strict = correlation_tests(e, u, max_lag=L, max_outside_fraction=0.0)
+    assert strict.hard_band == strict.band == pytest.approx(1.96 / np.sqrt(n))
+    res = correlation_tests(e, u, max_lag=L, max_outside_fraction=0.1)
+    assert res.hard_band == pytest.approx(3.29 / np.sqrt(n))
+    doc = json.loads(json.dumps(res.to_dict()))
+    assert doc == {'n': n, 'band': res.band, 'hard_band': res.hard_band, 'max_lag': L,
+                   'max_outside_fraction': 0.1, 'passed': res.passed,
+                   'tests': doc['tests']}
+    assert set(doc['tests']) == set(TEST_NAMES)
+    for name, t in res.tests.items():
+        assert t.name == name
+        assert doc['tests'][name] == {'lags': t.lags.tolist(), 'values': t.values.tolist(),
+                                      'n_tested': t.n_tested, 'n_outside': t.n_outside,
+                                      'passed': t.passed}
+    short = res.to_dict(with_values=False)['tests']
+    assert short['phi_ue'] == {k: doc['tests']['phi_ue'][k]
+                               for k in ('n_tested', 'n_outside', 'passed')}
+    undefined = correlation_tests(e, np.ones(n)).to_dict()['tests']['phi_ue']['values']
+    assert undefined == [None] * (2 * 20 + 1)
 
 
 def test_band_is_calibrated_for_white_residuals():
@@ -360,6 +441,7 @@ def test_noise_model_round_trips_through_its_json_description():
     nm = fit_ar_noise_model((y - _true_one_step(u, y))[1:], 10)
     back = ARNoiseModel.from_dict(json.loads(json.dumps(nm.to_dict())))
     np.testing.assert_array_equal(back.coef, nm.coef)
+    assert (back.residual_std, back.input_std) == (nm.residual_std, nm.input_std)
     x = np.random.default_rng(0).standard_normal(100)
     np.testing.assert_array_equal(back.whiten(x), nm.whiten(x))
     for bad in ({**nm.to_dict(), 'order': nm.order + 1}, {**nm.to_dict(), 'coef': ['os']},
@@ -378,3 +460,85 @@ def test_noise_model_round_trips_through_its_json_description():
 def test_noise_model_bad_input_raises(e, kwargs, match):
     with pytest.raises(DataError, match=match):
         fit_ar_noise_model(e, **kwargs)
+
+
+def _ar_residual(n, coef, seed, scale=1.0):
+    w = np.random.default_rng(seed).standard_normal(n)
+    return scale * lfilter([1.0], np.r_[1.0, -np.asarray(coef)], w)
+
+
+def test_noise_model_order_and_fit_by_the_criterion_definition():
+    # The chosen order minimises n log(rss_p / n) + p * penalty over p = 0..max_order, every
+    # order's rss from least squares on the same samples k >= max_order (mean removed first);
+    # penalty log n (BIC) or 2 (AIC). Checked against numpy's lstsq on weakly coloured residuals,
+    # where the two criteria often disagree.
+    max_order, differ = 6, 0
+    for seed in range(12):
+        e = _ar_residual(600, [0.3, 0.0, 0.12], seed) + 5.0     # an offset, removed first
+        ec = e - e.mean()
+        t = ec[max_order:]
+        X = np.column_stack([ec[max_order - j:ec.size - j] for j in range(1, max_order + 1)])
+        rss = [float(t @ t)] + [float(np.sum((t - X[:, :p] @ np.linalg.lstsq(
+            X[:, :p], t, rcond=None)[0]) ** 2)) for p in range(1, max_order + 1)]
+        chosen = {}
+        for criterion, penalty in (('bic', np.log(t.size)), ('aic', 2.0)):
+            nm = fit_ar_noise_model(e, max_order, criterion=criterion)
+            score = [t.size * np.log(r / t.size) + p * penalty for p, r in enumerate(rss)]
+            assert nm.order == int(np.argmin(score)), (seed, criterion)
+            if nm.order:
+                want = np.linalg.lstsq(X[:, :nm.order], t, rcond=None)[0]
+                np.testing.assert_allclose(nm.coef, want, rtol=1e-9, atol=1e-12)
+            innov = t - X[:, :nm.order] @ nm.coef
+            assert nm.residual_std == pytest.approx(np.std(innov), rel=1e-9)
+            assert nm.input_std == pytest.approx(np.std(ec), rel=1e-12)
+            chosen[criterion] = nm.order
+        differ += chosen['aic'] != chosen['bic']
+    assert differ >= 2    # the criteria were told apart, not just both run
+
+
+def test_noise_model_does_not_depend_on_the_unit_or_the_input_type():
+    # Residuals in metres (1e-8) or in any unit give the same order and coefficients; float32
+    # residuals are fitted and whitened in double.
+    e = _ar_residual(2000, [0.6, -0.2], seed=4)
+    ref = fit_ar_noise_model(e, 10)
+    assert ref.order == 2
+    for scaled in (1e-8 * e, 1e6 * e):
+        nm = fit_ar_noise_model(scaled, 10)
+        assert nm.order == ref.order
+        np.testing.assert_allclose(nm.coef, ref.coef, rtol=1e-9)
+    e32 = e.astype(np.float32)
+    nm32 = fit_ar_noise_model(e32, 10)
+    ref32 = fit_ar_noise_model(e32.astype(np.float64), 10)
+    np.testing.assert_allclose(nm32.coef, ref32.coef, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(ref.whiten(e32), ref.whiten(e32.astype(np.float64)), rtol=0,
+                               atol=1e-13)
+
+
+def test_noise_model_of_a_constant_residual_is_no_filter_without_warnings(recwarn):
+    # A perfect model leaves a constant residual: order 0, zero stds, and no numpy warning
+    # (the singular Gram matrix and log(0) are expected there).
+    nm = fit_ar_noise_model(np.full(500, 3e-9), 20)
+    assert nm.order == 0 and nm.residual_std == 0.0 and nm.input_std == 0.0
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
+
+
+def test_noise_model_order_limits_and_record_length():
+    e = _ar_residual(300, [0.5], seed=1)
+    nm = fit_ar_noise_model(e, max_order=0)               # no filter asked for
+    assert nm.order == 0
+    np.testing.assert_array_equal(nm.whiten(e), e)
+    fit_ar_noise_model(e[:210])                           # default max_order 20: 10 x 21 samples
+    with pytest.raises(DataError, match='too few'):
+        fit_ar_noise_model(e[:209])
+    fit_ar_noise_model(e[:40], max_order=3)               # exactly 10 x (max_order + 1)
+    with pytest.raises(DataError, match='too few'):
+        fit_ar_noise_model(e[:39], max_order=3)
+    assert fit_ar_noise_model(e, criterion='aic').order >= 1
+
+
+def test_whitening_needs_a_1d_residual_longer_than_the_order():
+    nm = ARNoiseModel(coef=np.array([0.5, 0.25]), residual_std=1.0, input_std=1.0)
+    np.testing.assert_array_equal(nm.whiten([1.0, 2.0, 4.0]), [4.0 - 1.0 - 0.25])
+    for bad in (np.ones(2), np.ones((3, 3))):
+        with pytest.raises(DataError, match='longer than its order 2'):
+            nm.whiten(bad)
