@@ -7,7 +7,8 @@ a bag with the same defects.
 import numpy as np
 import pytest
 
-from piezo_narx_ros.bag.pairing import clean_stream, pair_by_stamp, sample_clock
+from piezo_narx_ros.bag.pairing import (PairingReport, StreamCheck, clean_stream, pair_by_stamp,
+                                        sample_clock)
 from piezo_narx_ros.bag.reader import BagWarning, read_uy, read_uy_report
 from piezo_narx_ros.bag.writer import JOINT_STATE, BagWriter, joint_state_cdr
 from piezo_narx_ros.errors import BagError
@@ -27,6 +28,69 @@ def test_clean_stream_sorts_and_drops_repeats_keeping_the_first():
     np.testing.assert_array_equal(s2, np.arange(5) * T)
     np.testing.assert_array_equal(v2, [0, 1, 2, 3, 4])
     assert (check.reordered, check.duplicates, check.conflicting) == (1, 2, 1)
+
+
+def test_clean_stream_of_nothing_and_repeats_with_nan():
+    s, v, check = clean_stream(np.array([], dtype=np.int64), np.array([]))
+    assert s.size == v.size == 0 and check == StreamCheck()
+    # A repeat is conflicting when its value differs from the kept one; NaN repeating NaN is the
+    # same value, a number repeating NaN (or NaN a number) is not.
+    s, v, check = clean_stream(np.array([1, 1, 2, 2, 3, 3]) * T,
+                               np.array([np.nan, np.nan, np.nan, 5.0, 6.0, np.nan]))
+    assert (check.duplicates, check.conflicting) == (3, 2)
+    np.testing.assert_array_equal(v, [np.nan, np.nan, 6.0])
+
+
+def test_sample_clock_rate_gaps_and_jitter():
+    fs, gaps, jitter = sample_clock(np.array([0, 1000, 2100, 3000]))
+    assert (fs, gaps) == (1e6, []) and jitter == pytest.approx(0.1)
+    # exactly 1.5 periods is jitter; beyond, a gap of round(d / T) - 1 samples
+    assert sample_clock(np.array([0, 1000, 2500, 3500]))[1:] == ([], 0.5)
+    assert sample_clock(np.array([0, 1000, 3000, 4000]))[1] == [(pytest.approx(1e-6), 1)]
+    # every period a gap of the given nominal one (every other sample lost): no jitter to measure
+    assert sample_clock(np.array([0, 2, 4]), period_ns=1) == (1e9, [(0.0, 1), (2e-9, 1)], 0.0)
+    with pytest.raises(BagError, match='at least 2 samples'):
+        sample_clock(np.array([5]))
+    with pytest.raises(BagError, match='do not increase'):
+        sample_clock(np.array([7, 7, 7]))
+
+
+def test_pairing_needs_two_matching_stamps_and_names_the_empty_stream():
+    t, u, y, rep = pair_by_stamp(_stamps(2), [1.0, 2.0], _stamps(2), [3.0, 4.0])
+    assert t.tolist() == _stamps(2).tolist() and rep.paired == 2 and rep.fs == 2000.0
+    for tu, ty, match in ((_stamps(0), _stamps(5), 'no command samples'),
+                          (_stamps(5), _stamps(0), 'no deflection samples'),
+                          (_stamps(1), _stamps(5), 'only 1 command/deflection stamp')):
+        with pytest.raises(BagError, match=match):
+            pair_by_stamp(tu, np.ones(tu.size), ty, np.ones(ty.size))
+
+
+def test_issue_lines_read_as_documented():
+    # The lines `bag info`, `fit` and read_uy print: each finding with its figures.
+    rep = PairingReport(command=StreamCheck(received=1000, malformed=2, reordered=3),
+                        deflection=StreamCheck(received=990, duplicates=4, conflicting=1),
+                        command_samples=1000, dropped_deflection=5, interior_unmatched=7,
+                        head_trimmed=25, tail_trimmed=30, fs=2000.0,
+                        gaps=[(0.25, 3), (0.5, 2)], jitter=0.0625)
+    assert rep.issues() == [
+        'command: 2 message(s) without the expected value, dropped',
+        'command: 3 message(s) arrived out of stamp order, sorted',
+        'deflection: 4 duplicate stamp(s) dropped (1 with a different value)',
+        'deflection misses 5 of 1000 command samples inside the record (0.5 %); the record keeps '
+        'the command rate 2000 Hz and has gaps there',
+        '2 deflection sample(s) inside the record have no command with the same stamp, dropped',
+        'deflection starts 0.0125 s (25 command samples) after the command stream: the record '
+        'is trimmed to the paired part',
+        'deflection ends 0.015 s (30 command samples) before the command stream: the record is '
+        'trimmed to the paired part',
+        '2 gap(s), 5 missing sample(s) in the paired record (first at t=0.25 s, 3 missing): '
+        'lagged regressors across a gap join non-adjacent samples',
+        'irregular sample rate: periods deviate by up to 6.25% from 1/fs (fs = 2000 Hz)']
+    # at the limits nothing is said: 20 trimmed samples (or 1 % of the stream), jitter 5 %,
+    # duplicates that repeat the same value say so without a count of conflicts
+    quiet = PairingReport(deflection=StreamCheck(duplicates=2), command_samples=3000,
+                          head_trimmed=30, tail_trimmed=20, fs=2000.0, jitter=0.05)
+    assert quiet.issues() == ['deflection: 2 duplicate stamp(s) dropped']
 
 
 def test_clean_pairing_has_no_issues():
