@@ -229,6 +229,67 @@ def test_narx_rejects_bad_construction_and_unfitted_use():
         NARXNetwork(**FAST).fit(np.arange(500.0), np.arange(500.0), u_val=np.arange(50.0))
 
 
+def test_narx_defaults_and_option_limits():
+    m = NARXNetwork()
+    assert (m.nu, m.ny, m.hidden, m.seed, m.n0) == (4, 4, 10, 0, 4)   # the paper's 4/4/10
+    assert m.training_info_ == {}
+    assert NARXNetwork(hidden=1).hidden == 1
+    for ok in (0.0, 0.5):
+        assert NARXNetwork(val_fraction=ok).training_options['val_fraction'] == ok
+    for bad in ({'restarts': True}, {'val_fraction': False}, {'val_fraction': 0.51},
+                {'max_iter': 2.0}):
+        with pytest.raises(ConfigError, match='training option'):
+            NARXNetwork(**bad)
+
+
+def test_narx_weights_are_checked_one_by_one():
+    H, good = 3, {'W1': np.zeros((3, 4)), 'b1': np.zeros(3), 'w2': np.zeros(3), 'b2': 0.5,
+                  'normalisation': (0.0, 1.0, 0.0, 1.0)}
+    m = NARXNetwork(1, 2, H).set_weights(**good)
+    assert m.b2 == 0.5
+    for name, value, match in (('b1', np.zeros(4), 'b1'), ('w2', np.zeros(2), 'w2'),
+                               ('b2', np.zeros(2), 'b2 size 2'),
+                               ('normalisation', (0.0, 0.0, 0.0, 1.0), 'u_std > 0'),
+                               ('normalisation', (0.0, 1.0, 0.0, 0.0), 'y_std > 0')):
+        with pytest.raises(DataError, match=match):
+            NARXNetwork(1, 2, H).set_weights(**{**good, name: value})
+    for name in ('W1', 'b1', 'w2', 'normalisation'):
+        bad = np.array(good[name], dtype=float)
+        bad.flat[-1] = np.nan
+        with pytest.raises(DataError, match=f'NARX weight {name} contains NaN'):
+            NARXNetwork(1, 2, H).set_weights(**{**good, name: bad})
+
+
+def test_narx_fit_record_length_several_records_and_validation_scores():
+    u, y = piezo_like(4000, seed=5)
+    n0 = 2
+    with pytest.raises(DataError, match='need at least 22'):
+        NARXNetwork(2, 2, 3, **FAST).fit(u[:21], y[:21])
+    NARXNetwork(2, 2, 3, **FAST).fit(u[:22], y[:22])                 # n0 + 20 samples
+    alt = np.tile([1.0, -1.0], 100)                                   # std exactly 1
+    NARXNetwork(2, 2, 3, **FAST).fit(np.sin(np.arange(200.0)), alt)
+    # Two records are both trained on: not the first alone.
+    both = NARXNetwork(2, 2, 3, **FAST).fit([u[:2000], u[2000:]], [y[:2000], y[2000:]])
+    first = NARXNetwork(2, 2, 3, **FAST).fit([u[:2000]], [y[:2000]])
+    assert not np.array_equal(both.W1, first.W1)
+    t0 = __import__('time').perf_counter()
+    m = NARXNetwork(2, 2, 3, **FAST).fit(u[:3000], y[:3000], u_val=u[3000:], y_val=y[3000:])
+    wall = __import__('time').perf_counter() - t0
+    info = m.training_info_
+    assert 0.0 < info['fit_seconds'] <= wall
+    assert info['val_r2_predict'] == pytest.approx(
+        r2(y[3000 + n0:], m.predict(u[3000:], y[3000:])[n0:]), rel=1e-12)
+    assert info['val_r2_simulate'] == pytest.approx(
+        r2(y[3000 + n0:], m.simulate(u[3000:], y[3000:3000 + n0])[n0:]), rel=1e-12)
+    with np.errstate(divide='ignore', invalid='ignore'):   # one scored sample: R² undefined
+        m.fit(u[:3000], y[:3000], u_val=u[3000:3000 + n0 + 1], y_val=y[3000:3000 + n0 + 1])
+    for u_val, y_val, match in ((u[3000:3000 + n0], y[3000:3000 + n0], 'u_val has 2 samples'),
+                                (np.r_[np.nan, u[3001:3100]], y[3000:3100], 'u_val contains'),
+                                (u[3000:3100], y[3000:3099], 'y_val has 99 samples')):
+        with pytest.raises(DataError, match=match):
+            NARXNetwork(2, 2, 3, **FAST).fit(u[:3000], y[:3000], u_val=u_val, y_val=y_val)
+
+
 # ---------------------------------------------------------------- NARX: training
 def test_narx_identifies_known_nonlinear_narx_system():
     """

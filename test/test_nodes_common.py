@@ -203,6 +203,38 @@ def test_cdr_decode_reads_both_byte_orders_as_rosbags_writes_them(
                                                        position, effort)
 
 
+@pytest.mark.parametrize('t_ns, names, position, effort', [
+    (1_795_241_581_123_456_789, ['', 'a', 'ab', 'abc'], [1.0], [2.0, 3.0]),   # every padding
+    (7, ['abcd', 'e'], [1.0, 2.0], []),
+    (-1_500_000_000, ['x'], [], [4.0]),                                       # before 1970
+])
+def test_cdr_encode_is_byte_for_byte_what_rosbags_serialises(t_ns, names, position, effort):
+    # Padding between the strings and before the doubles as the CDR rules place it (rosbags'
+    # serialiser is the reference), and the stamp's sign read back.
+    from rosbags.typesys import Stores, get_typestore
+    store = get_typestore(Stores.ROS2_KILTED)
+    JointState = store.types['sensor_msgs/msg/JointState']
+    Header, Time = store.types['std_msgs/msg/Header'], store.types['builtin_interfaces/msg/Time']
+    sec, nsec = divmod(t_ns, 10**9)
+    msg = JointState(header=Header(stamp=Time(sec=sec, nanosec=nsec), frame_id=''), name=names,
+                     position=np.array(position, dtype=np.float64),
+                     velocity=np.array([], dtype=np.float64),
+                     effort=np.array(effort, dtype=np.float64))
+    ref = bytes(store.serialize_cdr(msg, 'sensor_msgs/msg/JointState', little_endian=True))
+    raw = common.encode_joint_state(t_ns, names, position, effort)
+    assert raw == ref
+    s = common.decode_joint_state(raw)
+    assert (s.t_ns, s.names, s.position, s.effort) == (t_ns, names, position, effort)
+
+
+@pytest.mark.parametrize('offset', [12, 20, 24])   # frame_id length, name count, name length
+def test_cdr_decode_refuses_a_length_field_beyond_any_buffer(offset):
+    raw = bytearray(common.encode_joint_state(5, ['x'], [1.0], [2.0]))
+    raw[offset:offset + 4] = b'\xff\xff\xff\xff'
+    with pytest.raises(DataError, match='malformed JointState'):
+        common.decode_joint_state(bytes(raw))
+
+
 def test_cdr_decode_refuses_truncated_bytes():
     from rclpy.serialization import serialize_message
     raw = serialize_message(common.make_joint_state(5, ['x'], effort=[1.0]))

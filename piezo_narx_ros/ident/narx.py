@@ -110,12 +110,13 @@ class NARXNetwork(LaggedModel):
         W1 = np.array(W1, dtype=np.float64)
         b1 = np.array(b1, dtype=np.float64).ravel()
         w2 = np.array(w2, dtype=np.float64).ravel()
-        b2 = float(np.asarray(b2, dtype=np.float64).reshape(-1)[0]) if np.size(b2) == 1 else None
+        b2_size = np.size(b2)
+        b2 = float(np.asarray(b2, dtype=np.float64).reshape(-1)[0]) if b2_size == 1 else None
         norm = np.array(normalisation, dtype=np.float64).ravel()
         if W1.shape != (H, d) or b1.shape != (H,) or w2.shape != (H,) or b2 is None:
             raise DataError(f'NARX weights must be W1 {(H, d)}, b1 ({H},), w2 ({H},), b2 scalar; '
                             f'got '
-                            f'W1 {W1.shape}, b1 {b1.shape}, w2 {w2.shape}, b2 size {np.size(b2)}')
+                            f'W1 {W1.shape}, b1 {b1.shape}, w2 {w2.shape}, b2 size {b2_size}')
         if norm.shape != (4,) or norm[1] <= 0 or norm[3] <= 0:
             raise DataError('normalisation must be (u_mean, u_std > 0, y_mean, y_std > 0)')
         for name, a in (('W1', W1), ('b1', b1), ('w2', w2), ('normalisation', norm)):
