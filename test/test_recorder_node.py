@@ -45,10 +45,12 @@ class Publisher:
         self.node = Node('test_pub', namespace=ns, context=self.context)
         # deflection_estimate offers transient_local: a recorder that stored its own
         # subscription's QoS (volatile) instead of the publisher's would be caught by the test.
-        latched = sample_qos(depth=1000)
+        # Deeper than any test publishes: a recorder stalled by a loaded machine gets every
+        # sample late rather than some never (keep-last drops the oldest unacknowledged ones).
+        latched = sample_qos(depth=10000)
         latched.durability = DurabilityPolicy.TRANSIENT_LOCAL
         self.pubs = {t: self.node.create_publisher(
-            JointState, t, latched if t == 'deflection_estimate' else sample_qos(depth=1000))
+            JointState, t, latched if t == 'deflection_estimate' else sample_qos(depth=10000))
             for t in TOPICS}
 
     def wait_matched(self, timeout=20.0):
@@ -58,6 +60,11 @@ class Publisher:
                 return True
             time.sleep(0.02)
         return False
+
+    def wait_acked(self, timeout=30.0):
+        """Wait until the recorder's readers acknowledged every sample (reliable QoS)."""
+        from rclpy.duration import Duration
+        return all(p.wait_for_all_acked(Duration(seconds=timeout)) for p in self.pubs.values())
 
     def publish_samples(self, k_from, k_to):
         """Publish samples k in [k_from, k_to) on all topics at ~2 kHz; returns them per topic."""
@@ -98,6 +105,7 @@ def test_records_everything_and_closes_on_sigterm(tmp_path):
     try:
         assert pub.wait_matched(), 'recorder never subscribed'
         sent = pub.publish_samples(0, n)
+        assert pub.wait_acked(), 'recorder did not acknowledge every sample'
         time.sleep(0.5)
         proc.send_signal(signal.SIGTERM)
         code = proc.wait(20)
@@ -144,7 +152,8 @@ def test_sigkill_leaves_a_repairable_bag(tmp_path):
     try:
         assert pub.wait_matched(), 'recorder never subscribed'
         pub.publish_samples(0, 600)
-        time.sleep(0.6)          # > chunk period: these 600 samples are on disk
+        assert pub.wait_acked(), 'recorder did not acknowledge every sample'
+        time.sleep(1.0)          # >> chunk period: these 600 samples are on disk
         pub.publish_samples(600, 800)
         proc.send_signal(signal.SIGKILL)
         proc.wait(10)
