@@ -251,14 +251,15 @@ def test_configuration_limits_are_inclusive_and_each_bad_value_refused(model):
 def test_defaults_are_the_estimator_nodes():
     # One set of defaults: the class used as a library behaves as the node started without
     # parameters.
-    import inspect
-
     from piezo_narx_ros.nodes.estimator_node import EstimatorNode
     node = {spec.name: spec.default for spec in EstimatorNode.PARAMS}
-    sig = inspect.signature(FreeRunEstimator).parameters
-    shared = ('init', 'u_min', 'u_max', 'max_fill', 'range_margin', 'window', 'reanchor_every',
-              'init_timeout')
-    assert {k: sig[k].default for k in shared} == {k: node[k] for k in shared}
+    est = FreeRunEstimator(_Echo())
+    span = _Echo.output_range[1] - _Echo.output_range[0]
+    assert (est.init_mode, est.u_min, est.u_max, est.max_fill, est.window,
+            est.reanchor_every) == (node['init'], node['u_min'], node['u_max'],
+                                    node['max_fill'], node['window'], node['reanchor_every'])
+    assert est.init_timeout_samples == round(node['init_timeout'] * _Echo.fs)
+    assert est.y_hi == pytest.approx(_Echo.output_range[1] + node['range_margin'] * span)
 
 
 def test_command_limits_are_inclusive_and_rejections_counted():
@@ -368,10 +369,12 @@ def test_commands_without_measurement_are_counted_over_every_initialisation(mode
 def test_how_each_init_mode_decides():
     # auto: the first command decides (rest) unless start() came first, and start() after it is
     # ignored; measurement: start() never changes it; rest: never waits, whatever is asked.
-    auto = FreeRunEstimator(_Echo(), init='auto')
+    auto = FreeRunEstimator(_Echo(), init='auto', max_fill=10, confirm=1)
     assert _ys(auto.on_command(0, 0.3)) == [0.3]
     auto.start(measurement_available=True)                   # too late: ignored
     assert _ys(auto.on_command(P, 0.4)) == [0.4]
+    auto.on_command(1000 * P, 0.5)                            # a new stream: still from rest
+    assert _ys(auto.on_command(1001 * P, 0.6)) == [0.5, 0.6]
     meas = FreeRunEstimator(_Echo(), init='measurement')
     meas.start(measurement_available=False)                  # not 'auto': ignored
     assert meas.on_command(0, 0.3) == []
@@ -428,14 +431,15 @@ def test_running_error_from_two_samples_over_the_last_window_exactly():
     assert n == 2 and rms == pytest.approx(math.sqrt((0.04 + 0.01) / 2)) and math.isnan(r2)
 
 
-def test_reanchoring_schedule_and_state_equal_an_offline_free_run():
+@pytest.mark.parametrize('first_measured, first_anchor', [(0, 6), (10, 12)])
+def test_reanchoring_schedule_and_state_equal_an_offline_free_run(first_measured, first_anchor):
     # Every `reanchor_every` estimates (retrying at every sample while the measured outputs are
     # not there), the recursion restarts from the measured outputs before the newest sample and
     # re-steps that sample: later estimates are the offline free run from those measurements.
     from piezo_narx_ros.ident.arx import ARXModel
     m = ARXModel(na=2, nb=2).set_coefficients(a=[-1.2, 0.5], b=[1e-8, 5e-9, -2e-9])
     m.fs, m.output_range = 2000.0, (-1e-3, 1e-3)
-    n, every, first_measured = 80, 7, 10
+    n, every = 80, 7
     u = _u(n, 16)
     y_meas = m.simulate(u) + 4e-8 * np.sin(np.arange(n) / 5.0)   # the plant is not the model
     est = FreeRunEstimator(m, init='rest', reanchor_every=every)
@@ -451,7 +455,7 @@ def test_reanchoring_schedule_and_state_equal_an_offline_free_run():
         if since >= every and measured:
             anchors.append(k)
             since = 0
-    assert est.stats.reanchors == len(anchors) == 10 and anchors[0] == 12
+    assert est.stats.reanchors == len(anchors) and anchors[0] == first_anchor
     for k in range(n):
         before = [a for a in anchors if a < k]
         if not before:

@@ -47,14 +47,16 @@ def test_correlations_are_computed_in_double_whatever_the_input_type():
     # their float64 equivalents: the FFTs run in double, not in the input's precision.
     rng = np.random.default_rng(5)
     e = rng.standard_normal(3000).astype(np.float32)
-    u = rng.integers(-100, 100, 3000)
-    ref = correlation_tests(e.astype(np.float64), u.astype(np.float64), max_lag=10)
-    got = correlation_tests(e, u, max_lag=10)
-    for name in TEST_NAMES:
-        np.testing.assert_allclose(got.tests[name].values, ref.tests[name].values, rtol=0,
-                                   atol=1e-13, err_msg=name)
-    _, ref_cc = cross_correlation(e.astype(np.float64), u.astype(np.float64), 5)
-    np.testing.assert_allclose(cross_correlation(e, u, 5)[1], ref_cc, rtol=0, atol=1e-13)
+    for u in (rng.integers(-100, 100, 3000), rng.uniform(-1, 1, 3000).astype(np.float32)):
+        ref = correlation_tests(e.astype(np.float64), u.astype(np.float64), max_lag=10)
+        got = correlation_tests(e, u, max_lag=10)
+        for name in TEST_NAMES:
+            np.testing.assert_allclose(got.tests[name].values, ref.tests[name].values, rtol=0,
+                                       atol=1e-13, err_msg=name)
+        _, ref_cc = cross_correlation(e.astype(np.float64), u.astype(np.float64), 5)
+        np.testing.assert_allclose(cross_correlation(e, u, 5)[1], ref_cc, rtol=0, atol=1e-13)
+        np.testing.assert_allclose(cross_correlation(u, e, 5)[1], ref_cc[::-1], rtol=0,
+                                   atol=1e-13)
 
 
 def test_unit_energy_and_overflowing_sequences():
@@ -502,6 +504,8 @@ def test_noise_model_does_not_depend_on_the_unit_or_the_input_type():
     e = _ar_residual(2000, [0.6, -0.2], seed=4)
     ref = fit_ar_noise_model(e, 10)
     assert ref.order == 2
+    white = np.random.default_rng(4).standard_normal(2000)
+    assert fit_ar_noise_model(1e-8 * white, 10).order == fit_ar_noise_model(white, 10).order == 0
     for scaled in (1e-8 * e, 1e6 * e):
         nm = fit_ar_noise_model(scaled, 10)
         assert nm.order == ref.order
@@ -515,10 +519,11 @@ def test_noise_model_does_not_depend_on_the_unit_or_the_input_type():
 
 
 def test_noise_model_of_a_constant_residual_is_no_filter_without_warnings(recwarn):
-    # A perfect model leaves a constant residual: order 0, zero stds, and no numpy warning
-    # (the singular Gram matrix and log(0) are expected there).
-    nm = fit_ar_noise_model(np.full(500, 3e-9), 20)
-    assert nm.order == 0 and nm.residual_std == 0.0 and nm.input_std == 0.0
+    # A perfect model leaves a constant (or zero) residual: order 0, zero stds, and no numpy
+    # warning (the singular Gram matrix and log(0) are expected there).
+    for e in (np.full(500, 3e-9), np.zeros(500)):
+        nm = fit_ar_noise_model(e, 20)
+        assert nm.order == 0 and nm.residual_std == 0.0 and nm.input_std == 0.0
     assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
 
 

@@ -370,3 +370,67 @@ def test_numpy_values_in_metadata_are_written_as_json(tmp_path):
                                'n': np.int64(3), 'pair': (1, 2)})
     metrics = json.loads(path.read_text())['metrics']
     assert metrics == {'r2': 0.5, 'per_lag': [1.0, None], 'n': 3, 'pair': [1, 2]}
+
+
+@pytest.mark.parametrize('change', [
+    _del('structure.ny'), _set('structure.hidden', 'five'), _del('structure.activation'),
+    _set('output_range', [3.0, 1.0]), _set('weights.file', 7)])
+def test_narx_document_errors_name_the_file(saved, change):
+    edit_json(saved, change)
+    with pytest.raises(ModelFileError, match='model.json: '):
+        load_model(saved)
+
+
+@pytest.mark.parametrize('arrays', [{'b2': np.zeros(2)}, {'normalisation': np.zeros(3)}])
+def test_narx_weight_errors_name_the_weights_file(saved, arrays):
+    rewrite_weights(saved, **arrays)
+    with pytest.raises(ModelFileError, match='model.npz: weight array'):
+        load_model(saved)
+
+
+@pytest.mark.parametrize('change, arrays', [
+    (_del('structure.na'), {}), (_set('structure.nb', -1), {}),
+    (_set('structure.fit_intercept', 1), {}),
+    (None, {'a': np.zeros(3)}), (None, {'b': np.zeros(1)}), (None, {'c': np.zeros(2)})])
+def test_arx_errors_name_the_file(tmp_path, change, arrays):
+    arx = ARXModel(2, 1).set_coefficients([-1.2, 0.4], [0.1, 0.2])
+    path = save_model(arx, tmp_path / 'a.json')
+    if change:
+        edit_json(path, change)
+    if arrays:
+        rewrite_weights(path, **arrays)
+    with pytest.raises(ModelFileError, match='a.npz: weight array' if arrays else 'a.json: '):
+        load_model(path)
+
+
+@pytest.mark.parametrize('key', ['W1', 'radii'])
+def test_hnarx_weight_errors_name_the_weights_file(saved_hnarx, key):
+    rewrite_weights(saved_hnarx, **{key: np.zeros(1)})
+    with pytest.raises(ModelFileError, match=f"h.npz: weight array '{key}'"):
+        load_model(saved_hnarx)
+
+
+def test_smallest_orders_scales_and_what_a_load_restores(tmp_path):
+    # The smallest valid orders load (ny = hidden = na = 1, nb = 0); a NARX keeps its seed (0
+    # when the file has none), a model its source path and fs (None when the file has none);
+    # an ARX without intercept stays without; an hnarx input scale below 1 V is valid.
+    rng = np.random.default_rng(1)
+    narx = NARXNetwork(0, 1, 1, seed=5).set_weights(rng.normal(size=(1, 2)), [0.1], [0.2], 0.3,
+                                                    (0, 1, 0, 1))
+    path = save_model(narx, tmp_path / 'n.json')
+    back = load_model(path)
+    assert (back.nu, back.ny, back.hidden, back.seed, back.fs) == (0, 1, 1, 5, None)
+    assert back.source == str(path)
+    edit_json(path, _set('training', None))
+    assert load_model(path).seed == 0
+    edit_json(path, _set('training', {'options': {}}))
+    assert load_model(path).seed == 0
+    arx = ARXModel(1, 0, fit_intercept=False).set_coefficients([-0.5], [2.0])
+    back = load_model(save_model(arx, tmp_path / 'a.json'))
+    assert (back.na, back.nb, back.fit_intercept) == (1, 0, False)
+    h = _random_hnarx()
+    h.u_scale_ = 0.5
+    assert load_model(save_model(h, tmp_path / 'h.json')).u_scale_ == 0.5
+    edit_json(tmp_path / 'h.json', _set('normalisation.y_scale', 0.0))
+    with pytest.raises(ModelFileError, match='u_scale and y_scale must be finite and > 0'):
+        load_model(tmp_path / 'h.json')

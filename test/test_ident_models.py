@@ -260,6 +260,17 @@ def test_narx_weights_are_checked_one_by_one():
             NARXNetwork(1, 2, H).set_weights(**{**good, name: bad})
 
 
+def test_narx_weights_given_as_integers_are_kept_as_float64(tmp_path):
+    # A model file holds float64 arrays only: weights typed as integers must not produce a file
+    # that its own loader refuses.
+    from piezo_narx_ros.ident.model_io import load_model, save_model
+    m = NARXNetwork(0, 1, 2).set_weights([[1, 0], [0, 1]], [1, 2], [3, 4], 1, (0, 1, 0, 2))
+    for name in ('W1', 'b1', 'w2', 'normalisation'):
+        assert getattr(m, name).dtype == np.float64, name
+    back = load_model(save_model(m, tmp_path / 'int.json'))
+    assert np.array_equal(back.simulate(np.arange(5.0)), m.simulate(np.arange(5.0)))
+
+
 def test_narx_fit_record_length_several_records_and_validation_scores():
     u, y = piezo_like(4000, seed=5)
     n0 = 2
@@ -272,6 +283,8 @@ def test_narx_fit_record_length_several_records_and_validation_scores():
     both = NARXNetwork(2, 2, 3, **FAST).fit([u[:2000], u[2000:]], [y[:2000], y[2000:]])
     first = NARXNetwork(2, 2, 3, **FAST).fit([u[:2000]], [y[:2000]])
     assert not np.array_equal(both.W1, first.W1)
+    info = both.training_info_
+    assert info['n_records'] == 2 and info['n_train'] + info['n_holdout'] == 4000
     t0 = __import__('time').perf_counter()
     m = NARXNetwork(2, 2, 3, **FAST).fit(u[:3000], y[:3000], u_val=u[3000:], y_val=y[3000:])
     wall = __import__('time').perf_counter() - t0

@@ -207,6 +207,7 @@ def test_cdr_decode_reads_both_byte_orders_as_rosbags_writes_them(
     (1_795_241_581_123_456_789, ['', 'a', 'ab', 'abc'], [1.0], [2.0, 3.0]),   # every padding
     (7, ['abcd', 'e'], [1.0, 2.0], []),
     (-1_500_000_000, ['x'], [], [4.0]),                                       # before 1970
+    (3, ['ab'], [], [5.0]),                          # the array count after an odd string end
 ])
 def test_cdr_encode_is_byte_for_byte_what_rosbags_serialises(t_ns, names, position, effort):
     # Padding between the strings and before the doubles as the CDR rules place it (rosbags'
