@@ -312,9 +312,10 @@ def test_hnarx_seed_training_info_and_stability_when_loading(saved_hnarx):
     assert back.seed == 0 and back.training_info_ == {}
     edit_json(saved_hnarx, _set('training', None))
     assert load_model(saved_hnarx).seed == 0
-    rewrite_weights(saved_hnarx, a=np.array([-2.5, 1.6]))     # poles outside the unit circle
-    with pytest.raises(ModelFileError, match='h.npz: the output dynamics are unstable'):
-        load_model(saved_hnarx)
+    for a in ([-2.5, 1.6], [-1.0, 0.0]):       # poles outside, and one on, the unit circle
+        rewrite_weights(saved_hnarx, a=np.array(a))
+        with pytest.raises(ModelFileError, match='h.npz: the output dynamics are unstable'):
+            load_model(saved_hnarx)
 
 
 def test_weights_digest_follows_every_weight(saved_hnarx):
@@ -423,8 +424,9 @@ def test_smallest_orders_scales_and_what_a_load_restores(tmp_path):
     assert back.source == str(path)
     edit_json(path, _set('training', None))
     assert load_model(path).seed == 0
-    edit_json(path, _set('training', {'options': {}}))
-    assert load_model(path).seed == 0
+    for training in ({'options': {}}, {'seed': 'x'}, {'seed': 1.5}):   # none, or not an integer
+        edit_json(path, _set('training', training))
+        assert load_model(path).seed == 0
     arx = ARXModel(1, 0, fit_intercept=False).set_coefficients([-0.5], [2.0])
     back = load_model(save_model(arx, tmp_path / 'a.json'))
     assert (back.na, back.nb, back.fit_intercept) == (1, 0, False)
