@@ -445,15 +445,15 @@ def test_an_ignored_sigint_stays_ignored_by_the_ray_search():
     caught = []
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
-        for hold in (executor._hold_interrupts, executor._note_interrupts):
-            with hold(caught):
+        for hold in (True, False):
+            with executor._record_interrupts(caught, hold):
                 assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
                 os.kill(os.getpid(), signal.SIGINT)
                 time.sleep(0.05)
         assert caught == []
         # Python's default disposition (a terminal's): recorded and raised.
         signal.signal(signal.SIGINT, signal.default_int_handler)
-        with executor._note_interrupts(caught):
+        with executor._record_interrupts(caught, hold=False):
             with pytest.raises(KeyboardInterrupt):
                 os.kill(os.getpid(), signal.SIGINT)
                 time.sleep(1.0)

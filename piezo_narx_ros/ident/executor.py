@@ -231,26 +231,13 @@ def _has_token() -> bool:
 
 
 @contextlib.contextmanager
-def _hold_interrupts(caught: list):
-    """Inside, SIGINT only appends to `caught` (main thread only; elsewhere nothing changes)."""
-    if threading.current_thread() is not threading.main_thread() or \
-            signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
-        yield          # ignored SIGINT (nohup, a background job) stays ignored
-        return
-    previous = signal.signal(signal.SIGINT, lambda *_: caught.append(True))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-
-
-@contextlib.contextmanager
-def _note_interrupts(caught: list):
+def _record_interrupts(caught: list, hold: bool):
     """
-    Inside, SIGINT is recorded in `caught` and then raises as usual (main thread only).
+    Inside, SIGINT is recorded in `caught` (main thread only; an ignored SIGINT stays ignored).
 
-    Ray's compiled calls (wait, get) run their own loops; the record lets the caller see a
-    Ctrl-C even if one of them turned the KeyboardInterrupt into something else.
+    hold=True: only recorded, the caller acts on it afterwards. hold=False: recorded, then raised
+    as usual; Ray's compiled calls (wait, get) run their own loops, and the record lets the caller
+    see a Ctrl-C even if one of them turned the KeyboardInterrupt into something else.
     """
     previous = signal.getsignal(signal.SIGINT)
     if threading.current_thread() is not threading.main_thread() or \
@@ -260,6 +247,8 @@ def _note_interrupts(caught: list):
 
     def handler(signum, frame):
         caught.append(True)
+        if hold:
+            return
         if callable(previous):
             previous(signum, frame)
         else:
@@ -366,7 +355,7 @@ class RayExecutor(Executor):
         failure, interrupted = None, []
         # Ctrl-C is held until the start is over: cut half way, the start left Ray's agent
         # processes running for good (measured); after it, shutdown() stops everything.
-        with _hold_interrupts(interrupted):
+        with _record_interrupts(interrupted, hold=True):
             try:
                 self._init(ray, options, store_bytes)
             except Exception as exc:  # noqa: BLE001 - mapped to one line below
@@ -422,7 +411,7 @@ class RayExecutor(Executor):
                    for i, (key, payload) in enumerate(tasks)}
         results, interrupted = [None] * len(tasks), []
         try:
-            with _note_interrupts(interrupted):
+            with _record_interrupts(interrupted, hold=False):
                 while pending and not interrupted:
                     ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=0.2)
                     for ref in ready:
