@@ -177,3 +177,50 @@ def test_use_sim_time_paces_on_clock_waits_for_it_stops_with_it_and_follows_a_ju
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)
+
+
+def test_paced_by_the_spin_loop_on_time_and_in_batches_with_publish_period():
+    """
+    Run as a process, the node is paced by run_node's loop (take_pacing/pace), not a timer.
+
+    pace() publishes what is due and asks to wait until the next sample (one per wait), or
+    until the next publish_period (batches); under use_sim_time the timer keeps pacing.
+    """
+    import time
+
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from piezo_narx_ros.nodes.command_node import CommandNode
+
+    def run(period):
+        node = CommandNode(context=ctx, namespace=f'/paced{int(period * 1e3)}',
+                           parameter_overrides=[
+                               Parameter('fs', value=1000.0), Parameter('kind', value='sine'),
+                               Parameter('seconds', value=0.3), Parameter('loop', value=False),
+                               Parameter('publish_period', value=period)])
+        assert node.take_pacing() and node.timer.is_canceled()
+        waits, end = [], time.monotonic() + 5.0
+        while not node.streamer.finished and time.monotonic() < end:
+            waits.append(node.pace())
+            time.sleep(waits[-1])
+        s = node.streamer
+        node.destroy_node()
+        return s, sorted(waits)
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        s, waits = run(0.0)
+        assert s.finished and s.published == 300
+        assert all(0.0 <= w <= 0.1 for w in waits)
+        assert 0.0 < waits[len(waits) // 2] <= 0.001       # waits for the next sample
+        s, waits = run(0.02)
+        assert s.published == 300 and s.max_batch >= 10     # ~20 samples per wake
+        assert 0.005 < waits[len(waits) // 2] <= 0.02
+        node = CommandNode(context=ctx, namespace='/pacedsim', parameter_overrides=[
+            Parameter('use_sim_time', value=True)])
+        assert not node.take_pacing() and not node.timer.is_canceled()
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)

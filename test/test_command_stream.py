@@ -87,3 +87,22 @@ def test_make_signal_ignores_options_of_other_kinds_and_seeds_axes():
     assert not np.array_equal(u[:, 0], u[:, 1])
     with pytest.raises(ConfigError, match='kind'):
         make_signal('noise', 1000.0, 1.0, 1.0)
+
+
+def test_due_ns_is_the_first_instant_a_sample_is_due():
+    for fs in (2000.0, 3000.0, 7.0):
+        c = SampleClock(fs, 0, mono0_ns=123)
+        for k in (0, 1, 2, 999, 10**6 + 7):
+            t = c.due_ns(k)
+            assert c.due_count(t) == k + 1 and c.due_count(t - 1) == k, (fs, k)
+
+
+def test_next_due_follows_the_polls_and_is_none_when_not_running():
+    s = CommandStreamer(np.zeros(10), 1000.0, loop=False)
+    assert s.next_due_ns() is None
+    s.start(0, mono0_ns=NS)
+    assert s.next_due_ns() == NS
+    s.poll(NS + 2_500_000)                     # samples 0, 1, 2 due
+    assert s.next_due_ns() == NS + 3_000_000
+    s.poll(NS + 10**9)
+    assert s.finished and s.next_due_ns() is None

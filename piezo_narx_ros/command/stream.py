@@ -45,6 +45,10 @@ class SampleClock:
         """Stamp of sample k, ns: t0 + k/fs."""
         return self.t0_ns + self.offset_ns(k)
 
+    def due_ns(self, k: int) -> int:
+        """Monotonic instant (ns) from which sample k is due: the first with due_count > k."""
+        return self.mono0_ns - (-k * NS * self._den // self._num)   # ceil(k/fs)
+
     def due_count(self, now_mono_ns: int) -> int:
         """Count the samples due at monotonic time now (ns): samples 0..n-1 are due by then."""
         elapsed = int(now_mono_ns) - self.mono0_ns
@@ -114,6 +118,10 @@ class CommandStreamer:
     def stop(self) -> None:
         """Pause; the signal position is kept."""
         self.clock = None
+
+    def next_due_ns(self) -> int | None:
+        """Monotonic instant (ns) the next sample is due, None when not running."""
+        return self.clock.due_ns(self._k) if self.running else None
 
     def poll(self, now_mono_ns: int) -> tuple[np.ndarray, np.ndarray]:
         """

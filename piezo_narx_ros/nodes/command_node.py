@@ -6,11 +6,13 @@ Streams voltage_command (JointState, effort = V) at the sample rate, or in posit
 
 The excitation comes from piezo_narx_ros.plant.signals.generate (kind and options from
 parameters); the clock, catch-up, limits and looping live in command.stream.CommandStreamer. The
-node only turns timer ticks into `poll()` calls and samples into messages. In position mode the
-same signal kinds are streamed in metres: amplitude, offset, u_min, u_max (clamp) and slew_rate
-are then in m and m/s. `running` can be set at run time to pause/resume, directly or through the
-~/set_running service (std_srvs/SetBool); `wait_for_subscribers` holds the first sample until the
-listeners are matched, so that a recording or an estimator sees sample 0.
+node only turns ticks into `poll()` calls and samples into messages: a timer's ticks, or, run
+as a process on the monotonic clock, timed waits in run_node's spin loop (cheaper at kHz). In
+position mode the same signal kinds are streamed in metres: amplitude, offset, u_min, u_max
+(clamp) and slew_rate are then in m and m/s. `running` can be set at run time to pause/resume,
+directly or through the ~/set_running service (std_srvs/SetBool); `wait_for_subscribers` holds
+the first sample until the listeners are matched, so that a recording or an estimator sees
+sample 0.
 
 Time: stamps come from the node clock. With use_sim_time:=true the samples are also paced on it
 (the /clock of a simulator or of `player_node clock:=true`): none is published before the first
@@ -86,8 +88,8 @@ class CommandNode(PiezoNode):
         ParamSpec('running', True, 'stream now; set false to pause, true to resume'),
         ParamSpec('wait_for_subscribers', 0, 'start only when this many subscriptions are matched',
                   low=0, high=1000, read_only=True),
-        ParamSpec('publish_period', 0.0, 'timer period, s (0: one tick per sample; larger values '
-                  'publish the due samples in batches)', low=0.0, high=1.0, read_only=True),
+        ParamSpec('publish_period', 0.0, 'publishing period, s (0: one tick per sample; larger '
+                  'values publish the due samples in batches)', low=0.0, high=1.0, read_only=True),
         ParamSpec('max_burst', 10000, 'most samples published in one tick (the rest follow on '
                   'the next ones; nothing is dropped)', low=1, high=10**7, read_only=True),
     )
@@ -118,6 +120,7 @@ class CommandNode(PiezoNode):
         self.add_post_set_parameters_callback(self._on_set)
         self.srv_running = self.create_service(SetBool, '~/set_running', self.on_set_running)
         period = p['publish_period'] or 1.0 / p['fs']
+        self._period_ns = int(p['publish_period'] * 1e9)
         self.timer = self.create_timer(period, self.on_tick)
         self.diagnostics = Diagnostics(self, self.status, task='command stream')
         unit = 'm' if self.position else 'V'
@@ -154,6 +157,29 @@ class CommandNode(PiezoNode):
             return time.monotonic_ns()
         now = self.get_clock().now().nanoseconds
         return now if now > 0 else None
+
+    def take_pacing(self) -> bool:
+        """
+        On the monotonic clock, run_node's loop paces the samples (the timer is cancelled).
+
+        Under use_sim_time the timer on the node clock stays: it follows /clock.
+        """
+        if self.sim_time:
+            return False
+        self.timer.cancel()
+        self._next_wake = 0
+        return True
+
+    def pace(self) -> float:
+        """Publish what is due; return the wait until the next sample (or the next batch), s."""
+        self.on_tick()
+        now = time.monotonic_ns()
+        due = self.streamer.next_due_ns()
+        if due is None:      # paused, waiting for listeners or finished: look again soon
+            return 0.005
+        # publish_period > 1/fs: wake once per period and publish the samples due by then.
+        self._next_wake = max(due, self._next_wake + self._period_ns)
+        return min(max(self._next_wake - now, 0) * 1e-9, 0.1)
 
     def on_tick(self) -> None:
         """Publish every sample due now (several after a late tick)."""
