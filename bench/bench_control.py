@@ -253,30 +253,33 @@ def write_figures(examples: dict, plant: str, folder: Path) -> list[str]:
     return paths
 
 
-def live(model_path: Path, seconds: float, mode: str = 'inverse') -> dict:
+def live(model_path: Path, seconds: float, mode: str = 'inverse', rt: int = 0) -> dict:
     """
     Run the control loop over DDS, then the estimator pipeline, side by side.
 
     command_node (position, 1 Hz +-30 um sine) -> controller_node -> simulator_node over DDS for
     `seconds` at 2 kHz, one process each, observed by bench_live's probe in this process (raw
     stamps, one clock); then bench_live's estimator pipeline for the same time, so the two are
-    measured side by side under the same machine load.
+    measured side by side under the same machine load. rt > 0: the controller (then the
+    estimator) under SCHED_FIFO at that priority, the probe 10 below (bench_live.realtime).
     """
     import os
     import sys
     sys.path.insert(0, str(Path(__file__).parent))
-    from bench_live import Probe, cpu_seconds, not_up, run_rate, start, stop
+    from bench_live import Probe, cpu_seconds, not_up, realtime, run_rate, start, stop
     os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 100))
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     ns, n = '/benchctl', int(round(seconds * FS))
+    prefix = realtime(rt)
     probe = Probe(ns, ('position_reference', 'voltage_command', 'deflection'),
                   wall_topic='voltage_command')
     load0 = os.getloadavg()[0]
     procs = {'simulator': start('simulator_node', ns, f'fs:={FS}'),
              'controller': start('controller_node', ns, f'model:={model_path}', f'mode:={mode}',
                                  'wait_for_subscribers:=2',
-                                 f'use_deflection:={str(mode == "inverse_feedback").lower()}')}
-    out = {'mode': mode, 'n': n}
+                                 f'use_deflection:={str(mode == "inverse_feedback").lower()}',
+                                 prefix=prefix)}
+    out = {'mode': mode, 'n': n, 'rt': rt}
     try:
         if not probe.spin_until(lambda: probe.subs['voltage_command'].get_publisher_count() >= 1
                                 and probe.subs['deflection'].get_publisher_count() >= 1, 60.0):
@@ -302,8 +305,10 @@ def live(model_path: Path, seconds: float, mode: str = 'inverse') -> dict:
     finally:
         out['codes'] = stop(procs.values())
         probe.close()
+        if rt > 0:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     out['load'] = (load0, os.getloadavg()[0])
-    est = run_rate(FS, seconds, model_path, 0.0, 'events')
+    est = run_rate(FS, seconds, model_path, 0.0, 'events', rt)
     out['estimator'] = {'latency_us': est['latency_us'], 'lost': est['lost'],
                         'cpu': est['cpu'], 'codes': est['codes']}
     out['load_after_estimator'] = os.getloadavg()[0]
@@ -312,8 +317,9 @@ def live(model_path: Path, seconds: float, mode: str = 'inverse') -> dict:
 
 def print_live(r: dict) -> None:
     from bench_live import pct
-    print(f'\n== live over DDS, {r["mode"]}, {r["n"]} references at {FS:g} Hz (exit codes '
-          f'{r["codes"]}; load average {r["load"][0]:.1f} -> {r["load"][1]:.1f}, then '
+    sched = f'controller SCHED_FIFO {r["rt"]}' if r['rt'] else 'normal scheduling'
+    print(f'\n== live over DDS, {r["mode"]}, {sched}, {r["n"]} references at {FS:g} Hz '
+          f'(exit codes {r["codes"]}; load average {r["load"][0]:.1f} -> {r["load"][1]:.1f}, then '
           f'{r["load_after_estimator"]:.1f} after the estimator pipeline)')
     print('                                          p50      p99      max  (us)')
     print(f'  reference -> voltage_command        {pct(r["latency_us"])}')
@@ -345,12 +351,15 @@ def main() -> None:
                     'comparison; the model is --model-default or the seed-0 default model')
     ap.add_argument('--live-mode', default='inverse', choices=('linear', 'inverse',
                                                                'inverse_feedback'))
+    ap.add_argument('--rt', type=int, default=0, metavar='PRIO', help='--live: the controller '
+                    '(then the estimator) under SCHED_FIFO at PRIO, the probe at PRIO-10 (needs '
+                    'CAP_SYS_NICE; 0: normal scheduling)')
     ap.add_argument('--variants', action='store_true', help='also the inverse with the exact '
                     'output target and without the advance compensation')
     args = ap.parse_args()
     if args.live:
         model = args.model_default or identify('default', args.models / 'default-seed0', 0)
-        print_live(live(model, args.live, args.live_mode))
+        print_live(live(model, args.live, args.live_mode, args.rt))
         return
     results = {}
     t0 = time.monotonic()

@@ -123,8 +123,9 @@ class Probe:
         rclpy.try_shutdown(context=self.context)
 
 
-def start(module: str, ns: str, *params: str) -> subprocess.Popen:
-    args = [sys.executable, '-m', f'{NODES}.{module}', '--ros-args', '-r', f'__ns:={ns}']
+def start(module: str, ns: str, *params: str, prefix: tuple = ()) -> subprocess.Popen:
+    """Start a node process (`prefix`: a command it runs under, e.g. ('chrt', '-f', '20'))."""
+    args = [*prefix, sys.executable, '-m', f'{NODES}.{module}', '--ros-args', '-r', f'__ns:={ns}']
     for p in params:
         args += ['-p', p]
     return subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -160,15 +161,35 @@ def pct(a) -> str:
     return f'{p50:8.0f} {p99:8.0f} {mx:8.0f}'
 
 
+def realtime(priority: int) -> tuple:
+    """
+    Put this thread (the probe, and the DDS threads it starts) under SCHED_FIFO at priority - 10.
+
+    Returns the prefix that starts a node at `priority` (() and nothing changed for 0). The node
+    measured runs above the probe, the probe above the rest (normal scheduling): measured here,
+    every node under SCHED_FIFO starves the others and loses samples. Needs CAP_SYS_NICE.
+    """
+    if priority <= 0:
+        return ()
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, priority - 10)))
+    return ('chrt', '-f', str(priority))
+
+
 def run_rate(fs: float, seconds: float, model_path: Path, publish_period: float,
-             executor: str) -> dict:
+             executor: str, rt: int = 0) -> dict:
+    """
+    Run command -> simulator -> estimator for `seconds` at `fs` Hz and observe it.
+
+    rt > 0: the estimator under SCHED_FIFO at that priority, the probe 10 below (`realtime`).
+    """
     ns = f'/bench{int(fs)}'
     n = int(round(seconds * fs))
     os.environ['PIEZO_NARX_EXECUTOR'] = executor
+    prefix = realtime(rt)
     probe = Probe(ns)
     procs = {'simulator': start('simulator_node', ns, f'fs:={fs}'),
              'estimator': start('estimator_node', ns, f'model:={model_path}', f'fs:={fs}',
-                                'init:=rest')}
+                                'init:=rest', prefix=prefix)}
     result = {'fs': fs, 'n': n}
     try:
         ok = probe.spin_until(lambda: all(probe.subs[t].get_publisher_count() >= 1 for t in
@@ -199,6 +220,8 @@ def run_rate(fs: float, seconds: float, model_path: Path, publish_period: float,
     finally:
         result['codes'] = stop(procs.values())
         probe.close()
+        if rt > 0:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         result['errors'] = {k: p.stderr.read().strip().splitlines()[-3:]
                             for k, p in procs.items() if p.returncode}
     return result
@@ -213,6 +236,9 @@ def main(argv=None) -> int:
                     help='command node timer period, s (0: one tick per sample)')
     ap.add_argument('--executor', choices=('events', 'single'), default='events',
                     help='executor of the node processes')
+    ap.add_argument('--rt', type=int, default=0, metavar='PRIO',
+                    help='run the estimator under SCHED_FIFO at PRIO and the probe at PRIO-10 '
+                    '(needs CAP_SYS_NICE; 0: normal scheduling)')
     args = ap.parse_args(argv)
     os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 100))
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -234,7 +260,7 @@ def main(argv=None) -> int:
     print(f'estimator compute per sample (FreeRunEstimator.on_command): p50 {p50:.2f} us, '
           f'p99 {p99:.2f} us (target p99 <= 10 us)')
     for fs in [float(r) for r in args.rates.split(',')]:
-        r = run_rate(fs, args.seconds, model_path, args.publish_period, args.executor)
+        r = run_rate(fs, args.seconds, model_path, args.publish_period, args.executor, args.rt)
         print(f'\n--- {fs:g} Hz, {args.seconds:g} s, {r["n"]} samples '
               f'(exit codes {r["codes"]}) ---')
         for k, lines in r['errors'].items():
