@@ -38,9 +38,10 @@ docs/control.md (reference vs deflection, error vs time, deflection vs reference
 --live S runs the loop over DDS instead (2 kHz, one process per node, S seconds): lost samples,
 reference -> voltage_command latency at an in-process probe (bench_live's), CPU per node, and
 bench_live's estimator pipeline right after it, for a side-by-side figure under the same load.
+--rt PRIO runs the controller (then the estimator) under SCHED_FIFO.
 
 Run: python bench/bench_control.py [--seeds 0 1 2] [--plants default preisach] [--out DIR]
-     python bench/bench_control.py --live 60 [--model-default M] [--live-mode inverse]
+     python bench/bench_control.py --live 60 [--model-default M] [--live-mode inverse] [--rt 20]
 """
 from __future__ import annotations
 

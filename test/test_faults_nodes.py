@@ -435,3 +435,28 @@ def test_malformed_bytes_reaching_a_running_simulator_and_estimator_are_counted_
         codes = stop([sim, est])
         col.close()
     assert codes == [0, 0]
+
+
+def test_run_node_paces_a_node_that_asks():
+    """run_node, as a process: a node that takes the pacing gets pace() after every spin_once."""
+    code = ('import os, signal, sys, time\n'
+            'from piezo_narx_ros.nodes.common import PiezoNode, run_node\n'
+            'class Paced(PiezoNode):\n'
+            '    NODE_NAME = "paced_node"\n'
+            '    calls = 0\n'
+            '    def take_pacing(self):\n'
+            '        self.t0 = time.monotonic()\n'
+            '        return True\n'
+            '    def pace(self):\n'
+            '        self.calls += 1\n'
+            '        if self.calls == 50:\n'
+            '            print(time.monotonic() - self.t0, flush=True)\n'
+            '            os.kill(os.getpid(), signal.SIGINT)\n'
+            '        return 0.01\n'
+            'sys.exit(run_node(Paced, ["paced", "--ros-args", "-r", '
+            f'"__ns:=/paced{os.getpid()}"]))\n')
+    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 0, done.stderr
+    # 49 waits of 10 ms asked for (the first spin waits 0.1 s): not a busy loop, not 0.1 s each
+    assert 0.25 < float(done.stdout.split()[-1]) < 5.0, done.stdout
