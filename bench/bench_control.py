@@ -262,7 +262,7 @@ def live(model_path: Path, seconds: float, mode: str = 'inverse', rt: int = 0) -
     `seconds` at 2 kHz, one process each, observed by bench_live's probe in this process (raw
     stamps, one clock); then bench_live's estimator pipeline for the same time, so the two are
     measured side by side under the same machine load. rt > 0: the controller (then the
-    estimator) under SCHED_FIFO at that priority, the probe 10 below (bench_live.realtime).
+    estimator) under SCHED_FIFO at that priority, the probe 10 below (bench_live.Probe).
     """
     import os
     import sys
@@ -271,15 +271,14 @@ def live(model_path: Path, seconds: float, mode: str = 'inverse', rt: int = 0) -
     os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 100))
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     ns, n = '/benchctl', int(round(seconds * FS))
-    prefix = realtime(rt)
     probe = Probe(ns, ('position_reference', 'voltage_command', 'deflection'),
-                  wall_topic='voltage_command')
+                  wall_topic='voltage_command', node_priority=rt)
     load0 = os.getloadavg()[0]
     procs = {'simulator': start('simulator_node', ns, f'fs:={FS}'),
              'controller': start('controller_node', ns, f'model:={model_path}', f'mode:={mode}',
                                  'wait_for_subscribers:=2',
                                  f'use_deflection:={str(mode == "inverse_feedback").lower()}',
-                                 prefix=prefix)}
+                                 prefix=realtime(rt))}
     out = {'mode': mode, 'n': n, 'rt': rt}
     try:
         if not probe.spin_until(lambda: probe.subs['voltage_command'].get_publisher_count() >= 1
@@ -306,8 +305,6 @@ def live(model_path: Path, seconds: float, mode: str = 'inverse', rt: int = 0) -
     finally:
         out['codes'] = stop(procs.values())
         probe.close()
-        if rt > 0:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     out['load'] = (load0, os.getloadavg()[0])
     est = run_rate(FS, seconds, model_path, 0.0, 'events', rt)
     out['estimator'] = {'latency_us': est['latency_us'], 'lost': est['lost'],

@@ -62,11 +62,13 @@ class Probe:
     """
     Subscribe to the three sample streams and /diagnostics of one namespace.
 
-    Or to `topics`; wall-clock receive times are kept for `wall_topic`.
+    Or to `topics`; wall-clock receive times are kept for `wall_topic`. node_priority > 0 (the
+    measured node under SCHED_FIFO at it, see `realtime`): this thread and the DDS threads the
+    probe starts run under SCHED_FIFO 10 below it, until close().
     """
 
     def __init__(self, ns: str, topics=('voltage_command', 'deflection', 'deflection_estimate'),
-                 wall_topic: str = 'deflection_estimate'):
+                 wall_topic: str = 'deflection_estimate', node_priority: int = 0):
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.experimental import EventsExecutor
@@ -74,6 +76,9 @@ class Probe:
         from sensor_msgs.msg import JointState
 
         from piezo_narx_ros.nodes.common import diagnostic_values, sample_qos
+        self.realtime = node_priority > 0
+        if self.realtime:   # before the context: its DDS threads inherit the policy
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, node_priority - 10)))
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
         self.node = Node('bench_probe', namespace=ns, context=self.context)
@@ -121,6 +126,8 @@ class Probe:
         self.executor.shutdown()
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
+        if self.realtime:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
 
 
 def start(module: str, ns: str, *params: str, prefix: tuple = ()) -> subprocess.Popen:
@@ -163,16 +170,13 @@ def pct(a) -> str:
 
 def realtime(priority: int) -> tuple:
     """
-    Put this thread (the probe, and the DDS threads it starts) under SCHED_FIFO at priority - 10.
+    Return the command prefix that starts a node under SCHED_FIFO at `priority` (() for 0).
 
-    Returns the prefix that starts a node at `priority` (() and nothing changed for 0). The node
-    measured runs above the probe, the probe above the rest (normal scheduling): measured here,
-    every node under SCHED_FIFO starves the others and loses samples. Needs CAP_SYS_NICE.
+    The node measured runs above the probe (Probe(node_priority=...)), the probe above the rest
+    (normal scheduling): measured here, every node under SCHED_FIFO starves the others and loses
+    samples. Needs CAP_SYS_NICE.
     """
-    if priority <= 0:
-        return ()
-    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, priority - 10)))
-    return ('chrt', '-f', str(priority))
+    return ('chrt', '-f', str(priority)) if priority > 0 else ()
 
 
 def run_rate(fs: float, seconds: float, model_path: Path, publish_period: float,
@@ -185,11 +189,10 @@ def run_rate(fs: float, seconds: float, model_path: Path, publish_period: float,
     ns = f'/bench{int(fs)}'
     n = int(round(seconds * fs))
     os.environ['PIEZO_NARX_EXECUTOR'] = executor
-    prefix = realtime(rt)
-    probe = Probe(ns)
+    probe = Probe(ns, node_priority=rt)
     procs = {'simulator': start('simulator_node', ns, f'fs:={fs}'),
              'estimator': start('estimator_node', ns, f'model:={model_path}', f'fs:={fs}',
-                                'init:=rest', prefix=prefix)}
+                                'init:=rest', prefix=realtime(rt))}
     result = {'fs': fs, 'n': n}
     try:
         ok = probe.spin_until(lambda: all(probe.subs[t].get_publisher_count() >= 1 for t in
@@ -220,8 +223,6 @@ def run_rate(fs: float, seconds: float, model_path: Path, publish_period: float,
     finally:
         result['codes'] = stop(procs.values())
         probe.close()
-        if rt > 0:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         result['errors'] = {k: p.stderr.read().strip().splitlines()[-3:]
                             for k, p in procs.items() if p.returncode}
     return result
