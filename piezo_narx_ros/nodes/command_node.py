@@ -121,6 +121,7 @@ class CommandNode(PiezoNode):
         self.srv_running = self.create_service(SetBool, '~/set_running', self.on_set_running)
         period = p['publish_period'] or 1.0 / p['fs']
         self._period_ns = int(p['publish_period'] * 1e9)
+        self._next_wake = 0      # monotonic ns; used when run_node paces the node (pace())
         self.timer = self.create_timer(period, self.on_tick)
         self.diagnostics = Diagnostics(self, self.status, task='command stream')
         unit = 'm' if self.position else 'V'
@@ -167,7 +168,6 @@ class CommandNode(PiezoNode):
         if self.sim_time:
             return False
         self.timer.cancel()
-        self._next_wake = 0
         return True
 
     def pace(self) -> float:

@@ -671,8 +671,9 @@ class PiezoNode(Node):
         Return True to be paced by run_node's loop instead of by a timer (default False).
 
         Such a node does its due work in `pace()`, which run_node calls after every spin_once,
-        and says there how long the loop may wait for callbacks. At 2 kHz an rclpy timer cost
-        ~110 us of CPU and 4 context switches per tick here; one timed wait costs about a quarter.
+        and says there how long the loop may wait for callbacks. At 2 kHz an rclpy timer alone
+        cost ~110 us of CPU and 4 context switches per tick here; paced this way, the command
+        node went from 45-50 % to 38 % of a core.
         """
         return False
 
