@@ -132,6 +132,39 @@ class DynamicModel:
     def stepper(self, u_past=None, y_past=None):   # pragma: no cover - interface
         raise NotImplementedError
 
+    # Initial state from measurement (ident/state.py): every family implements these three.
+    state_size = 0   # length of the state vector
+
+    def _run_from(self, values, u):   # pragma: no cover - interface
+        """Free run (m, without offset) of u (N,) V from the state vector `values`."""
+        raise NotImplementedError
+
+    def _state_candidates(self, u):   # pragma: no cover - interface
+        """ModelStates the model reaches through input histories that end at u[0]."""
+        raise NotImplementedError
+
+    def _adjustable_state(self, n_window):   # pragma: no cover - interface
+        """(indices of the state vector a window of n_window samples may adjust, their size)."""
+        raise NotImplementedError
+
+    def estimate_state(self, u, y):
+        """
+        ModelState at u[0] that best explains a measured window u (N,) V, y (N,) m.
+
+        Hysteresis memory, creep, output dynamics and sensor offset (ident/state.py).
+        """
+        from .state import estimate_state
+        return estimate_state(self, u, y)
+
+    def _check_state(self, state):
+        """State vector of a ModelState (float64 copy); DataError when it does not fit the model."""
+        values = np.array(getattr(state, 'values', None), dtype=np.float64).ravel()
+        if values.size != self.state_size or not np.all(np.isfinite(values)) \
+                or not math.isfinite(float(getattr(state, 'offset', math.nan))):
+            raise DataError(f'state does not fit {type(self).__name__}: need {self.state_size} '
+                            f'finite values and a finite offset, got {values.size}')
+        return values
+
     def _is_fitted(self) -> bool:   # pragma: no cover - interface
         raise NotImplementedError
 

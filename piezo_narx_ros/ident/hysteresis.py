@@ -23,6 +23,7 @@ input, Duhem states by |alpha|/BETA_MIN, sigmoids by 1, and the output dynamics 
 
 Inference is numpy + numba only; fitting too (no torch).
 """
+import math
 from collections import deque
 
 import numpy as np
@@ -212,17 +213,22 @@ class HysteresisNARX(DynamicModel):
                         *self._kernel_args)
         return st
 
-    def simulate(self, u, y0=None):
+    def simulate(self, u, y0=None, state=None):
         """
         Free run from the input alone: u (N,) V -> (N,) m.
 
         y0=None starts from rest (every operator, creep state and past output 0). y0 (the first
         n0 measured outputs, m) is copied to the output for k < n0; the model then runs from rest
         fed with u[n0-nu:n0] (its state is a function of the input history; it cannot be read
-        from n0 outputs). To score part of a record, simulate it from the record's start.
+        from n0 outputs). state: a ModelState at u[0] (estimate_state: memory, creep, output
+        dynamics and sensor offset set from a measured window) instead of y0.
         """
         from .regressors import as_signal
         self._require_fitted()
+        if state is not None:
+            if y0 is not None:
+                raise DataError('give y0 or state, not both')
+            return self._run_from(self._check_state(state), as_signal(u, 'u')) + state.offset
         n0 = self.n0
         if y0 is None:
             u = as_signal(u, 'u')
@@ -259,15 +265,83 @@ class HysteresisNARX(DynamicModel):
         out[n0:] = (pred + y_off) * self.y_scale_
         return out
 
-    def stepper(self, u_past=None, y_past=None):
+    def stepper(self, u_past=None, y_past=None, state=None):
         """
         Per-sample free run (the estimator's loop), started like simulate().
 
         Rest, then u_past (V, nu samples) through the model; y_past (m, ny samples) is checked and
-        kept as `y_past` but does not set the state (see simulate).
+        kept as `y_past` but does not set the state (see simulate). Or state: a ModelState
+        (estimate_state), whose offset the Stepper adds to every output.
         """
         self._require_fitted()
-        return HysteresisStepper(self, u_past, y_past)
+        stepper = HysteresisStepper(self, u_past, y_past)
+        if state is not None:
+            if u_past is not None or y_past is not None:
+                raise DataError('give u_past/y_past or state, not both')
+            stepper.set_state(state)
+        return stepper
+
+    # ------------------------------------------------------------ state from measurement
+    @property
+    def state_size(self):
+        """Length of the state vector (layout in hysteresis_kernels)."""
+        return self._state_size()
+
+    def _run_from(self, values, u):
+        """Free run (m, without offset) of u (N,) V from the state vector values (normalised)."""
+        st = np.array(values, dtype=np.float64)
+        return hk.simulate(np.asarray(u, dtype=np.float64) / self.u_scale_, st,
+                           *self._kernel_args) * self.y_scale_
+
+    def _settled(self, st, u0):
+        """
+        Let st settle with the input held at u0 (V): creep at its equilibrium, output settled.
+
+        The creep lags are made instantaneous for the hold (their equilibrium is w itself), so
+        the hold lasts only as long as the output dynamics need.
+        """
+        args = self._kernel_args
+        settle = args[:10] + (np.zeros_like(args[10]),) + args[11:]
+        poles = np.abs(self.output_poles)
+        slowest = float(np.max(poles)) if poles.size else 0.0
+        n = 20 if slowest <= 0 else int(min(20000, max(20, math.log(1e-9) / math.log(slowest))))
+        hk.simulate(np.full(n, u0 / self.u_scale_), st, *settle)
+        return st
+
+    def _state_candidates(self, u):
+        """
+        States after every input history of up to two turning points on 13 levels, settled at u0.
+
+        The levels span the trained input range; a history ramps from rest through its turning
+        points to u[0] (V) slower than the learned drive limit, so the operators see its path.
+        """
+        from .state import ModelState, ramp, turning_point_histories
+        lo, hi = self.input_range if self.input_range is not None \
+            else (-self.u_scale_, self.u_scale_)
+        u0 = float(u[0])
+        step = self.u_scale_ * min(0.02, 0.5 * self._kernel_args[3])
+        out = []
+        for pts in turning_point_histories(min(lo, u0), max(hi, u0), u0):
+            st = np.zeros(self._state_size())
+            self._run_from_inplace(st, ramp(pts + (u0,), step))
+            out.append(ModelState(self._settled(st, u0), 0.0,
+                                  {'history_turning_points_v': list(pts)}))
+        return out
+
+    def _run_from_inplace(self, st, u):
+        hk.simulate(np.asarray(u, dtype=np.float64) / self.u_scale_, st, *self._kernel_args)
+
+    def _adjustable_state(self, n_window):
+        """
+        The output dynamics' history and the creep states a window of n_window samples observes.
+
+        A creep state whose time constant exceeds a third of the window looks like an offset
+        there: it keeps its settled value (normalised units, scale 1).
+        """
+        i_x = max(self.n_lags, 1) + self.n_plays + self.n_duhem
+        seen = np.flatnonzero(np.asarray(self.creep_taus) * self.fs <= n_window / 3.0)
+        idx = np.r_[i_x + seen, np.arange(i_x + len(self.creep_taus), self._state_size())]
+        return idx.astype(int), np.ones(idx.size)
 
     def __repr__(self):
         return (f'HysteresisNARX(hidden={self.hidden}, n_plays={self.n_plays}, '
@@ -290,6 +364,28 @@ class HysteresisStepper:
         self.reset(u_past, y_past)
         self._scratch = np.zeros(self._st.size)
 
+    #: Added to every output (m): the sensor offset of a ModelState (estimate_state).
+    offset = 0.0
+
+    def set_state(self, state):
+        """Continue from a ModelState (estimate_state): its state vector and offset (m)."""
+        values = self._model._check_state(state)
+        self._st = values
+        self.offset = float(state.offset)
+        m = self._model
+        lh = max(m.n_lags, 1)
+        v = values[:lh][::-1] * self._u_scale                   # drive, oldest first
+        yl = values[values.size - m.na:][::-1] if m.na else np.zeros(0)
+        y = (yl + self._args[-1]) * self._y_scale + self.offset
+        self._u_hist = deque(v[v.size - self.nu:], maxlen=self.nu)   # nu = n_lags <= lh
+        self._y_hist = deque(y[-self.ny:] if self.ny else [], maxlen=self.ny)
+
+    @property
+    def state(self):
+        """The current ModelState (the kernel state vector, normalised, and the offset)."""
+        from .state import ModelState
+        return ModelState(self._st.copy(), self.offset)
+
     def reset(self, u_past=None, y_past=None):
         """Restart from rest, then u_past (V, nu samples); y_past (m) as in stepper()."""
         up = _history(u_past, self.nu, 'u_past') if u_past is not None else None
@@ -305,7 +401,7 @@ class HysteresisStepper:
         A non-finite u_k raises DataError and leaves the state untouched.
         """
         u = _finite_input(u_k)
-        y = hk.step(u / self._u_scale, self._st, *self._args) * self._y_scale
+        y = hk.step(u / self._u_scale, self._st, *self._args) * self._y_scale + self.offset
         self._u_hist.append(u)
         self._y_hist.append(y)
         return y
@@ -313,7 +409,7 @@ class HysteresisStepper:
     def peek(self, u_k):
         """Return the output step(u_k) would return (m), without changing the state."""
         return hk.peek(_finite_input(u_k) / self._u_scale, self._st, self._scratch,
-                       *self._args) * self._y_scale
+                       *self._args) * self._y_scale + self.offset
 
     @property
     def kernel_state(self):

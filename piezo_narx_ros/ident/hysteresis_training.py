@@ -54,7 +54,7 @@ def _stable(a):
     return a.size == 0 or np.max(np.abs(np.roots(np.r_[1.0, a]))) < _MAX_POLE
 
 
-def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng):
+def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng, mask=None):
     """
     Return starting parameters for records of inputs uns and outputs yns (normalised).
 
@@ -65,7 +65,11 @@ def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng):
     duhem = np.array([[1.0, 1.0] + [np.sqrt(1.0 + 2.0 * j)] * 4 for j in range(q)]).reshape(q, 6)
     phis = [operator_features(un, radii, n_lags, duhem, rho)[0] for un in uns]
     d = phis[0].shape[1]
-    W1 = rng.normal(0.0, 1.0, (H, d)) * (2.0 / np.sqrt(d))
+    if mask is None:
+        W1 = rng.normal(0.0, 1.0, (H, d)) * (2.0 / np.sqrt(d))
+    else:
+        fan_in = np.maximum(mask.sum(axis=1, keepdims=True), 1)
+        W1 = rng.normal(0.0, 1.0, (H, d)) * (2.0 / np.sqrt(fan_in)) * mask
     b1 = rng.uniform(-1.0, 1.0, H)
     phi = np.vstack(phis)
     sig = 1.0 / (1.0 + np.exp(-(phi @ W1.T + b1))) - 1.0 / (1.0 + np.exp(-b1))
@@ -93,7 +97,7 @@ def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng):
 
 
 def train(uns, yns, radii, n_lags, hidden, n_duhem, lam, na, nb, seed, max_iter=60,
-          val_fraction=0.0, max_fail=8, hessian_stride=2, tol=1e-7):
+          val_fraction=0.0, max_fail=8, hessian_stride=2, tol=1e-7, ridge=0.0, mask=None):
     """
     Fit on normalised records (lists of (N_r,) arrays); returns (theta, info).
 
@@ -109,9 +113,15 @@ def train(uns, yns, radii, n_lags, hidden, n_duhem, lam, na, nb, seed, max_iter=
               for un in uns]
     theta = initial_theta([u[:s] for u, s in zip(uns, splits)],
                           [y[:s] for y, s in zip(yns, splits)],
-                          radii, n_lags, H, q, lam.size, na, nb, rng)
+                          radii, n_lags, H, q, lam.size, na, nb, rng, mask)
     n_train = sum(splits)
     n_hold = sum(un.size for un in uns) - n_train
+    # Ridge on the hidden layer's input weights (per training sample, so independent of N).
+    pen = np.zeros(P)
+    pen[lay['W1'][0]:lay['W1'][1]] = ridge * n_train
+    pen[lay['w2'][0]:lay['w2'][1]] = ridge * n_train
+    fixed = (np.flatnonzero(np.asarray(mask).ravel() == 0) + lay['W1'][0] if mask is not None
+             else np.zeros(0, dtype=int))
 
     def errors(th):
         """(train SSE, holdout MSE) of the free run; inf when not finite or unstable."""
@@ -126,6 +136,7 @@ def train(uns, yns, radii, n_lags, hidden, n_duhem, lam, na, nb, seed, max_iter=
             hold += float(e[s:] @ e[s:])
         if not np.isfinite(sse) or not np.isfinite(hold):
             return np.inf, np.inf
+        sse += float(pen @ (th * th))
         return sse, (hold / n_hold if n_hold else sse / n_train)
 
     def normal_equations(th):
@@ -144,6 +155,13 @@ def train(uns, yns, radii, n_lags, hidden, n_duhem, lam, na, nb, seed, max_iter=
             # the exact error to be taken).
             Js = Jt[::hessian_stride]
             JtJ += (Js.T @ Js) * (Jt.shape[0] / max(Js.shape[0], 1))
+        JtJ[np.diag_indices(P)] += pen
+        Jte -= pen * th
+        if fixed.size:   # weights the structure holds at 0: no step along them
+            JtJ[fixed, :] = 0.0
+            JtJ[:, fixed] = 0.0
+            JtJ[fixed, fixed] = 1.0
+            Jte[fixed] = 0.0
         return JtJ, Jte
 
     sse, hold = errors(theta)
