@@ -440,9 +440,8 @@ def test_smallest_orders_scales_and_what_a_load_restores(tmp_path):
 
 # ------------------------------------------------- the family registry
 
-def test_a_new_family_registers_itself_and_model_io_saves_and_loads_it(tmp_path, monkeypatch):
-    # A family model_io has never heard of: a static gain y = k u. It owns its document and is
-    # found by its kind; model_io keeps the envelope (checksum, ranges, units, version).
+def register_toy_family(monkeypatch):
+    """Register (for this test only) a family model_io has never heard of: y = k u."""
     from piezo_narx_ros.ident import base, document
 
     monkeypatch.setattr(base, '_FAMILIES', dict(base._FAMILIES))
@@ -470,6 +469,15 @@ def test_a_new_family_registers_itself_and_model_io_saves_and_loads_it(tmp_path,
         def from_file_document(cls, doc, arrays, name, wpath, fs):
             return cls(float(document.weight_array(arrays, 'k', (1,), wpath)[0]))
 
+    return Gain
+
+
+def test_a_new_family_registers_itself_and_model_io_saves_and_loads_it(tmp_path, monkeypatch):
+    # The toy family owns its document and is found by its kind; model_io keeps the envelope
+    # (checksum, ranges, units, version).
+    from piezo_narx_ros.ident import base
+
+    Gain = register_toy_family(monkeypatch)
     g = Gain(2.5e-7)
     g.fs, g.output_range = 2000.0, (-1e-5, 1e-5)
     path = save_model(g, tmp_path / 'g.json')

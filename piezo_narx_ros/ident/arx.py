@@ -116,5 +116,10 @@ class ARXModel(LaggedModel):
             document.weight_array(arrays, 'b', (nb + 1,), wpath),
             document.weight_array(arrays, 'c', (1,), wpath)[0])
 
+    def c_emitter(self):
+        """Return the C emitter of this model (piezo_narx_ros.ident.arx_export)."""
+        from .arx_export import ARXEmitter
+        return ARXEmitter(self)
+
     def __repr__(self):
         return f'ARXModel(na={self.na}, nb={self.nb})'

@@ -345,6 +345,11 @@ class HysteresisNARX(DynamicModel):
         model.training_info_ = training.get('info') or {}
         return model
 
+    def c_emitter(self):
+        """Return the C emitter of this model (piezo_narx_ros.ident.hysteresis_export)."""
+        from .hysteresis_export import HysteresisEmitter
+        return HysteresisEmitter(self)
+
     def __repr__(self):
         return (f'HysteresisNARX(hidden={self.hidden}, n_plays={self.n_plays}, '
                 f'n_duhem={self.n_duhem}, n_lags={self.n_lags}, na={self.na}, nb={self.nb}, '

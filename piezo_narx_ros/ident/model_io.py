@@ -142,12 +142,14 @@ def _read_json(path):
         raise ModelFileError(f'model file not found: {name}')
     try:
         doc = json.loads(path.read_text(encoding='utf-8'), parse_constant=_refuse_constant)
+    except UnicodeDecodeError:      # e.g. the .npz given instead of the .json
+        raise ModelFileError(f'{name}: not a JSON model file (not UTF-8 text)') from None
     except ValueError as exc:
         if not isinstance(exc, json.JSONDecodeError):   # from _refuse_constant
             raise ModelFileError(f'{name}: {exc}') from None
         raise ModelFileError(f'{name}: not valid JSON ({exc.msg} at line {exc.lineno} column '
                              f'{exc.colno})') from None
-    except (OSError, UnicodeDecodeError) as exc:
+    except OSError as exc:
         raise ModelFileError(f'{name}: cannot read ({exc})') from None
     if not isinstance(doc, dict):
         raise ModelFileError(f'{name}: top level must be a JSON object')

@@ -231,6 +231,11 @@ class NARXNetwork(LaggedModel):
         model.training_info_ = training.get('info') or {}
         return model
 
+    def c_emitter(self):
+        """Return the C emitter of this model (piezo_narx_ros.ident.narx_export)."""
+        from .narx_export import NARXEmitter
+        return NARXEmitter(self)
+
     def __repr__(self):
         return f'NARXNetwork(nu={self.nu}, ny={self.ny}, hidden={self.hidden}, seed={self.seed})'
 
