@@ -6,11 +6,13 @@ bench's identified model, reports/control-models/default-seed0, identified when 
 bench_control.py does; ARX(4, 4): least squares on that model's protocol record) the model is
 exported with `piezo-narx export` and compiled with gcc -std=c99 -O2, then:
 
-  step       C pnr_step per sample: median over --repeats runs of a 10 s multisine (each run's
-             time / samples), and the Python Stepper.step on the same signal, side by side;
+  step       C pnr_step per sample: median over --repeats runs of a 10 s multisine, each timed
+             in chunks of 1000 samples (a chunk preempted by the shared machine is an outlier
+             the median drops), and the Python Stepper.step the same way, side by side;
   inverse    C pnr_inverse_step per sample over the control bench's references (bench_control
-             TASKS, seed 0, whole, slew 1e5 V/s) and the Python PositionController.on_reference
-             in `inverse` mode on the same; the C's largest single call too;
+             TASKS, seed 0, whole, slew 1e5 V/s; chunks of 1000 samples, median) and the Python
+             PositionController.on_reference in `inverse` mode on the same; single C calls
+             timed one by one (median, 99th percentile, largest; most model evaluations);
   agreement  max |C - Python| of the free run on the envelope battery (bench_envelope.BATTERY,
              11 signals x 10 s from rest) and of the inverse's commands on those references;
   stack      worst call chain of pnr_step and pnr_inverse_step, bytes (gcc -fstack-usage
@@ -60,6 +62,7 @@ TIMER = r"""
 #include "pnr_model.h"
 
 #define MAXN 600000
+#define CHUNK 1000
 static double in_[MAXN], dur_[MAXN];
 
 static int cmp(const void *a, const void *b)
@@ -80,6 +83,7 @@ int main(int argc, char **argv)
 {
     long n = (long)fread(in_, sizeof(double), MAXN, stdin), k, r, reps = atol(argv[2]);
     long len = argc > 3 ? atol(argv[3]) : n;
+    int evals = 0;
     pnr_state_t s;
     pnr_inverse_params_t p;
     pnr_inverse_t inv;
@@ -121,9 +125,14 @@ int main(int argc, char **argv)
         }
         t0 = now();
         for (k = 0; k < n; ++k) {
-            if (argv[1][0] == 's') {
+            if (argv[1][0] == 's') {      /* timed in chunks of CHUNK samples */
                 pnr_step(&s, &in_[k], y);
                 acc += y[0];
+                if ((k + 1) % CHUNK == 0) {
+                    t1 = now();
+                    printf("%.6f\n", 1e9 * (t1 - t0) / CHUNK);
+                    t0 = t1;
+                }
                 continue;
             }
             if (k % len == 0) {
@@ -134,19 +143,22 @@ int main(int argc, char **argv)
                 pnr_inverse_step(&inv, &in_[k], u);
                 t2 = now();
                 dur_[k] = t2 - t1;
+                evals = inv.evaluations > evals ? inv.evaluations : evals;
             } else {
                 pnr_inverse_step(&inv, &in_[k], u);
+                if ((k + 1) % CHUNK == 0) {
+                    t1 = now();
+                    printf("%.6f\n", 1e9 * (t1 - t0) / CHUNK);
+                    t0 = t1;
+                }
             }
             acc += u[0];
-        }
-        if (!per_call) {
-            printf("%.6f\n", 1e9 * (now() - t0) / (double)n);
         }
     }
     if (argv[1][0] == 'i') {      /* single calls: median, 99th percentile, largest */
         qsort(dur_, (size_t)n, sizeof(double), cmp);
-        printf("calls %.3f %.3f %.3f\n", 1e9 * dur_[n / 2], 1e9 * dur_[(long)(0.99 * (n - 1))],
-               1e9 * dur_[n - 1]);
+        printf("calls %.3f %.3f %.3f %d\n", 1e9 * dur_[n / 2],
+               1e9 * dur_[(long)(0.99 * (n - 1))], 1e9 * dur_[n - 1], evals);
     }
     fprintf(stderr, "%g\n", acc);
     return 0;
@@ -171,7 +183,11 @@ def c_run(exe, args, data) -> str:
 
 
 def c_times(exe, mode, repeats, data, *extra) -> tuple[list, list]:
-    """Return (per-sample ns of each run, [median, p99, max] ns of single inverse calls)."""
+    """
+    Return per-sample ns of each run and, for the inverse, single calls' figures.
+
+    [median ns, p99 ns, max ns, most model evaluations in one call].
+    """
     lines = c_run(exe, [mode, repeats, *extra], data).decode().split('\n')
     calls = [ln for ln in lines if ln.startswith('calls')]
     return ([float(ln) for ln in lines if ln and not ln.startswith('calls')],
@@ -205,28 +221,38 @@ def stack_and_flash(directory: Path) -> dict:
             'data': sizes.get('.data', 0) + sizes.get('.bss', 0)}
 
 
-def python_step_ns(model, u, repeats) -> list:
-    """Return the Python Stepper's per-sample ns of each run over u."""
+def python_step_ns(model, u, repeats, chunk=1000) -> list:
+    """Return the Python Stepper's per-sample ns of each chunk of `chunk` samples, every run."""
     out = []
     for _ in range(repeats):
-        st = model.stepper()
-        step = st.step
-        t0 = time.perf_counter()
-        for x in u:
-            step(x)
-        out.append(1e9 * (time.perf_counter() - t0) / u.size)
+        step = model.stepper().step
+        for lo in range(0, u.size - chunk + 1, chunk):
+            part = u[lo:lo + chunk]
+            t0 = time.perf_counter()
+            for x in part:
+                step(x)
+            out.append(1e9 * (time.perf_counter() - t0) / chunk)
     return out
 
 
-def python_inverse(model, ref):
-    """Run PositionController (inverse mode) over ref; returns (commands V, ns per sample)."""
+def python_inverse(model, ref, chunk=1000):
+    """
+    Run PositionController (inverse mode) over ref.
+
+    Returns the commands (V) and the ns per sample of each chunk of `chunk` samples.
+    """
     ctl = PositionController(model, mode='inverse', slew_rate=SLEW)
     period = int(1e9 / FS)
     u = np.empty(ref.size)
+    times = []
     t0 = time.perf_counter()
     for k, r in enumerate(ref):
         (_, u[k]), = ctl.on_reference(k * period, r)
-    return u, 1e9 * (time.perf_counter() - t0) / ref.size
+        if (k + 1) % chunk == 0:
+            t1 = time.perf_counter()
+            times.append(1e9 * (t1 - t0) / chunk)
+            t0 = t1
+    return u, times
 
 
 def envelope_battery() -> list:
@@ -247,7 +273,7 @@ def bench_family(name, model, repeats, work: Path) -> dict:
     res = {'kind': model.kind, 'n_params': model.n_params}
     u = generate('multisine', FS, 10.0, 100.0, seed=1)
     c_ns, _ = c_times(exe, 'step', repeats, u)
-    py_ns = python_step_ns(model, u, max(3, repeats // 7))
+    py_ns = python_step_ns(model, u, max(2, repeats // 10))
     res['c_step_ns'], res['py_step_ns'] = statistics.median(c_ns), statistics.median(py_ns)
     signals = envelope_battery()
     y_c = np.frombuffer(c_run(exe, ['free', 1, signals[0].size, SLEW],
@@ -255,22 +281,17 @@ def bench_family(name, model, repeats, work: Path) -> dict:
     y_py = np.concatenate([model.simulate(s) for s in signals])
     res['free_run_max_err_m'] = float(np.max(np.abs(y_c - y_py)))
     refs = [reference(task, 0)[0] for task in TASKS]
-    err, py_inv = 0.0, []
-    for ref in refs:
+    err, py_ns, c_ns = 0.0, [], []
+    for ref in refs:       # each from rest; chunk medians over every reference
         u_c = np.frombuffer(c_run(exe, ['invrun', 1, ref.size, SLEW], ref))
-        u_py, ns = python_inverse(model, ref)
-        py_inv.append((ns, ref.size))
+        u_py, times = python_inverse(model, ref)
+        py_ns += times
         err = max(err, float(np.max(np.abs(u_c - u_py))))
+        c_ns += c_times(exe, 'inverse', max(3, repeats // 10), ref, ref.size, SLEW)[0]
     res['inverse_max_err_V'] = err
+    res['c_inverse_ns'], res['py_inverse_ns'] = statistics.median(c_ns), statistics.median(py_ns)
     all_refs = np.concatenate(refs)
-    inv_ns = []
-    for ref in refs:       # per reference (each from rest), weighted by its length
-        t, _ = c_times(exe, 'inverse', max(3, repeats // 10), ref, ref.size, SLEW)
-        inv_ns.append(statistics.median(t) * ref.size)
-    res['c_inverse_ns'] = sum(inv_ns) / all_refs.size
-    _, res['c_inverse_call_p50_p99_max_ns'] = c_times(exe, 'inverse', 0, all_refs,
-                                                      all_refs.size, SLEW)
-    res['py_inverse_ns'] = sum(ns * n for ns, n in py_inv) / all_refs.size
+    _, res['c_inverse_calls'] = c_times(exe, 'inverse', 0, all_refs, all_refs.size, SLEW)
     res.update(stack_and_flash(directory))
     return res
 
@@ -317,18 +338,19 @@ def main() -> None:
               f'{r["stack_step"]:7d} {r["text"]:7d} {r["rodata"]:8d} '
               f'{r["free_run_max_err_m"]:11.1e}')
     print(f'\n{"inverse":28s} {"C/sample":>9s} {"call p50":>9s} {"call p99":>9s} '
-          f'{"call max":>9s} {"Py/sample":>9s} {"Py/C":>6s} {"stack B":>7s} '
+          f'{"call max":>9s} {"Py/sample":>9s} {"Py/C":>6s} {"evals":>5s} {"stack B":>7s} '
           f'{"max|C-Py| V":>11s}')
     for name, r in results.items():
-        p50, p99, top = r['c_inverse_call_p50_p99_max_ns']
+        p50, p99, top, evals = r['c_inverse_calls']
         print(f'{name:28s} {r["c_inverse_ns"] / 1e3:7.3f}us {p50 / 1e3:7.3f}us '
               f'{p99 / 1e3:7.3f}us {top / 1e3:7.1f}us {r["py_inverse_ns"] / 1e3:7.1f}us '
-              f'{r["py_inverse_ns"] / r["c_inverse_ns"]:6.0f} {r["stack_inverse"]:7d} '
-              f'{r["inverse_max_err_V"]:11.1e}')
+              f'{r["py_inverse_ns"] / r["c_inverse_ns"]:6.0f} {evals:5.0f} '
+              f'{r["stack_inverse"]:7d} {r["inverse_max_err_V"]:11.1e}')
     print('C step / Py step: pnr_step / Stepper.step per sample, median over runs of a 10 s '
           'multisine; inverse: pnr_inverse_step / PositionController.on_reference (inverse mode) '
-          'over the control bench references, single C calls timed separately (their max is '
-          'preemption on this shared machine); stack: worst call chain without libm; '
+          'over the control bench references, single C calls timed separately (evals: most '
+          'model evaluations in one call; the largest call time is mostly preemption on a '
+          'shared machine); stack: worst call chain without libm; '
           'text / rodata: pnr_model.o; max|C-Py|: free run on the envelope battery, commands '
           'on the control references.')
     if args.json:

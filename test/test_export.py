@@ -542,3 +542,22 @@ def test_sample_rate_and_channel_problems_are_one_line_errors(tmp_path, capsys):
         render(arx)
     with pytest.raises(ExportError, match='no weights'):
         render(ARXModel(2, 1))
+
+
+def test_the_worked_example_of_docs_export_md_builds_and_runs(exported, tmp_path):
+    text = (REPO / 'docs' / 'export.md').read_text()
+    start = text.index('/* example: loop.c')
+    (tmp_path / 'loop.c').write_text(text[start:text.index('```', start)])
+    directory = exported['hysteresis_narx'][2]
+    exe = tmp_path / 'loop'
+    out = subprocess.run([CC, *CFLAGS, '-I', str(directory), str(tmp_path / 'loop.c'),
+                          str(directory / 'pnr_model.c'), '-lm', '-o', str(exe)],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    out = subprocess.run([str(exe)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0
+    lines = out.stdout.splitlines()
+    assert len(lines) == 9 and all(ln.startswith('t ') for ln in lines)
+    r = [float(ln.split()[4]) for ln in lines]
+    y = [float(ln.split()[10]) for ln in lines]
+    assert max(abs(a - b) for a, b in zip(r, y)) < 0.05       # um: the inverse reached them
