@@ -78,6 +78,23 @@ class Tuple:
                 + (', increasing' if self.increasing else ''))
 
 
+@dataclass(frozen=True)
+class Options:
+    """One of a fixed set of strings."""
+
+    values: tuple
+
+    def check(self, name: str, value):
+        """`value` if it is one of `values`; ConfigError naming `name` otherwise."""
+        if not isinstance(value, str) or value not in self.values:
+            raise ConfigError(f'{name} must be {self.describe()}, got {value!r}')
+        return value
+
+    def describe(self) -> str:
+        """Return the rule in words."""
+        return 'one of ' + ', '.join(self.values)
+
+
 def check_parameters(cls, values: dict) -> dict:
     """
     Every constructor value checked against `cls._parameter_constraints`; returns them converted.
@@ -138,10 +155,10 @@ class DynamicModel:
     def predict(self, u, y):   # pragma: no cover - interface
         raise NotImplementedError
 
-    def simulate(self, u, y0=None):   # pragma: no cover - interface
+    def simulate(self, u, y0=None, state=None):   # pragma: no cover - interface
         raise NotImplementedError
 
-    def stepper(self, u_past=None, y_past=None):   # pragma: no cover - interface
+    def stepper(self, u_past=None, y_past=None, state=None):   # pragma: no cover - interface
         raise NotImplementedError
 
     # Initial state from measurement (ident/state.py): every family implements these three.
@@ -159,14 +176,15 @@ class DynamicModel:
         """(indices of the state vector a window of n_window samples may adjust, their size)."""
         raise NotImplementedError
 
-    def estimate_state(self, u, y):
+    def estimate_state(self, u, y, prior=None):
         """
         ModelState at u[0] that best explains a measured window u (N,) V, y (N,) m.
 
-        Hysteresis memory, creep, output dynamics and sensor offset (ident/state.py).
+        Hysteresis memory, creep, output dynamics and sensor offset (ident/state.py); prior: a
+        ModelState believed to hold (its memory is kept, the rest refined on the window).
         """
         from .state import estimate_state
-        return estimate_state(self, u, y)
+        return estimate_state(self, u, y, prior)
 
     def _check_state(self, state):
         """State vector of a ModelState (float64 copy); DataError when it does not fit the model."""

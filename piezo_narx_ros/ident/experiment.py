@@ -100,6 +100,9 @@ class CandidateSpec:
             o = dict(self.options)
             return (f'HNARX(H={self.hidden}, plays={o.get("n_plays", 12)}, '
                     f'duhem={o.get("n_duhem", 1)}, seed={self.seed})')
+        if self.kind == 'ensemble':
+            members = dict(self.options).get('members', ())
+            return f'Ensemble of {len(members)}: ' + ' + '.join(members)
         seed = f', seed={self.seed}' if self.seed else ''
         return f'NARX(ny={self.ny}, nu={self.nu}, H={self.hidden}{seed})'
 
@@ -115,6 +118,8 @@ class CandidateSpec:
             from piezo_narx_ros.ident.narx import NARXNetwork
             return NARXNetwork(nu=self.nu, ny=self.ny, hidden=self.hidden, seed=self.seed,
                                **(training_options or {}))
+        if self.kind == 'ensemble':
+            raise ConfigError('an ensemble is built from fitted candidates, not from a spec')
         raise ConfigError(f'unknown model kind {self.kind!r} (use narx, arx or '
                           f'hysteresis_narx)')
 
@@ -128,6 +133,8 @@ class ExperimentConfig:
     hidden: int = 10                    # sigmoid units of the hidden layer
     seed: int = 0                       # first network seed
     n_seeds: int = 1                    # networks per structure, seeds seed .. seed + n_seeds - 1
+    ensemble: int = 0                   # the mean of the best networks, up to this many, is a
+    #                                     candidate too (0: none; see ensemble_candidate)
     family: str = 'narx'                # networks of the grid: 'narx' (paper) | 'hysteresis_narx'
     hnarx: dict = field(default_factory=dict)  # HysteresisNARX options besides hidden and seed
     selection: str = 'tests'            # 'tests' (paper) | 'worst_case' (see module docstring)
@@ -183,6 +190,10 @@ class ExperimentConfig:
         if self.selection not in SELECTIONS:
             raise ConfigError(f'selection must be one of {", ".join(SELECTIONS)}, got '
                               f'{self.selection!r}')
+        if int(self.ensemble) != self.ensemble or not (self.ensemble == 0
+                                                          or 2 <= self.ensemble <= 64):
+            raise ConfigError(f'ensemble must be 0 (none) or an integer in [2, 64], got '
+                              f'{self.ensemble}')
         if int(self.n_seeds) != self.n_seeds or not 1 <= self.n_seeds <= 1000:
             raise ConfigError(f'n_seeds must be an integer in [1, 1000], got {self.n_seeds}')
         if int(self.seed) != self.seed or self.seed < 0:
@@ -251,7 +262,7 @@ PRESETS = {
     # NARX over several network seeds, a small ARX baseline, selection on the worst case.
     'envelope': {'family': 'hysteresis_narx', 'hidden': 10, 'n_seeds': 4, 'hnarx': {},
                  'arx_na': (2, 3, 4), 'arx_nb': (2, 3, 4), 'selection': 'worst_case',
-                 'final_training': {}},
+                 'final_training': {}, 'init_seconds': 0.5, 'ensemble': 4},
 }
 
 
@@ -364,29 +375,43 @@ def free_run(model, record: Record) -> tuple[np.ndarray, np.ndarray]:
     whose state is a function of the whole input history (`state_from_input`) is instead run
     from the start of the recording the record was cut from (its u_before / y_before), with the
     recording's first n0 outputs, as it would have run live; the record's samples are returned.
-    A record with a `state_window` (its recording did not start at rest) starts every family
-    from the state that model.estimate_state finds in the recording's first state_window samples
-    (memory, creep, output dynamics, sensor offset); a free run of NaN when none is found.
+
+    A record with a `state_window` N > 0 starts every family from a measured state, as a rig's
+    estimator does (`--init-samples`): model.estimate_state on the record's first N samples. When
+    the record continues a recording (a validation half), its input history is known: the state
+    found at the recording's start is run through that history and then refined (offset, creep,
+    output dynamics) on the record's first N samples. A free run of NaN when no state is found.
     """
     u, y, skip = record.u, record.y, 0
     window = record.state_window
-    if (window is not None or getattr(model, 'state_from_input', False)) \
-            and record.u_before is not None and record.y_before is not None:
-        skip = record.u_before.size
-        u, y = np.concatenate([record.u_before, u]), np.concatenate([record.y_before, y])
+    before = record.u_before is not None and record.y_before is not None
     with np.errstate(all='ignore'):   # a diverging network must not spam warnings
-        pred = model.predict(u, y)
         if window:
+            if before:
+                pred = model.predict(np.r_[record.u_before, u],
+                                     np.r_[record.y_before, y])[record.u_before.size:]
+            else:
+                pred = model.predict(u, y)
             n = min(int(window), u.size)
             try:
-                state = model.estimate_state(u[:n], y[:n])
+                prior = None
+                if before:
+                    m = min(n, record.u_before.size)
+                    start = model.estimate_state(record.u_before[:m], record.y_before[:m])
+                    stepper = model.stepper(state=start)
+                    for value in record.u_before:
+                        stepper.step(value)
+                    prior = stepper.state
+                state = model.estimate_state(u[:n], y[:n], prior=prior)
                 sim = model.simulate(u, state=state)
             except DataError:
                 sim = np.full(u.size, np.nan)
-        elif window == 0:
-            sim = model.simulate(u)
-        else:
-            sim = model.simulate(u, y[:model.n0])
+            return pred, sim
+        if (window is not None or getattr(model, 'state_from_input', False)) and before:
+            skip = record.u_before.size
+            u, y = np.concatenate([record.u_before, u]), np.concatenate([record.y_before, y])
+        pred = model.predict(u, y)
+        sim = model.simulate(u) if window == 0 else model.simulate(u, y[:model.n0])
     return pred[skip:], sim[skip:]
 
 
@@ -394,12 +419,11 @@ def scored_from(model, record: Record) -> int:
     """
     First sample of `record` that is scored.
 
-    n0 (the paper's convention), 0 from rest, or the first after its recording's state window.
+    n0 (the paper's convention), 0 from rest, or the first after the record's state window.
     """
     if record.state_window is None:
         return int(model.n0)
-    before = 0 if record.u_before is None else record.u_before.size
-    return max(0, int(record.state_window) - before)
+    return int(record.state_window)
 
 
 def outputs_by_record(model, records: list[Record]) -> list[dict[str, np.ndarray]]:
@@ -565,22 +589,65 @@ def fit_candidate(spec: CandidateSpec, est: list[Record], val: list[Record],
             us, ys = us[0], ys[0]
         model.fit(us, ys, fs=est[0].fs)
         res.fit_seconds = time.perf_counter() - t0
-        res.n_params = int(model.n_params)
-        res.scores['estimation'] = evaluate_model(model, est, with_tests=False)
-        noise = None
-        if config.noise_model == 'ar':
-            noise = fit_noise_models(model, est, config.noise_order, config.max_lag)
-        val_eval = evaluate_model(model, val, config.max_lag, config.max_outside_fraction,
-                                  noise_models=noise)
-        res.tests = val_eval.pop('tests')
-        res.tests['noise_model'] = config.noise_model
-        res.tests['residuals'] = config.residuals
-        res.scores['validation'] = val_eval
-        res.validated = bool(res.tests[config.residuals]['passed'])
-        res.model = model
+        score_candidate(res, model, est, val, config)
     except PiezoNarxError as exc:
         res.error = str(exc)
         res.fit_seconds = time.perf_counter() - t0
+    return res
+
+
+def score_candidate(res: CandidateResult, model, est: list[Record], val: list[Record],
+                    config: ExperimentConfig) -> CandidateResult:
+    """Fill res with a fitted model's scores on both data sets and its tests; returns res."""
+    res.n_params = int(model.n_params)
+    res.scores['estimation'] = evaluate_model(model, est, with_tests=False)
+    noise = None
+    if config.noise_model == 'ar':
+        noise = fit_noise_models(model, est, config.noise_order, config.max_lag)
+    val_eval = evaluate_model(model, val, config.max_lag, config.max_outside_fraction,
+                              noise_models=noise)
+    res.tests = val_eval.pop('tests')
+    res.tests['noise_model'] = config.noise_model
+    res.tests['residuals'] = config.residuals
+    res.scores['validation'] = val_eval
+    res.validated = bool(res.tests[config.residuals]['passed'])
+    res.model = model
+    return res
+
+
+#: A network joins the ensemble when its worst-case free-run error is at most this many times
+#: the best network's (R² deficits compared: 4 = twice the RMSE).
+ENSEMBLE_TOLERANCE = 4.0
+
+
+def ensemble_candidate(candidates: list[CandidateResult], est: list[Record],
+                       val: list[Record], config: ExperimentConfig) -> CandidateResult | None:
+    """
+    The mean of the best networks of the grid, scored like a candidate (None when < 2 qualify).
+
+    Networks (not ARX) that fitted, best worst-case free-run R² first, those whose R² deficit is
+    within ENSEMBLE_TOLERANCE of the best one's, at most config.ensemble of them.
+    """
+    from piezo_narx_ros.ident.ensemble import EnsembleModel
+    nets = sorted((c for c in candidates if c.error is None and c.spec.kind != 'arx'
+                   and c.model is not None and np.isfinite(c.free_run_r2())),
+                  key=lambda c: -c.free_run_r2())
+    if len(nets) < 2:
+        return None
+    worst = max(1.0 - nets[0].free_run_r2(), 1e-300) * ENSEMBLE_TOLERANCE
+    members = [c for c in nets if 1.0 - c.free_run_r2() <= worst][:int(config.ensemble)]
+    if len(members) < 2:
+        return None
+    model = EnsembleModel([c.model for c in members])
+    spec = CandidateSpec('ensemble', nu=model.nu, ny=model.ny, hidden=members[0].spec.hidden,
+                         options=(('members', tuple(c.spec.label for c in members)),))
+    res = CandidateResult(spec=spec)
+    t0 = time.perf_counter()
+    try:
+        score_candidate(res, model, est, val, config)
+    except PiezoNarxError as exc:
+        res.error = str(exc)
+    res.fit_seconds = sum(c.fit_seconds for c in members) + time.perf_counter() - t0
     return res
 
 
@@ -725,6 +792,10 @@ def run_experiments(groups: list[list[Record]], config: ExperimentConfig | None 
         for (g, (spec, _)), out in zip(tasks, _map(executor, tasks, data, show)):
             candidates[g].append(_as_result(spec, out))
         for g, cands in candidates.items():
+            if config.ensemble:
+                extra = ensemble_candidate(cands, data[g][0], data[g][1], config)
+                if extra is not None:
+                    cands.append(extra)
             try:
                 chosen[g] = select(cands, config.selection)
             except PiezoNarxError as exc:

@@ -33,9 +33,14 @@ import math
 from ..errors import ConfigError, DataError, ModelFileError
 from . import document
 from . import hysteresis_kernels as hk
-from .base import (DynamicModel, Interval, Tuple, as_record_list, check_parameters,
+from .base import (DynamicModel, Interval, Options, Tuple, as_record_list, check_parameters,
                    register_family)
 from .kernels import _finite_input, _history
+
+#: Seconds at the start of a record that estimate where it starts (HysteresisNARX start).
+START_WINDOW_S = 2.0
+#: Hold (s) at the record's first input after the estimated history, before the record.
+START_HOLD_S = 1.0
 
 #: Creep time constants (s): log-spaced from the mode's scale to the longest drift a record shows.
 DEFAULT_CREEP_TAUS = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
@@ -56,7 +61,15 @@ class HysteresisNARX(DynamicModel):
     amplifier's slew limit); na, nb : output dynamics orders; creep_taus : creep time constants, s;
     seed : initial hidden-layer seed. Training: max_iter LM iterations, val_fraction of each
     record held out for early stopping (0: none), max_fail, hessian_stride (see
-    hysteresis_training).
+    hysteresis_training). start: how each estimation record starts: 'rest', or 'estimate' (a
+    record that does not start at rest: after a fit from rest, each record's starting memory is
+    estimated from its first seconds, prepended as an input history and the fit continued, with
+    an output offset per record after the first: sensor zeros differ between sessions);
+    'auto': 'estimate' when a record's first input is away from 0 V, else 'rest'. monotone:
+    'yes' keeps the network increasing in every play and Duhem state, with the sign of the data's
+    static gain, so the rate-independent part of the output moves with the input the way the
+    actuator's does wherever the input goes (the minor loops of a record that showed only the
+    major loop among them); 'no' leaves the network free.
 
     Fitted attributes: u_scale_ (V), y_scale_ (m), radii_ (normalised), theta_ (all parameters,
     normalised units), training_info_; fs, input_range, output_range as every model.
@@ -79,15 +92,18 @@ class HysteresisNARX(DynamicModel):
         'val_fraction': Interval(float, 0.0, 0.5),
         'max_fail': Interval(int, 1, 10000),
         'hessian_stride': Interval(int, 1, 64),
+        'start': Options(('auto', 'rest', 'estimate')),
+        'monotone': Options(('auto', 'yes', 'no')),
     }
 
     def __init__(self, hidden=10, n_plays=12, n_duhem=1, n_lags=3, na=3, nb=3,
                  creep_taus=DEFAULT_CREEP_TAUS, seed=0, max_iter=60, val_fraction=0.0,
-                 max_fail=8, hessian_stride=2):
+                 max_fail=8, hessian_stride=2, start='auto', monotone='yes'):
         values = check_parameters(type(self), {
             'hidden': hidden, 'n_plays': n_plays, 'n_duhem': n_duhem, 'n_lags': n_lags,
             'na': na, 'nb': nb, 'creep_taus': creep_taus, 'seed': seed, 'max_iter': max_iter,
-            'val_fraction': val_fraction, 'max_fail': max_fail, 'hessian_stride': hessian_stride})
+            'val_fraction': val_fraction, 'max_fail': max_fail, 'hessian_stride': hessian_stride,
+            'start': start, 'monotone': monotone})
         for name, value in values.items():
             setattr(self, name, value)
         self.theta_ = None
@@ -127,8 +143,9 @@ class HysteresisNARX(DynamicModel):
         """
         Train on one record (u V, y m: 1-D arrays) or several (lists of arrays).
 
-        No state crosses records; fs (Hz) is required (creep time constants are in seconds). Each
-        record should start at rest, as the free run does. Returns self.
+        No state crosses records; fs (Hz) is required (creep time constants are in seconds). A
+        record that does not start at rest is fitted from an estimated start (`start`). Returns
+        self.
         """
         from .hysteresis_training import train
         us, ys = as_record_list(u, y, min_len=max(self.n0, 1) + 20)
@@ -145,14 +162,75 @@ class HysteresisNARX(DynamicModel):
         self.u_scale_, self.y_scale_ = u_scale, y_scale
         self.radii_ = (np.arange(self.n_plays) / self.n_plays) ** 2
         self.fs = fs
-        theta, info = train([x / u_scale for x in us], [x / y_scale for x in ys], self.radii_,
-                            self.n_lags, self.hidden, self.n_duhem, self._lam(), self.na,
-                            self.nb, self.seed, self.max_iter, self.val_fraction, self.max_fail,
-                            self.hessian_stride)
+        # The monotone network rises with the input; an actuator whose output falls with the
+        # voltage is fitted on the negated output and the output layer negated after.
+        sign = -1.0 if self.monotone == 'yes' and _gain_sign(us, ys) < 0 else 1.0
+
+        def fit_on(prefixes, theta0):
+            skip = [p.size for p in prefixes]
+            theta, info = train(
+                [np.r_[p, x] / u_scale for p, x in zip(prefixes, us)],
+                [np.r_[np.zeros(p.size), sign * x] / y_scale for p, x in zip(prefixes, ys)],
+                self.radii_, self.n_lags, self.hidden, self.n_duhem, self._lam(), self.na,
+                self.nb, self.seed, self.max_iter, self.val_fraction, self.max_fail,
+                self.hessian_stride, theta0=None if theta0 is None else self._signed(theta0,
+                                                                                   sign),
+                skip=skip, record_offsets=theta0 is not None and len(us) > 1,
+                monotone=self.monotone == 'yes')
+            info['record_offsets'] = [sign * o for o in info['record_offsets']]
+            return self._signed(theta, sign), info
+
+        theta, info = fit_on([np.zeros(0)] * len(us), None)
         self.set_theta(theta)
         self._record_ranges(u_all, y_all, fs)
+        start = self.start
+        if start == 'auto':
+            start = 'estimate' if any(abs(x[0]) > 0.01 * u_scale for x in us) else 'rest'
+        if start == 'estimate':
+            prefixes, starts = self._start_histories(us, ys)
+            theta, more = fit_on(prefixes, theta)
+            self.set_theta(theta)
+            more['iterations_from_rest'] = info['iterations']
+            more['record_starts'] = starts
+            more['record_offsets_m'] = [o * y_scale for o in more.pop('record_offsets')]
+            more['fit_seconds'] += info['fit_seconds']
+            info = more
         self.training_info_ = info
         return self
+
+    def _signed(self, theta, sign):
+        """theta with its output negated when sign < 0 (output layer and offset; a copy)."""
+        theta = np.array(theta, dtype=np.float64)
+        if sign < 0:
+            lay, _ = hk.layout(self.hidden, self.n_inputs, self.n_duhem, len(self.creep_taus),
+                               self.na, self.nb)
+            for name in ('w2', 'c', 'y_off'):
+                lo, hi = lay[name]
+                theta[lo:hi] = -theta[lo:hi]
+        return theta
+
+    def _start_histories(self, us, ys):
+        """
+        Per record, an input history (V) that puts the model where the record starts.
+
+        From estimate_state on the record's first START_WINDOW_S seconds: rest, a ramp through
+        the estimated turning points to the record's first input, a hold of START_HOLD_S.
+        Returns (histories, [{'turning_points_v', 'offset_m'}, ...]).
+        """
+        from .state import ramp
+        out, starts = [], []
+        step = self.u_scale_ * min(0.02, 0.5 * self._kernel_args[3])
+        for u, y in zip(us, ys):
+            n = int(min(u.size, max(self.n0 + 20, round(START_WINDOW_S * self.fs))))
+            state = self.estimate_state(u[:n], y[:n])
+            pts = state.info['history_turning_points_v']
+            if pts is None:   # from rest: nothing before the record
+                out.append(np.zeros(0))
+            else:
+                hold = np.full(int(round(START_HOLD_S * self.fs)), float(u[0]))
+                out.append(np.r_[ramp(tuple(pts) + (float(u[0]),), step), hold])
+            starts.append({'turning_points_v': pts, 'offset_m': state.offset})
+        return out, starts
 
     def _lam(self):
         return np.exp(-1.0 / (np.asarray(self.creep_taus, dtype=float) * self.fs))
@@ -330,7 +408,9 @@ class HysteresisNARX(DynamicModel):
             else (-self.u_scale_, self.u_scale_)
         u0 = float(u[0])
         step = self.u_scale_ * min(0.02, 0.5 * self._kernel_args[3])
-        out = []
+        # Rest itself: a record whose first command is a jump from 0 V (the actuator idle at 0 V
+        # when the recording started; the micromanipulator's records look like this).
+        out = [ModelState(np.zeros(self._state_size()), 0.0, {'history_turning_points_v': None})]
         for pts in turning_point_histories(min(lo, u0), max(hi, u0), u0):
             st = np.zeros(self._state_size())
             self._run_from_inplace(st, ramp(pts + (u0,), step))
@@ -428,6 +508,13 @@ class HysteresisNARX(DynamicModel):
         return (f'HysteresisNARX(hidden={self.hidden}, n_plays={self.n_plays}, '
                 f'n_duhem={self.n_duhem}, n_lags={self.n_lags}, na={self.na}, nb={self.nb}, '
                 f'seed={self.seed})')
+
+
+def _gain_sign(us, ys) -> float:
+    """Sign of the least-squares slope of output on input over the records (+1 when flat)."""
+    u = np.concatenate([x - x.mean() for x in us])
+    y = np.concatenate([x - x.mean() for x in ys])
+    return -1.0 if float(u @ y) < 0 else 1.0
 
 
 class HysteresisStepper:

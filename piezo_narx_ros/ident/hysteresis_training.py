@@ -54,29 +54,69 @@ def _stable(a):
     return a.size == 0 or np.max(np.abs(np.roots(np.r_[1.0, a]))) < _MAX_POLE
 
 
-def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng, mask=None):
+def monotone_mask(lay, P, H, m, n_lags, q):
+    """
+    Parameters held >= 0 so that the output rises with the input along any path (`monotone`).
+
+    The hidden layer's weights from plays and Duhem states, the output weights, the linear
+    weights of plays and Duhem states, and the Duhem states' rates of rise (alpha): every play
+    and Duhem state rises with the drive, so a network increasing in each of them does too (the
+    drive increments, a rate effect, are left free).
+    """
+    mask = np.zeros(P, dtype=bool)
+    d = m + n_lags + q
+    rate_free = np.zeros(d, dtype=bool)
+    rate_free[m:m + n_lags] = True
+    lo = lay['W1'][0]
+    mask[lo:lo + H * d] = np.tile(~rate_free, H)
+    mask[lay['w2'][0]:lay['w2'][1]] = True
+    mask[lay['c'][0]:lay['c'][1]] = ~rate_free
+    for j in range(q):
+        mask[lay['duhem'][0] + 6 * j:lay['duhem'][0] + 6 * j + 2] = True
+    return mask
+
+
+def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng, monotone=False):
     """
     Return starting parameters for records of inputs uns and outputs yns (normalised).
 
-    See the module docstring.
+    See the module docstring. monotone: the start satisfies monotone_mask's signs (a positive
+    hidden layer, the output layer by bounded least squares).
     """
     rho = 0.5 * max(float(np.max(np.abs(np.diff(np.r_[0.0, un])))) for un in uns)
     rho = max(rho, 1e-6)
     duhem = np.array([[1.0, 1.0] + [np.sqrt(1.0 + 2.0 * j)] * 4 for j in range(q)]).reshape(q, 6)
     phis = [operator_features(un, radii, n_lags, duhem, rho)[0] for un in uns]
     d = phis[0].shape[1]
-    if mask is None:
-        W1 = rng.normal(0.0, 1.0, (H, d)) * (2.0 / np.sqrt(d))
-    else:
-        fan_in = np.maximum(mask.sum(axis=1, keepdims=True), 1)
-        W1 = rng.normal(0.0, 1.0, (H, d)) * (2.0 / np.sqrt(fan_in)) * mask
+    W1 = rng.normal(0.0, 1.0, (H, d)) * (2.0 / np.sqrt(d))
     b1 = rng.uniform(-1.0, 1.0, H)
+    m = radii.size
+    if monotone:
+        W1[:, :m] = np.abs(W1[:, :m])
+        W1[:, m + n_lags:] = np.abs(W1[:, m + n_lags:])
     phi = np.vstack(phis)
     sig = 1.0 / (1.0 + np.exp(-(phi @ W1.T + b1))) - 1.0 / (1.0 + np.exp(-b1))
     A = np.hstack([sig, phi])
     # A little ridge: the sigmoid columns of a random layer can be nearly collinear.
     lam = 1e-8 * np.trace(A.T @ A) / A.shape[1]
-    sol = np.linalg.solve(A.T @ A + lam * np.eye(A.shape[1]), A.T @ np.concatenate(yns))
+    target = np.concatenate(yns)
+    y_off = 0.0
+    if monotone:
+        # Bounded least squares with a free intercept: positive weights alone cannot make the
+        # output's mean (the records need not be centred).
+        from scipy.optimize import lsq_linear
+        n_col = A.shape[1]
+        lower = np.full(n_col + 1, -np.inf)
+        lower[:H + m] = 0.0
+        lower[H + m + n_lags:n_col] = 0.0
+        aug = np.vstack([np.hstack([A, np.ones((A.shape[0], 1))]),
+                         np.sqrt(lam) * np.eye(n_col + 1)[:n_col]])
+        sol = lsq_linear(aug, np.r_[target, np.zeros(n_col)], bounds=(lower, np.inf)).x
+        y_off, sol = float(sol[-1]), sol[:-1]
+        # Strictly inside the constraint: the training moves the log of these weights.
+        sol[lower[:-1] == 0.0] = np.maximum(sol[lower[:-1] == 0.0], 1e-4)
+    else:
+        sol = np.linalg.solve(A.T @ A + lam * np.eye(A.shape[1]), A.T @ target)
     w2, c = sol[:H], sol[H:]
     a, b = np.zeros(na), np.zeros(nb + 1)
     b[0] = 1.0
@@ -85,85 +125,113 @@ def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng, mask=None
     for phi_r, yn in zip(phis, yns):
         w0 = A[start:start + yn.size] @ sol
         start += yn.size
-        cols = ([-np.r_[np.zeros(j), yn[:yn.size - j]] for j in range(1, na + 1)]
+        yl = yn - y_off
+        cols = ([-np.r_[np.zeros(j), yl[:yl.size - j]] for j in range(1, na + 1)]
                 + [np.r_[np.zeros(i), w0[:w0.size - i]] for i in range(nb + 1)])
         rows.append(np.column_stack(cols)[n0:])
-        targets.append(yn[n0:])
+        targets.append(yl[n0:])
     ab = np.linalg.lstsq(np.vstack(rows), np.concatenate(targets), rcond=None)[0]
     if np.all(np.isfinite(ab)) and _stable(ab[:na]):
         a, b = ab[:na], ab[na:]
     return np.concatenate([W1.ravel(), b1, w2, c, duhem.ravel(), [np.log(rho)], np.zeros(n_creep),
-                           a, b, [0.0]])
+                           a, b, [y_off]])
 
 
 def train(uns, yns, radii, n_lags, hidden, n_duhem, lam, na, nb, seed, max_iter=60,
-          val_fraction=0.0, max_fail=8, hessian_stride=2, tol=1e-7, ridge=0.0, mask=None):
+          val_fraction=0.0, max_fail=8, hessian_stride=2, tol=1e-7, theta0=None, skip=None,
+          record_offsets=False, monotone=False):
     """
     Fit on normalised records (lists of (N_r,) arrays); returns (theta, info).
 
     radii: play radii (normalised); lam: creep filter poles exp(-1/(tau fs)); the rest as
-    HysteresisNARX. info: iterations, losses (normalised mean squares), seconds, stop reason.
+    HysteresisNARX. theta0: start from these parameters instead of a seeded start. skip: per
+    record, leading samples left out of the loss (an input history prepended to set the state a
+    record starts in). record_offsets: every record after the first gets its own output offset
+    (a sensor zero that moved between sessions), fitted with the model and returned in info.
+    info: iterations, losses (normalised mean squares), seconds, stop reason.
     """
     t0 = time.perf_counter()
     rng = np.random.default_rng(int(seed))
     H, q, n_lags = int(hidden), int(n_duhem), int(n_lags)
     d = radii.size + n_lags + q
     lay, P = hk.layout(H, d, q, lam.size, na, nb)
-    splits = [un.size - int(round(val_fraction * un.size)) if val_fraction > 0 else un.size
-              for un in uns]
-    theta = initial_theta([u[:s] for u, s in zip(uns, splits)],
-                          [y[:s] for y, s in zip(yns, splits)],
-                          radii, n_lags, H, q, lam.size, na, nb, rng, mask)
-    n_train = sum(splits)
-    n_hold = sum(un.size for un in uns) - n_train
-    # Ridge on the hidden layer's input weights (per training sample, so independent of N).
-    pen = np.zeros(P)
-    pen[lay['W1'][0]:lay['W1'][1]] = ridge * n_train
-    pen[lay['w2'][0]:lay['w2'][1]] = ridge * n_train
-    fixed = (np.flatnonzero(np.asarray(mask).ravel() == 0) + lay['W1'][0] if mask is not None
-             else np.zeros(0, dtype=int))
+    skip = [0] * len(uns) if skip is None else [int(k) for k in skip]
+    splits = [un.size - int(round(val_fraction * (un.size - k))) if val_fraction > 0 else un.size
+              for un, k in zip(uns, skip)]
+    if theta0 is None:
+        theta = initial_theta([u[:s] for u, s in zip(uns, splits)],
+                              [y[:s] for y, s in zip(yns, splits)],
+                              radii, n_lags, H, q, lam.size, na, nb, rng, monotone)
+    else:
+        theta = np.array(theta0, dtype=np.float64)
+    n_off = len(uns) - 1 if record_offsets else 0
+    pos = np.zeros(P + n_off, dtype=bool)
+    if monotone:
+        pos[:P] = monotone_mask(lay, P, H, radii.size, n_lags, q)
+    # The iterations move `raw`; the model's parameters are actual(raw) (logs where positive).
+    raw = np.r_[theta[:P], np.zeros(n_off)]
+    raw[pos] = np.log(np.maximum(raw[pos], 1e-12))
 
-    def errors(th):
+    def actual(r):
+        th = r.copy()
+        th[pos] = np.exp(r[pos])
+        return th
+    n_train = sum(s - k for s, k in zip(splits, skip))
+    n_hold = sum(un.size for un in uns) - sum(splits)
+
+    def errors(r):
         """(train SSE, holdout MSE) of the free run; inf when not finite or unstable."""
+        with np.errstate(over='ignore'):
+            th = actual(r)
+        if not np.all(np.isfinite(th)):
+            return np.inf, np.inf
         W1, b1, w2, c, dh, rho, g, a, b, y_off = _split_theta(th, lay, H, d, q)
         if not _stable(a) or not np.isfinite(rho):
             return np.inf, np.inf
         sse, hold = 0.0, 0.0
-        for un, yn, s in zip(uns, yns, splits):
+        for r, (un, yn, s, k) in enumerate(zip(uns, yns, splits, skip)):
             _, (F, S, _, _, _) = operator_features(un, radii, n_lags, dh, rho)
             e = yn - hk.forward(F, S, W1, b1, w2, c, g, lam, a, b, y_off)
-            sse += float(e[:s] @ e[:s])
+            if r and n_off:
+                e -= th[P + r - 1]
+            sse += float(e[k:s] @ e[k:s])
             hold += float(e[s:] @ e[s:])
         if not np.isfinite(sse) or not np.isfinite(hold):
             return np.inf, np.inf
-        sse += float(pen @ (th * th))
         return sse, (hold / n_hold if n_hold else sse / n_train)
 
-    def normal_equations(th):
+    def normal_equations(r):
+        th = actual(r)
         W1, b1, w2, c, dh, rho, g, a, b, y_off = _split_theta(th, lay, H, d, q)
-        JtJ = np.zeros((P, P))
-        Jte = np.zeros(P)
-        for un, yn, s in zip(uns, yns, splits):
+        chain = np.where(pos[:P], th[:P], 1.0)      # d(actual)/d(raw)
+        n = P + n_off
+        JtJ = np.zeros((n, n))
+        Jte = np.zeros(n)
+        for r, (un, yn, s, k) in enumerate(zip(uns, yns, splits, skip)):
             _, parts = operator_features(un, radii, n_lags, dh, rho, with_jac=True)
             J = np.empty((un.size, P))
             y = hk.jacobian(*parts, rho, W1, b1, w2, c, g, lam, a, b, y_off, J)
-            e = yn[:s] - y[:s]
-            Jt = J[:s]
-            Jte += Jt.T @ e
+            if monotone:
+                J *= chain
+            e = yn[k:s] - y[k:s]
+            Jt = J[k:s]
+            if r and n_off:
+                e -= th[P + r - 1]
+                o = P + r - 1
+                col = Jt.sum(axis=0)
+                JtJ[o, :P] += col
+                JtJ[:P, o] += col
+                JtJ[o, o] += Jt.shape[0]
+                Jte[o] += e.sum()
+            Jte[:P] += Jt.T @ e
             # Neighbouring rows of densely sampled data are nearly collinear: estimate the
             # curvature from every stride-th row (the gradient uses all; a step must still lower
             # the exact error to be taken).
             Js = Jt[::hessian_stride]
-            JtJ += (Js.T @ Js) * (Jt.shape[0] / max(Js.shape[0], 1))
-        JtJ[np.diag_indices(P)] += pen
-        Jte -= pen * th
-        if fixed.size:   # weights the structure holds at 0: no step along them
-            JtJ[fixed, :] = 0.0
-            JtJ[:, fixed] = 0.0
-            JtJ[fixed, fixed] = 1.0
-            Jte[fixed] = 0.0
+            JtJ[:P, :P] += (Js.T @ Js) * (Jt.shape[0] / max(Js.shape[0], 1))
         return JtJ, Jte
 
+    theta = raw
     sse, hold = errors(theta)
     best_theta, best_hold = theta.copy(), hold
     mu, fails, it, reason = 1e-2, 0, 0, 'max_iter'
@@ -206,5 +274,6 @@ def train(uns, yns, radii, n_lags, hidden, n_duhem, lam, na, nb, seed, max_iter=
     sse, hold = errors(best_theta)
     info = {'iterations': it, 'stop': reason, 'n_train': int(n_train), 'n_holdout': int(n_hold),
             'n_params': int(P), 'train_mse': float(sse / n_train), 'holdout_mse': float(hold),
-            'loss_history': history, 'fit_seconds': time.perf_counter() - t0}
-    return best_theta, info
+            'loss_history': history, 'fit_seconds': time.perf_counter() - t0,
+            'record_offsets': [0.0] + best_theta[P:].tolist() if n_off else []}
+    return actual(best_theta)[:P], info

@@ -130,17 +130,24 @@ def _refine(model, values: np.ndarray, u: np.ndarray, y: np.ndarray, idx: np.nda
     return x, offset, robust_cost(y - base - offset)
 
 
-def estimate_state(model, u, y, iterations: int = 5) -> ModelState:
+def estimate_state(model, u, y, prior: ModelState | None = None,
+                   iterations: int = 5) -> ModelState:
     """
     ModelState at u[0] that best explains the measured window u (N,) V, y (N,) m.
 
-    See the module docstring. N >= MIN_WINDOW; DataError otherwise. The window's own samples are
-    part of the run: simulate(u_window, state=s) reproduces y_window as well as the model can.
+    See the module docstring. prior: the state the model is believed to be in (e.g. run through
+    a known input history): the only candidate, refined on the window. N >= MIN_WINDOW;
+    DataError otherwise. The window's own samples are part of the run: simulate(u_window,
+    state=s) reproduces y_window as well as the model can.
     """
     model._require_fitted()
     u = as_signal(u, 'u (state window)', min_len=MIN_WINDOW)
     y = as_signal(y, 'y (state window)', n=u.size)
-    candidates = model._state_candidates(u)
+    if prior is not None:
+        candidates = [ModelState(model._check_state(prior), float(prior.offset),
+                                 {'history': 'given'})]
+    else:
+        candidates = model._state_candidates(u)
     idx, scale = model._adjustable_state(u.size)
     ranked = []
     with np.errstate(all='ignore'):   # a candidate that diverges is ranked last, not reported
