@@ -27,7 +27,7 @@ import contextlib
 CONFIG_KEYS = ('preset', 'family', 'ny', 'nu', 'hidden', 'seed', 'n_seeds', 'hnarx', 'arx_na',
                'arx_nb', 'arx', 'split', 'max_lag', 'max_outside_fraction', 'residuals',
                'noise_model', 'noise_order', 'selection', 'jobs', 'training', 'final_training',
-               'init_seconds', 'ensemble', 'command_topic', 'deflection_topic')
+               'init_seconds', 'command_topic', 'deflection_topic')
 # Settings that belong to the command line, not to ExperimentConfig, with their defaults.
 CLI_DEFAULTS = {'arx': True, 'command_topic': 'piezo/voltage_command',
                 'deflection_topic': 'piezo/deflection'}
@@ -81,9 +81,6 @@ def add_parser(subparsers):
     p.add_argument('--seed', type=int, help='first network seed (default 0)')
     p.add_argument('--n-seeds', type=int, metavar='N',
                    help='networks per structure, seeds seed..seed+N-1 (paper 1, envelope 4)')
-    p.add_argument('--ensemble', type=int, metavar='K',
-                   help='the mean of the best networks, up to K of them, is a candidate too '
-                        '(envelope preset: 4; 0: none)')
     p.add_argument('--split', type=float, metavar='FRACTION',
                    help='fraction of each input that estimates; the rest validates (default 0.5)')
     p.add_argument('--jobs', type=int, help='worker processes (default 2)')
@@ -169,7 +166,7 @@ def load_settings(args) -> dict:
     settings = preset_settings(preset)
     settings.update(doc)
     settings['preset'] = preset
-    for key in ('ny', 'nu', 'hidden', 'seed', 'n_seeds', 'ensemble', 'split', 'arx_na', 'arx_nb', 'max_lag',
+    for key in ('ny', 'nu', 'hidden', 'seed', 'n_seeds', 'split', 'arx_na', 'arx_nb', 'max_lag',
                 'max_outside_fraction', 'residuals', 'noise_model', 'noise_order', 'jobs',
                 'command_topic', 'deflection_topic'):
         value = getattr(args, key, None)
@@ -201,7 +198,7 @@ def experiment_config(settings: dict, progress: bool):
             noise_order=int(settings['noise_order']), jobs=int(settings['jobs']),
             progress=None if progress else False, training=dict(settings['training']),
             final_training=dict(settings['final_training']),
-            init_seconds=float(settings['init_seconds']), ensemble=int(settings['ensemble']))
+            init_seconds=float(settings['init_seconds']))
     except (TypeError, ValueError) as exc:
         raise ConfigError(f'invalid setting: {exc}') from None
     cfg.validate()

@@ -18,6 +18,43 @@ BAND_FACTOR = 2.0
 BAND_TAIL = 0.05
 
 
+#: A reversal of the input counts when it moves back by this fraction of its range (not noise).
+REVERSAL_DEPTH = 0.05
+#: ... and is "inner" (a minor loop) when this fraction of the range away from both extremes.
+INNER_MARGIN = 0.1
+
+
+def inner_reversals(records) -> int:
+    """
+    Reversals of the input strictly inside its range over the records: how many minor loops.
+
+    A reversal is a turning point the input then leaves by REVERSAL_DEPTH of the records' input
+    range (so sensor or quantisation noise on a measured input is no reversal); it is inner when
+    it lies INNER_MARGIN of the range away from both the smallest and the largest input. A
+    full-range sine has none; a multisine, a fading sine or nested loops have many.
+    """
+    lo = min(float(np.min(r.u)) for r in records)
+    hi = max(float(np.max(r.u)) for r in records)
+    span = hi - lo
+    if not span > 0:
+        return 0
+    depth, margin = REVERSAL_DEPTH * span, INNER_MARGIN * span
+    count = 0
+    for r in records:
+        u = np.asarray(r.u, dtype=np.float64)
+        top = bottom = u[0]
+        rising = None
+        for x in u[1:]:
+            top, bottom = max(top, x), min(bottom, x)
+            if rising is not False and x < top - depth:       # turned down at `top`
+                count += rising is not None and lo + margin < top < hi - margin
+                rising, bottom = False, x
+            elif rising is not True and x > bottom + depth:   # turned up at `bottom`
+                count += rising is not None and lo + margin < bottom < hi - margin
+                rising, top = True, x
+    return int(count)
+
+
 def input_band(u: np.ndarray, fs: float) -> tuple[float, float]:
     """
     (low, high) Hz: the frequencies that bound the central 90 % of u's variance (V, mean removed).

@@ -100,9 +100,6 @@ class CandidateSpec:
             o = dict(self.options)
             return (f'HNARX(H={self.hidden}, plays={o.get("n_plays", 12)}, '
                     f'duhem={o.get("n_duhem", 1)}, seed={self.seed})')
-        if self.kind == 'ensemble':
-            members = dict(self.options).get('members', ())
-            return f'Ensemble of {len(members)}: ' + ' + '.join(members)
         seed = f', seed={self.seed}' if self.seed else ''
         return f'NARX(ny={self.ny}, nu={self.nu}, H={self.hidden}{seed})'
 
@@ -118,8 +115,6 @@ class CandidateSpec:
             from piezo_narx_ros.ident.narx import NARXNetwork
             return NARXNetwork(nu=self.nu, ny=self.ny, hidden=self.hidden, seed=self.seed,
                                **(training_options or {}))
-        if self.kind == 'ensemble':
-            raise ConfigError('an ensemble is built from fitted candidates, not from a spec')
         raise ConfigError(f'unknown model kind {self.kind!r} (use narx, arx or '
                           f'hysteresis_narx)')
 
@@ -133,8 +128,6 @@ class ExperimentConfig:
     hidden: int = 10                    # sigmoid units of the hidden layer
     seed: int = 0                       # first network seed
     n_seeds: int = 1                    # networks per structure, seeds seed .. seed + n_seeds - 1
-    ensemble: int = 0                   # the mean of the best networks, up to this many, is a
-    #                                     candidate too (0: none; see ensemble_candidate)
     family: str = 'narx'                # networks of the grid: 'narx' (paper) | 'hysteresis_narx'
     hnarx: dict = field(default_factory=dict)  # HysteresisNARX options besides hidden and seed
     selection: str = 'tests'            # 'tests' (paper) | 'worst_case' (see module docstring)
@@ -190,10 +183,6 @@ class ExperimentConfig:
         if self.selection not in SELECTIONS:
             raise ConfigError(f'selection must be one of {", ".join(SELECTIONS)}, got '
                               f'{self.selection!r}')
-        if int(self.ensemble) != self.ensemble or not (self.ensemble == 0
-                                                          or 2 <= self.ensemble <= 64):
-            raise ConfigError(f'ensemble must be 0 (none) or an integer in [2, 64], got '
-                              f'{self.ensemble}')
         if int(self.n_seeds) != self.n_seeds or not 1 <= self.n_seeds <= 1000:
             raise ConfigError(f'n_seeds must be an integer in [1, 1000], got {self.n_seeds}')
         if int(self.seed) != self.seed or self.seed < 0:
@@ -262,7 +251,7 @@ PRESETS = {
     # NARX over several network seeds, a small ARX baseline, selection on the worst case.
     'envelope': {'family': 'hysteresis_narx', 'hidden': 10, 'n_seeds': 4, 'hnarx': {},
                  'arx_na': (2, 3, 4), 'arx_nb': (2, 3, 4), 'selection': 'worst_case',
-                 'final_training': {}, 'init_seconds': 0.5, 'ensemble': 4},
+                 'final_training': {}, 'init_seconds': 0.5},
 }
 
 
@@ -615,42 +604,6 @@ def score_candidate(res: CandidateResult, model, est: list[Record], val: list[Re
     return res
 
 
-#: A network joins the ensemble when its worst-case free-run error is at most this many times
-#: the best network's (R² deficits compared: 4 = twice the RMSE).
-ENSEMBLE_TOLERANCE = 4.0
-
-
-def ensemble_candidate(candidates: list[CandidateResult], est: list[Record],
-                       val: list[Record], config: ExperimentConfig) -> CandidateResult | None:
-    """
-    The mean of the best networks of the grid, scored like a candidate (None when < 2 qualify).
-
-    Networks (not ARX) that fitted, best worst-case free-run R² first, those whose R² deficit is
-    within ENSEMBLE_TOLERANCE of the best one's, at most config.ensemble of them.
-    """
-    from piezo_narx_ros.ident.ensemble import EnsembleModel
-    nets = sorted((c for c in candidates if c.error is None and c.spec.kind != 'arx'
-                   and c.model is not None and np.isfinite(c.free_run_r2())),
-                  key=lambda c: -c.free_run_r2())
-    if len(nets) < 2:
-        return None
-    worst = max(1.0 - nets[0].free_run_r2(), 1e-300) * ENSEMBLE_TOLERANCE
-    members = [c for c in nets if 1.0 - c.free_run_r2() <= worst][:int(config.ensemble)]
-    if len(members) < 2:
-        return None
-    model = EnsembleModel([c.model for c in members])
-    spec = CandidateSpec('ensemble', nu=model.nu, ny=model.ny, hidden=members[0].spec.hidden,
-                         options=(('members', tuple(c.spec.label for c in members)),))
-    res = CandidateResult(spec=spec)
-    t0 = time.perf_counter()
-    try:
-        score_candidate(res, model, est, val, config)
-    except PiezoNarxError as exc:
-        res.error = str(exc)
-    res.fit_seconds = sum(c.fit_seconds for c in members) + time.perf_counter() - t0
-    return res
-
-
 def fit_task(payload: tuple, data: tuple) -> CandidateResult:
     """Executor task: payload (spec, config), data (estimation, validation records)."""
     spec, config = payload
@@ -792,10 +745,6 @@ def run_experiments(groups: list[list[Record]], config: ExperimentConfig | None 
         for (g, (spec, _)), out in zip(tasks, _map(executor, tasks, data, show)):
             candidates[g].append(_as_result(spec, out))
         for g, cands in candidates.items():
-            if config.ensemble:
-                extra = ensemble_candidate(cands, data[g][0], data[g][1], config)
-                if extra is not None:
-                    cands.append(extra)
             try:
                 chosen[g] = select(cands, config.selection)
             except PiezoNarxError as exc:

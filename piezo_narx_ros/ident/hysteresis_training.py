@@ -56,23 +56,22 @@ def _stable(a):
 
 def monotone_mask(lay, P, H, m, n_lags, q):
     """
-    Parameters held >= 0 so that the output rises with the input along any path (`monotone`).
+    Parameters held >= 0 so that the output rises with every play operator (`monotone`).
 
-    The hidden layer's weights from plays and Duhem states, the output weights, the linear
-    weights of plays and Duhem states, and the Duhem states' rates of rise (alpha): every play
-    and Duhem state rises with the drive, so a network increasing in each of them does too (the
-    drive increments, a rate effect, are left free).
+    The hidden layer's weights from the plays, the output weights and the plays' linear
+    weights. Every play rises with the drive, so along any path the plays' part of the output
+    moves with the input, as a Preisach operator with a positive density does (the Duhem
+    states are left free: a Bouc-Wen deflection is the drive minus its Duhem state; so are the
+    drive increments, a rate effect).
     """
     mask = np.zeros(P, dtype=bool)
     d = m + n_lags + q
-    rate_free = np.zeros(d, dtype=bool)
-    rate_free[m:m + n_lags] = True
+    plays = np.zeros(d, dtype=bool)
+    plays[:m] = True
     lo = lay['W1'][0]
-    mask[lo:lo + H * d] = np.tile(~rate_free, H)
+    mask[lo:lo + H * d] = np.tile(plays, H)
     mask[lay['w2'][0]:lay['w2'][1]] = True
-    mask[lay['c'][0]:lay['c'][1]] = ~rate_free
-    for j in range(q):
-        mask[lay['duhem'][0] + 6 * j:lay['duhem'][0] + 6 * j + 2] = True
+    mask[lay['c'][0]:lay['c'][1]] = plays
     return mask
 
 
@@ -93,7 +92,6 @@ def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng, monotone=
     m = radii.size
     if monotone:
         W1[:, :m] = np.abs(W1[:, :m])
-        W1[:, m + n_lags:] = np.abs(W1[:, m + n_lags:])
     phi = np.vstack(phis)
     sig = 1.0 / (1.0 + np.exp(-(phi @ W1.T + b1))) - 1.0 / (1.0 + np.exp(-b1))
     A = np.hstack([sig, phi])
@@ -108,13 +106,16 @@ def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng, monotone=
         n_col = A.shape[1]
         lower = np.full(n_col + 1, -np.inf)
         lower[:H + m] = 0.0
-        lower[H + m + n_lags:n_col] = 0.0
         aug = np.vstack([np.hstack([A, np.ones((A.shape[0], 1))]),
                          np.sqrt(lam) * np.eye(n_col + 1)[:n_col]])
         sol = lsq_linear(aug, np.r_[target, np.zeros(n_col)], bounds=(lower, np.inf)).x
         y_off, sol = float(sol[-1]), sol[:-1]
-        # Strictly inside the constraint: the training moves the log of these weights.
-        sol[lower[:-1] == 0.0] = np.maximum(sol[lower[:-1] == 0.0], 1e-4)
+        # Strictly inside the constraint (the training moves the log of these weights), and no
+        # unit left dead: an output weight of 0 would give its hidden weights no gradient.
+        w_top = max(float(np.max(sol[:H])), 1e-3)
+        sol[:H] = np.maximum(sol[:H], 0.05 * w_top)
+        c_top = max(float(np.max(sol[H:H + m])), 1e-3)
+        sol[H:H + m] = np.maximum(sol[H:H + m], 1e-3 * c_top)
     else:
         sol = np.linalg.solve(A.T @ A + lam * np.eye(A.shape[1]), A.T @ target)
     w2, c = sol[:H], sol[H:]

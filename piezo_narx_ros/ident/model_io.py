@@ -28,10 +28,10 @@ from . import document
 from .document import get as _get
 
 FORMAT = 'piezo_narx_ros/model'
-#: Newest format this reader understands. Version 2 added the hysteresis_narx kind, 3 the
-#: ensemble kind; a file is written with its family's `file_format_version` (NARX and ARX: 1) so
-#: that older readers keep loading what they know.
-FORMAT_VERSION = 3
+#: Newest format this reader understands. Version 2 added the hysteresis_narx kind; a file is
+#: written with its family's `file_format_version` (NARX and ARX: 1) so that older readers keep
+#: loading what they know.
+FORMAT_VERSION = 2
 UNITS = {'input': 'V', 'output': 'm', 'time': 's', 'fs': 'Hz'}
 
 
