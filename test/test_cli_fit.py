@@ -63,7 +63,7 @@ def fitted(data_dir, tmp_path_factory):
     return out
 
 
-def test_fit_writes_model_candidates_and_report(fitted):
+def test_fit_writes_model_candidates_and_report(fitted, data_dir):
     cands = json.loads((fitted / 'candidates.json').read_text())
     assert [c['label'] for c in cands['candidates']] == [
         'NARX(ny=2, nu=2, H=4)', 'ARX(na=1, nb=1)', 'ARX(na=1, nb=2)', 'ARX(na=2, nb=1)',
@@ -80,6 +80,12 @@ def test_fit_writes_model_candidates_and_report(fitted):
     assert doc['structure']['kind'] == sel['kind']
     assert doc['fs'] == 2000.0
     assert doc['data']['n_estimation'] == 1500
+    # The data's least-squares line, the reference the linear mode's gain is checked against.
+    rec = np.load(data_dir / 'rec.npz')
+    gain, offset = np.polyfit(rec['u'], rec['y'], 1)
+    line = doc['data']['line']
+    assert line['gain_m_per_v'] == pytest.approx(gain, rel=1e-9)
+    assert line['offset_m'] == pytest.approx(offset, rel=1e-9, abs=1e-15)
     assert doc['metrics']['validation']['simulation']['r2'] == pytest.approx(
         sel['scores']['validation']['simulation']['r2'])
     assert (fitted / 'model.npz').is_file()

@@ -262,6 +262,7 @@ def _write_fit(out, result, records, config, settings, report: bool):
 
     Returns (model path, report paths).
     """
+    from piezo_narx_ros.control.gain_check import data_line
     from piezo_narx_ros.ident.experiment import split_records
     from piezo_narx_ros.ident.model_io import save_model
     from piezo_narx_ros.ident.report import write_json, write_report
@@ -269,7 +270,10 @@ def _write_fit(out, result, records, config, settings, report: bool):
     best = result.best
     data_info = {'sources': result.sources, 'fs': result.fs, 'split': config.split,
                  'preset': settings['preset'],
-                 'n_estimation': result.n_estimation, 'n_validation': result.n_validation}
+                 'n_estimation': result.n_estimation, 'n_validation': result.n_validation,
+                 # The data's own least-squares line: what the model's static gain is checked
+                 # against before controller_node's linear mode uses it (control.gain_check).
+                 'line': data_line([r.u for r in records], [r.y for r in records])}
     model_path = save_model(best.model, out / 'model.json', data=data_info,
                             metrics={**best.scores, 'selected_by': config.residuals,
                                      'noise_model': config.noise_model},
