@@ -191,7 +191,7 @@ def _write_bad(d, name):
         np.savez(d / name, u=u, y=y[:-1], fs=2000.0)
     elif name == 'no_fs.csv':
         np.savetxt(d / name, np.column_stack([u, y]), delimiter=',', header='u,y', comments='')
-    elif name == 'data.txt':
+    elif name == 'data.xlsx':
         (d / name).write_text('1 2\n')
     elif name == 'other_fs.npz':
         np.savez(d / name, u=u, y=y, fs=1000.0)
@@ -207,7 +207,7 @@ def _write_bad(d, name):
     (['short_for_lags.npz'], [], 'too few'),
     (['length.npz'], [], 'u has 400 samples but y has 399'),
     (['no_fs.csv'], [], 'pass the sample rate with --fs'),
-    (['data.txt'], [], 'unknown input type'),
+    (['data.xlsx'], [], 'unknown input type'),
     (['rec.npz', 'other_fs.npz'], [], 'sample rates differ'),
     (['rec.npz'], ['--fs', '1000'], 'file says fs = 2000.0 Hz but --fs = 1000.0 Hz'),
     (['rec.npz'], ['--ny', '4-1'], 'not a lag range'),

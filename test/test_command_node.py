@@ -53,11 +53,29 @@ def test_running_parameter_pauses_and_resumes_the_stream():
         node.on_tick()                       # ~50 samples due: caught up in one tick
         assert s.published >= 40 and s.max_batch >= 30 and node.status()[1] == 'running'
         assert node.set_parameters([Parameter('running', value=False)])[0].successful
+        n, position = s.published, s.position
+        time.sleep(0.02)
+        node.on_tick()
+        # Paused: the last command is held at every sample (issue 19 item 10), the signal waits.
+        assert s.published >= n + 10 and s.position == position
+        assert node.status()[1] == 'paused, holding the last command'
+        assert node.set_parameters([Parameter('running', value=True)])[0].successful
+        time.sleep(0.01)
+        node.on_tick()
+        assert s.position > position and node.status()[1] == 'running'
+        assert not node.set_parameters([Parameter('fs', value=5.0)])[0].successful   # read-only
+        node.destroy_node()
+        node = CommandNode(context=ctx, parameter_overrides=[
+            Parameter('fs', value=1000.0), Parameter('kind', value='sine'),
+            Parameter('hold_while_paused', value=False)])
+        s = node.streamer
+        time.sleep(0.01)
+        node.on_tick()
+        assert node.set_parameters([Parameter('running', value=False)])[0].successful
         n = s.published
         time.sleep(0.02)
         node.on_tick()
         assert s.published == n and node.status()[1] == 'paused'
-        assert not node.set_parameters([Parameter('fs', value=5.0)])[0].successful   # read-only
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)
