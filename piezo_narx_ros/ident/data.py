@@ -351,8 +351,11 @@ def time_clock(t, source: str, name: str = 't', stated: bool = False,
                         f'{fs:.6g} Hz if it is in seconds; if it is in ms, us or ns pass '
                         '--t-unit ms|us|ns, or give --fs and leave t out (--columns)')
     gaps = [(float(t[i]), int(round(d[i] / period)) - 1) for i in np.flatnonzero(is_gap)]
-    steps = np.unique(regular)
-    resolution = float(np.min(np.diff(steps))) if 1 < steps.size <= 4 else 0.0
+    # Stamps printed with few digits step by a few multiples of their resolution (float noise
+    # aside, hence the grouping at a millionth of the period).
+    grain = 1e-6 * period
+    steps = np.unique(np.round(regular / grain))
+    resolution = float(np.min(np.diff(steps))) * grain if 1 < steps.size <= 4 else 0.0
     dev = float(np.max(np.abs(regular - period))) if regular.size else 0.0
     clock = TimeClock(fs, gaps, max(dev - resolution, 0.0) / period, resolution)
     if warn:
