@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 import rclpy
@@ -482,7 +483,7 @@ def test_a_rate_or_gain_that_cannot_be_vouched_for_stops_the_node_at_start(tmp_p
              start_node('controller_node', '-p', f'model:={runaway}', '-p', 'mode:=linear',
                         ns='/runaway')]
     expected = ("estimator_node: error: fs 5000 Hz differs from the model's 2000 Hz",
-                'controller_node: error: mode linear refused: the model\'s static gain -0.32')
+                "controller_node: error: mode linear refused: the model's static gain -0.32")
     for proc, start in zip(procs, expected):
         assert proc.wait(60) == 2
         # (Fast DDS may add its own shared-memory transport complaint on a busy machine.)
@@ -533,3 +534,48 @@ def test_live_streams_at_another_rate_and_two_estimators_of_one_name_are_errors(
         col.close()
         dup.close()
     assert codes == [0, 0, 0]
+
+
+def test_low_ones_sim_time_tilde_player_waiting_default_voltage_limits(tmp_path, monkeypatch):
+    """
+    Issue 19, cheap low ones, in one process.
+
+    use_sim_time set at run time stopped command_node's pacing and /diagnostics (now refused);
+    recorder `output:=~/x` made a folder named '~'; a player waiting for subscribers said
+    'playing'; the controller's default limits (+-200 V) exceeded the model's trained inputs.
+    """
+    from piezo_narx_ros.bag.writer import write_uy_bag
+    from piezo_narx_ros.control.controller import input_limits
+    from piezo_narx_ros.estimator.toy import toy_narx
+    from piezo_narx_ros.nodes.command_node import CommandNode
+    from piezo_narx_ros.nodes.player_node import PlayerNode
+    from piezo_narx_ros.nodes.recorder_node import RecorderNode
+    monkeypatch.setenv('HOME', str(tmp_path / 'home'))
+    (tmp_path / 'home').mkdir()
+    bag = write_uy_bag(tmp_path / 'b', [0.0] * 200, [0.0] * 200, 2000.0)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    nodes = []
+    try:
+        cmd = CommandNode(context=ctx, namespace='/low')
+        nodes.append(cmd)
+        result = cmd.set_parameters([Parameter('use_sim_time', value=True)])[0]
+        assert not result.successful and 'read at start-up' in result.reason
+        rec = RecorderNode(context=ctx, namespace='/low', parameter_overrides=[
+            Parameter('output', value='~/run1'), Parameter('topics', value=['voltage_command']),
+            Parameter('types', value=['sensor_msgs/msg/JointState'])])
+        nodes.append(rec)
+        assert (tmp_path / 'home' / 'run1').is_dir() and not Path('~').exists()
+        player = PlayerNode(context=ctx, namespace='/low', parameter_overrides=[
+            Parameter('bag', value=str(bag)), Parameter('wait_for_subscribers', value=5)])
+        nodes.append(player)
+        assert _wait(lambda: player.state == 'waiting for subscribers', 5.0)
+        level, message, _ = player._status()
+        assert level == DIAG_WARN and message.startswith('waiting for 5 subscriber(s)')
+    finally:
+        for node in nodes:
+            node.close()
+            node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+    model = toy_narx()                                  # trained on +-150 V
+    assert input_limits(model, 0.05) == {'u_min': -165.0, 'u_max': 165.0}

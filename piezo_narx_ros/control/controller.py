@@ -378,6 +378,20 @@ class PositionController:
             self.peak_miss = miss
 
 
+def input_limits(model, margin: float = 0.05, fallback: float = 200.0) -> dict:
+    """
+    {'u_min', 'u_max'} (V): the model's trained input range widened by `margin` of its span.
+
+    The controller's default limits, so that no command leaves what the model was fitted on by
+    more than that (a model extrapolates there); +-fallback V for a model without a range.
+    """
+    rng = getattr(model, 'input_range', None)
+    if rng is None or not rng[1] > rng[0]:
+        return {'u_min': -float(fallback), 'u_max': float(fallback)}
+    pad = margin * (rng[1] - rng[0])
+    return {'u_min': float(rng[0] - pad), 'u_max': float(rng[1] + pad)}
+
+
 def _corr(a: np.ndarray, b: np.ndarray) -> float:
     """Pearson correlation of two equally long arrays; NaN when either is constant."""
     a, b = a - a.mean(), b - b.mean()

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import time
 
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.parameter import Parameter
 from std_srvs.srv import SetBool
 
@@ -149,6 +150,7 @@ class CommandNode(PiezoNode):
         self.position = p['output'] == 'position'
         self.pub = self.sample_publisher(TOPIC_REFERENCE if self.position else TOPIC_COMMAND)
         self.add_post_set_parameters_callback(self._on_set)
+        self.add_on_set_parameters_callback(self._keep_clock)
         self.srv_running = self.create_service(SetBool, '~/set_running', self.on_set_running)
         period = p['publish_period'] or 1.0 / fs
         self._period_ns = int(p['publish_period'] * 1e9)
@@ -160,6 +162,15 @@ class CommandNode(PiezoNode):
             f"{p['kind']} {p['output']} on {self.axes} at {fs:g} Hz, {signal.shape[0]} "
             f"samples per {'loop' if loop else 'run'}, limits [{p['u_min']:g}, "
             f"{p['u_max']:g}] {unit}")
+
+    def _keep_clock(self, params) -> SetParametersResult:
+        """Refuse use_sim_time at run time: pacing (and /diagnostics) follow the start's clock."""
+        for q in params:
+            if q.name == 'use_sim_time' and bool(q.value) != self.sim_time:
+                return SetParametersResult(
+                    successful=False, reason='use_sim_time is read at start-up (the samples are '
+                    'paced on that clock); restart the node with -p use_sim_time:=...')
+        return SetParametersResult(successful=True)
 
     def _on_set(self, params) -> None:
         for q in params:

@@ -15,7 +15,7 @@ import math
 from std_srvs.srv import Trigger
 
 from piezo_narx_ros.command.stamps import RATE_TOLERANCE
-from piezo_narx_ros.control.controller import MODES, PositionController
+from piezo_narx_ros.control.controller import MODES, PositionController, input_limits
 from piezo_narx_ros.control.health import ControllerHealth
 from piezo_narx_ros.control.inverse import TARGETS
 from piezo_narx_ros.nodes.common import (DIAG_WARN, TOPIC_COMMAND, TOPIC_DEFLECTION,
@@ -48,9 +48,10 @@ class ControllerNode(PiezoNode):
         ParamSpec('compensate_advance', True, 'ask for the lead of the output over the '
                   'quasi-static target (estimated from the model) to be taken off',
                   read_only=True),
-        ParamSpec('u_min', -200.0, 'lowest command, V', low=-10000.0, high=10000.0,
-                  read_only=True),
-        ParamSpec('u_max', 200.0, 'highest command, V', low=-10000.0, high=10000.0,
+        ParamSpec('u_min', 0.0, "lowest command, V (u_min = u_max = 0: the model's trained "
+                  'input range widened by range_margin, so that no command leaves what the '
+                  'model was fitted on)', low=-10000.0, high=10000.0, read_only=True),
+        ParamSpec('u_max', 0.0, 'highest command, V', low=-10000.0, high=10000.0,
                   read_only=True),
         ParamSpec('slew_rate', 1e5, 'largest command rate of change, V/s (0: no limit)',
                   low=0.0, high=1e12, read_only=True),
@@ -59,8 +60,9 @@ class ControllerNode(PiezoNode):
                   read_only=True),
         ParamSpec('y_max', 0.0, 'highest accepted reference, m', low=-1.0, high=1.0,
                   read_only=True),
-        ParamSpec('range_margin', 0.05, 'fraction of the trained output span accepted beyond '
-                  'it (when y_min = y_max = 0)', low=0.0, high=10.0, read_only=True),
+        ParamSpec('range_margin', 0.05, 'fraction of the trained output (input) span accepted '
+                  'beyond it when y_min = y_max = 0 (u_min = u_max = 0)', low=0.0, high=10.0,
+                  read_only=True),
         ParamSpec('kp', 0.0, 'inverse_feedback: proportional gain on reference - deflection '
                   '(m/m)', low=0.0, high=100.0, read_only=True),
         ParamSpec('ki', 100.0, 'inverse_feedback: integral gain, 1/s', low=0.0, high=1e6,
@@ -85,7 +87,8 @@ class ControllerNode(PiezoNode):
         from piezo_narx_ros.errors import ConfigError
         from piezo_narx_ros.ident.model_io import load_model
         p = self.params
-        if p['u_min'] >= p['u_max']:
+        trained_u = p['u_min'] == p['u_max'] == 0.0
+        if p['u_min'] >= p['u_max'] and not trained_u:
             raise ConfigError(f"parameter u_min ({p['u_min']} V) must be below u_max "
                               f"({p['u_max']} V)")
         if p['mode'] == 'inverse_feedback' and not p['use_deflection']:
@@ -94,8 +97,10 @@ class ControllerNode(PiezoNode):
         limits = ({} if p['y_min'] == p['y_max'] == 0.0
                   else {'y_min': p['y_min'], 'y_max': p['y_max']})
         self.model = load_model(p['model'])
+        u_limits = ({'u_min': p['u_min'], 'u_max': p['u_max']} if not trained_u
+                    else input_limits(self.model, p['range_margin']))
         self.ctl = PositionController(
-            self.model, mode=p['mode'], fs=p['fs'] or None, u_min=p['u_min'], u_max=p['u_max'],
+            self.model, mode=p['mode'], fs=p['fs'] or None, **u_limits,
             slew_rate=p['slew_rate'] or math.inf, range_margin=p['range_margin'],
             target=None if p['target'] == 'auto' else p['target'],
             advance=None if p['compensate_advance'] else 0.0, kp=p['kp'], ki=p['ki'],
@@ -125,7 +130,7 @@ class ControllerNode(PiezoNode):
             f'{p["mode"]} with {type(self.model).__name__} ({p["model"]}) at {c.fs:g} Hz, '
             f'target {c.inverse.target}, advance {c.advance:.3f} samples, static gain '
             f'{c.gain * 1e6:.4g} um/V, references [{c.y_min * 1e6:.1f}, {c.y_max * 1e6:.1f}] '
-            f'um, commands [{p["u_min"]:g}, {p["u_max"]:g}] V')
+            f'um, commands [{u_limits["u_min"]:g}, {u_limits["u_max"]:g}] V')
         for note in c.notes:
             self.get_logger().warning(note)
 
