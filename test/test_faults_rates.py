@@ -266,3 +266,31 @@ def test_inverse_with_an_arx_or_paper_narx_is_warned_while_it_runs(make, kind):
     for _ in range(2):
         level, message, _ = health.tick()
         assert level == WARN and 'inverse-quality' in message
+
+
+def test_driver_reports_commands_at_another_rate_but_keeps_driving():
+    """Low one: driver_node did not compare command stamps with its sample_rate."""
+    from piezo_narx_ros.rig.driver import DIAG_ERROR, DriverConfig, RigDriver
+    sent = []
+    drv = RigDriver(DriverConfig(sample_rate=2000.0, v_min=-100.0, v_max=100.0,
+                                 max_slew_rate=1e6), sent.append)
+    for k, t in enumerate(_stamps(100, 2000.0)):
+        drv.command([1.0], stamp_ns=t, now=k / 2000.0)
+    assert 'Hz' not in drv.report(0.05)[1]          # (no target here: replies time out)
+    t1 = _stamps(100, 2000.0)[-1]
+    for k in range(100):
+        drv.command([1.0], stamp_ns=t1 + (k + 1) * 400_000, now=0.05 + k / 2500.0)
+    level, message, values = drv.report(0.09)
+    # (The window still holds the 2 kHz commands before: the rate shown is between the two.)
+    assert level == DIAG_ERROR and 'Hz, not 2000 Hz' in message and 'sample_rate' in message
+    assert len(sent) == 200                          # every command still reached the rig
+
+
+def test_commands_waiting_for_initial_measurements_at_a_restart_are_counted(model):
+    """Low one: commands left unestimated around a stream restart were not counted."""
+    est = FreeRunEstimator(model, init='measurement', init_timeout=1.0)
+    _feed(est, [T0 + k * P for k in range(50)], _u(50))       # no deflection: all pending
+    assert est.stats.estimates == 0 and est.stats.unestimated == 0
+    later = T0 + 3_600_000_000_000
+    _feed(est, [later + k * P for k in range(3)], _u(3))      # a new stream: a restart
+    assert est.stats.stream_restarts == 1 and est.stats.unestimated == 50

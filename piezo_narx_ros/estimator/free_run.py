@@ -131,6 +131,8 @@ class FreeRunEstimator:
         self._new_run(wait_for_measurement)
 
     def _new_run(self, wait_for_measurement: bool | None) -> None:
+        # Commands still waiting for their initial measurements get no estimate now: counted.
+        self.stats.unestimated += len(getattr(self, '_pending', ()))
         if wait_for_measurement is None:
             wait_for_measurement = self.init_mode == 'measurement'
         self._wait = bool(wait_for_measurement) and self.init_mode != 'rest'
