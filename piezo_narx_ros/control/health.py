@@ -121,7 +121,8 @@ class ControllerHealth:
         values = {}
         errors = list(errors)
         if ctl.rate.off or d['rate_refused']:
-            errors.append(f'{self.rate_line()} ({d["rate_refused"]} since the last report)')
+            errors.append(f'{self.rate_line()} ({d["rate_refused"]} references refused since '
+                          'the last report)')
         tracking_errors, problems = self.judge_tracking(values)
         errors += tracking_errors
         if reference_publishers is not None and reference_publishers > 1:

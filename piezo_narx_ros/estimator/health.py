@@ -67,7 +67,8 @@ class EstimatorHealth:
         u_beyond, self.est.u_excursion = self.est.u_excursion, 0.0
         errors, problems = list(errors), []
         if self.est.rate.off or d['rate_withheld']:
-            errors.append(f'{self.rate_line()} ({d["rate_withheld"]} since the last report)')
+            errors.append(f'{self.rate_line()} ({d["rate_withheld"]} withheld since the last '
+                          'report)')
         if estimate_publishers is not None and estimate_publishers > 1:
             errors.append(f'{estimate_publishers} publishers on the estimate topic (another '
                           'estimator, maybe of the same name): their estimates interleave')

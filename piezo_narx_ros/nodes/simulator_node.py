@@ -223,7 +223,8 @@ class SimulatorNode(PiezoNode):
                   'stream_restarts': r.stream_restarts, 'holding': r.gate.holding,
                   'rate_withheld': r.rate_withheld}
         if r.rate.off or d['rate_withheld']:
-            return DIAG_ERROR, (f'{r.rate_line()} ({d["rate_withheld"]} since the last report)'
+            return DIAG_ERROR, (f'{r.rate_line()} ({d["rate_withheld"]} withheld since the '
+                                'last report)'
                                 + ('; ' + '; '.join(problems) if problems else '')), values
         if problems:
             return DIAG_WARN, '; '.join(problems) + ' since the last report', values
