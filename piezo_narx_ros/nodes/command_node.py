@@ -16,9 +16,9 @@ holds it, so that the simulator, a driver and the estimator see the hold instead
 that stops and restarts; `wait_for_subscribers` holds the first sample until the listeners are
 matched, so that a recording or an estimator sees sample 0.
 
-`kind:=playback` replays a file as recorded (command.playback): its volts, at its own rate
-(the node's fs is the file's unless fs is given; another rate is refused unless
-resample:=true), once; amplitude, offset, seconds and loop change it only when given.
+`kind:=playback` replays a file as recorded (command.playback): its volts, at its own rate,
+once; only the playback_* parameters and resample change it (amplitude, offset, seconds and loop
+belong to the generated signals, and a launch file's params file sets them).
 
 Time: stamps come from the node clock. With use_sim_time:=true the samples are also paced on it
 (the /clock of a simulator or of `player_node clock:=true`): none is published before the first
@@ -55,8 +55,9 @@ class CommandNode(PiezoNode):
         ParamSpec('output', 'voltage', 'voltage: voltage_command (effort, V); position: '
                   'position_reference (position, m) for controller_node', choices=OUTPUTS,
                   read_only=True),
-        ParamSpec('fs', 2000.0, "sample rate, Hz (playback: the file's own unless given)",
-                  low=1.0, high=100000.0, read_only=True),
+        ParamSpec('fs', 2000.0, "sample rate, Hz (playback: the file's own rate; fs for a file "
+                  'without one, or as the target of resample)', low=1.0, high=100000.0,
+                  read_only=True),
         ParamSpec('axes', ['x'], 'axis names (one signal per axis, axis i seeded seed + i)',
                   read_only=True, check=_nonempty),
         ParamSpec('kind', 'multisine', 'signal kind', choices=KINDS, read_only=True),
@@ -87,8 +88,14 @@ class CommandNode(PiezoNode):
         ParamSpec('column', '', 'playback: the table column to play, a header name or 1-based '
                   'number (empty: the u column)', read_only=True),
         ParamSpec('key', 'u', 'playback: the .npz key to play', read_only=True),
-        ParamSpec('resample', False, 'playback: resample a file recorded at another rate than '
-                  'fs (linear); false refuses it', read_only=True),
+        ParamSpec('resample', False, 'playback: resample a file recorded at another rate to fs '
+                  '(linear); false plays it at its own rate', read_only=True),
+        ParamSpec('playback_scale', 1.0, 'playback: factor on the recorded values (1: as '
+                  'recorded)', low=-1e6, high=1e6, read_only=True),
+        ParamSpec('playback_offset', 0.0, 'playback: added to the recorded values, V (m in '
+                  'position mode)', low=-1000.0, high=1000.0, read_only=True),
+        ParamSpec('playback_loop', False, 'playback: repeat the file (it jumps from its last '
+                  'sample to its first); false: play it once', read_only=True),
         ParamSpec('cycles', 2, 'protocol: repeats of its section sequence', low=1, high=1000,
                   read_only=True),
         ParamSpec('slow_freq', 0.5, 'protocol: slow-loop frequency, Hz', low=1e-6, high=50000.0,
@@ -99,8 +106,8 @@ class CommandNode(PiezoNode):
                   read_only=True),
         ParamSpec('slew_rate', 0.0, 'largest command rate of change, V/s (0: no limit)',
                   low=0.0, high=1e12, read_only=True),
-        ParamSpec('loop', True, 'repeat the signal; false: stop after one period (playback: '
-                  'false unless given)', read_only=True),
+        ParamSpec('loop', True, 'repeat the signal; false: stop after one period (playback: see '
+                  'playback_loop)', read_only=True),
         ParamSpec('running', True, 'stream now; set false to pause, true to resume'),
         ParamSpec('hold_while_paused', True, 'paused, publish the last command at every sample '
                   '(the amplifier holds it); false: publish nothing (listeners see the stream '
@@ -122,13 +129,10 @@ class CommandNode(PiezoNode):
         self.axes = list(p['axes'])
         fs, loop = p['fs'], p['loop']
         if p['kind'] == 'playback':
-            given = set(getattr(self, '_parameter_overrides', {}))   # rclpy keeps no public copy
-            asked = {k: p[k] if k in given else None
-                     for k in ('fs', 'amplitude', 'offset', 'seconds')}
-            play = playback_signal(p['path'], len(self.axes), default_fs=p['fs'],
-                                   column=p['column'] or None, key=p['key'],
-                                   resample=p['resample'], loop=loop and 'loop' in given,
-                                   u_min=p['u_min'], u_max=p['u_max'], **asked)
+            play = playback_signal(p['path'], len(self.axes), p['fs'], p['column'] or None,
+                                   p['key'], p['resample'], p['playback_scale'],
+                                   p['playback_offset'], p['playback_loop'], p['u_min'],
+                                   p['u_max'])
             signal, fs, loop = play.signal, play.fs, play.loop
             for note in play.notes:
                 self.get_logger().warning(note)
