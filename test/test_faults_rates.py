@@ -294,3 +294,13 @@ def test_commands_waiting_for_initial_measurements_at_a_restart_are_counted(mode
     later = T0 + 3_600_000_000_000
     _feed(est, [later + k * P for k in range(3)], _u(3))      # a new stream: a restart
     assert est.stats.stream_restarts == 1 and est.stats.unestimated == 50
+
+
+def test_commands_on_a_holding_reference_are_not_judged_for_phase():
+    """On a hold the commands follow creep and noise: their sign against it says nothing."""
+    ctl = PositionController(arx(-4e-7, line=4e-7), mode='inverse')
+    rng = np.random.default_rng(5)
+    for k in range(1200):
+        ctl.on_reference(T0 + k * P, 1e-5 + 1e-10 * rng.standard_normal())
+    level, message, _ = ControllerHealth(ctl).tick()
+    assert 'against the reference' not in message

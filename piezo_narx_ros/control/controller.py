@@ -262,13 +262,15 @@ class PositionController:
         measured: deflections matched to a command; rms_m: RMS of r - y; reference_std_m: the
         references' own standard deviation over the same samples; corr_ry: correlation of the
         measured y with r (-1: anti-phase); commands, corr_ur: the same for the commands (V)
-        against their references (its sign is the plant gain's when the loop works). NaN where
-        there is nothing to compute.
+        against their references (its sign is the plant gain's when the loop works), and
+        command_reference_std_m the references' standard deviation over those. NaN where there is
+        nothing to compute.
         """
         out = {'measured': len(self._err), 'commands': len(self._cmd_ref)}
         rms, n = self.running_error()
         out['rms_m'] = rms
         out['reference_std_m'] = out['corr_ry'] = out['corr_ur'] = math.nan
+        out['command_reference_std_m'] = math.nan
         if n >= 2:
             e = np.fromiter(self._err, float, n)
             r = np.fromiter(self._err_ref, float, n)
@@ -277,6 +279,7 @@ class PositionController:
         if len(self._cmd_ref) >= 2:
             ur = np.array(self._cmd_ref, dtype=float)
             out['corr_ur'] = _corr(ur[:, 0], ur[:, 1])
+            out['command_reference_std_m'] = float(ur[:, 1].std())
         return out
 
     def take_peak_miss(self) -> float:

@@ -100,7 +100,9 @@ class ControllerHealth:
                 warnings.append(f'tracking error {rms:.3g} m RMS on a holding reference '
                                 f'({rms / span:.0%} of the output span)')
         sign = ctl.gain_check.plant_sign
+        # Only on a moving reference: on a hold the commands follow creep and noise, not it.
         if tr['commands'] >= MIN_JUDGED and sign and not math.isnan(tr['corr_ur']) \
+                and tr['command_reference_std_m'] > HOLD_SPAN * span \
                 and sign * tr['corr_ur'] < ANTI_PHASE:
             errors.append(f'commands move against the reference (correlation '
                           f'{tr["corr_ur"]:.3f}; the plant gain is '

@@ -215,6 +215,11 @@ class FreeRunEstimator:
         value, self.excursion = self.excursion, 0.0
         return value
 
+    def take_input_excursion(self) -> float:
+        """Largest distance (V) of a command beyond the trained input range since the last call."""
+        value, self.u_excursion = self.u_excursion, 0.0
+        return value
+
     def _apply(self, events, out: list) -> None:
         """Estimate the commands the stamp gate let through; restart on a new stream."""
         for kind, t, item in events:

@@ -64,7 +64,7 @@ class EstimatorHealth:
         d = self._since.tick()
         st = self.est.stats
         excursion = self.est.take_excursion()
-        u_beyond, self.est.u_excursion = self.est.u_excursion, 0.0
+        u_beyond = self.est.take_input_excursion()
         errors, problems = list(errors), []
         if self.est.rate.off or d['rate_withheld']:
             errors.append(f'{self.rate_line()} ({d["rate_withheld"]} withheld since the last '
