@@ -276,6 +276,13 @@ def test_bag_export_does_not_overwrite_without_force(tmp_path, capsys):
     assert out.read_bytes() == b'keep me'
     code, _, err = cli(['bag', 'export', str(bag), '--out', str(out), '--force'], capsys)
     assert code == 0 and np.load(out)['u'].size == u.size
+    # The same class: simulate --out over a file.
+    out.write_bytes(b'keep me')
+    code, _, err = cli(['simulate', '--seconds', '0.1', '--out', str(out)], capsys)
+    assert code == 2 and one_line(err) and 'pass --force' in err
+    assert out.read_bytes() == b'keep me'
+    code, _, err = cli(['simulate', '--seconds', '0.1', '--out', str(out), '--force'], capsys)
+    assert code == 0 and np.load(out)['u'].size == 200
 
 
 # ------------------------------------------------------------------------------ the low ones

@@ -41,6 +41,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help='seed of the signal and of the sensor noise')
     p.add_argument('--plant-config', default=None, help='plant YAML (default config/plant.yaml)')
     p.add_argument('--out', required=True, help='output file, .npz')
+    p.add_argument('--force', action='store_true', help='overwrite --out if it exists')
     g = p.add_argument_group('signal options (defaults: piezo_narx_ros.plant.signals.OPTIONS)')
     g.add_argument('--freq', type=float, help='sine/triangle frequency, Hz (1)')
     g.add_argument('--phase', type=float, help='sine phase, rad (0)')
@@ -91,6 +92,9 @@ def run(args) -> int:
         raise ConfigError(f'--out must name an .npz file, got {args.out}')
     if not out.parent.is_dir():
         raise ConfigError(f'--out directory {out.parent} does not exist')
+    if out.exists() and not args.force:
+        raise ConfigError(f'--out {out} exists; choose another name or pass --force to '
+                          'overwrite it')
     options = {name: getattr(args, flag) for flag, name in SIGNAL_FLAGS.items()
                if getattr(args, flag) is not None}
     playback = args.signal == 'playback'

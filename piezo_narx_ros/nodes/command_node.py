@@ -36,9 +36,10 @@ from std_srvs.srv import SetBool
 from piezo_narx_ros.command.playback import playback_signal
 from piezo_narx_ros.command.stream import CommandStreamer, make_signal
 from piezo_narx_ros.errors import ConfigError
-from piezo_narx_ros.nodes.common import (DIAG_OK, DIAG_WARN, TOPIC_COMMAND, TOPIC_REFERENCE,
-                                         Diagnostics, ParamSpec, PiezoNode, encode_joint_state,
-                                         main_for)
+from piezo_narx_ros.nodes.common import (DIAG_ERROR, DIAG_OK, DIAG_WARN, TOPIC_COMMAND,
+                                         TOPIC_REFERENCE, Diagnostics, ParamSpec, PiezoNode,
+                                         encode_joint_state, main_for)
+from piezo_narx_ros.nodes.graph import same_name_problem
 from piezo_narx_ros.plant.signals import KINDS
 
 OUTPUTS = ('voltage', 'position')
@@ -269,6 +270,9 @@ class CommandNode(PiezoNode):
                  'paused' if not self.want_running else
                  'waiting for /clock' if self._pace_ns() is None else 'waiting for subscribers')
         level = DIAG_WARN if state.startswith('waiting') else DIAG_OK
+        clash = same_name_problem(self, TOPIC_REFERENCE if self.position else TOPIC_COMMAND)
+        if clash:
+            level, state = DIAG_ERROR, f'{clash}; {state}'
         return level, state, {'published': s.published, 'position': s.position,
                               'late_ticks': s.late_polls, 'max_batch': s.max_batch,
                               'fs': s.fs, 'subscribers': self.pub.get_subscription_count(),

@@ -19,7 +19,7 @@ from piezo_narx_ros.errors import DataError
 from piezo_narx_ros.nodes.common import (DIAG_ERROR, DIAG_OK, DIAG_WARN, TOPIC_COMMAND,
                                          TOPIC_DEFLECTION, Diagnostics, ParamSpec, PiezoNode,
                                          decode_joint_state, encode_joint_state, main_for)
-from piezo_narx_ros.nodes.graph import EpisodeLog
+from piezo_narx_ros.nodes.graph import EpisodeLog, same_name_problem
 
 
 class PlantResponder:
@@ -222,6 +222,9 @@ class SimulatorNode(PiezoNode):
                   'filled': r.filled, 'stamp_outliers': r.stamp_outliers,
                   'stream_restarts': r.stream_restarts, 'holding': r.gate.holding,
                   'rate_withheld': r.rate_withheld}
+        clash = same_name_problem(self, TOPIC_DEFLECTION)
+        if clash:
+            return DIAG_ERROR, clash, values
         if r.rate.off or d['rate_withheld']:
             return DIAG_ERROR, (f'{r.rate_line()} ({d["rate_withheld"]} withheld since the '
                                 'last report)'
