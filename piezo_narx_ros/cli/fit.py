@@ -42,8 +42,8 @@ def add_parser(subparsers):
                     'score them on the second half (R², correlation tests) and save the selected '
                     'model and a report.')
     p.add_argument('inputs', nargs='+', metavar='INPUT',
-                   help='.npz (u, y, fs), .csv (t,u,y or u,y), .mcap or rosbag2 directory, or a '
-                        'folder of these')
+                   help='.npz (u, y, fs), text table (.csv, .tsv, .txt, .dat: t,u,y or u,y, or '
+                        '--columns), .mcap or rosbag2 directory, or a folder of these')
     p.add_argument('--out', required=True, metavar='DIR', help='output directory')
     p.add_argument('--validate', nargs='+', metavar='VAL',
                    help='validation recordings: the INPUTs then estimate whole and these only '
@@ -102,6 +102,8 @@ def add_parser(subparsers):
                                               '(default piezo/deflection)')
     p.add_argument('--no-report', action='store_true', help='skip the figures')
     p.add_argument('--quiet', action='store_true', help='no progress bar or summary')
+    from piezo_narx_ros.cli.reading import add_reading_options
+    add_reading_options(p)
     return p
 
 
@@ -267,9 +269,11 @@ def _load(args, settings, config, inputs, whole=False):
     """
     import warnings
 
+    from piezo_narx_ros.cli.reading import reading_options
     from piezo_narx_ros.ident.data import check_identifiable, load_records
     records = load_records(inputs, fs=args.fs, command_topic=settings['command_topic'],
-                           deflection_topic=settings['deflection_topic'])
+                           deflection_topic=settings['deflection_topic'],
+                           **reading_options(args))
     if not whole:
         for record in records:
             for line in check_identifiable(record, config.split):
@@ -285,6 +289,7 @@ def _load_validation(args, settings, records):
     """
     import warnings
 
+    from piezo_narx_ros.cli.reading import reading_options
     from piezo_narx_ros.errors import ConfigError, DataError
     from piezo_narx_ros.ident.coverage import coverage_warnings
     from piezo_narx_ros.ident.data import expand_inputs, load_records
@@ -295,7 +300,8 @@ def _load_validation(args, settings, records):
         raise ConfigError(f'--validate {shared[0]} is also an estimation input: a record cannot '
                           'validate the model it estimates')
     validation = load_records(val_paths, fs=args.fs, command_topic=settings['command_topic'],
-                              deflection_topic=settings['deflection_topic'])
+                              deflection_topic=settings['deflection_topic'],
+                              **reading_options(args))
     fs = records[0].fs
     for r in validation:
         if abs(r.fs - fs) > 1e-6 * fs:
@@ -325,6 +331,7 @@ def _write_fit(out, result, records, config, settings, report: bool, validation=
     validation: the --validate records (else the split halves of `records` are reported).
     Returns (model path, report paths).
     """
+    from piezo_narx_ros.control.gain_check import data_line
     from piezo_narx_ros.ident.experiment import split_records
     from piezo_narx_ros.ident.model_io import save_model
     from piezo_narx_ros.ident.report import write_json, write_report
@@ -334,7 +341,10 @@ def _write_fit(out, result, records, config, settings, report: bool, validation=
                  'split': None if validation else config.split,
                  'validation_sources': result.validation_sources,
                  'init_seconds': config.init_seconds, 'preset': settings['preset'],
-                 'n_estimation': result.n_estimation, 'n_validation': result.n_validation}
+                 'n_estimation': result.n_estimation, 'n_validation': result.n_validation,
+                 # The data's own least-squares line: what the model's static gain is checked
+                 # against before controller_node's linear mode uses it (control.gain_check).
+                 'line': data_line([r.u for r in records], [r.y for r in records])}
     model_path = save_model(best.model, out / 'model.json', data=data_info,
                             metrics={**best.scores, 'selected_by': config.residuals,
                                      'noise_model': config.noise_model},

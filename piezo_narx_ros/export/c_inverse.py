@@ -73,9 +73,11 @@ typedef struct {{
     double sv_[PNR_SOLVER_SIZE], cand_[PNR_MAX_GRID], g_[PNR_MAX_GRID];
 }} pnr_inverse_t;
 
-/* The defaults of controller_node: +-200 V, no slew limit, the model's trained output range
- * widened by 5 % of its span (no clamp when the model file has no range), its default target
- * and advance, tol 1e-11 m, reach_tol 1e-9 m, 30 iterations, a 6-point grid. */
+/* The defaults of PositionController: +-200 V (controller_node's own default since issue 19 is
+ * the trained input range widened by 5 %: set u_min/u_max so), no slew limit, the model's
+ * trained output range widened by 5 % of its span (no clamp when the model file has no range),
+ * its default target and advance, tol 1e-11 m, reach_tol 1e-9 m, 30 iterations, a 6-point
+ * grid. */
 void pnr_inverse_default_params(pnr_inverse_params_t *p);
 /* Check p and start from rest: 0, or -1 (inv untouched) for a bad or unsupported parameter. */
 int pnr_inverse_init(pnr_inverse_t *inv, const pnr_inverse_params_t *p);
