@@ -75,7 +75,8 @@ class Probe:
         from rclpy.node import Node
         from sensor_msgs.msg import JointState
 
-        from piezo_narx_ros.nodes.common import diagnostic_values, sample_qos
+        from piezo_narx_ros.nodes.diagnostics import diagnostic_values
+        from piezo_narx_ros.nodes.qos import sample_qos
         self.realtime = node_priority > 0
         if self.realtime:   # before the context: its DDS threads inherit the policy
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, node_priority - 10)))

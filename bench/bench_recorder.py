@@ -48,7 +48,8 @@ def live_run(rate: float, seconds: float, workdir: Path) -> dict:
     from sensor_msgs.msg import JointState
 
     from piezo_narx_ros.bag.reader import bag_info
-    from piezo_narx_ros.nodes.common import make_joint_state, sample_qos
+    from piezo_narx_ros.nodes.codec import make_joint_state
+    from piezo_narx_ros.nodes.qos import sample_qos
 
     ns = f'/bench{int(rate)}'
     bag = workdir / f'rec_{int(rate)}'

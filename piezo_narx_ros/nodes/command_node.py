@@ -28,9 +28,11 @@ from std_srvs.srv import SetBool
 
 from piezo_narx_ros.command.stream import CommandStreamer, make_signal
 from piezo_narx_ros.errors import ConfigError
-from piezo_narx_ros.nodes.common import (DIAG_OK, DIAG_WARN, TOPIC_COMMAND, TOPIC_REFERENCE,
-                                         Diagnostics, ParamSpec, PiezoNode, encode_joint_state,
-                                         main_for)
+from piezo_narx_ros.nodes.codec import encode_joint_state
+from piezo_narx_ros.nodes.diagnostics import DIAG_OK, DIAG_WARN, Diagnostics
+from piezo_narx_ros.nodes.params import ParamSpec
+from piezo_narx_ros.nodes.runtime import PiezoNode, main_for
+from piezo_narx_ros.nodes.topics import TOPIC_COMMAND, TOPIC_REFERENCE
 from piezo_narx_ros.plant.signals import KINDS
 
 OUTPUTS = ('voltage', 'position')

@@ -17,9 +17,11 @@ from std_srvs.srv import Trigger
 from piezo_narx_ros.control.controller import MODES, PositionController
 from piezo_narx_ros.control.health import ControllerHealth
 from piezo_narx_ros.control.inverse import TARGETS
-from piezo_narx_ros.nodes.common import (DIAG_WARN, TOPIC_COMMAND, TOPIC_DEFLECTION,
-                                         TOPIC_REFERENCE, Diagnostics, ParamSpec, PiezoNode,
-                                         decode_joint_state, encode_joint_state, main_for)
+from piezo_narx_ros.nodes.codec import decode_joint_state, encode_joint_state
+from piezo_narx_ros.nodes.diagnostics import DIAG_WARN, Diagnostics
+from piezo_narx_ros.nodes.params import ParamSpec
+from piezo_narx_ros.nodes.runtime import PiezoNode, main_for
+from piezo_narx_ros.nodes.topics import TOPIC_COMMAND, TOPIC_DEFLECTION, TOPIC_REFERENCE
 
 
 class ControllerNode(PiezoNode):
@@ -101,7 +103,7 @@ class ControllerNode(PiezoNode):
         self.axis = p['axis']
         self._names = [self.axis]
         self.pub = self.sample_publisher(TOPIC_COMMAND)
-        # The callbacks get CDR bytes (see common.decode_joint_state: 8x cheaper).
+        # The callbacks get CDR bytes (see nodes.codec.decode_joint_state: 8x cheaper).
         self.sub_ref = None
         self._wait_timer = self.create_timer(0.05, self.on_wait_check)
         self.on_wait_check()

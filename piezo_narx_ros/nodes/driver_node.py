@@ -26,8 +26,11 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from piezo_narx_ros.errors import ConfigError, DataError
-from piezo_narx_ros.nodes.common import (TOPIC_COMMAND, TOPIC_DEFLECTION, Diagnostics, ParamSpec,
-                                         PiezoNode, main_for, make_joint_state, parse_joint_state)
+from piezo_narx_ros.nodes.codec import make_joint_state, parse_joint_state
+from piezo_narx_ros.nodes.diagnostics import Diagnostics
+from piezo_narx_ros.nodes.params import ParamSpec
+from piezo_narx_ros.nodes.runtime import PiezoNode, main_for
+from piezo_narx_ros.nodes.topics import TOPIC_COMMAND, TOPIC_DEFLECTION
 from piezo_narx_ros.rig.client import RigClient, resolve_target
 from piezo_narx_ros.rig.driver import (DIAG_ERROR, DIAG_OK, DIAG_WARN, STATE_RAMPING,
                                        DriverConfig, RigDriver)   # levels as ints

@@ -16,9 +16,11 @@ from std_srvs.srv import Trigger
 from piezo_narx_ros.errors import ConfigError
 from piezo_narx_ros.estimator.free_run import INIT_MODES, FreeRunEstimator
 from piezo_narx_ros.estimator.health import EstimatorHealth
-from piezo_narx_ros.nodes.common import (TOPIC_COMMAND, TOPIC_DEFLECTION, TOPIC_ESTIMATE,
-                                         Diagnostics, ParamSpec, PiezoNode, decode_joint_state,
-                                         encode_joint_state, main_for)
+from piezo_narx_ros.nodes.codec import decode_joint_state, encode_joint_state
+from piezo_narx_ros.nodes.diagnostics import Diagnostics
+from piezo_narx_ros.nodes.params import ParamSpec
+from piezo_narx_ros.nodes.runtime import PiezoNode, main_for
+from piezo_narx_ros.nodes.topics import TOPIC_COMMAND, TOPIC_DEFLECTION, TOPIC_ESTIMATE
 
 
 class EstimatorNode(PiezoNode):
@@ -63,7 +65,7 @@ class EstimatorNode(PiezoNode):
         self.est.model.stepper().step(0.0)   # compile/load the kernel before the first sample
         self.axis = p['axis']
         self.pub = self.sample_publisher(TOPIC_ESTIMATE)
-        # The callbacks get CDR bytes (see common.decode_joint_state: 8x cheaper).
+        # The callbacks get CDR bytes (see nodes.codec.decode_joint_state: 8x cheaper).
         self.sub_cmd = self.sample_subscription(TOPIC_COMMAND, self.on_command)
         self.sub_meas = self.sample_subscription(TOPIC_DEFLECTION, self.on_measurement)
         self._names = [self.axis]

@@ -25,8 +25,9 @@ from piezo_narx_ros.bag.recorder import (AUTO_TYPE, BagRecorder, discovered_type
                                          expand_types)
 from piezo_narx_ros.bag.writer import check_type, qos_from_rclpy, typestore
 from piezo_narx_ros.errors import BagError, ConfigError
-from piezo_narx_ros.nodes.common import (DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics, ParamSpec,
-                                         PiezoNode, main_for)
+from piezo_narx_ros.nodes.diagnostics import DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics
+from piezo_narx_ros.nodes.params import ParamSpec
+from piezo_narx_ros.nodes.runtime import PiezoNode, main_for
 
 _TYPE_NAME = re.compile(r'^([a-z][a-z0-9_]*)/msg/([A-Z][A-Za-z0-9]*)$')
 

@@ -14,9 +14,11 @@ import math
 from piezo_narx_ros.command.stamps import RESTART, StampGate
 from piezo_narx_ros.counters import Since
 from piezo_narx_ros.errors import DataError
-from piezo_narx_ros.nodes.common import (DIAG_OK, DIAG_WARN, TOPIC_COMMAND, TOPIC_DEFLECTION,
-                                         Diagnostics, ParamSpec, PiezoNode,
-                                         decode_joint_state, encode_joint_state, main_for)
+from piezo_narx_ros.nodes.codec import decode_joint_state, encode_joint_state
+from piezo_narx_ros.nodes.diagnostics import DIAG_OK, DIAG_WARN, Diagnostics
+from piezo_narx_ros.nodes.params import ParamSpec
+from piezo_narx_ros.nodes.runtime import PiezoNode, main_for
+from piezo_narx_ros.nodes.topics import TOPIC_COMMAND, TOPIC_DEFLECTION
 
 
 class PlantResponder:
@@ -134,7 +136,7 @@ class SimulatorNode(PiezoNode):
             plant.reset()
         self.responder = PlantResponder(plants, p['fs'], p['max_fill'])
         self.pub = self.sample_publisher(TOPIC_DEFLECTION)
-        # Raw CDR bytes in and out (see common.decode_joint_state: 8x cheaper).
+        # Raw CDR bytes in and out (see nodes.codec.decode_joint_state: 8x cheaper).
         self.sub = self.sample_subscription(TOPIC_COMMAND, self.on_command)
         self._names = list(p['axes'])
         self._seen = 0
