@@ -78,8 +78,8 @@ class Wire:
 
 
 def make(version, **kw):
-    cfg = dict(sample_rate=20000.0, max_slew_rate=1e9, reply_timeout=1.0,
-               protocol_version=version)
+    cfg = {'sample_rate': 20000.0, 'max_slew_rate': 1e9, 'reply_timeout': 1.0,
+           'protocol_version': version}
     cfg.update(kw)
     wire = Wire()
     return RigDriver(DriverConfig(**cfg), wire), wire

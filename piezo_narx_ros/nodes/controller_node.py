@@ -188,7 +188,7 @@ class ControllerNode(PiezoNode):
             return None
 
     def on_reference_batch(self, msg: bytes) -> None:
-        """A batch: each sample through the same call as a single one; one batch answers."""
+        """Feed a batch sample by sample through the one-sample call; answer with one batch."""
         got = self._values(msg, 'reference')
         if got is None:
             self.ctl.stats.rejected_nonfinite += 1   # a refused message, as in on_reference

@@ -287,7 +287,7 @@ class DriverNode(PiezoNode, LifecycleNode):
             self.get_logger().warning(f'command rejected: {exc}', throttle_duration_sec=1.0)
 
     def on_command_batch(self, msg: bytes) -> None:
-        """A batch of command samples -> the target (protocol version 2: one datagram)."""
+        """Send a batch of command samples to the target (protocol version 2: one datagram)."""
         now = time.monotonic()
         driver = self.driver
         if driver is None:

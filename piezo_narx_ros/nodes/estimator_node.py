@@ -149,7 +149,7 @@ class EstimatorNode(PiezoNode):
         return self.est.on_command(t_ns, volts)
 
     def on_command_batch(self, msg: bytes) -> None:
-        """A batch: each sample through the same call as a single one; one batch answers."""
+        """Feed a batch sample by sample through the one-sample call; answer with one batch."""
         got = self._values(msg, 'effort')
         if got is None:
             self.est.stats.rejected_nonfinite += 1   # a refused message, as in on_command

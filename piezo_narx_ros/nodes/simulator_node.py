@@ -177,7 +177,7 @@ class SimulatorNode(PiezoNode):
             return []
 
     def on_command_batch(self, msg: bytes) -> None:
-        """A batch: each sample through the same call as a single one; one batch answers."""
+        """Feed a batch sample by sample through the one-sample call; answer with one batch."""
         try:
             batch = decode_joint_trajectory(msg)
         except DataError as exc:

@@ -116,7 +116,7 @@ class FakeRig:
         self._position, self._applied = tuple(position), tuple(applied)
 
     def _handle_batch(self, data: bytes) -> bytes | None:
-        """A version-2 datagram: every sample as a version-1 command would be, one reply."""
+        """Answer a version-2 datagram: each sample as a version-1 command, one reply."""
         try:
             cmd = protocol.unpack_command_batch(data, self.n_axes)
         except protocol.DatagramError:
