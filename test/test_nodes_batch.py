@@ -211,6 +211,7 @@ def test_driver_negotiates_version2_with_fake_rig_and_answers_batches():
     versions = []
 
     class Rig(FakeRig):
+
         def handle(self, data):
             versions.append(p.datagram_version(data))
             return FakeRig.handle(self, data)
@@ -227,7 +228,8 @@ def test_driver_negotiates_version2_with_fake_rig_and_answers_batches():
         assert probe.wait_for(lambda: probe.pub.get_subscription_count() >= 1, 30.0)
         for i in range(0, u.size, batch):
             probe.pub.publish(encode_joint_trajectory(
-                [T0 + k * period for k in range(i, i + batch)], ['x'], effort=u[i:i + batch, None]))
+                [T0 + k * period for k in range(i, i + batch)], ['x'],
+                effort=u[i:i + batch, None]))
             time.sleep(0.002)
         assert probe.wait_for(lambda: sum(map(len, probe.decoded('deflection_batch'))) >= u.size,
                               20.0)
