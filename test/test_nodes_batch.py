@@ -21,7 +21,7 @@ from test_estimator_node import start_node, stop
 from trajectory_msgs.msg import JointTrajectory
 
 from piezo_narx_ros.nodes.codec import decode_joint_trajectory, encode_joint_trajectory
-from piezo_narx_ros.nodes.diagnostics import diagnostic_values, status_node
+from piezo_narx_ros.nodes.diagnostics import DIAG_WARN, diagnostic_values, status_node
 from piezo_narx_ros.nodes.qos import sample_qos
 
 T0 = 10**18
@@ -292,3 +292,32 @@ def test_recorder_and_player_keep_every_batched_stamp(tmp_path):
     b, report_b = read_uy_report(tmp_path / 'b', *topics)
     assert np.array_equal(a.u, b.u) and np.array_equal(a.y, b.y) and np.array_equal(a.t, b.t)
     assert report_b.t0_ns == report.t0_ns
+
+
+def test_simulator_node_counts_refused_batches_and_answers_the_rest_in_process():
+    """The simulator's batch callback without DDS traffic: bad batches counted, NaN refused."""
+    from rclpy.parameter import Parameter
+
+    from piezo_narx_ros.nodes.simulator_node import SimulatorNode
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = SimulatorNode(context=ctx, parameter_overrides=[Parameter('batch', value=4),
+                                                           Parameter('fs', value=20000.0)])
+    try:
+        assert node.pub.topic_name == '/piezo/deflection_batch'
+        sent = []
+        node.pub.publish = sent.append
+        stamps = [T0 + k * 50_000 for k in range(4)]
+        node.on_command_batch(encode_joint_trajectory(stamps, ['x'], effort=np.ones((4, 2))))
+        node.on_command_batch(b'\x00\x01\x00\x00\x01')
+        node.on_command_batch(encode_joint_trajectory(stamps, ['x'],
+                                                      effort=[[1.0], [np.nan], [2.0], [3.0]]))
+        r = node.responder
+        assert (r.rejected, r.answered) == (2 + 1, 3)
+        assert [b.t_ns.tolist() for b in map(decode_joint_trajectory, sent)] == \
+            [[stamps[0], stamps[2], stamps[3]]]
+        level, message, values = node.status()
+        assert level == DIAG_WARN and 'refused' in message and values['rejected'] == 3
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
