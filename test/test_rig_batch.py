@@ -145,6 +145,9 @@ def test_pings_of_both_versions_negotiate_what_the_target_speaks():
         assert driver.versions_seen == expected
         driver.use_version(max(driver.versions_seen))
         assert driver.version == max(expected)
+        # The unanswered version-2 ping is no reply timeout: the target just does not speak it.
+        driver.tick(10.0)
+        assert driver.counts['reply_timeouts'] == 0
 
 
 def test_fake_rig_answers_version2_exactly_as_version1_including_a_gap():

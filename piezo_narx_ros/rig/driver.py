@@ -138,6 +138,7 @@ class RigDriver:
         self._pending: OrderedDict[int, _Pending] = OrderedDict()
         self._answered = _BoundedSeqSet()
         self._expired = _BoundedSeqSet()
+        self._ignored = _BoundedSeqSet()   # negotiation pings left unanswered on purpose
         self._last_send: float | None = None
         self._last_reply: float | None = None
         self._latencies: deque[float] = deque(maxlen=2000)
@@ -236,6 +237,11 @@ class RigDriver:
                               f'{version}')
         with self._lock:
             self.version = version
+            # The pings still pending (the version the target ignores) will never be answered:
+            # not reply timeouts; an answer that still comes is ignored too.
+            for seq in [s for s, pending in self._pending.items() if not pending.publish]:
+                del self._pending[seq]
+                self._ignored.add(seq)
 
     def reject(self) -> None:
         """Count a command message refused before it reached command() (e.g. axis missing)."""
@@ -383,6 +389,9 @@ class RigDriver:
         None when it is not to be published (duplicate, unknown seq, ping or ramp reply).
         """
         self.versions_seen.add(version)
+        if seq in self._ignored:
+            self._ignored.discard(seq)
+            return None
         pending = self._pending.pop(seq, None)
         if pending is not None:
             late = now - pending.sent_at > self.config.reply_timeout
