@@ -273,6 +273,30 @@ def _field(buf, layout: _PointLayout, name: str, start: int, count: int, code: s
     return np.ndarray(shape, code, buf, start + getattr(layout, name), strides)
 
 
+def _read_run(buf, start: int, count: int, layout: _PointLayout, e: str, n_pos: int,
+              n_eff: int):
+    """
+    Read `count` points of one layout from byte `start` of `buf` as arrays.
+
+    Returns (time_from_start ns (count,), positions (count, n_pos), efforts (count, n_eff)), or
+    None when a point's counts differ from the layout (the caller then reads point by point).
+    """
+    words = np.ndarray((count, layout.size // 4), e + 'u4', buf, start)
+    counts = words[:, [layout.n_pos // 4, layout.n_vel // 4, layout.n_acc // 4,
+                       layout.n_eff // 4]]
+    if not (counts == (n_pos, 0, 0, n_eff)).all():
+        return None
+    sec = words[:, layout.sec // 4].astype(np.int64)
+    sec[sec >= 1 << 31] -= 1 << 32                     # int32 seconds: negative offsets
+    offsets = sec * 1_000_000_000 + words[:, layout.nsec // 4]
+
+    def doubles(at: int, width: int) -> np.ndarray:
+        if not width:
+            return np.empty((count, 0))
+        return np.ndarray((count, width), e + 'f8', buf, start + at, (layout.size, 8))
+    return offsets, doubles(layout.pos, n_pos), doubles(layout.eff, n_eff)
+
+
 def _read_point(e: str, data, off: int):
     """Read one point at `off`; returns (positions, efforts, (sec, nsec), next offset)."""
     pos, off = _read_doubles(e, data, off)
@@ -300,36 +324,27 @@ def decode_joint_trajectory(buf: bytes) -> SampleBatch:
             raise DataError(f'malformed JointTrajectory ({len(buf)} bytes): {count} points '
                             'cannot fit')
         stamps, positions, efforts = [], [], []
-        k = 0
-        while k < count:
-            pos, eff, (sec, nsec), off = _read_point(e, data, off)
+        for k in range(count):
+            pos, eff, (sec, nsec), next_off = _read_point(e, data, off)
+            if k == 0 or (k == 1 and (len(pos), len(eff)) == (len(positions[0]),
+                                                              len(efforts[0]))):
+                # The points from here on as arrays, when they share this point's shape: from
+                # point 0 when its layout repeats, else (it starts at the other phase) point 1.
+                layout = _point_layout(off % 8, len(pos), len(eff))
+                if layout is not None and off + (count - k) * layout.size <= len(data):
+                    run = _read_run(buf, off + 4, count - k, layout, e, len(pos), len(eff))
+                    if run is not None:
+                        if k:
+                            stamps = np.concatenate((stamps, run[0]))
+                            positions = np.concatenate((np.reshape(positions, (1, -1)), run[1]))
+                            efforts = np.concatenate((np.reshape(efforts, (1, -1)), run[2]))
+                        else:
+                            stamps, positions, efforts = run
+                        break
             stamps.append(sec * 1_000_000_000 + nsec)
             positions.append(pos)
             efforts.append(eff)
-            k += 1
-            rest = count - k
-            if k == 1 and rest:
-                # The other points: strided arrays when they share the first one's shape.
-                layout = _point_layout(off % 8, len(pos), len(eff))
-                if layout is not None and off + rest * layout.size <= len(data):
-                    u4, i4, f8 = e + 'u4', e + 'i4', e + 'f8'
-                    base = off + 4     # the views index the whole buffer, data starts at 4
-
-                    def view(name, code, width=0):
-                        return _field(buf, layout, name, base, rest, code, width)
-                    if ((view('n_pos', u4) == len(pos)).all()
-                            and not view('n_vel', u4).any() and not view('n_acc', u4).any()
-                            and (view('n_eff', u4) == len(eff)).all()):
-                        stamps = np.concatenate((
-                            [stamps[0]],
-                            view('sec', i4).astype(np.int64) * 1_000_000_000 + view('nsec', u4)))
-                        positions = np.vstack((np.reshape(pos, (1, -1)),
-                                               view('pos', f8, len(pos)))) if len(pos) else \
-                            np.empty((count, 0))
-                        efforts = np.vstack((np.reshape(eff, (1, -1)),
-                                             view('eff', f8, len(eff)))) if len(eff) else \
-                            np.empty((count, 0))
-                        break
+            off = next_off
     except (struct.error, IndexError, UnicodeDecodeError) as exc:
         raise DataError(f'malformed JointTrajectory ({len(buf)} bytes): {exc}') from None
     if not isinstance(positions, np.ndarray):
