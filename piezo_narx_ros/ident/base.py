@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError, DataError
+from .checks import as_signal
 
 
 @dataclass(frozen=True)
@@ -157,7 +158,6 @@ def as_record_list(u, y, min_len=1):
     One record: 1-D arrays; several: a list or tuple of 1-D arrays each. DataError on mismatched or
     bad arrays.
     """
-    from .regressors import as_signal
     several = isinstance(u, (list, tuple))
     if several != isinstance(y, (list, tuple)):
         raise DataError('give u and y both as arrays (one record) or both as lists (several)')
