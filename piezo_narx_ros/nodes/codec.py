@@ -183,6 +183,7 @@ class SampleBatch:
     One parsed batch: stamps (n,) int64 ns, axis names, positions (n, a) m and efforts (n, a) V.
 
     An array a message does not fill has a = 0 columns (e.g. the positions of a command batch).
+    Decoded arrays may be read-only views of the message bytes: copy before writing to them.
     """
 
     t_ns: np.ndarray
