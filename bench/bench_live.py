@@ -286,7 +286,7 @@ def main(argv=None) -> int:
         r = run_rate(fs, args.seconds, model_path, args.publish_period, args.executor, args.rt,
                      args.batch)
         print(f'\n--- {fs:g} Hz, {args.seconds:g} s, {r["n"]} samples '
-              f'(exit codes {r["codes"]}) ---')
+              f'(exit codes {r["codes"]}; load average now {os.getloadavg()[0]:.1f}) ---')
         for k, lines in r['errors'].items():
             print(f'{k} failed: ' + ' | '.join(lines))
         print('                                 p50      p99      max  (us)')
