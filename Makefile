@@ -31,6 +31,7 @@ bench: setup
 	$(PY) bench/bench_live.py
 	$(PY) bench/bench_recorder.py
 	$(PY) bench/bench_control.py
+	$(PY) bench/bench_export.py
 	$(PY) bench/bench_envelope.py --reference
 
 # 10 minutes of command -> simulator -> estimator -> recorder at 2 kHz with scheduled faults.

@@ -13,6 +13,7 @@ import math
 
 from std_srvs.srv import Trigger
 
+from piezo_narx_ros.command.stamps import RATE_TOLERANCE
 from piezo_narx_ros.errors import ConfigError
 from piezo_narx_ros.estimator.free_run import INIT_MODES, FreeRunEstimator
 from piezo_narx_ros.estimator.health import EstimatorHealth
@@ -20,6 +21,7 @@ from piezo_narx_ros.nodes.batching import BATCH_PARAM, batch_topic, batch_values
 from piezo_narx_ros.nodes.codec import (decode_joint_state, encode_joint_state,
                                         encode_joint_trajectory)
 from piezo_narx_ros.nodes.diagnostics import Diagnostics
+from piezo_narx_ros.nodes.graph import EpisodeLog, same_name_problem
 from piezo_narx_ros.nodes.params import ParamSpec
 from piezo_narx_ros.nodes.runtime import PiezoNode, main_for
 from piezo_narx_ros.nodes.topics import TOPIC_COMMAND, TOPIC_DEFLECTION, TOPIC_ESTIMATE
@@ -34,8 +36,11 @@ class EstimatorNode(PiezoNode):
                   check=(lambda v: bool(v.strip()), 'must name a model file (.json)')),
         ParamSpec('axis', 'x', 'axis read from voltage_command/deflection and published',
                   read_only=True, check=(lambda v: bool(v.strip()), 'must not be empty')),
-        ParamSpec('fs', 0.0, "command sample rate, Hz (0: the model file's fs)", low=0.0,
-                  high=100000.0, read_only=True),
+        ParamSpec('fs', 0.0, "command sample rate, Hz (0: the model file's fs; any other value "
+                  'must equal it)', low=0.0, high=100000.0, read_only=True),
+        ParamSpec('rate_tolerance', RATE_TOLERANCE, 'relative difference between the command '
+                  "stream's stamp rate and the model's beyond which estimates are withheld "
+                  '(ERROR on /diagnostics)', low=1e-6, high=0.5, read_only=True),
         ParamSpec('init', 'auto', 'initial state: rest, measurement (first n0 measured samples), '
                   'or auto (measurement when deflection has a publisher)', choices=INIT_MODES,
                   read_only=True),
@@ -64,7 +69,8 @@ class EstimatorNode(PiezoNode):
         self.est = FreeRunEstimator(
             self.model, fs=p['fs'] or None, init=p['init'], u_min=p['u_min'], u_max=p['u_max'],
             max_fill=p['max_fill'], range_margin=p['range_margin'], window=p['window'],
-            reanchor_every=p['reanchor_every'], init_timeout=p['init_timeout'])
+            reanchor_every=p['reanchor_every'], init_timeout=p['init_timeout'],
+            rate_tolerance=p['rate_tolerance'])
         self.est.model.stepper().step(0.0)   # compile/load the kernel before the first sample
         self.axis = p['axis']
         b = self.batch = p['batch']
@@ -78,6 +84,7 @@ class EstimatorNode(PiezoNode):
             self.on_measurement_batch if b > 1 else self.on_measurement, sample_type(b))
         self._names = [self.axis]
         self.health = EstimatorHealth(self.est)
+        self._error_log = EpisodeLog(self.get_logger())
         # A command held back for its ambiguous stamp is decided when commands stop (the stream
         # ended right after a gap); checked a few times a second, nothing to do otherwise.
         self._commands_at_last_check = 0
@@ -146,6 +153,7 @@ class EstimatorNode(PiezoNode):
     def _command(self, t_ns: int, volts: float):
         if self.est.stats.commands == 0:
             self.est.start(self.sub_meas.get_publisher_count() > 0)
+            self.est.rate.single_writer = self.sub_cmd.get_publisher_count() == 1
         return self.est.on_command(t_ns, volts)
 
     def on_command_batch(self, msg: bytes) -> None:
@@ -185,7 +193,12 @@ class EstimatorNode(PiezoNode):
 
     def status(self):
         """Everything since the previous tick (EstimatorHealth), plus the running error."""
-        level, msg, values = self.health.tick(self.sub_cmd.get_publisher_count())
+        writers = self.sub_cmd.get_publisher_count()
+        self.est.rate.single_writer = writers == 1
+        clash = same_name_problem(self, TOPIC_ESTIMATE)
+        level, msg, values = self.health.tick(
+            writers, self.count_publishers(self.pub.topic_name), [clash] if clash else [])
+        self._error_log.status(level, msg)
         rms, r2, n = self.est.running_error()
         # Matched deflection publishers: a launcher waits for 1 before streaming, so that the
         # first measured samples (the initial values) are not published before this matches.
