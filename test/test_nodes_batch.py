@@ -169,12 +169,13 @@ def test_estimator_answers_batches_and_survives_nan_gap_and_bad_batches(toy_mode
 
 
 def test_controller_answers_reference_batches_like_the_one_sample_path(toy_model_file):
-    from piezo_narx_ros.control.controller import PositionController
+    """mode inverse (main's controller refuses mode linear with the toy model's gain)."""
+    from piezo_narx_ros.control.controller import PositionController, input_limits
     from piezo_narx_ros.ident.model_io import load_model
     model = load_model(toy_model_file)
     period, batch = 50_000, 8
     probe = BatchProbe('/bctl', ('voltage_command_batch',), 'position_reference_batch')
-    ctl = start_node('controller_node', '-p', f'model:={toy_model_file}', '-p', 'mode:=linear',
+    ctl = start_node('controller_node', '-p', f'model:={toy_model_file}', '-p', 'mode:=inverse',
                      '-p', 'use_deflection:=false', '-p', f'batch:={batch}', ns='/bctl')
     lo, hi = model.output_range
     r = lo + (hi - lo) * (0.5 + 0.3 * np.sin(np.arange(160) / 9.0))
@@ -191,7 +192,8 @@ def test_controller_answers_reference_batches_like_the_one_sample_path(toy_model
         codes = stop([ctl])
         probe.close()
     assert codes == [0]
-    ref = PositionController(model, mode='linear', fs=20000.0, slew_rate=1e5)   # the node's
+    ref = PositionController(model, mode='inverse', fs=20000.0, slew_rate=1e5,   # the node's
+                             **input_limits(model, 0.05))
     want = [c for k, rk in enumerate(r) for c in ref.on_reference(T0 + k * period, rk)]
     t, u = probe.samples('voltage_command_batch', 'effort')
     assert t.tolist() == [c[0] for c in want] and np.array_equal(u, [c[1] for c in want])
