@@ -169,7 +169,7 @@ def test_estimator_answers_batches_and_survives_nan_gap_and_bad_batches(toy_mode
 
 
 def test_controller_answers_reference_batches_like_the_one_sample_path(toy_model_file):
-    """mode inverse (main's controller refuses mode linear with the toy model's gain)."""
+    """Mode inverse: the controller refuses mode linear with the toy model's gain (issue 19)."""
     from piezo_narx_ros.control.controller import PositionController, input_limits
     from piezo_narx_ros.ident.model_io import load_model
     model = load_model(toy_model_file)
