@@ -190,9 +190,11 @@ def test_several_records_each_run_from_rest(fitted):
 
 
 def _bad_value(rule):
-    from piezo_narx_ros.ident.base import Tuple
+    from piezo_narx_ros.ident.base import Options, Tuple
     if isinstance(rule, Tuple):
         return 'x'
+    if isinstance(rule, Options):
+        return 'no such option'
     return rule.low - 1 if rule.low is not None else rule.high + 1
 
 

@@ -172,6 +172,10 @@ class DynamicModel:
         """ModelStates the model reaches through input histories that end at u[0]."""
         raise NotImplementedError
 
+    def _bracket_states(self, u0):   # pragma: no cover - interface
+        """Two ModelStates at input u0 (V) from the most different pasts the model admits."""
+        raise NotImplementedError
+
     def _adjustable_state(self, n_window):   # pragma: no cover - interface
         """(indices of the state vector a window of n_window samples may adjust, their size)."""
         raise NotImplementedError

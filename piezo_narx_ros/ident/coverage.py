@@ -24,24 +24,26 @@ REVERSAL_DEPTH = 0.05
 INNER_MARGIN = 0.1
 
 
-def inner_reversals(records) -> int:
+def inner_reversals(inputs) -> int:
     """
-    Reversals of the input strictly inside its range over the records: how many minor loops.
+    Reversals of the input strictly inside its range over records: how many minor loops.
+
+    inputs: the records' input arrays (V), or Records.
 
     A reversal is a turning point the input then leaves by REVERSAL_DEPTH of the records' input
     range (so sensor or quantisation noise on a measured input is no reversal); it is inner when
     it lies INNER_MARGIN of the range away from both the smallest and the largest input. A
     full-range sine has none; a multisine, a fading sine or nested loops have many.
     """
-    lo = min(float(np.min(r.u)) for r in records)
-    hi = max(float(np.max(r.u)) for r in records)
+    inputs = [np.asarray(getattr(x, 'u', x), dtype=np.float64) for x in inputs]
+    lo = min(float(np.min(u)) for u in inputs)
+    hi = max(float(np.max(u)) for u in inputs)
     span = hi - lo
     if not span > 0:
         return 0
     depth, margin = REVERSAL_DEPTH * span, INNER_MARGIN * span
     count = 0
-    for r in records:
-        u = np.asarray(r.u, dtype=np.float64)
+    for u in inputs:
         top = bottom = u[0]
         rising = None
         for x in u[1:]:

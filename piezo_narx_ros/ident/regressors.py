@@ -153,6 +153,12 @@ class LaggedModel(DynamicModel):
             values = np.r_[np.full(self.nu, u0), np.zeros(self.ny)]
         return [ModelState(values, 0.0, {'history': f'input held at {u0:.6g} V'})]
 
+    def _bracket_states(self, u0):
+        """Rest, and the input held at u0 (V) (estimator.memory)."""
+        from .state import ModelState
+        return [ModelState(np.zeros(self.state_size), 0.0, {'history': 'rest'}),
+                self._state_candidates(np.array([u0]))[0]]
+
     def _adjustable_state(self, n_window):
         """The output history (m), on the scale of the trained output span (any window)."""
         lo, hi = self.output_range if self.output_range is not None else (0.0, 1.0)
