@@ -163,3 +163,53 @@ def test_estimator_starts_from_the_measured_state_of_a_plant_not_at_rest(hnarx):
     err = np.sqrt(np.mean((y_hat - rec.y)[1000:] ** 2))
     rest = np.sqrt(np.mean((hnarx.simulate(rec.u) - rec.y)[1000:] ** 2))
     assert err < 0.2 * rest, (err, rest)
+
+
+def test_resample_is_anti_aliased_and_only_slower():
+    from piezo_narx_ros.errors import DataError
+    from piezo_narx_ros.ident.resample import resample_record
+    t = np.arange(20000) / 10000.0
+    slow, fast = np.sin(2 * np.pi * 5.0 * t), 0.5 * np.sin(2 * np.pi * 1700.0 * t)
+    rec = Record(u=slow + fast, y=2.0 * slow + fast, fs=10000.0, source='r',
+                 t=100.0 + t)
+    down = resample_record(rec, 2000.0)
+    t2 = np.arange(4000) / 2000.0
+    assert down.fs == 2000.0 and down.u.size == 4000
+    # 1700 Hz is above the new Nyquist (1000 Hz): filtered out, not folded to 300 Hz.
+    np.testing.assert_allclose(down.u[50:-50], np.sin(2 * np.pi * 5.0 * t2)[50:-50], atol=5e-3)
+    np.testing.assert_allclose(down.t, 100.0 + t2)
+    for bad in (10000.0, 20000.0, -1.0):
+        with pytest.raises(DataError):
+            resample_record(rec, bad)
+
+
+def test_fit_and_evaluate_at_a_resampled_rate(tmp_path):
+    r = record(generate('multisine', FS, 3.0, 80.0, seed=1), seed=1)
+    np.savez(tmp_path / 'a.npz', u=r.u, y=r.y, fs=FS)
+    out = piezo_narx('fit', str(tmp_path / 'a.npz'), '--resample', '1000', '--ny', '1',
+                     '--nu', '0', '--hidden', '2', '--arx-na', '2', '--arx-nb', '2', '--out',
+                     str(tmp_path / 'o'), '--no-report', '--quiet')
+    assert out.returncode == 0, out.stderr
+    doc = json.loads((tmp_path / 'o' / 'model.json').read_text())
+    assert doc['fs'] == 1000.0
+    good = piezo_narx('evaluate', str(tmp_path / 'o' / 'model.json'), str(tmp_path / 'a.npz'),
+                      '--resample', '1000', '--json')
+    assert good.returncode == 0, good.stderr
+    assert json.loads(good.stdout)['n'] > 1400
+    bad = piezo_narx('evaluate', str(tmp_path / 'o' / 'model.json'), str(tmp_path / 'a.npz'))
+    assert bad.returncode == 2 and '2000 Hz' in bad.stderr and '1000 Hz' in bad.stderr
+
+
+def test_records_of_sessions_with_different_sensor_zeros_fit_together():
+    a = record(generate('protocol', FS, 6.0, 100.0, seed=1), seed=1)
+    b = record(generate('protocol', FS, 6.0, 100.0, seed=2), seed=2)
+
+    def fit(offset):
+        m = HysteresisNARX(hidden=6, n_plays=8, max_iter=20, seed=0)
+        return m.fit([a.u, b.u], [a.y, b.y + offset], fs=FS)
+    same, moved = fit(0.0), fit(4e-6)
+    # The second session's sensor zero moved by 4 um: found, and the model is as if it had not.
+    got = moved.training_info_['record_offsets_m'][1] - same.training_info_['record_offsets_m'][1]
+    assert got == pytest.approx(4e-6, abs=0.05e-6)
+    for u in (a.u, b.u):
+        assert np.max(np.abs(moved.simulate(u) - same.simulate(u))) < 0.05e-6

@@ -32,6 +32,9 @@ def add_parser(subparsers):
                         'creep, output dynamics, sensor offset); scores on the samples after '
                         'them; 0: free run from rest (default: the first n0 measured outputs, '
                         'the paper\'s convention)')
+    p.add_argument('--resample', type=float, metavar='HZ',
+                   help='resample the inputs to this slower rate first (anti-aliased), for a '
+                        'model fitted with fit --resample')
     p.add_argument('--save-output', metavar='FILE.npz',
                    help='write the free-run output as y_sim beside u and y (and the first '
                         'scored sample as scored_from)')
@@ -235,6 +238,9 @@ def _run(args) -> int:
     model = load_model(args.model)
     records = load_records(args.inputs, fs=args.fs, command_topic=args.command_topic,
                            deflection_topic=args.deflection_topic, **reading_options(args))
+    if args.resample is not None:
+        from piezo_narx_ros.ident.resample import resample_record
+        records = [resample_record(r, args.resample) for r in records]
     result = evaluate(model, records, args.max_lag, args.max_outside_fraction, args.residuals,
                       args.noise_model, args.noise_order, args.init_samples)
     if args.save_output:

@@ -54,6 +54,9 @@ def add_parser(subparsers):
                         'state (hysteresis memory, creep, sensor offset) before its free run is '
                         'scored: for recordings that do not start at rest (default: the '
                         "preset's init_seconds; 0: from rest)")
+    p.add_argument('--resample', type=float, metavar='HZ',
+                   help='fit a model at this slower rate: every record is low-pass filtered and '
+                        'resampled to it first (anti-aliased)')
     p.add_argument('--per-record', action='store_true',
                    help='fit each recording on its own: DIR/NAME/ per recording and '
                         'DIR/summary.csv')
@@ -248,9 +251,11 @@ def _run(args) -> int:
     if (out / 'model.json').exists() and not args.force:
         raise ConfigError(f'--out {out} already holds a model ({out / "model.json"}); choose '
                           'another directory or pass --force to overwrite it')
-    records = _load(args, settings, config, inputs, whole=bool(args.validate))
-    validation = _load_validation(args, settings, records) if args.validate else None
+    records = _resampled(_load(args, settings, config, inputs, whole=bool(args.validate)), args)
+    validation = (_resampled(_load_validation(args, settings, records), args) if args.validate
+                  else None)
     config = _with_init_samples(config, args.init_samples, records[0].fs)
+    _warn_without_minor_loops(records, config)
     from piezo_narx_ros.ident.experiment import run_experiment
     with executor:
         result = run_experiment(records, config, executor, validation)
@@ -310,6 +315,28 @@ def _load_validation(args, settings, records):
     for line in coverage_warnings(records, validation):
         warnings.warn(line)
     return validation
+
+
+def _warn_without_minor_loops(records, config) -> None:
+    """Warn when the paper's networks are fitted on an input that never reverses inside its range."""
+    import warnings
+
+    from piezo_narx_ros.ident.coverage import inner_reversals
+    from piezo_narx_ros.ident.hysteresis import MINOR_LOOPS
+    if config.narx and config.family == 'narx' and inner_reversals(records) < MINOR_LOOPS:
+        warnings.warn('the estimation input never reverses inside its range (no minor loops, '
+                      'e.g. one full-range sine): nothing in these data decides how the paper\'s '
+                      'networks behave inside the loop, and their validation scores cannot tell '
+                      '(on the micromanipulator of docs/real.md the selected one scored R² -0.22 '
+                      'on its test record); --preset envelope keeps its network monotone there')
+
+
+def _resampled(records, args):
+    """The records at --resample HZ (anti-aliased), or as they are."""
+    if args.resample is None:
+        return records
+    from piezo_narx_ros.ident.resample import resample_record
+    return [resample_record(r, args.resample) for r in records]
 
 
 def _with_init_samples(config, init_samples, fs):

@@ -69,11 +69,12 @@ class HysteresisNARX(DynamicModel):
     amplifier's slew limit); na, nb : output dynamics orders; creep_taus : creep time constants, s;
     seed : initial hidden-layer seed. Training: max_iter LM iterations, val_fraction of each
     record held out for early stopping (0: none), max_fail, hessian_stride (see
-    hysteresis_training). start: how each estimation record starts: 'rest', or 'estimate' (a
-    record that does not start at rest: after a fit from rest, each record's starting memory is
-    estimated from its first seconds, prepended as an input history and the fit continued, with
-    an output offset per record after the first: sensor zeros differ between sessions);
-    'auto': 'estimate' when a record's first input is away from 0 V, else 'rest'. monotone:
+    hysteresis_training). Several records each get their own output offset after the first's
+    (sensor zeros differ between sessions; training_info_['record_offsets_m']). start: how each
+    estimation record starts: 'rest', or 'estimate' (a record that does not start at rest: after
+    a fit from rest, each record's starting memory is estimated from its first seconds, prepended
+    as an input history and the fit continued); 'auto': 'estimate' when a record's first input is
+    away from 0 V, else 'rest'. monotone:
     'yes' keeps the network increasing in every play operator (with the sign of the data's static
     gain), so the output moves with the input the way a Preisach actuator's does wherever the
     input goes, also inside loops the data never showed; 'no' leaves the network free; 'auto':
@@ -187,7 +188,7 @@ class HysteresisNARX(DynamicModel):
                 self.nb, self.seed, self.max_iter, self.val_fraction, self.max_fail,
                 self.hessian_stride, theta0=None if theta0 is None else self._signed(theta0,
                                                                                    sign),
-                skip=skip, record_offsets=theta0 is not None and len(us) > 1,
+                skip=skip, record_offsets=len(us) > 1,
                 monotone=monotone)
             info['record_offsets'] = [sign * o for o in info['record_offsets']]
             return self._signed(theta, sign), info
@@ -204,9 +205,9 @@ class HysteresisNARX(DynamicModel):
             self.set_theta(theta)
             more['iterations_from_rest'] = info['iterations']
             more['record_starts'] = starts
-            more['record_offsets_m'] = [o * y_scale for o in more.pop('record_offsets')]
             more['fit_seconds'] += info['fit_seconds']
             info = more
+        info['record_offsets_m'] = [o * y_scale for o in info.pop('record_offsets')]
         info.update(monotone=bool(monotone), inner_reversals=loops)
         self.training_info_ = info
         return self

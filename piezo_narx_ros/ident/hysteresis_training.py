@@ -75,12 +75,14 @@ def monotone_mask(lay, P, H, m, n_lags, q):
     return mask
 
 
-def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng, monotone=False):
+def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng, monotone=False,
+                  record_offsets=False):
     """
-    Return starting parameters for records of inputs uns and outputs yns (normalised).
+    Return (starting parameters, per-record offsets) for inputs uns and outputs yns (normalised).
 
     See the module docstring. monotone: the start satisfies monotone_mask's signs (a positive
-    hidden layer, the output layer by bounded least squares).
+    hidden layer, the output layer by bounded least squares). record_offsets: the records after
+    the first get their own output offset in the least squares (returned, normalised).
     """
     rho = 0.5 * max(float(np.max(np.abs(np.diff(np.r_[0.0, un])))) for un in uns)
     rho = max(rho, 1e-6)
@@ -99,17 +101,24 @@ def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng, monotone=
     lam = 1e-8 * np.trace(A.T @ A) / A.shape[1]
     target = np.concatenate(yns)
     y_off = 0.0
+    # One column per record after the first: its own offset (sensor zero), never penalised.
+    n_rec = len(yns) - 1 if record_offsets else 0
+    sizes = [yn.size for yn in yns]
+    dummies = np.zeros((A.shape[0], n_rec))
+    for r in range(n_rec):
+        lo = sum(sizes[:r + 1])
+        dummies[lo:lo + sizes[r + 1], r] = 1.0
+    n_col = A.shape[1]
     if monotone:
         # Bounded least squares with a free intercept: positive weights alone cannot make the
         # output's mean (the records need not be centred).
         from scipy.optimize import lsq_linear
-        n_col = A.shape[1]
-        lower = np.full(n_col + 1, -np.inf)
+        lower = np.full(n_col + 1 + n_rec, -np.inf)
         lower[:H + m] = 0.0
-        aug = np.vstack([np.hstack([A, np.ones((A.shape[0], 1))]),
-                         np.sqrt(lam) * np.eye(n_col + 1)[:n_col]])
+        ridge = np.sqrt(lam) * np.eye(n_col + 1 + n_rec)[:n_col]
+        aug = np.vstack([np.hstack([A, np.ones((A.shape[0], 1)), dummies]), ridge])
         sol = lsq_linear(aug, np.r_[target, np.zeros(n_col)], bounds=(lower, np.inf)).x
-        y_off, sol = float(sol[-1]), sol[:-1]
+        offsets, y_off, sol = sol[n_col + 1:], float(sol[n_col]), sol[:n_col]
         # Strictly inside the constraint (the training moves the log of these weights), and no
         # unit left dead: an output weight of 0 would give its hidden weights no gradient.
         w_top = max(float(np.max(sol[:H])), 1e-3)
@@ -117,16 +126,19 @@ def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng, monotone=
         c_top = max(float(np.max(sol[H:H + m])), 1e-3)
         sol[H:H + m] = np.maximum(sol[H:H + m], 1e-3 * c_top)
     else:
-        sol = np.linalg.solve(A.T @ A + lam * np.eye(A.shape[1]), A.T @ target)
+        Ad = np.hstack([A, dummies])
+        reg = lam * np.r_[np.ones(n_col), np.zeros(n_rec)]
+        sol = np.linalg.solve(Ad.T @ Ad + np.diag(reg), Ad.T @ target)
+        offsets, sol = sol[n_col:], sol[:n_col]
     w2, c = sol[:H], sol[H:]
     a, b = np.zeros(na), np.zeros(nb + 1)
     b[0] = 1.0
     rows, targets, start = [], [], 0
     n0 = max(na, nb)
-    for phi_r, yn in zip(phis, yns):
+    for r, yn in enumerate(yns):
         w0 = A[start:start + yn.size] @ sol
         start += yn.size
-        yl = yn - y_off
+        yl = yn - y_off - (offsets[r - 1] if r and n_rec else 0.0)
         cols = ([-np.r_[np.zeros(j), yl[:yl.size - j]] for j in range(1, na + 1)]
                 + [np.r_[np.zeros(i), w0[:w0.size - i]] for i in range(nb + 1)])
         rows.append(np.column_stack(cols)[n0:])
@@ -134,8 +146,9 @@ def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng, monotone=
     ab = np.linalg.lstsq(np.vstack(rows), np.concatenate(targets), rcond=None)[0]
     if np.all(np.isfinite(ab)) and _stable(ab[:na]):
         a, b = ab[:na], ab[na:]
-    return np.concatenate([W1.ravel(), b1, w2, c, duhem.ravel(), [np.log(rho)], np.zeros(n_creep),
-                           a, b, [y_off]])
+    theta = np.concatenate([W1.ravel(), b1, w2, c, duhem.ravel(), [np.log(rho)],
+                            np.zeros(n_creep), a, b, [y_off]])
+    return theta, offsets
 
 
 def train(uns, yns, radii, n_lags, hidden, n_duhem, lam, na, nb, seed, max_iter=60,
@@ -159,18 +172,19 @@ def train(uns, yns, radii, n_lags, hidden, n_duhem, lam, na, nb, seed, max_iter=
     skip = [0] * len(uns) if skip is None else [int(k) for k in skip]
     splits = [un.size - int(round(val_fraction * (un.size - k))) if val_fraction > 0 else un.size
               for un, k in zip(uns, skip)]
-    if theta0 is None:
-        theta = initial_theta([u[:s] for u, s in zip(uns, splits)],
-                              [y[:s] for y, s in zip(yns, splits)],
-                              radii, n_lags, H, q, lam.size, na, nb, rng, monotone)
-    else:
-        theta = np.array(theta0, dtype=np.float64)
     n_off = len(uns) - 1 if record_offsets else 0
+    if theta0 is None:
+        theta, offsets = initial_theta([u[k:s] for u, k, s in zip(uns, skip, splits)],
+                                       [y[k:s] for y, k, s in zip(yns, skip, splits)],
+                                       radii, n_lags, H, q, lam.size, na, nb, rng, monotone,
+                                       record_offsets)
+    else:
+        theta, offsets = np.array(theta0, dtype=np.float64), np.zeros(n_off)
     pos = np.zeros(P + n_off, dtype=bool)
     if monotone:
         pos[:P] = monotone_mask(lay, P, H, radii.size, n_lags, q)
     # The iterations move `raw`; the model's parameters are actual(raw) (logs where positive).
-    raw = np.r_[theta[:P], np.zeros(n_off)]
+    raw = np.r_[theta[:P], offsets]
     raw[pos] = np.log(np.maximum(raw[pos], 1e-12))
 
     def actual(r):
@@ -192,11 +206,13 @@ def train(uns, yns, radii, n_lags, hidden, n_duhem, lam, na, nb, seed, max_iter=
         sse, hold = 0.0, 0.0
         for r, (un, yn, s, k) in enumerate(zip(uns, yns, splits, skip)):
             _, (F, S, _, _, _) = operator_features(un, radii, n_lags, dh, rho)
-            e = yn - hk.forward(F, S, W1, b1, w2, c, g, lam, a, b, y_off)
+            with np.errstate(all='ignore'):   # a diverging trial step is refused below
+                e = yn - hk.forward(F, S, W1, b1, w2, c, g, lam, a, b, y_off)
             if r and n_off:
                 e -= th[P + r - 1]
-            sse += float(e[k:s] @ e[k:s])
-            hold += float(e[s:] @ e[s:])
+            with np.errstate(all='ignore'):
+                sse += float(e[k:s] @ e[k:s])
+                hold += float(e[s:] @ e[s:])
         if not np.isfinite(sse) or not np.isfinite(hold):
             return np.inf, np.inf
         return sse, (hold / n_hold if n_hold else sse / n_train)
