@@ -255,10 +255,10 @@ def _run(args) -> int:
     validation = (_resampled(_load_validation(args, settings, records), args) if args.validate
                   else None)
     config = _with_init_samples(config, args.init_samples, records[0].fs)
-    _warn_without_minor_loops(records, config)
     from piezo_narx_ros.ident.experiment import run_experiment
     with executor:
         result = run_experiment(records, config, executor, validation)
+    _warn_without_minor_loops(records, config)
     model_path, paths = _write_fit(out, result, records, config, settings, not args.no_report,
                                    validation)
     if not args.quiet:

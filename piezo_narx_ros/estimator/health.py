@@ -95,7 +95,7 @@ class EstimatorHealth:
                             'sweeps its range, or init from measurement)')
         values = {k: getattr(st, k) for k in _CUMULATIVE}
         values.update(state=st.state, state_spread_m=st.state_spread_m,
-                      state_rms_m=st.state_rms_m)
+                      state_rms_m=st.state_rms_m, init_samples=self.est.init_samples)
         values.update({f'{name}_since_last': d[name] for name, _ in _WARN_ON})
         values['holding'] = self.est.holding
         values['fs'] = self.est.fs
