@@ -84,7 +84,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     r.add_argument('--history-seed', type=int, metavar='N',
                    help='seed of the history (default --seed; its own stream either way)')
     r.add_argument('--sensor-offset', type=float, metavar='M',
-                   help='constant added to the measured output, m (0)')
+                   help='constant added to the measured output, m (0; a negative value as '
+                        '--sensor-offset=-2e-6)')
     r.add_argument('--session', type=int, metavar='K',
                    help='draw the sensor offset of session K, uniform in +-'
                         '--session-spread')
