@@ -31,6 +31,7 @@ bench: setup
 	$(PY) bench/bench_live.py
 	$(PY) bench/bench_recorder.py
 	$(PY) bench/bench_control.py
+	$(PY) bench/bench_export.py
 	$(PY) bench/bench_envelope.py --reference
 
 # 10 minutes of command -> simulator -> estimator -> recorder at 2 kHz with scheduled faults.
@@ -41,8 +42,8 @@ soak: setup
 # about an hour on the shared 2-core box); the tool comes from requirements-dev.txt, not from
 # requirements.txt, so neither `make test` nor CI installs it. Settings: [mutmut] in setup.cfg;
 # results in mutants/ (a second run only retests what changed); figures: docs/testing.md.
-MUTATE := ident.regressors ident.correlation ident.metrics ident.noise_model ident.narx \
-	ident.model_io estimator.free_run bag.pairing nodes.common.x_decode_joint_state \
+MUTATE := ident.regressors ident.checks ident.correlation ident.metrics ident.noise_model \
+	ident.narx ident.model_io estimator.free_run bag.pairing nodes.common.x_decode_joint_state \
 	nodes.common.x_encode_joint_state
 
 mutate: setup

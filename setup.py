@@ -27,7 +27,9 @@ setup(
         'numpy', 'scipy', 'numba', 'pyyaml', 'matplotlib', 'tqdm',
         'rosbags', 'mcap', 'mcap-ros2-support',
     ],
-    extras_require={'train': ['torch']},
+    # 'test' is what makes `colcon test` run pytest (without it colcon falls back to unittest,
+    # which finds none of these tests and reports success), as ament_python templates declare it.
+    extras_require={'test': ['pytest'], 'train': ['torch']},
     zip_safe=True,
     maintainer='piezo_narx_ros developers',
     maintainer_email='dev@piezo-narx-ros.invalid',

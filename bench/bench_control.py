@@ -113,7 +113,7 @@ def identify(plant: str, folder: Path, seed: int = 0) -> Path:
     t0 = time.monotonic()
     cli = [sys.executable, '-m', 'piezo_narx_ros.cli.main']
     for args in (['simulate', '--signal', 'protocol', '--seconds', '25', '--seed', str(seed),
-                  '--plant-config', str(PLANTS[plant]), '--out', str(data)],
+                  '--plant-config', str(PLANTS[plant]), '--out', str(data), '--force'],
                  ['fit', str(data), '--preset', 'envelope', '--out', str(folder),
                   '--no-report']):
         if subprocess.run(cli + args).returncode:

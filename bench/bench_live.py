@@ -261,6 +261,9 @@ def main(argv=None) -> int:
     print(f'estimator compute per sample (FreeRunEstimator.on_command): p50 {p50:.2f} us, '
           f'p99 {p99:.2f} us (target p99 <= 10 us)')
     for fs in [float(r) for r in args.rates.split(',')]:
+        if not args.model:   # a model runs only at its own rate: the toy model made for this one
+            model.fs = fs
+            model_path = save_model(model, Path(tmp.name) / f'toy{fs:g}.json')
         r = run_rate(fs, args.seconds, model_path, args.publish_period, args.executor, args.rt)
         print(f'\n--- {fs:g} Hz, {args.seconds:g} s, {r["n"]} samples '
               f'(exit codes {r["codes"]}) ---')

@@ -110,7 +110,7 @@ def test_empty_bag_and_messages_without_values(tmp_path):
         for k in range(5):
             bag.write(c, T0 + k, joint_state_cdr(T0 + k, position=(1.0,)))   # effort missing
             bag.write(d, T0 + k, joint_state_cdr(T0 + k, position=(1.0,)))
-    with pytest.raises(BagError, match=r'5 message\(s\) without effort\[0\]'):
+    with pytest.raises(BagError, match=r'5 message\(s\) without effort of its axis'):
         read_uy(tmp_path / 'noeffort')
 
 

@@ -63,7 +63,7 @@ def fitted(data_dir, tmp_path_factory):
     return out
 
 
-def test_fit_writes_model_candidates_and_report(fitted):
+def test_fit_writes_model_candidates_and_report(fitted, data_dir):
     cands = json.loads((fitted / 'candidates.json').read_text())
     assert [c['label'] for c in cands['candidates']] == [
         'NARX(ny=2, nu=2, H=4)', 'ARX(na=1, nb=1)', 'ARX(na=1, nb=2)', 'ARX(na=2, nb=1)',
@@ -80,6 +80,12 @@ def test_fit_writes_model_candidates_and_report(fitted):
     assert doc['structure']['kind'] == sel['kind']
     assert doc['fs'] == 2000.0
     assert doc['data']['n_estimation'] == 1500
+    # The data's least-squares line, the reference the linear mode's gain is checked against.
+    rec = np.load(data_dir / 'rec.npz')
+    gain, offset = np.polyfit(rec['u'], rec['y'], 1)
+    line = doc['data']['line']
+    assert line['gain_m_per_v'] == pytest.approx(gain, rel=1e-9)
+    assert line['offset_m'] == pytest.approx(offset, rel=1e-9, abs=1e-15)
     assert doc['metrics']['validation']['simulation']['r2'] == pytest.approx(
         sel['scores']['validation']['simulation']['r2'])
     assert (fitted / 'model.npz').is_file()
@@ -185,7 +191,7 @@ def _write_bad(d, name):
         np.savez(d / name, u=u, y=y[:-1], fs=2000.0)
     elif name == 'no_fs.csv':
         np.savetxt(d / name, np.column_stack([u, y]), delimiter=',', header='u,y', comments='')
-    elif name == 'data.txt':
+    elif name == 'data.xlsx':
         (d / name).write_text('1 2\n')
     elif name == 'other_fs.npz':
         np.savez(d / name, u=u, y=y, fs=1000.0)
@@ -201,7 +207,7 @@ def _write_bad(d, name):
     (['short_for_lags.npz'], [], 'too few'),
     (['length.npz'], [], 'u has 400 samples but y has 399'),
     (['no_fs.csv'], [], 'pass the sample rate with --fs'),
-    (['data.txt'], [], 'unknown input type'),
+    (['data.xlsx'], [], 'unknown input type'),
     (['rec.npz', 'other_fs.npz'], [], 'sample rates differ'),
     (['rec.npz'], ['--fs', '1000'], 'file says fs = 2000.0 Hz but --fs = 1000.0 Hz'),
     (['rec.npz'], ['--ny', '4-1'], 'not a lag range'),

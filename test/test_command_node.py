@@ -53,11 +53,29 @@ def test_running_parameter_pauses_and_resumes_the_stream():
         node.on_tick()                       # ~50 samples due: caught up in one tick
         assert s.published >= 40 and s.max_batch >= 30 and node.status()[1] == 'running'
         assert node.set_parameters([Parameter('running', value=False)])[0].successful
+        n, position = s.published, s.position
+        time.sleep(0.02)
+        node.on_tick()
+        # Paused: the last command is held at every sample (issue 19 item 10), the signal waits.
+        assert s.published >= n + 10 and s.position == position
+        assert node.status()[1] == 'paused, holding the last command'
+        assert node.set_parameters([Parameter('running', value=True)])[0].successful
+        time.sleep(0.01)
+        node.on_tick()
+        assert s.position > position and node.status()[1] == 'running'
+        assert not node.set_parameters([Parameter('fs', value=5.0)])[0].successful   # read-only
+        node.destroy_node()
+        node = CommandNode(context=ctx, parameter_overrides=[
+            Parameter('fs', value=1000.0), Parameter('kind', value='sine'),
+            Parameter('hold_while_paused', value=False)])
+        s = node.streamer
+        time.sleep(0.01)
+        node.on_tick()
+        assert node.set_parameters([Parameter('running', value=False)])[0].successful
         n = s.published
         time.sleep(0.02)
         node.on_tick()
         assert s.published == n and node.status()[1] == 'paused'
-        assert not node.set_parameters([Parameter('fs', value=5.0)])[0].successful   # read-only
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)
@@ -97,15 +115,16 @@ def test_set_running_service_pauses_resumes_and_keeps_the_parameter_in_step():
 
         assert client.wait_for_service(timeout_sec=10.0)
         reply = call(False)
-        assert reply.success and reply.message == 'paused'
+        # Paused after the first samples: the last command is held (the signal waits).
+        assert reply.success and reply.message.startswith('paused')
         assert node.get_parameter('running').value is False
-        n = node.streamer.published
+        position = node.streamer.position
         spin(0.1)
-        assert node.streamer.published == n
+        assert node.streamer.position == position
         reply = call(True)
         assert reply.success and node.get_parameter('running').value is True
         spin(0.1)
-        assert node.streamer.published >= n + 20 and node.status()[1] == 'running'
+        assert node.streamer.position >= position + 20 and node.status()[1] == 'running'
         client_node.destroy_node()
         node.destroy_node()
     finally:

@@ -230,7 +230,10 @@ def _ys(out):
 
 
 def test_configuration_limits_are_inclusive_and_each_bad_value_refused(model):
-    est = FreeRunEstimator(model, fs=0.5, max_fill=0, window=2, reanchor_every=0,
+    import copy
+    no_rate = copy.copy(model)
+    no_rate.fs = None                  # a model file without fs: the node's fs is used
+    est = FreeRunEstimator(no_rate, fs=0.5, max_fill=0, window=2, reanchor_every=0,
                            init_timeout=0.0, confirm=1)
     assert est.fs == 0.5 and est.period_ns == 2e9
     for bad in ({'fs': -2000.0}, {'fs': math.inf}, {'u_min': 1.0, 'u_max': 1.0},

@@ -221,8 +221,11 @@ def test_evaluate_warns_on_inputs_outside_the_trained_range(toy_model, tmp_path,
     model = load_model(toy_model)
     u = np.random.default_rng(0).uniform(-100, 100, 2000)
     np.savez(tmp_path / 'far.npz', u=u * 1e296, y=model.simulate(u), fs=2000.0)
-    code, out, err = cli(['evaluate', str(toy_model), str(tmp_path / 'far.npz'), '--json'],
-                         capsys)
+    code, _, err = cli(['evaluate', str(toy_model), str(tmp_path / 'far.npz')], capsys)
+    assert code == 2 and 'u reaches 9.996e+297' in err and '--u-unit' in err   # issue 19
+    # Said to be volts: scored, with the range warning.
+    code, out, err = cli(['evaluate', str(toy_model), str(tmp_path / 'far.npz'), '--json',
+                          '--u-unit', 'V'], capsys)
     assert code == 0 and 'outside the [-150, 150] V the model was trained on' in err, err
     assert json.loads(out)['warnings'] and 'RuntimeWarning' not in err
 
@@ -235,8 +238,8 @@ def test_evaluate_refuses_non_finite_scores(tmp_path, capsys):
     model.fs = 2000.0
     save_model(model, tmp_path / 'arx.json')
     np.savez(tmp_path / 'huge.npz', u=u * 1e300, y=y, fs=2000.0)
-    code, _, err = cli(['evaluate', str(tmp_path / 'arx.json'), str(tmp_path / 'huge.npz')],
-                       capsys)
+    code, _, err = cli(['evaluate', str(tmp_path / 'arx.json'), str(tmp_path / 'huge.npz'),
+                        '--u-unit', 'V'], capsys)
     assert code == 2 and 'not finite' in err and err.count('piezo-narx: error:') == 1, err
     assert 'Traceback' not in err
 

@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 import rclpy
@@ -460,3 +461,121 @@ def test_run_node_paces_a_node_that_asks():
     assert done.returncode == 0, done.stderr
     # 49 waits of 10 ms asked for (the first spin waits 0.1 s): not a busy loop, not 0.1 s each
     assert 0.25 < float(done.stdout.split()[-1]) < 5.0, done.stdout
+
+
+def test_a_rate_or_gain_that_cannot_be_vouched_for_stops_the_node_at_start(tmp_path):
+    """
+    Issue 19 items 1 and 2, as processes: one line, exit 2.
+
+    Before, `estimator_node -p fs:=5000` ran a 2 kHz model at 5 kHz with status OK, and
+    `controller_node -p mode:=linear` drove the stage in anti-phase with a runaway model's gain.
+    """
+    from pathlib import Path
+
+    from test_estimator_node import start_node
+
+    from piezo_narx_ros.estimator.toy import toy_narx
+    from piezo_narx_ros.ident.model_io import save_model
+    save_model(toy_narx(fs=2000.0), tmp_path / 'toy.json')
+    runaway = Path(__file__).parent / 'data' / 'runaway_narx' / 'model.json'
+    procs = [start_node('estimator_node', '-p', f'model:={tmp_path / "toy.json"}', '-p',
+                        'fs:=5000.0', ns='/rate5k'),
+             start_node('controller_node', '-p', f'model:={runaway}', '-p', 'mode:=linear',
+                        ns='/runaway')]
+    expected = ("estimator_node: error: fs 5000 Hz differs from the model's 2000 Hz",
+                "controller_node: error: mode linear refused: the model's static gain -0.32")
+    for proc, start in zip(procs, expected):
+        assert proc.wait(60) == 2
+        # (Fast DDS may add its own shared-memory transport complaint on a busy machine.)
+        err = [ln for ln in proc.stderr.read().strip().splitlines() if 'RTPS_' not in ln]
+        assert len(err) == 1 and err[0].startswith(start), err
+
+
+def test_live_streams_at_another_rate_and_two_estimators_of_one_name_are_errors(tmp_path):
+    """
+    Issue 19 items 2 and 11 over DDS.
+
+    A 2.5 kHz command stream gets no estimate after its first samples from a 2 kHz model, and
+    /diagnostics says why; two estimator_nodes of the same name both report the clash.
+    """
+    from test_estimator_node import Collector, start_node, stop
+
+    from piezo_narx_ros.estimator.toy import toy_narx
+    from piezo_narx_ros.ident.model_io import save_model
+    from piezo_narx_ros.nodes.common import DIAG_ERROR, make_joint_state
+    save_model(toy_narx(fs=2000.0), tmp_path / 'toy.json')
+    model = f'model:={tmp_path / "toy.json"}'
+    col = Collector('/rates', ('deflection_estimate',), diagnostics=True)
+    dup = Collector('/dup', ('deflection_estimate',), diagnostics=True)
+    procs = [start_node('estimator_node', '-p', model, '-p', 'init:=rest', ns='/rates'),
+             start_node('estimator_node', '-p', model, ns='/dup'),
+             start_node('estimator_node', '-p', model, ns='/dup')]
+    try:
+        assert col.wait_for(lambda: col.pub.get_subscription_count() >= 1, 30.0)
+        t0, n = 10**18, 500
+        for k in range(n):                                   # 2.5 kHz stamps
+            col.pub.publish(make_joint_state(t0 + k * 400_000, ['x'], effort=[float(k % 7)]))
+            time.sleep(0.0004)
+
+        def status(c, name):
+            return c.diag.get(name, (None, '', {}))
+        assert col.wait_for(lambda: status(col, '/rates/estimator_node')[2].get('commands')
+                            == str(n), 15.0)
+        level, message, values = status(col, '/rates/estimator_node')
+        assert level == DIAG_ERROR and 'i.e. 2500 Hz, not 2000 Hz' in message, message
+        assert 'estimates withheld' in message and int(values['rate_withheld']) >= n - 4
+        assert len(col.data['deflection_estimate']) <= 4
+        assert dup.wait_for(lambda: '2 nodes named /dup/estimator_node' in
+                            status(dup, '/dup/estimator_node')[1], 20.0)
+        level, message, _ = status(dup, '/dup/estimator_node')
+        assert level == DIAG_ERROR and 'interleave on /dup/deflection_estimate' in message
+    finally:
+        codes = stop(procs)
+        col.close()
+        dup.close()
+    assert codes == [0, 0, 0]
+
+
+def test_low_ones_sim_time_tilde_player_waiting_default_voltage_limits(tmp_path, monkeypatch):
+    """
+    Issue 19, cheap low ones, in one process.
+
+    use_sim_time set at run time stopped command_node's pacing and /diagnostics (now refused);
+    recorder `output:=~/x` made a folder named '~'; a player waiting for subscribers said
+    'playing'; the controller's default limits (+-200 V) exceeded the model's trained inputs.
+    """
+    from piezo_narx_ros.bag.writer import write_uy_bag
+    from piezo_narx_ros.control.controller import input_limits
+    from piezo_narx_ros.estimator.toy import toy_narx
+    from piezo_narx_ros.nodes.command_node import CommandNode
+    from piezo_narx_ros.nodes.player_node import PlayerNode
+    from piezo_narx_ros.nodes.recorder_node import RecorderNode
+    monkeypatch.setenv('HOME', str(tmp_path / 'home'))
+    (tmp_path / 'home').mkdir()
+    bag = write_uy_bag(tmp_path / 'b', [0.0] * 200, [0.0] * 200, 2000.0)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    nodes = []
+    try:
+        cmd = CommandNode(context=ctx, namespace='/low')
+        nodes.append(cmd)
+        result = cmd.set_parameters([Parameter('use_sim_time', value=True)])[0]
+        assert not result.successful and 'read at start-up' in result.reason
+        rec = RecorderNode(context=ctx, namespace='/low', parameter_overrides=[
+            Parameter('output', value='~/run1'), Parameter('topics', value=['voltage_command']),
+            Parameter('types', value=['sensor_msgs/msg/JointState'])])
+        nodes.append(rec)
+        assert (tmp_path / 'home' / 'run1').is_dir() and not Path('~').exists()
+        player = PlayerNode(context=ctx, namespace='/low', parameter_overrides=[
+            Parameter('bag', value=str(bag)), Parameter('wait_for_subscribers', value=5)])
+        nodes.append(player)
+        assert _wait(lambda: player.state == 'waiting for subscribers', 5.0)
+        level, message, _ = player._status()
+        assert level == DIAG_WARN and message.startswith('waiting for 5 subscriber(s)')
+    finally:
+        for node in nodes:
+            node.close()
+            node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+    model = toy_narx()                                  # trained on +-150 V
+    assert input_limits(model, 0.05) == {'u_min': -165.0, 'u_max': 165.0}

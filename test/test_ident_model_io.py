@@ -436,3 +436,71 @@ def test_smallest_orders_scales_and_what_a_load_restores(tmp_path):
     edit_json(tmp_path / 'h.json', _set('normalisation.y_scale', 0.0))
     with pytest.raises(ModelFileError, match='u_scale and y_scale must be finite and > 0'):
         load_model(tmp_path / 'h.json')
+
+
+# ------------------------------------------------- the family registry
+
+def register_toy_family(monkeypatch):
+    """Register (for this test only) a family model_io has never heard of: y = k u."""
+    from piezo_narx_ros.ident import base, document
+
+    monkeypatch.setattr(base, '_FAMILIES', dict(base._FAMILIES))
+
+    @base.register_family
+    class Gain(base.DynamicModel):
+        kind = 'test_gain'
+        nu, ny = 0, 1
+        file_format_version = 2
+
+        def __init__(self, k=None):
+            self.k = k
+
+        def _is_fitted(self):
+            return self.k is not None
+
+        def file_document(self):
+            return {'structure': {'kind': self.kind}, 'normalisation': None,
+                    'training': {'method': 'none'}}
+
+        def file_weights(self):
+            return {'k': np.array([self.k])}
+
+        @classmethod
+        def from_file_document(cls, doc, arrays, name, wpath, fs):
+            return cls(float(document.weight_array(arrays, 'k', (1,), wpath)[0]))
+
+    return Gain
+
+
+def test_a_new_family_registers_itself_and_model_io_saves_and_loads_it(tmp_path, monkeypatch):
+    # The toy family owns its document and is found by its kind; model_io keeps the envelope
+    # (checksum, ranges, units, version).
+    from piezo_narx_ros.ident import base
+
+    Gain = register_toy_family(monkeypatch)
+    g = Gain(2.5e-7)
+    g.fs, g.output_range = 2000.0, (-1e-5, 1e-5)
+    path = save_model(g, tmp_path / 'g.json')
+    back = load_model(path)
+    assert isinstance(back, Gain) and back.k == 2.5e-7 and back.fs == 2000.0
+    assert back.output_range == (-1e-5, 1e-5) and back.source == str(path)
+    assert json.loads(path.read_text())['format_version'] == 2
+    rewrite_weights(path, k=np.zeros(2))
+    with pytest.raises(ModelFileError, match="g.npz: weight array 'k' has shape"):
+        load_model(path)
+    edit_json(path, _set('structure.kind', 'other'))
+    with pytest.raises(ModelFileError, match="unknown model kind 'other' .*test_gain"):
+        load_model(path)
+    with pytest.raises(TypeError, match="'test_gain' is already registered"):
+        base.register_family(type('Gain', (base.DynamicModel,), {'kind': 'test_gain'}))
+    with pytest.raises(TypeError, match='not a DynamicModel with its own kind'):
+        base.register_family(type('NoKind', (base.DynamicModel,), {}))
+
+
+def test_only_models_of_a_registered_family_are_saved(tmp_path):
+    class Unknown:
+        kind = 'narx'     # claims a known kind without being that family
+
+    with pytest.raises(ModelFileError, match='cannot save a Unknown: not a model of a known '
+                                             'family .*NARXNetwork'):
+        save_model(Unknown(), tmp_path / 'u.json')

@@ -103,13 +103,19 @@ def test_limits_clamp_then_slew():
 def test_playback_npz_csv_resample_and_loop(tmp_path):
     src = np.sin(np.linspace(0, 6, 500)) * 30.0
     np.savez(tmp_path / 'a.npz', u=src, fs=1000.0)
-    u = generate('playback', FS, None, None, path=str(tmp_path / 'a.npz'))
+    with pytest.raises(ConfigError, match='recorded at 1000 Hz, not at fs = 2000 Hz'):
+        generate('playback', FS, None, None, path=str(tmp_path / 'a.npz'))
+    u = generate('playback', FS, None, None, path=str(tmp_path / 'a.npz'), resample=True)
     assert u.size == 999  # 0.499 s at 1 kHz resampled to 2 kHz
     assert np.allclose(u[::2], src, atol=1e-12)
+    assert np.array_equal(generate('playback', 1000.0, None, None, path=str(tmp_path / 'a.npz')),
+                          src)                                    # as recorded
     np.savetxt(tmp_path / 'b.csv', np.column_stack([np.arange(500) / FS, src]), delimiter=',',
                header='t,volts', comments='')
+    with pytest.raises(ConfigError, match='ask for loop'):
+        generate('playback', FS, 0.5, 10.0, path=str(tmp_path / 'b.csv'), column='volts')
     v = generate('playback', FS, 0.5, 10.0, offset=1.0, path=str(tmp_path / 'b.csv'),
-                 column='volts')
+                 column='volts', loop=True)
     assert v.size == 1000 and np.array_equal(v[:500], v[500:])  # looped
     assert np.max(np.abs(v - 1.0 - (src - src.mean()).mean())) == pytest.approx(10.0, rel=0.01)
 

@@ -142,8 +142,8 @@ class JointSeries:
     """
     One JointState topic's values in arrival order.
 
-    Header stamps (ns), receive times (ns), the chosen field of the chosen axis, and how many
-    messages lacked it.
+    Header stamps (ns), receive times (ns), the chosen field of the chosen axis, how many
+    messages lacked it, and the joint names the messages carried (first seen first).
     """
 
     topic: str
@@ -151,15 +151,38 @@ class JointSeries:
     log_ns: np.ndarray         # (n,) int64, rosbag2 receive timestamps
     values: np.ndarray         # (n,) float64, SI (m for position, V for effort)
     malformed: int = 0
+    names: list = field(default_factory=list)   # joint names seen on the topic
+    axis: str | int | None = None                # the axis read: its name, or an index
 
 
-def read_joint_series(path: str | Path, fields: dict[str, str], axis: int = 0
+def _axis_index(names, axis, n_values: int):
+    """
+    Index into a message's arrays for `axis`, or None when the message lacks it.
+
+    By name whenever the message names its joints (never by position then); an index only for
+    messages without names; axis None: the message's only joint.
+    """
+    if names:
+        if axis is None:
+            return 0 if len(names) == 1 else None
+        key = str(axis)
+        return names.index(key) if key in names else None
+    if axis is None:
+        return 0 if n_values >= 1 else None
+    if isinstance(axis, int) or str(axis).isdigit():
+        i = int(axis)
+        return i if i < n_values else None
+    return None
+
+
+def read_joint_series(path: str | Path, fields: dict[str, str], axis: str | int | None = None
                       ) -> dict[str, JointSeries]:
     """
     Read JointState topics of a bag in one pass.
 
-    fields: {topic: 'position' | 'effort'}; axis: index into that array. Returns {topic (as given):
-    JointSeries}. Messages lacking field[axis] are counted in `malformed`, not raised.
+    fields: {topic: 'position' | 'effort'}; axis: the joint name to read (matched by name in each
+    message), an index for messages without names, or None for a bag with one axis. Returns
+    {topic (as given): JointSeries}. Messages lacking the axis are counted in `malformed`.
     """
     with open_bag(path) as reader:
         by_conn = {}
@@ -170,6 +193,7 @@ def read_joint_series(path: str | Path, fields: dict[str, str], axis: int = 0
                 by_conn[c.id] = topic
         acc = {t: ([], [], []) for t in fields}
         bad = dict.fromkeys(fields, 0)
+        seen = {t: {} for t in fields}          # names tuple -> index (cached per topic)
         conns = [c for c in reader.connections if c.id in by_conn]
         for conn, log_ns, raw in _messages(reader, conns, path):
             topic = by_conn[conn.id]
@@ -180,30 +204,60 @@ def read_joint_series(path: str | Path, fields: dict[str, str], axis: int = 0
                                f'{absolute_topic(topic)} at log time {log_ns} ns: '
                                f'{_one_line(exc)}') from None
             arr = getattr(msg, fields[topic])
-            if axis >= len(arr):
+            names = tuple(msg.name)
+            cache = seen[topic]
+            if names not in cache:
+                cache[names] = _axis_index(names, axis, len(arr))
+            i = cache[names]
+            if i is None or i >= len(arr):
                 bad[topic] += 1
                 continue
             stamps, logs, values = acc[topic]
             stamps.append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
             logs.append(log_ns)
-            values.append(float(arr[axis]))
-    return {t: JointSeries(absolute_topic(t), np.asarray(s, dtype=np.int64),
-                           np.asarray(lg, dtype=np.int64), np.asarray(v, dtype=np.float64),
-                           bad[t])
-            for t, (s, lg, v) in acc.items()}
+            values.append(float(arr[i]))
+    out = {}
+    for t, (s, lg, v) in acc.items():
+        names = list(dict.fromkeys(n for key in seen[t] for n in key))
+        out[t] = JointSeries(absolute_topic(t), np.asarray(s, dtype=np.int64),
+                             np.asarray(lg, dtype=np.int64), np.asarray(v, dtype=np.float64),
+                             bad[t], names, axis)
+    return out
+
+
+def _check_axes(path, series, axis) -> None:
+    """Raise BagError when the topics cannot be paired by joint name (never by position)."""
+    named = [s for s in series if s.names]
+    if axis is None:
+        for s in named:
+            if len(s.names) > 1:
+                raise BagError(f'bag {path}: {s.topic} carries the axes {", ".join(s.names)}: '
+                               'choose one with --axis NAME')
+        if len(named) == 2 and named[0].names != named[1].names:
+            raise BagError(f'bag {path}: {named[0].topic} is axis {named[0].names[0]!r} but '
+                           f'{named[1].topic} is axis {named[1].names[0]!r}: they do not pair '
+                           'by name; choose one with --axis NAME')
+    elif not str(axis).isdigit():
+        for s in series:
+            if s.values.size == 0 and s.names:
+                raise BagError(f'bag {path}: {s.topic} has no axis {axis!r} (its axes: '
+                               f'{", ".join(s.names)})')
 
 
 def read_uy_report(path: str | Path, command_topic: str = COMMAND_TOPIC,
-                   deflection_topic: str = DEFLECTION_TOPIC, axis: int = 0):
+                   deflection_topic: str = DEFLECTION_TOPIC, axis: str | int | None = None):
     """Like `read_uy`, but returns (Record, PairingReport) and issues no warning."""
     if absolute_topic(command_topic) == absolute_topic(deflection_topic):
         raise BagError('command and deflection topics must differ')
     series = read_joint_series(path, {command_topic: 'effort', deflection_topic: 'position'},
                                axis)
     su, sy = series[command_topic], series[deflection_topic]
+    _check_axes(path, (su, sy), axis)
     for s, kind, fld in ((su, 'command', 'effort'), (sy, 'deflection', 'position')):
         if s.values.size == 0:
-            extra = f' ({s.malformed} message(s) without {fld}[{axis}])' if s.malformed else ''
+            which = f'axis {axis!r}' if axis is not None else 'its axis'
+            extra = f' ({s.malformed} message(s) without {fld} of {which})' if s.malformed \
+                else ''
             raise BagError(f'bag {path}: no {kind} samples on {s.topic}{extra}')
     t_ns, u, y, report = pair_by_stamp(su.stamps_ns, su.values, sy.stamps_ns, sy.values)
     report.command.malformed, report.deflection.malformed = su.malformed, sy.malformed
@@ -217,14 +271,16 @@ def read_uy_report(path: str | Path, command_topic: str = COMMAND_TOPIC,
 
 
 def read_uy(path: str | Path, command_topic: str = COMMAND_TOPIC,
-            deflection_topic: str = DEFLECTION_TOPIC, axis: int = 0):
+            deflection_topic: str = DEFLECTION_TOPIC, axis: str | int | None = None):
     """
     Identification record (u in V, y in m) from a bag, samples paired by header.stamp.
 
-    u is effort[axis] of the command topic, y is position[axis] of the deflection topic; topic
-    names may have a leading '/'. fs (Hz) is inferred from the stamps; `Record.t` is seconds since
-    the first paired sample. Non-fatal findings (gaps, duplicates, reordering, irregular rate) are
-    issued as `BagWarning`s; a missing/mistyped topic or an unreadable bag raises BagError.
+    u is the effort of joint `axis` on the command topic, y its position on the deflection topic,
+    each found by name in every message (None: the bag's one axis; an index only for messages
+    without names); topic names may have a leading '/'. fs (Hz) is inferred from the stamps;
+    `Record.t` is seconds since the first paired sample. Non-fatal findings (gaps, duplicates,
+    reordering, irregular rate) are issued as `BagWarning`s; a missing/mistyped topic or an
+    unreadable bag raises BagError.
     """
     record, report = read_uy_report(path, command_topic, deflection_topic, axis)
     for line in report.issues():
@@ -251,6 +307,7 @@ class TopicInfo:
     missing: int = 0
     jitter: float = 0.0
     check: StreamCheck | None = None
+    names: list = field(default_factory=list)   # JointState joint names seen (first seen first)
 
     @property
     def duration_s(self) -> float:
@@ -288,6 +345,7 @@ def bag_info(path: str | Path) -> BagInfo:
         # topic with an undecodable message falls back to receive times, and loses no count.
         logs: dict[int, list[int]] = {c.id: [] for c in reader.connections}
         headers: dict[int, list[int]] = {c.id: [] for c in reader.connections}
+        joints: dict[int, dict] = {c.id: {} for c in reader.connections}
         decodable = {c.id for c in reader.connections
                      if c.msgtype == JOINT_STATE and not (
                          c.digest and c.digest.startswith('RIHS01_')
@@ -296,8 +354,10 @@ def bag_info(path: str | Path) -> BagInfo:
             logs[conn.id].append(log_ns)
             if conn.id in decodable:
                 try:
-                    st = decode_cdr(raw, JOINT_STATE).header.stamp
+                    msg = decode_cdr(raw, JOINT_STATE)
+                    st = msg.header.stamp
                     headers[conn.id].append(st.sec * 1_000_000_000 + st.nanosec)
+                    joints[conn.id].update(dict.fromkeys(msg.name))
                 except Exception:  # noqa: BLE001 - fall back to receive times for this topic
                     decodable.discard(conn.id)
         stamps = {cid: headers[cid] if cid in decodable else logs[cid] for cid in logs}
@@ -308,7 +368,8 @@ def bag_info(path: str | Path) -> BagInfo:
             s, _, check = clean_stream(np.asarray(stamps[conn.id], np.int64),
                                        np.zeros(len(stamps[conn.id])))
             info = TopicInfo(absolute_topic(conn.topic), conn.msgtype, len(logs[conn.id]),
-                             check=check if conn.id in decodable else None)
+                             check=check if conn.id in decodable else None,
+                             names=list(joints[conn.id]))
             if s.size:
                 info.first_ns, info.last_ns = int(s[0]), int(s[-1])
             if s.size >= 2:

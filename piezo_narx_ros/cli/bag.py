@@ -28,7 +28,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         help='output file: .npz (u, y, t, fs) or .csv (columns t,u,y)')
     export.add_argument('--command-topic', default='piezo/voltage_command')
     export.add_argument('--deflection-topic', default='piezo/deflection')
-    export.add_argument('--axis', type=int, default=0, help='JointState array index (default 0)')
+    export.add_argument('--force', action='store_true', help='overwrite --out if it exists')
+    from piezo_narx_ros.cli.reading import add_reading_options
+    add_reading_options(export, table=False)
     return parser
 
 
@@ -46,7 +48,7 @@ def _info(args) -> int:
     print(f'duration:  {info.duration_s:.6g} s')
     width = max([len(t.name) for t in info.topics] + [5])
     print(f'{"topic":<{width}}  {"type":<36} {"count":>8} {"rate Hz":>10} {"gaps":>5} '
-          f'{"missing":>8}  stamps')
+          f'{"missing":>8}  {"axes":<8}  stamps')
     for t in info.topics:
         if t.check is None:
             order = 'receive time'
@@ -55,8 +57,9 @@ def _info(args) -> int:
                                                    (t.check.duplicates, 'duplicate'))
                      if n]
             order = 'header' + (' (' + ', '.join(notes) + ')' if notes else '')
+        axes = ','.join(t.names) or '-'
         print(f'{t.name:<{width}}  {t.msgtype:<36} {t.count:>8} {t.rate_hz:>10.6g} '
-              f'{t.gaps:>5} {t.missing:>8}  {order}')
+              f'{t.gaps:>5} {t.missing:>8}  {axes:<8}  {order}')
     return 0
 
 
@@ -85,14 +88,22 @@ def _export(args) -> int:
     import numpy as np
 
     from piezo_narx_ros.bag.reader import read_uy_report
+    from piezo_narx_ros.cli.reading import reading_options
     from piezo_narx_ros.errors import ConfigError
+    from piezo_narx_ros.ident.data import checked
     out = Path(args.out)
     # np.savez appends .npz to any other name: 'e.csv' became 'e.csv.npz' while we said 'e.csv'.
     if out.suffix.lower() not in ('.npz', '.csv'):
         raise ConfigError(f'--out must end in .npz or .csv, got {out}')
-    rec, report = read_uy_report(args.bag, args.command_topic, args.deflection_topic, args.axis)
+    if out.exists() and not args.force:
+        raise ConfigError(f'--out {out} exists; choose another name or pass --force to '
+                          'overwrite it')
+    reading = reading_options(args)
+    rec, report = read_uy_report(args.bag, args.command_topic, args.deflection_topic,
+                                 reading['axis'])
     for line in report.issues():
         print(f'piezo-narx: warning: {line}', file=sys.stderr)
+    rec = checked(rec, reading['units'])
     if out.suffix.lower() == '.npz':
         np.savez(out, u=rec.u, y=rec.y, t=rec.t, fs=np.float64(rec.fs))
     else:   # what `fit` reads back: t,u,y with a header, exact to the last bit (%.17g)

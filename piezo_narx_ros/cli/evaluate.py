@@ -25,7 +25,7 @@ def add_parser(subparsers):
         description='Score a model file on inputs in prediction and free-run simulation.')
     p.add_argument('model', metavar='MODEL', help='model .json written by piezo-narx fit')
     p.add_argument('inputs', nargs='+', metavar='INPUT',
-                   help='.npz, .csv, .mcap or rosbag2 directory')
+                   help='.npz, text table (.csv, .tsv, .txt, .dat), .mcap or rosbag2 directory')
     p.add_argument('--json', action='store_true', help='print one JSON object')
     p.add_argument('--fs', type=float, metavar='HZ', help='sample rate for inputs without one')
     p.add_argument('--max-lag', type=int, default=20, metavar='L',
@@ -44,6 +44,8 @@ def add_parser(subparsers):
                    help='largest AR order when a noise model is fitted here (default 20)')
     p.add_argument('--command-topic', default='piezo/voltage_command')
     p.add_argument('--deflection-topic', default='piezo/deflection')
+    from piezo_narx_ros.cli.reading import add_reading_options
+    add_reading_options(p)
     return p
 
 
@@ -170,13 +172,14 @@ def run(args) -> int:
 def _run(args) -> int:
     import json
 
+    from piezo_narx_ros.cli.reading import reading_options
     from piezo_narx_ros.ident.data import load_records
     from piezo_narx_ros.ident.model_io import load_model
     from piezo_narx_ros.ident.report import json_safe
 
     model = load_model(args.model)
     records = load_records(args.inputs, fs=args.fs, command_topic=args.command_topic,
-                           deflection_topic=args.deflection_topic)
+                           deflection_topic=args.deflection_topic, **reading_options(args))
     result = evaluate(model, records, args.max_lag, args.max_outside_fraction, args.residuals,
                       args.noise_model, args.noise_order)
     if args.json:

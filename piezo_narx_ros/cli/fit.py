@@ -42,8 +42,8 @@ def add_parser(subparsers):
                     'score them on the second half (R², correlation tests) and save the selected '
                     'model and a report.')
     p.add_argument('inputs', nargs='+', metavar='INPUT',
-                   help='.npz (u, y, fs), .csv (t,u,y or u,y), .mcap or rosbag2 directory, or a '
-                        'folder of these')
+                   help='.npz (u, y, fs), text table (.csv, .tsv, .txt, .dat: t,u,y or u,y, or '
+                        '--columns), .mcap or rosbag2 directory, or a folder of these')
     p.add_argument('--out', required=True, metavar='DIR', help='output directory')
     p.add_argument('--per-record', action='store_true',
                    help='fit each recording on its own: DIR/NAME/ per recording and '
@@ -93,6 +93,8 @@ def add_parser(subparsers):
                                               '(default piezo/deflection)')
     p.add_argument('--no-report', action='store_true', help='skip the figures')
     p.add_argument('--quiet', action='store_true', help='no progress bar or summary')
+    from piezo_narx_ros.cli.reading import add_reading_options
+    add_reading_options(p)
     return p
 
 
@@ -247,9 +249,11 @@ def _load(args, settings, config, inputs):
     """Load the records of `inputs`, warning on identifiability (errors on the first bad one)."""
     import warnings
 
+    from piezo_narx_ros.cli.reading import reading_options
     from piezo_narx_ros.ident.data import check_identifiable, load_records
     records = load_records(inputs, fs=args.fs, command_topic=settings['command_topic'],
-                           deflection_topic=settings['deflection_topic'])
+                           deflection_topic=settings['deflection_topic'],
+                           **reading_options(args))
     for record in records:
         for line in check_identifiable(record, config.split):
             warnings.warn(line)
@@ -262,6 +266,7 @@ def _write_fit(out, result, records, config, settings, report: bool):
 
     Returns (model path, report paths).
     """
+    from piezo_narx_ros.control.gain_check import data_line
     from piezo_narx_ros.ident.experiment import split_records
     from piezo_narx_ros.ident.model_io import save_model
     from piezo_narx_ros.ident.report import write_json, write_report
@@ -269,7 +274,10 @@ def _write_fit(out, result, records, config, settings, report: bool):
     best = result.best
     data_info = {'sources': result.sources, 'fs': result.fs, 'split': config.split,
                  'preset': settings['preset'],
-                 'n_estimation': result.n_estimation, 'n_validation': result.n_validation}
+                 'n_estimation': result.n_estimation, 'n_validation': result.n_validation,
+                 # The data's own least-squares line: what the model's static gain is checked
+                 # against before controller_node's linear mode uses it (control.gain_check).
+                 'line': data_line([r.u for r in records], [r.y for r in records])}
     model_path = save_model(best.model, out / 'model.json', data=data_info,
                             metrics={**best.scores, 'selected_by': config.residuals,
                                      'noise_model': config.noise_model},

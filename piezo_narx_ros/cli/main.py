@@ -22,6 +22,7 @@ SUBCOMMANDS = {
     'simulate': 'simulate',
     'fit': 'fit',
     'evaluate': 'evaluate',
+    'export': 'export',
     'bag': 'bag',
     'bringup': 'bringup',
     'demo': 'demo',

@@ -15,7 +15,8 @@ SIGNAL_FLAGS = {
     'spectrum': 'spectrum', 'f0': 'f0', 'f1': 'f1', 'method': 'method', 'min_hold': 'min_hold',
     'max_hold': 'max_hold', 'levels': 'levels', 'hold': 'hold', 'file': 'path', 'key': 'key',
     'column': 'column', 'file_fs': 'file_fs', 'u_min': 'u_min', 'u_max': 'u_max',
-    'slew_rate': 'slew_rate', 'cycles': 'cycles', 'slow_freq': 'slow_freq', 'growth': 'growth',
+    'slew_rate': 'slew_rate', 'cycles': 'cycles', 'slow_freq': 'slow_freq',
+    'resample': 'resample', 'loop': 'loop', 'growth': 'growth',
     'start_fraction': 'start_fraction', 'ramp': 'ramp',
 }
 
@@ -33,7 +34,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         'protocol covering fast, slow, step and hold moves, docs/envelope.md)')
     p.add_argument('--seconds', type=float, default=None,
                    help='duration, s (default 25; playback: the file length)')
-    p.add_argument('--fs', type=float, default=2000.0, help='sample rate, Hz (default 2000)')
+    p.add_argument('--fs', type=float, default=None,
+                   help="sample rate, Hz (default 2000; playback: the file's own rate)")
     p.add_argument('--amplitude', type=float, default=None,
                    help='peak deviation from the offset, V (default 100; playback: as recorded)')
     p.add_argument('--offset', type=float, default=0.0, help='offset, V (default 0)')
@@ -41,6 +43,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help='seed of the signal and of the sensor noise')
     p.add_argument('--plant-config', default=None, help='plant YAML (default config/plant.yaml)')
     p.add_argument('--out', required=True, help='output file, .npz')
+    p.add_argument('--force', action='store_true', help='overwrite --out if it exists')
     g = p.add_argument_group('signal options (defaults: piezo_narx_ros.plant.signals.OPTIONS)')
     g.add_argument('--freq', type=float, help='sine/triangle frequency, Hz (1)')
     g.add_argument('--phase', type=float, help='sine phase, rad (0)')
@@ -57,11 +60,17 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     g.add_argument('--levels',
                    help='steps: comma-separated levels, in units of the amplitude (0,1,0,-1,0)')
     g.add_argument('--hold', type=float, help='steps: hold per level, s (even split)')
-    g.add_argument('--file', help='playback: .npz (key --key) or .csv (column --column)')
+    g.add_argument('--file', help='playback: .npz (key --key) or a text table (column --column),'
+                                  ' played as recorded')
     g.add_argument('--key', help='playback .npz key (u)')
-    g.add_argument('--column', help='playback .csv column name or index (u, else 0)')
+    g.add_argument('--column', help='playback table column: header name or 1-based number (the '
+                                    'u column, as fit reads it)')
     g.add_argument('--file-fs', type=float,
-                   help='playback file sample rate, Hz (its fs key, else --fs)')
+                   help='playback file sample rate, Hz, for a file without fs or t')
+    g.add_argument('--resample', action='store_const', const=True,
+                   help='playback: resample a file at another rate than --fs (linear)')
+    g.add_argument('--loop', action='store_const', const=True,
+                   help='playback: repeat the file to fill --seconds')
     g.add_argument('--cycles', type=int, help='protocol: repeats of the section sequence (2)')
     g.add_argument('--slow-freq', type=float, help='protocol: slow-loop frequency, Hz (0.5)')
     g.add_argument('--growth', choices=('linear', 'exponential'),
@@ -151,9 +160,17 @@ def run(args) -> int:
         raise ConfigError(f'--out must name an .npz file, got {args.out}')
     if not out.parent.is_dir():
         raise ConfigError(f'--out directory {out.parent} does not exist')
+    if out.exists() and not args.force:
+        raise ConfigError(f'--out {out} exists; choose another name or pass --force to '
+                          'overwrite it')
     options = {name: getattr(args, flag) for flag, name in SIGNAL_FLAGS.items()
                if getattr(args, flag) is not None}
     playback = args.signal == 'playback'
+    if args.fs is None:    # a recording plays at its own rate unless another is asked for
+        args.fs = 2000.0
+        if playback and args.file and args.file_fs is None:
+            from piezo_narx_ros.ident.data import read_signal
+            args.fs = read_signal(args.file, args.column, args.key or 'u').fs or 2000.0
     seconds = args.seconds if args.seconds is not None or playback else 25.0
     amplitude = args.amplitude if args.amplitude is not None or playback else 100.0
     if args.seed < 0:

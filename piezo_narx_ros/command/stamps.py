@@ -14,10 +14,17 @@ through. Any other stamp is held back until the following commands decide:
   `confirm` consecutive commands agree, announced by a RESTART event before its samples.
 So normal samples are never delayed, an abnormal one by at most `confirm` samples, and a single
 bad stamp can no longer make a receiver refuse every later, correct command.
+
+The gate's quarter-period tolerance lets a stream at another rate through sample by sample (a
+2.5 kHz stream on a 2 kHz grid); `RateMonitor` measures the rate of the accepted stamps and says
+when it is not the receiver's, and `model_rate` refuses a node rate that is not the model's.
 """
 from __future__ import annotations
 
+import math
 from typing import Any
+
+from piezo_narx_ros.errors import ConfigError
 
 SAMPLE = 'sample'     # (SAMPLE, t_ns, item): the next command of the stream (maybe after a gap)
 RESTART = 'restart'   # (RESTART, t_ns, [stamps]): a new stream starts at t_ns with these stamps
@@ -111,3 +118,126 @@ class StampGate:
         events += [(SAMPLE, t, item) for t, item in held]
         self.last = held[-1][0]
         return events
+
+
+# Relative difference between a stream's stamp rate and the rate a node runs at that is refused.
+# Clocks of two machines differ by parts per million; a stream 1 % off is another rate.
+RATE_TOLERANCE = 0.01
+# The first verdict needs this many sample periods of stamps (a few ms at kHz rates).
+RATE_MIN_STEPS = 3
+
+
+class RateMonitor:
+    """
+    Tell whether a stream's stamp rate matches the rate `period_ns` (ns) a node runs at.
+
+    The stamp gate accepts a stamp within a quarter period of the next grid point, so a 2.5 kHz
+    stream passes a 2 kHz gate sample by sample; this measures the rate itself. `observe(t_ns)` is
+    called for every sample the gate accepts (in order), `received()` for every command that came
+    in (accepted or not), `reset()` at a new stream. Over the last `window` accepted samples the
+    stamps span `n` periods of the node's clock (gaps count their missing samples); the stream is
+    `off` when its mean period differs from the node's by more than `tolerance` plus the half
+    period that stamp jitter can move the two ends of the window (0.5 / n), so that jittered
+    stamps of the right rate never trip it and an exact stream 25 % off is recognised within 4
+    samples. It clears once the window agrees again.
+    """
+
+    __slots__ = ('period_ns', 'tolerance', 'window', 'off', 'ratio', 'arrival_ratio', 'episodes',
+                 'single_writer', '_t', '_steps', '_got', '_last', '_n', '_count', '_head')
+
+    def __init__(self, period_ns: float, tolerance: float = RATE_TOLERANCE, window: int = 2000):
+        if not (period_ns > 0 and tolerance > 0 and window >= RATE_MIN_STEPS + 1):
+            raise ConfigError(f'rate check: need period_ns > 0, tolerance > 0 and window > '
+                              f'{RATE_MIN_STEPS}')
+        self.period_ns = float(period_ns)
+        self.tolerance = float(tolerance)
+        self.window = int(window)
+        self.episodes = 0          # times the stream went off rate
+        self.off = False
+        self.ratio = float('nan')           # stream period / node period over the window
+        self.arrival_ratio = float('nan')   # commands received per node period of stamp time
+        # Set by a node that knows one publisher feeds the stream: more commands than grid points
+        # are then a faster stream, not a second writer.
+        self.single_writer = False
+        self.reset()
+
+    def reset(self) -> None:
+        """
+        Forget the stream's stamps (a new one starts).
+
+        The verdict stands until the new stream has given its own (RATE_MIN_STEPS periods), so a
+        player looping a file at the wrong rate is not trusted again for its first samples.
+        """
+        self._t = [0] * self.window         # ring of (stamp, cumulative steps, received)
+        self._steps = [0] * self.window
+        self._got = [0] * self.window
+        self._last: int | None = None
+        self._n = 0                         # cumulative steps
+        self._count = 0                     # cumulative received
+        self._head = 0                      # accepted samples seen (ring index = head % window)
+
+    def received(self) -> None:
+        """Count one incoming command (accepted or refused by the gate)."""
+        self._count += 1
+
+    def observe(self, t_ns: int) -> bool:
+        """One sample the gate accepted (stamp ns); returns `off`."""
+        if self._last is not None:
+            k = round((t_ns - self._last) / self.period_ns)
+            self._n += k if k > 1 else 1
+        self._last = t_ns
+        w, h = self.window, self._head
+        i = h % w
+        self._t[i], self._steps[i], self._got[i] = t_ns, self._n, self._count
+        self._head = h + 1
+        j = 0 if h < w else (h + 1) % w          # the oldest sample in the ring
+        n = self._n - self._steps[j]
+        if n >= RATE_MIN_STEPS:
+            span = t_ns - self._t[j]
+            self.ratio = span / (n * self.period_ns)
+            arrived = self._count - self._got[j]
+            if span > 0:
+                self.arrival_ratio = arrived * self.period_ns / span
+            off = abs(self.ratio - 1.0) > self.tolerance + 0.5 / n or (
+                # One writer sending more commands than grid points: a faster stream whose
+                # in-between stamps the gate refuses (two writers interleave the same way).
+                self.single_writer and arrived - 2 > n * (1.0 + self.tolerance))
+            if off:
+                self.episodes += not self.off
+            self.off = off
+        return self.off
+
+    def describe(self, what: str = 'stream') -> str:
+        """One phrase: the stream's rate against the node's, e.g. for /diagnostics."""
+        fs = 1e9 / self.period_ns
+        stream = fs / self.ratio if self.ratio > 0 else float('nan')
+        text = (f'{what} stamps step {self.ratio * self.period_ns * 1e-3:.4g} us, i.e. '
+                f'{stream:.6g} Hz, not {fs:.6g} Hz ({100 * (stream / fs - 1):+.3g} %)')
+        arrivals = self.arrival_ratio * fs
+        if not abs(self.ratio - 1.0) > self.tolerance:      # on the grid, but too many
+            return (f'{what}s arrive at {arrivals:.6g} per second from one publisher, not '
+                    f'{fs:g} (the ones between the grid points are refused)')
+        if arrivals > 1.25 * stream:
+            text += f'; {arrivals:.6g} commands/s arrive (the others are off the grid)'
+        return text
+
+
+def model_rate(model, fs: float | None = None) -> float:
+    """
+    Return the rate (Hz) a node runs `model` at: its own fs; a given `fs` must agree with it.
+
+    ConfigError when neither is known, or when they differ: a model identified at one rate gives
+    wrong numbers at another (its lags are samples, not seconds).
+    """
+    own = getattr(model, 'fs', None)
+    for value in (fs, own):
+        if value is not None and value != 0 and not (math.isfinite(value) and value > 0):
+            raise ConfigError(f'sample rate must be a positive number of Hz, got {value!r}')
+    if fs and own and abs(fs / own - 1.0) > 1e-9:
+        raise ConfigError(f"fs {fs:g} Hz differs from the model's {own:g} Hz: a model runs only "
+                          "at the rate it was identified at (leave fs at 0 for the model's; "
+                          'for another rate, fit a model on data sampled at it)')
+    fs = fs or own
+    if not fs:
+        raise ConfigError('sample rate unknown: the model file has no fs and none was given')
+    return float(fs)

@@ -65,7 +65,9 @@ class CommandStreamer:
     once, the slew limit (V/s) sample by sample from `u_start` (V, the amplifier at rest), also
     across the loop wrap. `start(t0_ns, mono0_ns)` anchors the clock; `poll(now_mono_ns)` returns
     the samples due since the last poll as (stamps (n,) int ns, volts (n, n_axes)); `stop()` pauses
-    (the next start re-anchors the clock and resumes the signal where it stopped).
+    (the next start re-anchors the clock and resumes the signal where it stopped); `hold()` pauses
+    the signal but not the stream: the last command is repeated at every stamp of the same clock
+    until `resume()` (an amplifier holds its output; every listener then sees the hold).
     """
 
     def __init__(self, signal, fs: float, loop: bool = True, u_min: float = -200.0,
@@ -96,6 +98,7 @@ class CommandStreamer:
         self.position = 0          # next index into the signal (total samples streamed so far)
         self.clock: SampleClock | None = None
         self._k = 0                # next sample index of the current clock segment
+        self.holding = False       # hold(): the last command repeated, the signal paused
         self.late_polls = 0        # polls that returned more than one sample (catch-up)
         self.max_batch = 0         # largest number of samples one poll returned
         self.published = 0
@@ -118,6 +121,22 @@ class CommandStreamer:
     def stop(self) -> None:
         """Pause; the signal position is kept."""
         self.clock = None
+        self.holding = False
+
+    def hold(self) -> None:
+        """
+        Pause the signal, not the stream: polls repeat the last command on the same clock.
+
+        Nothing to hold before the first sample (the amplifier is at rest): then it is `stop()`.
+        """
+        if self.clock is None or self.published == 0:
+            self.stop()
+        else:
+            self.holding = True
+
+    def resume(self) -> None:
+        """End a hold: the signal goes on where it stopped, on the same clock (no gap)."""
+        self.holding = False
 
     def next_due_ns(self) -> int | None:
         """Monotonic instant (ns) the next sample is due, None when not running."""
@@ -133,11 +152,15 @@ class CommandStreamer:
         if not self.running:
             return np.empty(0, dtype=np.int64), np.empty((0, self.n_axes))
         n = self.clock.due_count(now_mono_ns) - self._k
-        if not self.loop:
+        if not self.loop and not self.holding:
             n = min(n, self.signal.shape[0] - self.position)
         n = max(0, min(n, self.max_burst))
         stamps = np.fromiter((self.clock.stamp_ns(self._k + i) for i in range(n)),
                              dtype=np.int64, count=n)
+        if self.holding:
+            self._k += n
+            self.published += n
+            return stamps, np.tile(self._last, (n, 1))
         idx = (self.position + np.arange(n)) % self.signal.shape[0]
         volts = self._slew(self.signal[idx])
         self._k += n

@@ -14,16 +14,27 @@ tracking error shown on /diagnostics). Modes:
 - 'feedback' (the benchmark's sensor-only baseline, not a node mode): u = (PI - offset) / gain.
 
 Every mode sends its commands through the model, so the model's free run follows what the plant
-was really given. Limits: u in [u_min, u_max] and within slew_rate of the previous command;
-references outside [y_min, y_max] are clamped and counted; a target the inverse cannot reach
-(voltage or slew limit, or a model flat there) gives the closest input and is counted; the PI's
-integrator stops while the command is limited in the direction it pushes (anti-windup).
+was really given. `linear` refuses a model whose static line cannot be vouched for
+(`gain_check.check_static_gain`: a runaway free run, no line, a size or sign that disagrees with
+the model's ranges or its training data); the inverse modes note that an ARX or the paper's NARX
+is no inverse-quality model (`notes`, a WARN on /diagnostics while it runs).
+
+Limits: u in [u_min, u_max] and within slew_rate (per second of stamp time) of the previous
+command; references outside [y_min, y_max] are clamped and counted; a target the inverse cannot
+reach (voltage or slew limit, or a model flat there) gives the closest input and is counted; the
+PI's integrator stops while the command is limited in the direction it pushes (anti-windup).
 
 Stamps go through a `command.stamps.StampGate` like the estimator's: an isolated outlier stamp
 (backwards, far in the future, duplicate, interleaved) is refused and gets no command; a gap of at
 most max_fill samples advances the model with the held command (the amplifier holds its output,
 as the simulator and a real rig do); a new stream (a planner restarted) is followed without
-resetting the model, since the actuator itself has not moved.
+resetting the model, since the actuator itself has not moved. A reference stream whose stamps step
+at another rate than the model's (`command.stamps.RateMonitor`) gets no command while it lasts
+(`rate_refused`): the stage holds, and the model with it.
+
+`tracking()` gives the figures that say whether the loop works: the RMS error and the correlation
+of the measured deflection with the reference (a sensor), and the correlation of the commands with
+the reference (always); control.health turns them into WARN/ERROR levels.
 """
 from __future__ import annotations
 
@@ -33,9 +44,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from piezo_narx_ros.command.stamps import SAMPLE, StampGate
-from piezo_narx_ros.control.inverse import (REACHED, SLEW, TARGETS, VOLTAGE, ModelInverse,
-                                            static_gain)
+from piezo_narx_ros.command.stamps import RATE_TOLERANCE, SAMPLE, RateMonitor, StampGate
+from piezo_narx_ros.control.gain_check import check_static_gain
+from piezo_narx_ros.control.inverse import REACHED, SLEW, TARGETS, VOLTAGE, ModelInverse
 from piezo_narx_ros.errors import ConfigError
 
 MODES = ('linear', 'inverse', 'inverse_feedback')
@@ -65,6 +76,7 @@ class ControllerStats:
     feedback_stale: int = 0      # feedback commands without a measurement of the last samples
     windup_holds: int = 0        # integrator steps skipped by the anti-windup
     requested_resets: int = 0    # ~/reset
+    rate_refused: int = 0        # references refused: their stream's rate is not the model's
 
 
 class PositionController:
@@ -80,7 +92,8 @@ class PositionController:
     kp (m/m) and ki (1/s): the PI on r - y;
     feedback_timeout: samples after which a measurement is too old for the PI (its delay
     bounds the loop's: stable for ki/fs < 2 sin(pi / (2 (2 timeout + 1))), 0.149 at 10);
-    max_fill, confirm: see StampGate; window: samples in the running tracking error.
+    max_fill, confirm: see StampGate; window: samples in the running tracking error and the
+    correlations; rate_tolerance: see RateMonitor.
     """
 
     def __init__(self, model, mode: str = 'inverse', fs: float | None = None,
@@ -89,7 +102,8 @@ class PositionController:
                  range_margin: float = 0.05, target: str | None = None,
                  advance: float | None = None, kp: float = 0.0,
                  ki: float = 100.0, feedback_timeout: int = 10, max_fill: int = 2000,
-                 confirm: int = 3, window: int = 2000, **solver):
+                 confirm: int = 3, window: int = 2000, rate_tolerance: float = RATE_TOLERANCE,
+                 **solver):
         if mode not in MODES + (BASELINE,):
             raise ConfigError(f'mode must be one of {list(MODES)}, got {mode!r}')
         if target is None:
@@ -107,7 +121,20 @@ class PositionController:
         self.model = model
         self.fs = self.inverse.fs
         self.period_ns = 1e9 / self.fs
-        self.gain, self.offset = static_gain(model, self.fs)
+        self.gain_check = check_static_gain(model, self.fs)
+        self.gain, self.offset = self.gain_check.gain, self.gain_check.offset
+        if mode in ('linear', BASELINE) and not self.gain_check.trusted:
+            raise ConfigError(f"mode {mode} refused: the model's static gain "
+                              f'{self.gain * 1e6:.4g} um/V cannot be trusted: '
+                              f'{self.gain_check.problems[0]}; use mode inverse with a '
+                              'hysteresis_narx model, or refit')
+        self.notes = []                 # standing problems, a WARN on every diagnostics tick
+        kind = getattr(model, 'kind', None)
+        if mode in ('inverse', 'inverse_feedback') and kind in ('arx', 'narx'):
+            self.notes.append(
+                f'mode {mode} with a {kind} model: no inverse-quality model (docs/control.md: '
+                f'{"93" if kind == "arx" else "46"} um RMS on a +-30 um move, commands swinging '
+                'to the limits); use a hysteresis_narx model (fit --preset envelope)')
         self.advance = self.inverse.estimate_advance() if advance is None else float(advance)
         if y_min is None or y_max is None:
             rng = getattr(model, 'output_range', None)
@@ -123,8 +150,11 @@ class PositionController:
         self.feedback_timeout = int(feedback_timeout)
         self.stats = ControllerStats()
         self.gate = StampGate(self.period_ns, int(max_fill), int(confirm))
+        self.rate = RateMonitor(self.period_ns, rate_tolerance, max(int(window), 8))
         self.peak_miss = 0.0          # largest |miss| of an unreachable target since read, m
         self._err = deque(maxlen=int(window))
+        self._err_ref = deque(maxlen=int(window))      # the reference of each measured error
+        self._cmd_ref = deque(maxlen=int(window))      # (u V, r m) of each command sent
         self._refs: dict[int, float] = {}     # stamp -> reference, for matching measurements
         # References kept for matching measurements: 1 s, so a controller running behind (a
         # loaded machine) still matches the deflections that arrive late.
@@ -175,6 +205,7 @@ class PositionController:
         None while the stamp is held, several when held references are released.
         """
         self.stats.references += 1
+        self.rate.received()
         out: list[tuple[int, float]] = []
         self._apply(self.gate.push(t_ns, r), out)
         return out
@@ -198,6 +229,7 @@ class PositionController:
         self.stats.measurements += 1
         e = r - y
         self._err.append(e)
+        self._err_ref.append(r)
         if t_ns >= self._e_t or self._e is None:
             self._e, self._e_t = e, t_ns
         if self.mode not in FEEDBACK_MODES:
@@ -223,6 +255,33 @@ class PositionController:
         e = np.fromiter(self._err, float, n)
         return math.sqrt(float(e @ e) / n), n
 
+    def tracking(self) -> dict:
+        """
+        Figures over the last `window` samples that say whether the loop works.
+
+        measured: deflections matched to a command; rms_m: RMS of r - y; reference_std_m: the
+        references' own standard deviation over the same samples; corr_ry: correlation of the
+        measured y with r (-1: anti-phase); commands, corr_ur: the same for the commands (V)
+        against their references (its sign is the plant gain's when the loop works), and
+        command_reference_std_m the references' standard deviation over those. NaN where there is
+        nothing to compute.
+        """
+        out = {'measured': len(self._err), 'commands': len(self._cmd_ref)}
+        rms, n = self.running_error()
+        out['rms_m'] = rms
+        out['reference_std_m'] = out['corr_ry'] = out['corr_ur'] = math.nan
+        out['command_reference_std_m'] = math.nan
+        if n >= 2:
+            e = np.fromiter(self._err, float, n)
+            r = np.fromiter(self._err_ref, float, n)
+            out['reference_std_m'] = float(r.std())
+            out['corr_ry'] = _corr(r, r - e)
+        if len(self._cmd_ref) >= 2:
+            ur = np.array(self._cmd_ref, dtype=float)
+            out['corr_ur'] = _corr(ur[:, 0], ur[:, 1])
+            out['command_reference_std_m'] = float(ur[:, 1].std())
+        return out
+
     def take_peak_miss(self) -> float:
         """Largest miss of an unreachable target since the last call, m; resets it."""
         value, self.peak_miss = self.peak_miss, 0.0
@@ -232,9 +291,14 @@ class PositionController:
     def _apply(self, events, out: list) -> None:
         for kind, t, r in events:
             if kind == SAMPLE:
+                if self.rate.observe(t):       # a stream at another rate: no command, stage holds
+                    self.stats.rate_refused += 1
+                    self._last_t = t
+                    continue
                 self._accept(t, r, out)
             else:   # RESTART: a new stream; the actuator has not moved, so no reset
                 self._last_t = None
+                self.rate.reset()
         self.stats.stamp_outliers = self.gate.outliers
         self.stats.stream_restarts = self.gate.restarts
 
@@ -247,7 +311,9 @@ class PositionController:
             st.out_of_range += 1
             r = min(max(r, self.y_min), self.y_max)
         inv = self.inverse
+        dt = None
         if self._last_t is not None:
+            dt = (t_ns - self._last_t) * 1e-9
             missing = int(round((t_ns - self._last_t) / self.period_ns)) - 1
             if missing > 0:
                 st.gaps += 1
@@ -260,7 +326,8 @@ class PositionController:
             self._limited = 0
         else:
             self._last_ref = r
-            u = self._command(t_ns, r)
+            u = self._command(t_ns, r, dt)
+            self._cmd_ref.append((u, r))
             self._refs[t_ns] = r
             if len(self._refs) > self._keep:
                 del self._refs[next(iter(self._refs))]
@@ -277,12 +344,12 @@ class PositionController:
             return self._integral
         return self.kp * self._e + self._integral
 
-    def _command(self, t_ns: int, r: float) -> float:
+    def _command(self, t_ns: int, r: float, dt: float | None) -> float:
         inv, mode = self.inverse, self.mode
         if mode == 'linear' or mode == BASELINE:
             want = r if mode == 'linear' else self._correction(t_ns)
             u_wanted = (want - self.offset) / self.gain
-            u = inv.clamp(u_wanted)
+            u = inv.clamp(u_wanted, dt)
             self._limited = 0
             if u != u_wanted:   # +1: it could not go as high as wanted (in metres)
                 self._limited = 1 if (u_wanted > u) == (self.gain > 0) else -1
@@ -294,7 +361,7 @@ class PositionController:
         r_prev = self._r_prev if self._r_prev is not None else r
         self._r_prev = r
         target -= self.advance * (r - r_prev)
-        sol = inv.solve(target)
+        sol = inv.solve(target, dt)
         self._limited = 0
         if sol.limit != REACHED:
             self._limited = 1 if sol.miss < 0 else -1
@@ -312,3 +379,24 @@ class PositionController:
             st.not_invertible += 1
         if miss > self.peak_miss:
             self.peak_miss = miss
+
+
+def input_limits(model, margin: float = 0.05, fallback: float = 200.0) -> dict:
+    """
+    {'u_min', 'u_max'} (V): the model's trained input range widened by `margin` of its span.
+
+    The controller's default limits, so that no command leaves what the model was fitted on by
+    more than that (a model extrapolates there); +-fallback V for a model without a range.
+    """
+    rng = getattr(model, 'input_range', None)
+    if rng is None or not rng[1] > rng[0]:
+        return {'u_min': -float(fallback), 'u_max': float(fallback)}
+    pad = margin * (rng[1] - rng[0])
+    return {'u_min': float(rng[0] - pad), 'u_max': float(rng[1] + pad)}
+
+
+def _corr(a: np.ndarray, b: np.ndarray) -> float:
+    """Pearson correlation of two equally long arrays; NaN when either is constant."""
+    a, b = a - a.mean(), b - b.mean()
+    den = math.sqrt(float(a @ a) * float(b @ b))
+    return float(a @ b) / den if den > 0 else math.nan

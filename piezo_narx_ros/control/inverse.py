@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from piezo_narx_ros.command.stamps import model_rate
 from piezo_narx_ros.control import kernels as ck
 from piezo_narx_ros.errors import ConfigError
 from piezo_narx_ros.ident import hysteresis_kernels as hk
@@ -53,12 +54,13 @@ class ModelInverse:
     """
     Sample-by-sample inverse of `model` (ARXModel, NARXNetwork or HysteresisNARX).
 
-    u_min, u_max: voltage limits, V; slew_rate: largest change of u, V/s (inf: none); fs: sample
-    rate, Hz (the model's when None); target: 'output' or 'quasi_static' (module docstring);
-    tol: output tolerance of the solve, m; reach_tol: a miss larger than this is reported as
-    unreachable, m; max_iter: regula falsi iterations; n_grid: grid points of the bracket search
-    (bounded time: at most 1 + kernels.LOCAL_TRIES + n_grid + max_iter model evaluations per
-    sample).
+    u_min, u_max: voltage limits, V; slew_rate: largest change of u, V/s (inf: none), applied
+    over the stamp interval of each command (`window(dt)`); fs: sample rate, Hz (the model's when
+    None; a given one must equal the model's); target: 'output' or 'quasi_static' (module
+    docstring); tol: output tolerance of the solve, m; reach_tol: a miss larger than this is
+    reported as unreachable, m; max_iter: regula falsi iterations; n_grid: grid points of the
+    bracket search (bounded time: at most 1 + kernels.LOCAL_TRIES + n_grid + max_iter model
+    evaluations per sample).
     """
 
     def __init__(self, model, u_min: float = -200.0, u_max: float = 200.0,
@@ -79,9 +81,7 @@ class ModelInverse:
             raise ConfigError(f'u_min ({u_min:g} V) must be below u_max ({u_max:g} V)')
         if not slew_rate > 0:
             raise ConfigError(f'slew_rate must be > 0 V/s, got {slew_rate:g}')
-        fs = fs or getattr(model, 'fs', None)
-        if not fs or not math.isfinite(fs) or fs <= 0:
-            raise ConfigError('sample rate unknown: the model file has no fs and none was given')
+        fs = model_rate(model, fs)
         if not (tol > 0 and reach_tol >= tol and max_iter >= 1 and 2 <= n_grid <= ck.MAX_GRID):
             raise ConfigError(f'need tol > 0, reach_tol >= tol, max_iter >= 1 and n_grid in '
                               f'[2, {ck.MAX_GRID}]')
@@ -90,6 +90,7 @@ class ModelInverse:
         self.target = target
         self.fs = float(fs)
         self.u_min, self.u_max = float(u_min), float(u_max)
+        self.slew_rate = float(slew_rate)
         self.max_step = slew_rate / self.fs if math.isfinite(slew_rate) else math.inf
         self.tol, self.reach_tol = float(tol), float(reach_tol)
         self.max_iter, self.n_grid = int(max_iter), int(n_grid)
@@ -139,18 +140,27 @@ class ModelInverse:
             self._args = work + (ubuf, ybuf, np.zeros(ubuf.size)) + tuple(params)
 
     # ------------------------------------------------------------------------------ solving
-    def window(self) -> tuple[float, float]:
-        """Return the inputs allowed now: voltage limits intersected with the slew window, V."""
-        return (max(self.u_min, self.u_prev - self.max_step),
-                min(self.u_max, self.u_prev + self.max_step))
+    def window(self, dt: float | None = None) -> tuple[float, float]:
+        """
+        Return the inputs allowed now: voltage limits intersected with the slew window, V.
 
-    def solve(self, target: float) -> Solution:
+        dt: seconds of stamp time since the previous command (None: one period); the slew rate
+        is per second of it, and never allows more than one period's worth in one command (after
+        a gap the amplifier held, so the next step is still one step).
+        """
+        step = self.max_step
+        if dt is not None and dt * self.fs < 1.0 and math.isfinite(step):
+            step = self.slew_rate * max(dt, 0.0)
+        return (max(self.u_min, self.u_prev - step), min(self.u_max, self.u_prev + step))
+
+    def solve(self, target: float, dt: float | None = None) -> Solution:
         """
         Return the input (V) whose model value is closest to `target` (m) in the allowed window.
 
-        The model state is not changed (call `commit`).
+        dt: stamp time since the previous command, s (`window`). The model state is not changed
+        (call `commit`).
         """
-        lo, hi = self.window()
+        lo, hi = self.window(dt)
         u, miss, nev = self._solve(float(target), lo, hi, self.u_prev, 1e-9, self.tol,
                                    self.max_iter, self.n_grid, *self._args)
         limit = REACHED
@@ -197,9 +207,9 @@ class ModelInverse:
         tau = float(d @ lead / (d @ d)) if d @ d > 0 else 0.0
         return tau if math.isfinite(tau) else 0.0
 
-    def clamp(self, u: float) -> float:
-        """Limit u (V) to the allowed window (for modes that do not solve)."""
-        lo, hi = self.window()
+    def clamp(self, u: float, dt: float | None = None) -> float:
+        """Limit u (V) to the allowed window (for modes that do not solve); dt as `window`."""
+        lo, hi = self.window(dt)
         return min(max(u, lo), hi)
 
     def commit(self, u: float) -> float:

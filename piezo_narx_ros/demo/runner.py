@@ -104,9 +104,32 @@ def load_settings(path=None, quick: bool = False, **overrides) -> dict:
     if settings['fs'] * min(settings['seconds'], settings['validation_seconds'],
                             settings['slow_seconds']) < 500:
         raise ConfigError('seconds x fs must give at least 500 samples per phase')
-    from piezo_narx_ros.demo.control import check_control_settings
     check_control_settings(settings['control'])
     return settings
+
+
+def check_control_settings(c) -> None:
+    """Raise ConfigError naming the first bad key of the demo's `control` settings."""
+    from piezo_narx_ros.control.controller import MODES
+    from piezo_narx_ros.plant.signals import KINDS
+    if not isinstance(c, dict):
+        raise ConfigError('control must be a mapping (demo --control settings)')
+    check_known(c, DEFAULTS['control'], 'control')
+    for key in ('record_seconds', 'seconds', 'freq', 'amplitude'):
+        v = c[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+            raise ConfigError(f'control.{key} must be a positive number, got {v!r}')
+    modes = c['modes']
+    if not isinstance(modes, list) or not modes or any(m not in MODES for m in modes):
+        raise ConfigError(f'control.modes must be a list of {list(MODES)}, got {modes!r}')
+    if c['kind'] not in KINDS:
+        raise ConfigError(f'control.kind must be one of {list(KINDS)}, got {c["kind"]!r}')
+    if c['seed'] is not None and (isinstance(c['seed'], bool) or not isinstance(c['seed'], int)
+                                  or c['seed'] < 0):
+        raise ConfigError(f'control.seed must be an integer >= 0 or null, got {c["seed"]!r}')
+    if not isinstance(c['fit'], dict) or not isinstance(c['plant_params'], str):
+        raise ConfigError('control.fit must be a mapping of fit settings and '
+                          'control.plant_params a path (or empty)')
 
 
 class _Group(Bringup):

@@ -15,7 +15,10 @@ by the last good command (the amplifier holds its output), estimated, published 
 Stamps go through a `command.stamps.StampGate`: an isolated outlier stamp (future, past,
 duplicate, a second writer's interleaved one) is refused (`stamp_outliers`), a gap of at most
 `max_fill` samples is filled, and a real new stream (a player loop, a new run, a longer jump)
-restarts the free run there (`stream_restarts`) once `confirm` commands agree.
+restarts the free run there (`stream_restarts`) once `confirm` commands agree. A stream whose
+stamps step at another rate than the model's (`command.stamps.RateMonitor`) gets no estimate while
+it lasts (`rate_withheld`): a model stepped at the wrong rate gives wrong numbers, not a slower
+estimate.
 """
 from __future__ import annotations
 
@@ -25,7 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from piezo_narx_ros.command.stamps import SAMPLE, StampGate
+from piezo_narx_ros.command.stamps import (RATE_TOLERANCE, SAMPLE, RateMonitor, StampGate,
+                                           model_rate)
 from piezo_narx_ros.errors import ConfigError
 
 INIT_MODES = ('auto', 'rest', 'measurement')
@@ -49,6 +53,8 @@ class EstimatorStats:
     reanchors: int = 0
     unestimated: int = 0       # commands before the first n0 measured ones (init from measurement)
     requested_restarts: int = 0   # restarts asked for (reset / reinitialize services)
+    rate_withheld: int = 0     # estimates not published: the stream's rate is not the model's
+    input_out_of_range: int = 0   # commands outside the model's trained input range (+ margin)
     init: str = 'waiting'      # 'waiting', 'rest', 'measurement', 'rest (no measurement)'
 
 
@@ -65,25 +71,26 @@ class FreeRunEstimator:
     samples, restart the recursion from the latest measured outputs (0 = never, the default).
     confirm: consecutive commands that must agree before a jump in the stamps (other than a gap
     of at most max_fill) is taken as a new stream rather than an outlier (module docstring).
+    rate_tolerance: relative difference between the stream's stamp rate and fs beyond which the
+    estimates are withheld (RateMonitor). fs must be the model's own rate when the model has one.
     """
 
     def __init__(self, model, fs: float | None = None, init: str = 'auto', u_min: float = -200.0,
                  u_max: float = 200.0, max_fill: int = 2000, range_margin: float = 0.1,
                  window: int = 2000, reanchor_every: int = 0, init_timeout: float = 0.5,
-                 confirm: int = 3):
+                 confirm: int = 3, rate_tolerance: float = RATE_TOLERANCE):
         for attr in ('nu', 'ny', 'n0', 'stepper'):
             if not hasattr(model, attr):
                 raise ConfigError(f'model has no {attr!r}: not a NARX/ARX model')
-        fs = fs or getattr(model, 'fs', None)
-        if not fs or not math.isfinite(fs) or fs <= 0:
-            raise ConfigError('sample rate unknown: the model file has no fs and none was given')
+        fs = model_rate(model, fs)
         if init not in INIT_MODES:
             raise ConfigError(f'init must be one of {list(INIT_MODES)}, got {init!r}')
         if not u_min < u_max:
             raise ConfigError(f'u_min ({u_min:g} V) must be below u_max ({u_max:g} V)')
-        if max_fill < 0 or window < 2 or reanchor_every < 0 or init_timeout < 0 or confirm < 1:
-            raise ConfigError('max_fill, reanchor_every, init_timeout must be >= 0, window >= 2 '
-                              'and confirm >= 1')
+        if max_fill < 0 or window < 2 or reanchor_every < 0 or init_timeout < 0 or confirm < 1 \
+                or not 0 < rate_tolerance < 1:
+            raise ConfigError('max_fill, reanchor_every, init_timeout must be >= 0, window >= 2, '
+                              'confirm >= 1 and rate_tolerance in (0, 1)')
         self.model = model
         self.fs = float(fs)
         self.period_ns = 1e9 / self.fs
@@ -102,9 +109,15 @@ class FreeRunEstimator:
             self.y_lo, self.y_hi = lo - pad, hi + pad
         else:
             self.y_lo, self.y_hi = -math.inf, math.inf
+        rng = getattr(model, 'input_range', None)
+        pad = range_margin * (rng[1] - rng[0]) if rng is not None else 0.0
+        self.u_lo, self.u_hi = ((rng[0] - pad, rng[1] + pad) if rng is not None
+                                else (-math.inf, math.inf))
+        self.u_excursion = 0.0    # largest command beyond the trained input range (V), per tick
         self.stats = EstimatorStats()
         self.excursion = 0.0      # largest distance beyond the range (m) since take_excursion()
         self.gate = StampGate(self.period_ns, self.max_fill, confirm)
+        self.rate = RateMonitor(self.period_ns, rate_tolerance, max(self.window, 8))
         # u/t history kept for re-anchoring
         self._hist = max(self.n0, 1) + 64 + self.reanchor_every
         self._err = deque(maxlen=self.window)
@@ -118,6 +131,8 @@ class FreeRunEstimator:
         self._new_run(wait_for_measurement)
 
     def _new_run(self, wait_for_measurement: bool | None) -> None:
+        # Commands still waiting for their initial measurements get no estimate now: counted.
+        self.stats.unestimated += len(getattr(self, '_pending', ()))
         if wait_for_measurement is None:
             wait_for_measurement = self.init_mode == 'measurement'
         self._wait = bool(wait_for_measurement) and self.init_mode != 'rest'
@@ -167,6 +182,7 @@ class FreeRunEstimator:
     def on_command(self, t_ns: int, u: float) -> list[tuple[int, float]]:
         """One command (stamp ns, volts) -> estimates to publish [(t_ns, y_hat m), ...]."""
         self.stats.commands += 1
+        self.rate.received()
         if not self._decided:
             self._decided = True
             self._wait = self.init_mode == 'measurement'
@@ -199,12 +215,19 @@ class FreeRunEstimator:
         value, self.excursion = self.excursion, 0.0
         return value
 
+    def take_input_excursion(self) -> float:
+        """Largest distance (V) of a command beyond the trained input range since the last call."""
+        value, self.u_excursion = self.u_excursion, 0.0
+        return value
+
     def _apply(self, events, out: list) -> None:
         """Estimate the commands the stamp gate let through; restart on a new stream."""
         for kind, t, item in events:
             if kind == SAMPLE:
+                self.rate.observe(t)
                 self._accept(t, item, out)
             else:   # RESTART: item lists the new stream's stamps seen so far
+                self.rate.reset()
                 keep = {s: self._meas[s] for s in item if s in self._meas}
                 decided = self._decided
                 self._new_run(self._wait)
@@ -229,6 +252,11 @@ class FreeRunEstimator:
         elif not self.u_min <= u <= self.u_max:
             st.rejected_range += 1
             good = False
+        elif not self.u_lo <= u <= self.u_hi:
+            st.input_out_of_range += 1      # estimated, but the model extrapolates there
+            beyond = self.u_lo - u if u < self.u_lo else u - self.u_hi
+            if beyond > self.u_excursion:
+                self.u_excursion = beyond
         last = self._last_t
         if last is not None:
             missing = int(round((t_ns - last) / self.period_ns)) - 1
@@ -299,8 +327,11 @@ class FreeRunEstimator:
                 self._since_anchor = 0
 
     def _emit(self, t_ns: int, y_hat: float, out: list) -> None:
-        out.append((t_ns, y_hat))
-        self.stats.estimates += 1
+        if self.rate.off:                  # the model's state still follows the commands
+            self.stats.rate_withheld += 1
+        else:
+            out.append((t_ns, y_hat))
+            self.stats.estimates += 1
         oor = not self.y_lo <= y_hat <= self.y_hi
         self.out_of_range_now = oor
         if oor:

@@ -4,10 +4,13 @@ The estimator's /diagnostics status, ROS-free: what happened since the previous 
 The level reflects every estimate and command since the last tick, not the last sample: a runaway
 that leaves the trained output range for 2,807 samples between two ticks is a WARN tick even if
 the sample at the tick happens to be back in range, and the tick after the trouble is OK again.
+A command stream at another rate than the model's is an ERROR for as long as it lasts (its
+estimates are withheld), and so is a second node publishing on the same estimate topic.
 """
 from __future__ import annotations
 
-from piezo_narx_ros.counters import OK, WARN, Since
+from piezo_narx_ros.counters import ERROR, OK, WARN, Since
+from piezo_narx_ros.ident.units import model_unit_problem
 
 # Counters whose growth since the last tick makes the tick a WARN, with the phrase that says so.
 _WARN_ON = (
@@ -19,31 +22,56 @@ _WARN_ON = (
     ('rejected_nonfinite', 'non-finite command(s) held'),
     ('rejected_range', 'command(s) outside [u_min, u_max] held'),
     ('gaps', 'gap(s) in the command stamps, filled by holding'),
+    ('input_out_of_range', 'command(s) outside the trained input range: the model extrapolates'),
 )
 _CUMULATIVE = ('commands', 'estimates', 'rejected_nonfinite', 'rejected_range', 'gaps', 'filled',
                'stamp_outliers', 'stream_restarts', 'out_of_range', 'reanchors', 'unestimated',
-               'init')
+               'init', 'rate_withheld', 'input_out_of_range')
 
 
 class EstimatorHealth:
-    """Turns a FreeRunEstimator's counters into one status per diagnostics tick."""
+    """
+    Turns a FreeRunEstimator's counters into one status per diagnostics tick.
+
+    `notes`: standing problems of the set-up (a model whose trained ranges are not volts and
+    metres), a WARN on every tick while the estimator runs.
+    """
 
     def __init__(self, estimator):
         self.est = estimator
+        note = model_unit_problem(estimator.model)
+        self.notes = [note] if note else []
         self._since = Since(lambda: vars(estimator.stats),
-                            [name for name, _ in _WARN_ON] + ['estimates', 'commands'])
+                            [name for name, _ in _WARN_ON] + ['estimates', 'commands',
+                                                              'rate_withheld'])
 
-    def tick(self, command_publishers: int | None = None) -> tuple[int, str, dict]:
+    def rate_line(self) -> str:
+        """Return the one line that says why estimates are withheld (the stream's rate)."""
+        return (f'{self.est.rate.describe("command")}: estimates withheld, the model runs only '
+                f'at {self.est.fs:g} Hz (stream at that rate, or fit a model at the stream rate)')
+
+    def tick(self, command_publishers: int | None = None,
+             estimate_publishers: int | None = None, errors=()) -> tuple[int, str, dict]:
         """
-        (level OK/WARN, message, values) for the period since the previous call.
+        (level OK/WARN/ERROR, message, values) for the period since the previous call.
 
         command_publishers: writers matched on the command topic (None: unknown); more than one
-        is a WARN, since their samples interleave.
+        is a WARN, since their samples interleave. estimate_publishers: writers on this node's
+        own estimate topic, itself included; more than one is an ERROR (two estimators, e.g. of
+        the same name, interleave their estimates there). errors: further ERROR phrases found by
+        the caller (e.g. a second node of the same name).
         """
         d = self._since.tick()
         st = self.est.stats
         excursion = self.est.take_excursion()
-        problems = []
+        u_beyond = self.est.take_input_excursion()
+        errors, problems = list(errors), []
+        if self.est.rate.off or d['rate_withheld']:
+            errors.append(f'{self.rate_line()} ({d["rate_withheld"]} withheld since the last '
+                          'report)')
+        if estimate_publishers is not None and estimate_publishers > 1:
+            errors.append(f'{estimate_publishers} publishers on the estimate topic (another '
+                          'estimator, maybe of the same name): their estimates interleave')
         if command_publishers is not None and command_publishers > 1:
             problems.append(f'{command_publishers} publishers on the command topic: their '
                             'samples interleave')
@@ -53,13 +81,22 @@ class EstimatorHealth:
                 if name == 'out_of_range':
                     text = (f'{d[name]} of {d["estimates"]} estimates outside the trained output '
                             f'range (up to {excursion:.3g} m beyond it)')
+                elif name == 'input_out_of_range':
+                    text += f' (up to {u_beyond:.3g} V beyond it)'
                 problems.append(text)
+        problems += self.notes
         values = {k: getattr(st, k) for k in _CUMULATIVE}
         values.update({f'{name}_since_last': d[name] for name, _ in _WARN_ON})
         values['holding'] = self.est.holding
+        values['fs'] = self.est.fs
+        if self.est.rate.ratio == self.est.rate.ratio:      # measured (not NaN)
+            values['stream_rate_hz'] = self.est.fs / self.est.rate.ratio
         if command_publishers is not None:
             values['command_publishers'] = command_publishers
-        if problems:
-            message = problems[0] + (f' (+{len(problems) - 1} more)' if len(problems) > 1 else '')
-            return WARN, message, values
+        if estimate_publishers is not None:
+            values['estimate_publishers'] = estimate_publishers
+        found = errors + problems
+        if found:
+            more = f' (+{len(found) - 1} more)' if len(found) > 1 else ''
+            return (ERROR if errors else WARN), found[0] + more, values
         return OK, f'ok (init {st.init})', values

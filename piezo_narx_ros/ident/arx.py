@@ -9,11 +9,13 @@ predict/simulate/stepper API of NARXNetwork.
 import numpy as np
 
 from ..errors import DataError
+from . import document
 from .kernels import ARXStepper, arx_predict, arx_simulate
-from .base import as_record_list
+from .base import as_record_list, register_family
 from .regressors import LaggedModel, check_orders, lagged_regressors
 
 
+@register_family
 class ARXModel(LaggedModel):
     """
     ARX(na, nb) model; after fit, ``a`` (na,), ``b`` (nb+1,) and intercept ``c`` (m) are set.
@@ -89,6 +91,35 @@ class ARXModel(LaggedModel):
 
     def _make_stepper(self, u_past, y_past):
         return ARXStepper((self._bu, self._ay, self.c), self.nu, self.ny, u_past, y_past)
+
+    # ------------------------------------------------------------------ model file and export
+    def file_document(self):
+        """Return the ARX blocks of the model file (structure, no normalisation, training)."""
+        return {'structure': {'kind': 'arx', 'na': self.na, 'nb': self.nb, 'nu': self.nu,
+                              'ny': self.ny, 'fit_intercept': self.fit_intercept,
+                              'n_params': self.n_params},
+                'normalisation': None,
+                'training': {'method': 'least squares'}}
+
+    def file_weights(self):
+        """Return a (na,), b (nb+1,) and c (1,) as written to the .npz."""
+        return {'a': self.a, 'b': self.b, 'c': np.array([self.c])}
+
+    @classmethod
+    def from_file_document(cls, doc, arrays, name, wpath, fs):
+        """Return the ARXModel of a model file (see DynamicModel.from_file_document)."""
+        na = document.get_int(doc, 'structure.na', name, 1)
+        nb = document.get_int(doc, 'structure.nb', name, 0)
+        icpt = document.get(doc, 'structure.fit_intercept', name, (bool,))
+        return cls(na, nb, fit_intercept=icpt).set_coefficients(
+            document.weight_array(arrays, 'a', (na,), wpath),
+            document.weight_array(arrays, 'b', (nb + 1,), wpath),
+            document.weight_array(arrays, 'c', (1,), wpath)[0])
+
+    def c_emitter(self):
+        """Return the C emitter of this model (piezo_narx_ros.ident.arx_export)."""
+        from .arx_export import ARXEmitter
+        return ARXEmitter(self)
 
     def __repr__(self):
         return f'ARXModel(na={self.na}, nb={self.nb})'

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError, DataError
+from .checks import as_signal
 
 
 @dataclass(frozen=True)
@@ -105,9 +106,21 @@ class DynamicModel:
         model is scored on part of a record by free-running from the record's start.
     Methods: fit(u, y, fs=None) -> self; predict(u, y) and simulate(u, y0=None) -> (N,) m;
       stepper(u_past=None, y_past=None) -> a Stepper with step(u_k V) -> y_k m and reset().
+
+    What a family owns besides its math (a new family implements these and registers itself with
+    `register_family`; model_io and the C export find it by `kind`, nothing else changes):
+      file_document() / file_weights() / from_file_document(...): its part of the model file
+        (model_io keeps the envelope: format, version, units, ranges, checksum, atomic write);
+      file_format_version: the model-file format_version its documents are written with (the
+        oldest reader that knows the kind);
+      c_emitter(): the object that writes its free run (and inverse) as C (piezo_narx_ros.export).
     """
 
     kind = 'abstract'
+    file_format_version = 1
+    #: Input / output channels (axes) of the model: one each for today's families.
+    n_in = 1
+    n_out = 1
     state_from_input = False
     fs = None
     input_range = None
@@ -134,6 +147,35 @@ class DynamicModel:
     def _is_fitted(self) -> bool:   # pragma: no cover - interface
         raise NotImplementedError
 
+    # ------------------------------------------------------------------ model file and export
+    def file_document(self) -> dict:   # pragma: no cover - interface
+        """
+        Return the family's blocks of the model file's JSON document.
+
+        {'structure': {'kind': ..., ...}, 'normalisation': dict or None, 'training': dict}; plain
+        or numpy values (model_io makes them JSON). The model is fitted.
+        """
+        raise NotImplementedError
+
+    def file_weights(self) -> dict:   # pragma: no cover - interface
+        """Return every weight array of the model file's .npz, by name, in the order written."""
+        raise NotImplementedError
+
+    @classmethod
+    def from_file_document(cls, doc, arrays, name, wpath, fs):   # pragma: no cover - interface
+        """
+        Return the model described by a model file's JSON `doc` and weight `arrays`.
+
+        name, wpath: the JSON and .npz paths for messages; fs: the validated sample rate (Hz or
+        None). Raises ModelFileError (one line, naming the file) on a malformed block, or
+        DataError (model_io names the weights file). model_io sets fs, ranges and metadata after.
+        """
+        raise NotImplementedError
+
+    def c_emitter(self):   # pragma: no cover - interface
+        """Return the family's C emitter (see piezo_narx_ros.export.c_code.Emitter)."""
+        raise NotImplementedError
+
     def _require_fitted(self):
         if not self._is_fitted():
             raise DataError(f'{type(self).__name__} has no weights yet: '
@@ -150,6 +192,35 @@ class DynamicModel:
             self.fs = fs
 
 
+#: Model families by their model-file kind, in registration order (see register_family).
+_FAMILIES: dict = {}
+
+
+def register_family(cls):
+    """
+    Class decorator: make `cls` (a DynamicModel with its own `kind`) the family of that kind.
+
+    model_io loads a file and the C export writes a model through this registry.
+    """
+    kind = cls.__dict__.get('kind')
+    if not (isinstance(cls, type) and issubclass(cls, DynamicModel) and isinstance(kind, str)):
+        raise TypeError(f'{cls!r} is not a DynamicModel with its own kind')
+    known = _FAMILIES.get(kind)
+    if known is not None and _name(known) != _name(cls):   # a module reload re-registers
+        raise TypeError(f'model kind {kind!r} is already registered by {_name(known)}')
+    _FAMILIES[kind] = cls
+    return cls
+
+
+def _name(cls) -> str:
+    return f'{cls.__module__}.{cls.__qualname__}'
+
+
+def registered_families() -> dict:
+    """Return {kind: class} of the families registered so far (see ident.families)."""
+    return dict(_FAMILIES)
+
+
 def as_record_list(u, y, min_len=1):
     """
     Return (list of u arrays V, list of y arrays m) from one record or several.
@@ -157,7 +228,6 @@ def as_record_list(u, y, min_len=1):
     One record: 1-D arrays; several: a list or tuple of 1-D arrays each. DataError on mismatched or
     bad arrays.
     """
-    from .regressors import as_signal
     several = isinstance(u, (list, tuple))
     if several != isinstance(y, (list, tuple)):
         raise DataError('give u and y both as arrays (one record) or both as lists (several)')

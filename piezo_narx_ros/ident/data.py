@@ -1,22 +1,30 @@
 """
-Input/output records for identification: load (u, y, fs) from NPZ, CSV or rosbag2 MCAP.
+Input/output records for identification: load (u, y, fs) from NPZ, text tables or rosbag2 MCAP.
 
 Every problem raises `DataError` (or `BagError` for bags) with a one-line message that names the
-file and the problem, so `piezo-narx fit` can print it as is.
+file and the problem, so `piezo-narx fit` can print it as is. Text tables (.csv with commas or
+semicolons, .tsv/.txt/.dat with tabs or spaces) share one reader and one set of column rules
+(`read_table`, `pick_columns`) with command_node's playback (`read_signal`); a time column gives
+the rate through `time_clock`, which warns about gaps and jitter as the bag reader does. Units
+other than V, m and s are stated by the user (`ident.units.Units`), never guessed.
 """
 from __future__ import annotations
 
-import csv
+import hashlib
+import warnings
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from piezo_narx_ros.errors import BagError, DataError
+from piezo_narx_ros.errors import BagError, ConfigError, DataError
+from piezo_narx_ros.ident.units import SI, Units, check_consistent, check_magnitudes
 from piezo_narx_ros.npzfile import read_npz
 from piezo_narx_ros.record import Record
 
 __all__ = ['Record', 'MIN_SAMPLES', 'load_npz', 'load_csv', 'load_bag', 'load_record',
-           'load_records', 'check_length']
+           'load_records', 'check_length', 'read_table', 'parse_columns', 'pick_columns',
+           'time_clock', 'read_signal']
 
 # Fewest samples a record may have: below this neither a 50/50 split nor the correlation tests
 # (20 lags) mean anything. `check_length` applies the stricter bound for given lags.
@@ -48,9 +56,9 @@ def _fs_value(fs, source: str) -> float:
     return fs
 
 
-def _make(u, y, fs, source, t=None, y_true=None) -> Record:
-    u = _vector('u', u, source)
-    y = _vector('y', y, source)
+def _make(u, y, fs, source, t=None, y_true=None, units: Units = SI) -> Record:
+    u = _vector('u', u, source) * units.u_factor
+    y = _vector('y', y, source) * units.y_factor
     if u.size != y.size:
         raise DataError(f'{source}: u has {u.size} samples but y has {y.size}')
     if t is not None:
@@ -58,16 +66,22 @@ def _make(u, y, fs, source, t=None, y_true=None) -> Record:
         if t.size != u.size:
             raise DataError(f'{source}: t has {t.size} samples but u has {u.size}')
     if y_true is not None:
-        y_true = _vector('y_true', y_true, source)
+        y_true = _vector('y_true', y_true, source) * units.y_factor
         if y_true.size != u.size:
             raise DataError(f'{source}: y_true has {y_true.size} samples but u has {u.size}')
     if u.size < MIN_SAMPLES:
         raise DataError(f'{source}: only {u.size} samples, need at least {MIN_SAMPLES}')
+    check_magnitudes(u, y, source, units)
     return Record(u=u, y=y, fs=_fs_value(fs, source), source=source, t=t, y_true=y_true)
 
 
-def load_npz(path, fs: float | None = None) -> Record:
-    """Record from an .npz with keys u, y, fs (optional t, y_true); `fs` fills a missing fs key."""
+def load_npz(path, fs: float | None = None, units: Units = SI) -> Record:
+    """
+    Record from an .npz with keys u, y and fs or t (optional y_true).
+
+    `fs` fills a missing rate; a file whose t column and fs disagree is refused, and one with t
+    but no fs takes its rate from t (`time_clock`, whose gap and jitter warnings apply).
+    """
     path = Path(path)
     source = str(path)
     data = read_npz(path)
@@ -75,88 +89,303 @@ def load_npz(path, fs: float | None = None) -> Record:
     if missing:
         raise DataError(f'{source}: missing key(s) {", ".join(missing)} '
                         f'(has {", ".join(sorted(data)) or "none"}; need u, y, fs)')
-    if 'fs' not in data and fs is None:
-        raise DataError(f'{source}: no fs key; pass the sample rate with --fs')
     file_fs = _fs_value(data['fs'], source) if 'fs' in data else None
     if file_fs is not None and fs is not None and not np.isclose(file_fs, fs, rtol=1e-9):
         raise DataError(f'{source}: file says fs = {file_fs} Hz but --fs = {fs} Hz')
-    return _make(data['u'], data['y'], file_fs if file_fs is not None else fs, source,
-                 data.get('t'), data.get('y_true'))
+    t = data.get('t')
+    if t is not None:
+        t = _vector('t', t, source) * units.t_factor
+        t_fs = time_clock(t, source, 't', stated='t' in units.stated).fs
+        given = file_fs if file_fs is not None else fs
+        if given is not None and not np.isclose(t_fs, given, rtol=TIME_RATE_RTOL):
+            said = 'its fs key' if file_fs is not None else '--fs'
+            raise DataError(f'{source}: its t column steps at {t_fs:.6g} Hz but {said} says '
+                            f'{given:g} Hz; correct the file (or --t-unit if t is not in s)')
+        file_fs = given if given is not None else t_fs
+    if file_fs is None and fs is None:
+        raise DataError(f'{source}: no fs key and no t; pass the sample rate with --fs')
+    return _make(data['u'], data['y'], file_fs if file_fs is not None else fs, source, t,
+                 data.get('y_true'), units)
 
 
-def load_csv(path, fs: float | None = None) -> Record:
+def load_csv(path, fs: float | None = None, columns: dict | None = None,
+             units: Units = SI) -> Record:
     """
-    Record from a CSV with columns t,u,y (fs from the stamps) or u,y (fs required).
+    Record from a delimited text table: .csv, or .tsv/.txt/.dat (tabs or spaces).
 
-    A header row naming the columns is allowed (any order; optional y_true column); without one
-    the columns are taken as t,u,y (3 columns) or u,y (2 columns).
+    A header row naming the columns is allowed (t, u, y, y_true, any order); without one the
+    columns are t,u,y (3 columns) or u,y (2 columns), or chosen with `columns` ({'u': 1, 'y': 5,
+    't': ...}: 1-based numbers or header names, as `--columns u=1,y=5`). fs comes from the t
+    column (`time_clock`) or `fs`; both given must agree.
+    """
+    path = Path(path)
+    source = str(path)
+    names, table = read_table(path)
+    cols = pick_columns(names, table.shape[1], columns, source)
+    if 'u' not in cols or 'y' not in cols:
+        missing = [k for k in ('u', 'y') if k not in cols]
+        raise DataError(f'{source}: missing column(s) {", ".join(missing)} '
+                        f'(header has {", ".join(names or [])}; need t,u,y or u,y, or choose '
+                        'them with --columns u=N,y=M)')
+    t = table[:, cols['t']] if 't' in cols else None
+    if t is not None:
+        t = _vector('t', t, source) * units.t_factor
+        csv_fs = time_clock(t, source, 't', stated='t' in units.stated).fs
+        if fs is not None and not np.isclose(csv_fs, fs, rtol=TIME_RATE_RTOL):
+            raise DataError(f'{source}: time stamps give fs = {csv_fs:.6g} Hz but --fs = {fs} '
+                            'Hz; if t is not in seconds pass --t-unit, or leave the t column '
+                            'out with --columns')
+        fs = fs if fs is not None else csv_fs
+    if fs is None:
+        raise DataError(f'{source}: no t column; pass the sample rate with --fs')
+    return _make(table[:, cols['u']], table[:, cols['y']], fs, source, t,
+                 table[:, cols['y_true']] if 'y_true' in cols else None, units)
+
+
+# ------------------------------------------------------------------------------ text tables
+TABLE_SUFFIXES = ('.csv', '.tsv', '.txt', '.dat')
+COLUMN_ROLES = ('t', 'u', 'y', 'y_true')
+
+
+def _split_row(line: str, sep: str | None) -> list[str]:
+    return [c.strip() for c in (line.split(sep) if sep else line.split())]
+
+
+def read_table(path) -> tuple[list[str] | None, np.ndarray]:
+    """
+    Numbers from a delimited text file: (header names or None, table (N, k) float64).
+
+    Columns are separated by ',' (CSV), ';' (then ',' is the decimal mark, as spreadsheets in
+    many locales write it), or tabs/spaces (.dat/.txt/.tsv from instruments and MATLAB). Blank
+    lines and lines starting with '#' are skipped. Every problem names its row (1-based line of
+    the file): a units row after the header, an empty cell, a trailing separator, text.
     """
     path = Path(path)
     source = str(path)
     try:
         # utf-8-sig: spreadsheets start CSV files with a byte-order mark, which is not part of
         # the first column's name.
-        with open(path, newline='', encoding='utf-8-sig') as f:
-            rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
+        text = path.read_text(encoding='utf-8-sig')
     except UnicodeDecodeError:
-        raise DataError(f'{source}: not a text CSV file') from None
-    if not rows:
-        raise DataError(f'{source}: empty CSV file')
-    header = [c.strip().lower() for c in rows[0]]
-    try:
-        [float(c) for c in rows[0]]
-        has_header = False
+        raise DataError(f'{source}: not a text file (not UTF-8)') from None
+    except OSError as exc:
+        raise DataError(f'{source}: cannot read ({exc.strerror or exc})') from None
+    lines = [(i + 1, ln) for i, ln in enumerate(text.splitlines())
+             if ln.strip() and not ln.lstrip().startswith('#')]
+    if not lines:
+        raise DataError(f'{source}: empty file')
+    first = lines[0][1]
+    sep = ';' if ';' in first else ',' if ',' in first else '\t' if '\t' in first else None
+    decimal_comma = sep == ';'
+    head = _split_row(first, sep)
+    has_header = not all(_is_number(c, decimal_comma) for c in head if c)
+    names = [c.lower() for c in head] if has_header else None
+    body = lines[1:] if has_header else lines
+    if not body:
+        raise DataError(f'{source}: only a header row ({", ".join(head)}), no data rows')
+    width = len(head)
+    try:   # the fast path: every row well formed
+        rows = [_split_row(ln, sep) for _, ln in body]
+        if decimal_comma:
+            rows = [[c.replace(',', '.') for c in r] for r in rows]
+        if any(len(r) != width for r in rows) or any('' in r for r in rows):
+            raise ValueError
+        table = np.array(rows, dtype=np.float64)
     except ValueError:
-        has_header = True
-    if has_header:
-        names, body = header, rows[1:]
-        if not body:
-            raise DataError(f'{source}: only a header row ({", ".join(names)}), no data rows')
-        missing = [k for k in ('u', 'y') if k not in names]
-        if missing:
-            raise DataError(f'{source}: missing column(s) {", ".join(missing)} '
-                            f'(header has {", ".join(names)}; need t,u,y or u,y)')
-    else:
-        body = rows
-        if len(header) == 3:
-            names = ['t', 'u', 'y']
-        elif len(header) == 2:
-            names = ['u', 'y']
-        else:
-            raise DataError(f'{source}: {len(header)} columns without a header; need t,u,y or u,y')
+        _raise_bad_row(source, body, sep, width, decimal_comma, has_header)
+    return names, table.reshape(len(body), width)
+
+
+def _is_number(text: str, decimal_comma: bool = False) -> bool:
     try:
-        table = np.array([[float(c) for c in r] for r in body], dtype=np.float64)
-    except ValueError as exc:
-        raise DataError(f'{source}: non-numeric value in CSV ({exc})') from None
-    if table.ndim != 2 or table.shape[1] != len(names):
-        raise DataError(f'{source}: rows do not all have {len(names)} columns')
-    cols = {name: table[:, i] for i, name in enumerate(names)}
-    t = cols.get('t')
-    if t is not None:
-        t = _vector('t', t, source)
-        dt = np.diff(t)
-        if np.any(dt <= 0):
-            raise DataError(f'{source}: time column t is not strictly increasing')
-        csv_fs = 1.0 / float(np.median(dt))
-        if fs is not None and not np.isclose(csv_fs, fs, rtol=1e-3):
-            raise DataError(f'{source}: time stamps give fs = {csv_fs:.6g} Hz but --fs = {fs} Hz')
-        fs = fs if fs is not None else csv_fs
-    if fs is None:
-        raise DataError(f'{source}: no t column; pass the sample rate with --fs')
-    return _make(cols['u'], cols['y'], fs, source, t, cols.get('y_true'))
+        float(text.replace(',', '.') if decimal_comma else text)
+        return True
+    except ValueError:
+        return False
 
 
-def load_bag(path, command_topic: str, deflection_topic: str) -> Record:
-    """Record from a rosbag2 directory or .mcap file, through piezo_narx_ros.bag.reader.read_uy."""
+def _raise_bad_row(source, body, sep, width, decimal_comma, has_header):
+    """Find the first malformed row and say what is wrong with it (DataError)."""
+    for row, line in body:
+        cells = _split_row(line, sep)
+        if cells and cells[-1] == '' and len(cells) == width + 1:
+            raise DataError(f'{source}: row {row} ends with a separator (an empty column after '
+                            'the last one)')
+        if len(cells) != width:
+            raise DataError(f'{source}: row {row} has {len(cells)} column(s), the first row '
+                            f'{width}')
+        for j, cell in enumerate(cells):
+            if cell == '':
+                raise DataError(f'{source}: row {row}, column {j + 1} is empty')
+            if not _is_number(cell, decimal_comma):
+                what = ('a units row after the header? Remove it and give units with --u-unit '
+                        '/ --y-unit' if has_header and row == body[0][0]
+                        and not any(_is_number(c, decimal_comma) for c in cells)
+                        else 'not a number')
+                raise DataError(f'{source}: row {row}, column {j + 1}: {cell!r} is {what}'
+                                if what == 'not a number' else
+                                f'{source}: row {row} is text ({", ".join(cells)}): {what}')
+    raise DataError(f'{source}: the rows are not a table of numbers')
+
+
+def parse_columns(text: str | None) -> dict | None:
+    """
+    Parse `--columns u=1,y=5[,t=2]` into {'u': 1, 'y': 5, ...} (numbers 1-based, or names).
+
+    ConfigError for a role other than t, u, y, y_true, a repeated role, or a number below 1.
+    """
+    if text is None or not str(text).strip():
+        return None
+    out = {}
+    for part in str(text).split(','):
+        role, eq, col = part.partition('=')
+        role, col = role.strip().lower(), col.strip()
+        if not eq or role not in COLUMN_ROLES or not col:
+            raise ConfigError(f'--columns: {part.strip()!r} is not ROLE=COLUMN with ROLE one of '
+                              f'{", ".join(COLUMN_ROLES)} (e.g. --columns u=1,y=5)')
+        if role in out:
+            raise ConfigError(f'--columns: {role} given twice')
+        if col.isdigit():
+            if int(col) < 1:
+                raise ConfigError('--columns: columns are numbered from 1')
+            out[role] = int(col)
+        else:
+            out[role] = col.lower()
+    return out
+
+
+def pick_columns(names: list[str] | None, width: int, columns: dict | None,
+                 source: str) -> dict[str, int]:
+    """
+    {role: 0-based column index} of a table: the roles of `columns`, or the header's, or by count.
+
+    Without a header and without `columns`, 3 columns are t,u,y, 2 are u,y and 1 is u; other
+    counts must be chosen. The same rules serve `fit` and command_node's playback.
+    """
+    if columns:
+        out = {}
+        for role, col in columns.items():
+            if isinstance(col, int):
+                if not 1 <= col <= width:
+                    raise DataError(f'{source}: --columns {role}={col}: the file has {width} '
+                                    'column(s) (numbered from 1)')
+                out[role] = col - 1
+            elif names is None or col not in names:
+                raise DataError(f'{source}: --columns {role}={col}: no column named {col!r} '
+                                f'(' + (f'header: {", ".join(names)}' if names else 'no header: '
+                                        'give its number') + ')')
+            else:
+                out[role] = names.index(col)
+        return out
+    if names is not None:
+        return {role: names.index(role) for role in COLUMN_ROLES if role in names}
+    by_count = {3: ('t', 'u', 'y'), 2: ('u', 'y'), 1: ('u',)}
+    if width not in by_count:
+        raise DataError(f'{source}: {width} columns without a header; choose them with '
+                        '--columns, e.g. --columns u=1,y=5 (1-based; t=N for a time column)')
+    return {role: i for i, role in enumerate(by_count[width])}
+
+
+# ---------------------------------------------------------------------------- time columns
+# A rate from a time column and a given one (--fs, an fs key) agree within this.
+TIME_RATE_RTOL = 1e-3
+# A time column in seconds whose rate falls outside this range is in another unit.
+PLAUSIBLE_FS = (10.0, 1e6)
+# Steps longer than GAP_FACTOR x the median are gaps (as for bags).
+GAP_FACTOR = 1.5
+JITTER_TOLERANCE = 0.05
+
+
+@dataclass
+class TimeClock:
+    """What a time column says: rate, gaps, jitter (see `time_clock`)."""
+
+    fs: float                                   # Hz
+    gaps: list = field(default_factory=list)    # [(t from the first sample s, missing samples)]
+    jitter: float = 0.0       # largest step deviation from 1/fs beyond the stamps' resolution
+    resolution: float = 0.0   # s, the printing step of the stamps when they are quantised
+
+    def issues(self, source: str) -> list[str]:
+        """One warning line per finding (as bags report theirs)."""
+        out = []
+        if self.gaps:
+            t0, n = self.gaps[0]
+            missing = sum(m for _, m in self.gaps)
+            out.append(f'{source}: {len(self.gaps)} gap(s), {missing} missing sample(s) in the '
+                       f'time column (first at t={t0:.6g} s, {n} missing): the record is joined '
+                       'across them, and lagged regressors there join non-adjacent samples')
+        if self.jitter > JITTER_TOLERANCE:
+            out.append(f'{source}: irregular sample rate: time steps deviate by up to '
+                       f'{100 * self.jitter:.3g}% from 1/fs (fs = {self.fs:.6g} Hz); the record '
+                       'is taken as evenly sampled')
+        return out
+
+
+def time_clock(t, source: str, name: str = 't', stated: bool = False,
+               warn: bool = True) -> TimeClock:
+    """
+    Sample rate (Hz), gaps and jitter of a time column t (s), issuing its warnings.
+
+    The rate is the mean of the steps that are not gaps (steps up to GAP_FACTOR x the median),
+    not 1 / median step: stamps printed with few digits (3 kHz to 0.1 ms) step unevenly but
+    average to the true period, and epoch-second stamps lose nothing. Raises DataError when t
+    does not increase, and when the rate is not plausible in seconds (µs or ms stamps) unless
+    the unit was `stated`.
+    """
+    t = np.asarray(t, dtype=np.float64)
+    if t.size < 2:
+        raise DataError(f'{source}: need at least 2 samples in {name}')
+    t = t - t[0]                    # epoch stamps: keep the steps' precision
+    d = np.diff(t)
+    bad = np.flatnonzero(~(d > 0))
+    if bad.size:
+        raise DataError(f'{source}: time column {name} is not strictly increasing (sample '
+                        f'{bad[0] + 1} is at or before the one before it)')
+    med = float(np.median(d))
+    is_gap = d > GAP_FACTOR * med
+    regular = d[~is_gap]
+    period = float(regular.mean())
+    fs = 1.0 / period
+    if not stated and not PLAUSIBLE_FS[0] <= fs <= PLAUSIBLE_FS[1]:
+        raise DataError(f'{source}: the time column {name} steps by {period:.6g} (mean), i.e. '
+                        f'{fs:.6g} Hz if it is in seconds; if it is in ms, us or ns pass '
+                        '--t-unit ms|us|ns, or give --fs and leave t out (--columns)')
+    gaps = [(float(t[i]), int(round(d[i] / period)) - 1) for i in np.flatnonzero(is_gap)]
+    # Stamps printed with few digits step by a few multiples of their resolution (float noise
+    # aside, hence the grouping at a millionth of the period).
+    grain = 1e-6 * period
+    steps = np.unique(np.round(regular / grain))
+    resolution = float(np.min(np.diff(steps))) * grain if 1 < steps.size <= 4 else 0.0
+    dev = float(np.max(np.abs(regular - period))) if regular.size else 0.0
+    clock = TimeClock(fs, gaps, max(dev - resolution, 0.0) / period, resolution)
+    if warn:
+        for line in clock.issues(source):
+            warnings.warn(line, stacklevel=3)
+    return clock
+
+
+def load_bag(path, command_topic: str, deflection_topic: str, axis: str | int | None = None,
+             units: Units = SI) -> Record:
+    """
+    Record from a rosbag2 directory or .mcap file, through piezo_narx_ros.bag.reader.read_uy.
+
+    axis: the joint name whose command and deflection are paired (by name in each message, never
+    by position); None: the one axis the bag has.
+    """
     try:
         from piezo_narx_ros.bag.reader import read_uy
     except ImportError:
         raise BagError('bag support not available '
                        '(piezo_narx_ros.bag.reader is missing)') from None
-    record = read_uy(path, command_topic, deflection_topic)
+    record = read_uy(path, command_topic, deflection_topic, axis)
+    record.source = record.source or str(path)
     # Re-validate through the same checks as files so every source obeys one contract.
-    return _make(record.u, record.y, record.fs, record.source or str(path), record.t,
-                 record.y_true)
+    return checked(record, units)
+
+
+def checked(record: Record, units: Units = SI) -> Record:
+    """Return `record` converted by `units` and checked like every loaded record."""
+    return _make(record.u, record.y, record.fs, record.source, record.t, record.y_true, units)
 
 
 def _is_bag(path: Path) -> bool:
@@ -165,34 +394,41 @@ def _is_bag(path: Path) -> bool:
 
 
 def load_record(path, fs: float | None = None, command_topic: str = 'piezo/voltage_command',
-                deflection_topic: str = 'piezo/deflection') -> Record:
-    """One Record from an .npz, .csv, .mcap file or rosbag2 directory (dispatch on the path)."""
+                deflection_topic: str = 'piezo/deflection', columns: dict | None = None,
+                units: Units = SI, axis: str | int | None = None) -> Record:
+    """
+    Load one Record from an .npz, a text table, an .mcap file or a rosbag2 directory.
+
+    Dispatch on the path; text tables are .csv, .tsv, .txt and .dat. columns: `parse_columns`
+    result for text tables; units: how to read u, y and t (ident.units.Units: --u-unit,
+    --y-unit, --y-scale, --t-unit); axis: a bag's joint name.
+    """
     path = Path(path)
     if not path.exists():
         raise DataError(f'{path}: no such file or directory')
     if _is_bag(path):
-        return load_bag(path, command_topic, deflection_topic)
+        return load_bag(path, command_topic, deflection_topic, axis, units)
     if path.is_dir():
         raise DataError(f'{path}: a directory but not a rosbag2 bag (no metadata.yaml or .mcap)')
     suffix = path.suffix.lower()
     if suffix == '.npz':
-        return load_npz(path, fs)
-    if suffix == '.csv':
-        return load_csv(path, fs)
+        return load_npz(path, fs, units)
+    if suffix in TABLE_SUFFIXES:
+        return load_csv(path, fs, columns, units)
     raise DataError(f'{path}: unknown input type {suffix or "(no suffix)"}; '
-                    f'use .npz, .csv, .mcap or a rosbag2 directory')
+                    f'use .npz, {", ".join(TABLE_SUFFIXES)}, .mcap or a rosbag2 directory')
 
 
-RECORDING_SUFFIXES = ('.npz', '.csv', '.mcap')
+RECORDING_SUFFIXES = ('.npz', '.mcap') + TABLE_SUFFIXES
 
 
 def expand_inputs(paths) -> list[Path]:
     """
     Input paths with each folder of recordings replaced by the recordings in it, sorted by name.
 
-    rosbag2 bags (directories or .mcap files), .npz and .csv files. A folder that is itself a bag
-    stays one input; an .npz beside a .json of the same stem is a model's weights and is left out.
-    DataError for a folder holding no recording.
+    rosbag2 bags (directories or .mcap files), .npz files and text tables. A folder that is
+    itself a bag stays one input; an .npz beside a .json of the same stem is a model's weights
+    and is left out. DataError for a folder holding no recording.
     """
     if isinstance(paths, (str, Path)):
         paths = [paths]
@@ -208,21 +444,22 @@ def expand_inputs(paths) -> list[Path]:
                  and not (p.suffix.lower() == '.npz' and p.with_suffix('.json').is_file())]
         if not found:
             raise DataError(f'{path}: a directory that is neither a rosbag2 bag nor a folder of '
-                            'recordings (no bag, .mcap, .npz or .csv in it)')
+                            'recordings (no bag, .mcap, .npz or text table in it)')
         out += found
     return out
 
 
 def load_records(paths, fs: float | None = None, command_topic: str = 'piezo/voltage_command',
-                 deflection_topic: str = 'piezo/deflection') -> list[Record]:
+                 deflection_topic: str = 'piezo/deflection', columns: dict | None = None,
+                 units: Units = SI, axis: str | int | None = None) -> list[Record]:
     """
-    Load the records from every path.
+    Load the records from every path (options as `load_record`, the same for each).
 
-    A folder of recordings gives each one in it (`expand_inputs`).
-
-    All must share one sample rate (Hz), else DataError.
+    A folder of recordings gives each one in it (`expand_inputs`). All must share one sample
+    rate (Hz), hold different samples (a bag and its own export fitted together count twice)
+    and be in the same units (`units.check_consistent`), else DataError.
     """
-    records = [load_record(p, fs, command_topic, deflection_topic)
+    records = [load_record(p, fs, command_topic, deflection_topic, columns, units, axis)
                for p in expand_inputs(paths)]
     if not records:
         raise DataError('no input files given')
@@ -231,7 +468,93 @@ def load_records(paths, fs: float | None = None, command_topic: str = 'piezo/vol
         if not np.isclose(r.fs, first.fs, rtol=1e-6):
             raise DataError(f'sample rates differ: {first.source} has {first.fs:g} Hz, '
                             f'{r.source} has {r.fs:g} Hz')
+    seen = {}
+    for r in records:
+        key = (len(r), hashlib.sha256(r.u.tobytes() + r.y.tobytes()).hexdigest())
+        if key in seen:
+            raise DataError(f'{r.source} holds the same samples as {seen[key]} (a bag and its '
+                            'export?): give each recording once')
+        seen[key] = r.source
+    check_consistent(records)
     return records
+
+
+@dataclass
+class RecordedSignal:
+    """One input signal read from a file for playback: volts as recorded and its own rate."""
+
+    u: np.ndarray            # (N,) V, as in the file
+    fs: float | None         # Hz from the file (fs key or time column); None when it has none
+    source: str
+    issues: list = field(default_factory=list)   # warning lines (gaps, jitter of its t column)
+
+
+def read_signal(path, column: str | int | None = None, key: str = 'u',
+                error=ConfigError) -> RecordedSignal:
+    """
+    Read the input signal of a recording, for playback: an .npz key or a text table column.
+
+    .npz: key `key` (default u) with fs or t for the rate. Text tables: `column` (a header name
+    or a 1-based number), else the column `pick_columns` calls u (header u, or the 2nd of a
+    headerless t,u,y, the 1st of u,y or of a single column); its t column gives the rate. Errors
+    are `error` (ConfigError for a node parameter) naming the file.
+    """
+    path = Path(path)
+    source = str(path)
+    try:
+        if path.suffix.lower() == '.npz':
+            data = read_npz(path, error=error)
+            if key not in data:
+                raise error(f'playback file {path} has no key {key!r} (keys: {", ".join(data)})')
+            u = data[key]
+            fs = _fs_value(data['fs'], source) if 'fs' in data else None
+            t = data.get('t')
+        elif path.suffix.lower() in TABLE_SUFFIXES:
+            names, table = read_table(path)
+            if isinstance(column, str) and column.strip().isdigit():
+                column = int(column)
+            wanted = None if column is None or column == '' else {'u': column}
+            if isinstance(column, str) and wanted:
+                wanted = {'u': column.strip().lower()}
+            cols = pick_columns(names, table.shape[1], wanted, source)
+            if 'u' not in cols:
+                raise DataError(f'{source}: no column u (header: {", ".join(names or [])}); '
+                                'choose one with the column parameter')
+            u, t, fs = table[:, cols['u']], None, None
+            if not wanted and 't' in cols:
+                t = table[:, cols['t']]
+            elif wanted and names and 't' in names:
+                t = table[:, names.index('t')]
+        else:
+            raise error(f'playback file {path} must be .npz or a text table '
+                        f'({", ".join(TABLE_SUFFIXES)})')
+        u = np.asarray(u)
+        if u.dtype.kind not in 'fiu':
+            raise DataError(f'{source}: {key} is not numeric')
+        u = u.astype(np.float64)
+        if u.ndim == 2 and 1 in u.shape:
+            u = u.reshape(-1)
+        if u.ndim != 1 or u.size < 1:
+            raise DataError(f'{source}: the signal must be a non-empty 1-D array, got shape '
+                            f'{u.shape}')
+        if not np.all(np.isfinite(u)):
+            raise DataError(f'{source}: the signal has non-finite values')
+        issues = []
+        if t is not None:
+            t = _vector('t', t, source)
+            if t.size != u.size:
+                raise DataError(f'{source}: t has {t.size} samples but the signal {u.size}')
+            clock = time_clock(t, source, warn=False)
+            issues = clock.issues(source)
+            if fs is not None and not np.isclose(clock.fs, fs, rtol=TIME_RATE_RTOL):
+                raise DataError(f'{source}: its t column steps at {clock.fs:.6g} Hz but its fs '
+                                f'key says {fs:g} Hz')
+            fs = fs if fs is not None else clock.fs
+    except DataError as exc:
+        if error is DataError:
+            raise
+        raise error(f'playback file: {exc}') from None
+    return RecordedSignal(u, fs, source, issues)
 
 
 def check_length(record: Record, n0: int, max_lag: int = 20, what: str = 'lags') -> None:

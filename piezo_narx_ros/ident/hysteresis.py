@@ -27,15 +27,24 @@ from collections import deque
 
 import numpy as np
 
-from ..errors import DataError
+import math
+
+from ..errors import ConfigError, DataError, ModelFileError
+from . import document
 from . import hysteresis_kernels as hk
-from .base import DynamicModel, Interval, Tuple, as_record_list, check_parameters
+from .base import (DynamicModel, Interval, Tuple, as_record_list, check_parameters,
+                   register_family)
 from .kernels import _finite_input, _history
 
 #: Creep time constants (s): log-spaced from the mode's scale to the longest drift a record shows.
 DEFAULT_CREEP_TAUS = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
+# Weight arrays of the model file, in the order of the parameter vector theta_.
+_FILE_PARTS = ('W1', 'b1', 'w2', 'c', 'duhem', 'drive', 'g', 'a', 'b', 'y_off')
+# Structure keys that are constructor arguments.
+_FILE_STRUCTURE = ('hidden', 'n_plays', 'n_duhem', 'n_lags', 'na', 'nb', 'creep_taus')
 
 
+@register_family
 class HysteresisNARX(DynamicModel):
     """
     Sigmoid network over hysteresis-operator states + creep + linear output dynamics.
@@ -53,6 +62,7 @@ class HysteresisNARX(DynamicModel):
     """
 
     kind = 'hysteresis_narx'
+    file_format_version = 2     # the kind was added in format version 2
     activation = 'logistic'
     state_from_input = True
     _parameter_constraints = {
@@ -268,6 +278,77 @@ class HysteresisNARX(DynamicModel):
         """
         self._require_fitted()
         return HysteresisStepper(self, u_past, y_past)
+
+    # ------------------------------------------------------------------ model file and export
+    def file_document(self):
+        """Return the envelope family's blocks of the model file (structure, scales, training)."""
+        return {'structure': {'kind': self.kind, 'hidden': self.hidden, 'n_plays': self.n_plays,
+                              'n_duhem': self.n_duhem, 'n_lags': self.n_lags, 'na': self.na,
+                              'nb': self.nb, 'creep_taus': list(self.creep_taus),
+                              'activation': self.activation, 'nu': self.nu, 'ny': self.ny,
+                              'n_params': self.n_params},
+                'normalisation': {'u_scale': self.u_scale_, 'y_scale': self.y_scale_},
+                'training': {'seed': self.seed, 'options': self.params_dict(),
+                             'info': self.training_info_,
+                             'method': 'output-error Levenberg-Marquardt'}}
+
+    def _file_shapes(self):
+        """Return {weight array name: shape} of the model file (theta_ split by its layout)."""
+        lay, _ = hk.layout(self.hidden, self.n_inputs, self.n_duhem, len(self.creep_taus),
+                           self.na, self.nb)
+        shapes = {k: (hi - lo,) for k, (lo, hi) in lay.items()}
+        shapes['W1'] = (self.hidden, self.n_inputs)
+        shapes['duhem'] = (self.n_duhem, 6)
+        return lay, shapes
+
+    def file_weights(self):
+        """Return theta_ split into its named parts (shapes as in the layout) and radii_."""
+        lay, shapes = self._file_shapes()
+        out = {k: self.theta_[lo:hi].reshape(shapes[k]) for k, (lo, hi) in lay.items()}
+        out['radii'] = self.radii_
+        return out
+
+    @classmethod
+    def from_file_document(cls, doc, arrays, name, wpath, fs):
+        """Return the HysteresisNARX of a model file (see DynamicModel.from_file_document)."""
+        struct = document.get(doc, 'structure', name, (dict,))
+        missing = [k for k in _FILE_STRUCTURE if k not in struct]
+        if missing:
+            raise ModelFileError(f'{name}: missing key {"structure." + missing[0]!r}')
+        try:
+            values = check_parameters(cls, {k: struct[k] for k in _FILE_STRUCTURE})
+        except ConfigError as exc:
+            raise ModelFileError(f'{name}: structure.{exc}') from None
+        act = document.get(doc, 'structure.activation', name, (str,))
+        if act != cls.activation:
+            raise ModelFileError(f'{name}: unsupported activation {act!r} (only logistic)')
+        if fs is None or not math.isfinite(fs):
+            raise ModelFileError(f'{name}: a hysteresis_narx model needs a finite fs (its creep '
+                                 f'time constants are in seconds), got {fs!r}')
+        u_scale = document.get(doc, 'normalisation.u_scale', name, (int, float))
+        y_scale = document.get(doc, 'normalisation.y_scale', name, (int, float))
+        if not (math.isfinite(u_scale) and math.isfinite(y_scale) and u_scale > 0
+                and y_scale > 0):
+            raise ModelFileError(f'{name}: normalisation u_scale and y_scale must be finite '
+                                 'and > 0')
+        training = document.training_block(doc)
+        seed = training.get('seed', 0)
+        model = cls(**values, seed=seed if isinstance(seed, int) and seed >= 0 else 0)
+        _, shapes = model._file_shapes()
+        theta = np.concatenate([document.weight_array(arrays, k, shapes[k], wpath).ravel()
+                                for k in _FILE_PARTS])
+        radii = document.weight_array(arrays, 'radii', (model.n_plays,), wpath)
+        model.set_theta(theta, u_scale, y_scale, radii, fs)
+        if np.any(np.abs(model.output_poles) >= 1.0):
+            raise ModelFileError(f'{wpath}: the output dynamics are unstable (a root of A(q) '
+                                 f'has modulus {np.max(np.abs(model.output_poles)):.4f} >= 1)')
+        model.training_info_ = training.get('info') or {}
+        return model
+
+    def c_emitter(self):
+        """Return the C emitter of this model (piezo_narx_ros.ident.hysteresis_export)."""
+        from .hysteresis_export import HysteresisEmitter
+        return HysteresisEmitter(self)
 
     def __repr__(self):
         return (f'HysteresisNARX(hidden={self.hidden}, n_plays={self.n_plays}, '

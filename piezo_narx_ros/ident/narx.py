@@ -11,8 +11,9 @@ import time
 
 import numpy as np
 
-from ..errors import ConfigError, DataError
-from .base import as_record_list
+from ..errors import ConfigError, DataError, ModelFileError
+from . import document
+from .base import as_record_list, register_family
 from .kernels import NARXStepper, narx_predict, narx_simulate
 from .regressors import LaggedModel, as_signal, check_orders
 
@@ -59,6 +60,7 @@ def _check_options(options):
     return merged
 
 
+@register_family
 class NARXNetwork(LaggedModel):
     """
     Single-hidden-layer sigmoid NARX model (scikit-learn style fit/predict/simulate).
@@ -191,6 +193,48 @@ class NARXNetwork(LaggedModel):
     def _make_stepper(self, u_past, y_past):
         return NARXStepper((self._Wu, self._Wy, self._b1r, self._w2r, self._b2r),
                            self.nu, self.ny, u_past, y_past)
+
+    # ------------------------------------------------------------------ model file and export
+    def file_document(self):
+        """Return the NARX blocks of the model file (structure, normalisation, training)."""
+        return {'structure': {'kind': 'narx', 'nu': self.nu, 'ny': self.ny,
+                              'hidden': self.hidden, 'activation': self.activation,
+                              'output': 'linear', 'n_params': self.n_params},
+                'normalisation': dict(zip(('u_mean', 'u_std', 'y_mean', 'y_std'),
+                                          self.normalisation.tolist())),
+                'training': {'seed': self.seed, 'options': self.training_options,
+                             'info': self.training_info_}}
+
+    def file_weights(self):
+        """Return W1, b1, w2, b2 (1,) and the normalisation (4,) as written to the .npz."""
+        return {'W1': self.W1, 'b1': self.b1, 'w2': self.w2, 'b2': np.array([self.b2]),
+                'normalisation': self.normalisation}
+
+    @classmethod
+    def from_file_document(cls, doc, arrays, name, wpath, fs):
+        """Return the NARXNetwork of a model file (see DynamicModel.from_file_document)."""
+        nu = document.get_int(doc, 'structure.nu', name, 0)
+        ny = document.get_int(doc, 'structure.ny', name, 1)
+        hidden = document.get_int(doc, 'structure.hidden', name, 1)
+        act = document.get(doc, 'structure.activation', name, (str,))
+        if act != cls.activation:
+            raise ModelFileError(f'{name}: unsupported activation {act!r} (only logistic)')
+        training = document.training_block(doc)
+        seed = training.get('seed', 0)
+        model = cls(nu, ny, hidden, seed=seed if isinstance(seed, int) else 0)
+        d = nu + 1 + ny
+        model.set_weights(document.weight_array(arrays, 'W1', (hidden, d), wpath),
+                          document.weight_array(arrays, 'b1', (hidden,), wpath),
+                          document.weight_array(arrays, 'w2', (hidden,), wpath),
+                          document.weight_array(arrays, 'b2', (1,), wpath)[0],
+                          document.weight_array(arrays, 'normalisation', (4,), wpath))
+        model.training_info_ = training.get('info') or {}
+        return model
+
+    def c_emitter(self):
+        """Return the C emitter of this model (piezo_narx_ros.ident.narx_export)."""
+        from .narx_export import NARXEmitter
+        return NARXEmitter(self)
 
     def __repr__(self):
         return f'NARXNetwork(nu={self.nu}, ny={self.ny}, hidden={self.hidden}, seed={self.seed})'

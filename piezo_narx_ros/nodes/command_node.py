@@ -10,9 +10,15 @@ node only turns ticks into `poll()` calls and samples into messages: a timer's t
 as a process on the monotonic clock, timed waits in run_node's spin loop (cheaper at kHz). In
 position mode the same signal kinds are streamed in metres: amplitude, offset, u_min, u_max
 (clamp) and slew_rate are then in m and m/s. `running` can be set at run time to pause/resume,
-directly or through the ~/set_running service (std_srvs/SetBool); `wait_for_subscribers` holds
-the first sample until the listeners are matched, so that a recording or an estimator sees
-sample 0.
+directly or through the ~/set_running service (std_srvs/SetBool); paused, the node keeps
+publishing the last command at every sample (`hold_while_paused`, default true), as the amplifier
+holds it, so that the simulator, a driver and the estimator see the hold instead of a stream
+that stops and restarts; `wait_for_subscribers` holds the first sample until the listeners are
+matched, so that a recording or an estimator sees sample 0.
+
+`kind:=playback` replays a file as recorded (command.playback): its volts, at its own rate,
+once; only the playback_* parameters and resample change it (amplitude, offset, seconds and loop
+belong to the generated signals, and a launch file's params file sets them).
 
 Time: stamps come from the node clock. With use_sim_time:=true the samples are also paced on it
 (the /clock of a simulator or of `player_node clock:=true`): none is published before the first
@@ -23,14 +29,17 @@ from __future__ import annotations
 
 import time
 
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.parameter import Parameter
 from std_srvs.srv import SetBool
 
+from piezo_narx_ros.command.playback import playback_signal
 from piezo_narx_ros.command.stream import CommandStreamer, make_signal
 from piezo_narx_ros.errors import ConfigError
-from piezo_narx_ros.nodes.common import (DIAG_OK, DIAG_WARN, TOPIC_COMMAND, TOPIC_REFERENCE,
-                                         Diagnostics, ParamSpec, PiezoNode, encode_joint_state,
-                                         main_for)
+from piezo_narx_ros.nodes.common import (DIAG_ERROR, DIAG_OK, DIAG_WARN, TOPIC_COMMAND,
+                                         TOPIC_REFERENCE, Diagnostics, ParamSpec, PiezoNode,
+                                         encode_joint_state, main_for)
+from piezo_narx_ros.nodes.graph import same_name_problem
 from piezo_narx_ros.plant.signals import KINDS
 
 OUTPUTS = ('voltage', 'position')
@@ -47,7 +56,9 @@ class CommandNode(PiezoNode):
         ParamSpec('output', 'voltage', 'voltage: voltage_command (effort, V); position: '
                   'position_reference (position, m) for controller_node', choices=OUTPUTS,
                   read_only=True),
-        ParamSpec('fs', 2000.0, 'sample rate, Hz', low=1.0, high=100000.0, read_only=True),
+        ParamSpec('fs', 2000.0, "sample rate, Hz (playback: the file's own rate; fs for a file "
+                  'without one, or as the target of resample)', low=1.0, high=100000.0,
+                  read_only=True),
         ParamSpec('axes', ['x'], 'axis names (one signal per axis, axis i seeded seed + i)',
                   read_only=True, check=_nonempty),
         ParamSpec('kind', 'multisine', 'signal kind', choices=KINDS, read_only=True),
@@ -73,7 +84,19 @@ class CommandNode(PiezoNode):
         ParamSpec('min_hold', 0.01, 'APRBS shortest hold, s', low=1e-6, high=3600.0,
                   read_only=True),
         ParamSpec('max_hold', 0.5, 'APRBS longest hold, s', low=1e-6, high=3600.0, read_only=True),
-        ParamSpec('path', '', 'playback: .npz/.csv file with the voltage record', read_only=True),
+        ParamSpec('path', '', 'playback: the recording to replay (.npz, or a text table read '
+                  'as fit reads it)', read_only=True),
+        ParamSpec('column', '', 'playback: the table column to play, a header name or 1-based '
+                  'number (empty: the u column)', read_only=True),
+        ParamSpec('key', 'u', 'playback: the .npz key to play', read_only=True),
+        ParamSpec('resample', False, 'playback: resample a file recorded at another rate to fs '
+                  '(linear); false plays it at its own rate', read_only=True),
+        ParamSpec('playback_scale', 1.0, 'playback: factor on the recorded values (1: as '
+                  'recorded)', low=-1e6, high=1e6, read_only=True),
+        ParamSpec('playback_offset', 0.0, 'playback: added to the recorded values, V (m in '
+                  'position mode)', low=-1000.0, high=1000.0, read_only=True),
+        ParamSpec('playback_loop', False, 'playback: repeat the file (it jumps from its last '
+                  'sample to its first); false: play it once', read_only=True),
         ParamSpec('cycles', 2, 'protocol: repeats of its section sequence', low=1, high=1000,
                   read_only=True),
         ParamSpec('slow_freq', 0.5, 'protocol: slow-loop frequency, Hz', low=1e-6, high=50000.0,
@@ -84,8 +107,12 @@ class CommandNode(PiezoNode):
                   read_only=True),
         ParamSpec('slew_rate', 0.0, 'largest command rate of change, V/s (0: no limit)',
                   low=0.0, high=1e12, read_only=True),
-        ParamSpec('loop', True, 'repeat the signal; false: stop after one period', read_only=True),
+        ParamSpec('loop', True, 'repeat the signal; false: stop after one period (playback: see '
+                  'playback_loop)', read_only=True),
         ParamSpec('running', True, 'stream now; set false to pause, true to resume'),
+        ParamSpec('hold_while_paused', True, 'paused, publish the last command at every sample '
+                  '(the amplifier holds it); false: publish nothing (listeners see the stream '
+                  'stop, and a new one when it resumes)', read_only=True),
         ParamSpec('wait_for_subscribers', 0, 'start only when this many subscriptions are matched',
                   low=0, high=1000, read_only=True),
         ParamSpec('publish_period', 0.0, 'publishing period, s (0: one tick per sample; larger '
@@ -101,13 +128,23 @@ class CommandNode(PiezoNode):
             raise ConfigError(f"parameter u_min ({p['u_min']} V) must be below u_max "
                               f"({p['u_max']} V)")
         self.axes = list(p['axes'])
-        options = {k: p[k] for k in ('freq', 'f_min', 'f_max', 'spectrum', 'f0', 'min_hold',
-                                     'max_hold', 'u_min', 'u_max', 'cycles', 'slow_freq')}
-        options['f1'] = p['f1'] or None
-        options['path'] = p['path'] or None
-        signal = make_signal(p['kind'], p['fs'], p['seconds'], p['amplitude'], p['offset'],
-                             p['seed'], len(self.axes), **options)
-        self.streamer = CommandStreamer(signal, p['fs'], loop=p['loop'], u_min=p['u_min'],
+        fs, loop = p['fs'], p['loop']
+        if p['kind'] == 'playback':
+            play = playback_signal(p['path'], len(self.axes), p['fs'], p['column'] or None,
+                                   p['key'], p['resample'], p['playback_scale'],
+                                   p['playback_offset'], p['playback_loop'], p['u_min'],
+                                   p['u_max'])
+            signal, fs, loop = play.signal, play.fs, play.loop
+            for note in play.notes:
+                self.get_logger().warning(note)
+        else:
+            options = {k: p[k] for k in ('freq', 'f_min', 'f_max', 'spectrum', 'f0', 'min_hold',
+                                         'max_hold', 'u_min', 'u_max', 'cycles', 'slow_freq')}
+            options['f1'] = p['f1'] or None
+            signal = make_signal(p['kind'], fs, p['seconds'], p['amplitude'], p['offset'],
+                                 p['seed'], len(self.axes), **options)
+        self.fs = fs
+        self.streamer = CommandStreamer(signal, fs, loop=loop, u_min=p['u_min'],
                                         u_max=p['u_max'],
                                         slew_rate=p['slew_rate'] or float('inf'),
                                         max_burst=p['max_burst'])
@@ -118,24 +155,38 @@ class CommandNode(PiezoNode):
         self.position = p['output'] == 'position'
         self.pub = self.sample_publisher(TOPIC_REFERENCE if self.position else TOPIC_COMMAND)
         self.add_post_set_parameters_callback(self._on_set)
+        self.add_on_set_parameters_callback(self._keep_clock)
         self.srv_running = self.create_service(SetBool, '~/set_running', self.on_set_running)
-        period = p['publish_period'] or 1.0 / p['fs']
+        period = p['publish_period'] or 1.0 / fs
         self._period_ns = int(p['publish_period'] * 1e9)
         self._next_wake = 0      # monotonic ns; used when run_node paces the node (pace())
         self.timer = self.create_timer(period, self.on_tick)
         self.diagnostics = Diagnostics(self, self.status, task='command stream')
         unit = 'm' if self.position else 'V'
         self.get_logger().info(
-            f"{p['kind']} {p['output']} on {self.axes} at {p['fs']:g} Hz, {signal.shape[0]} "
-            f"samples per {'loop' if p['loop'] else 'run'}, limits [{p['u_min']:g}, "
+            f"{p['kind']} {p['output']} on {self.axes} at {fs:g} Hz, {signal.shape[0]} "
+            f"samples per {'loop' if loop else 'run'}, limits [{p['u_min']:g}, "
             f"{p['u_max']:g}] {unit}")
+
+    def _keep_clock(self, params) -> SetParametersResult:
+        """Refuse use_sim_time at run time: pacing (and /diagnostics) follow the start's clock."""
+        for q in params:
+            if q.name == 'use_sim_time' and bool(q.value) != self.sim_time:
+                return SetParametersResult(
+                    successful=False, reason='use_sim_time is read at start-up (the samples are '
+                    'paced on that clock); restart the node with -p use_sim_time:=...')
+        return SetParametersResult(successful=True)
 
     def _on_set(self, params) -> None:
         for q in params:
             if q.name == 'running':
                 self.want_running = bool(q.value)
-                if not self.want_running:
+                if not self.want_running and self.params['hold_while_paused']:
+                    self.streamer.hold()
+                elif not self.want_running:
                     self.streamer.stop()
+                else:
+                    self.streamer.resume()
 
     def on_set_running(self, request, response):
         """
@@ -213,13 +264,19 @@ class CommandNode(PiezoNode):
 
     def status(self):
         s = self.streamer
-        state = ('finished' if s.finished else 'running' if s.running else
+        state = ('finished' if s.finished else
+                 'paused, holding the last command' if s.holding else
+                 'running' if s.running else
                  'paused' if not self.want_running else
                  'waiting for /clock' if self._pace_ns() is None else 'waiting for subscribers')
         level = DIAG_WARN if state.startswith('waiting') else DIAG_OK
+        clash = same_name_problem(self, TOPIC_REFERENCE if self.position else TOPIC_COMMAND)
+        if clash:
+            level, state = DIAG_ERROR, f'{clash}; {state}'
         return level, state, {'published': s.published, 'position': s.position,
                               'late_ticks': s.late_polls, 'max_batch': s.max_batch,
                               'fs': s.fs, 'subscribers': self.pub.get_subscription_count(),
+                              'holding': s.holding,
                               'clock': 'sim' if self.sim_time else 'steady',
                               'output': self.params['output'],
                               'clock_jumps': self.clock_jumps}

@@ -14,12 +14,14 @@ import math
 
 from std_srvs.srv import Trigger
 
-from piezo_narx_ros.control.controller import MODES, PositionController
+from piezo_narx_ros.command.stamps import RATE_TOLERANCE
+from piezo_narx_ros.control.controller import MODES, PositionController, input_limits
 from piezo_narx_ros.control.health import ControllerHealth
 from piezo_narx_ros.control.inverse import TARGETS
 from piezo_narx_ros.nodes.common import (DIAG_WARN, TOPIC_COMMAND, TOPIC_DEFLECTION,
                                          TOPIC_REFERENCE, Diagnostics, ParamSpec, PiezoNode,
                                          decode_joint_state, encode_joint_state, main_for)
+from piezo_narx_ros.nodes.graph import EpisodeLog, same_name_problem
 
 
 class ControllerNode(PiezoNode):
@@ -34,8 +36,11 @@ class ControllerNode(PiezoNode):
                   read_only=True),
         ParamSpec('axis', 'x', 'axis read from position_reference/deflection and commanded',
                   read_only=True, check=(lambda v: bool(v.strip()), 'must not be empty')),
-        ParamSpec('fs', 0.0, "reference sample rate, Hz (0: the model file's fs)", low=0.0,
-                  high=100000.0, read_only=True),
+        ParamSpec('fs', 0.0, "reference sample rate, Hz (0: the model file's fs; any other "
+                  'value must equal it)', low=0.0, high=100000.0, read_only=True),
+        ParamSpec('rate_tolerance', RATE_TOLERANCE, 'relative difference between the reference '
+                  "stream's stamp rate and the model's beyond which no command is sent (ERROR)",
+                  low=1e-6, high=0.5, read_only=True),
         ParamSpec('target', 'auto', 'what the inverse solves for: output (the next model '
                   'output), quasi_static (hysteresis + creep only) or auto (quasi_static for a '
                   'hysteresis_narx model, else output)', choices=('auto',) + TARGETS,
@@ -43,9 +48,10 @@ class ControllerNode(PiezoNode):
         ParamSpec('compensate_advance', True, 'ask for the lead of the output over the '
                   'quasi-static target (estimated from the model) to be taken off',
                   read_only=True),
-        ParamSpec('u_min', -200.0, 'lowest command, V', low=-10000.0, high=10000.0,
-                  read_only=True),
-        ParamSpec('u_max', 200.0, 'highest command, V', low=-10000.0, high=10000.0,
+        ParamSpec('u_min', 0.0, "lowest command, V (u_min = u_max = 0: the model's trained "
+                  'input range widened by range_margin, so that no command leaves what the '
+                  'model was fitted on)', low=-10000.0, high=10000.0, read_only=True),
+        ParamSpec('u_max', 0.0, 'highest command, V', low=-10000.0, high=10000.0,
                   read_only=True),
         ParamSpec('slew_rate', 1e5, 'largest command rate of change, V/s (0: no limit)',
                   low=0.0, high=1e12, read_only=True),
@@ -54,8 +60,9 @@ class ControllerNode(PiezoNode):
                   read_only=True),
         ParamSpec('y_max', 0.0, 'highest accepted reference, m', low=-1.0, high=1.0,
                   read_only=True),
-        ParamSpec('range_margin', 0.05, 'fraction of the trained output span accepted beyond '
-                  'it (when y_min = y_max = 0)', low=0.0, high=10.0, read_only=True),
+        ParamSpec('range_margin', 0.05, 'fraction of the trained output (input) span accepted '
+                  'beyond it when y_min = y_max = 0 (u_min = u_max = 0)', low=0.0, high=10.0,
+                  read_only=True),
         ParamSpec('kp', 0.0, 'inverse_feedback: proportional gain on reference - deflection '
                   '(m/m)', low=0.0, high=100.0, read_only=True),
         ParamSpec('ki', 100.0, 'inverse_feedback: integral gain, 1/s', low=0.0, high=1e6,
@@ -80,7 +87,8 @@ class ControllerNode(PiezoNode):
         from piezo_narx_ros.errors import ConfigError
         from piezo_narx_ros.ident.model_io import load_model
         p = self.params
-        if p['u_min'] >= p['u_max']:
+        trained_u = p['u_min'] == p['u_max'] == 0.0
+        if p['u_min'] >= p['u_max'] and not trained_u:
             raise ConfigError(f"parameter u_min ({p['u_min']} V) must be below u_max "
                               f"({p['u_max']} V)")
         if p['mode'] == 'inverse_feedback' and not p['use_deflection']:
@@ -89,13 +97,15 @@ class ControllerNode(PiezoNode):
         limits = ({} if p['y_min'] == p['y_max'] == 0.0
                   else {'y_min': p['y_min'], 'y_max': p['y_max']})
         self.model = load_model(p['model'])
+        u_limits = ({'u_min': p['u_min'], 'u_max': p['u_max']} if not trained_u
+                    else input_limits(self.model, p['range_margin']))
         self.ctl = PositionController(
-            self.model, mode=p['mode'], fs=p['fs'] or None, u_min=p['u_min'], u_max=p['u_max'],
+            self.model, mode=p['mode'], fs=p['fs'] or None, **u_limits,
             slew_rate=p['slew_rate'] or math.inf, range_margin=p['range_margin'],
             target=None if p['target'] == 'auto' else p['target'],
             advance=None if p['compensate_advance'] else 0.0, kp=p['kp'], ki=p['ki'],
             feedback_timeout=p['feedback_timeout'], max_fill=p['max_fill'],
-            window=p['window'], **limits)
+            window=p['window'], rate_tolerance=p['rate_tolerance'], **limits)
         self.ctl.inverse.solve(0.0)   # compile/load the solver kernel before the first sample
         self.ctl.inverse.reset()      # ...and forget that solve (its remembered slope)
         self.axis = p['axis']
@@ -108,6 +118,7 @@ class ControllerNode(PiezoNode):
         self.sub_meas = (self.sample_subscription(TOPIC_DEFLECTION, self.on_measurement)
                          if p['use_deflection'] else None)
         self.health = ControllerHealth(self.ctl)
+        self._error_log = EpisodeLog(self.get_logger())
         # A reference held back for its ambiguous stamp is decided when references stop.
         self._references_at_last_check = 0
         self.flush_timer = self.create_timer(0.2, self.on_idle_check)
@@ -119,7 +130,9 @@ class ControllerNode(PiezoNode):
             f'{p["mode"]} with {type(self.model).__name__} ({p["model"]}) at {c.fs:g} Hz, '
             f'target {c.inverse.target}, advance {c.advance:.3f} samples, static gain '
             f'{c.gain * 1e6:.4g} um/V, references [{c.y_min * 1e6:.1f}, {c.y_max * 1e6:.1f}] '
-            f'um, commands [{p["u_min"]:g}, {p["u_max"]:g}] V')
+            f'um, commands [{u_limits["u_min"]:g}, {u_limits["u_max"]:g}] V')
+        for note in c.notes:
+            self.get_logger().warning(note)
 
     def on_wait_check(self) -> None:
         """Subscribe to the references once the commands have their listeners."""
@@ -183,8 +196,11 @@ class ControllerNode(PiezoNode):
     def status(self):
         """Everything since the previous tick (ControllerHealth)."""
         waiting = self.sub_ref is None
-        level, msg, values = self.health.tick(None if waiting else
-                                              self.sub_ref.get_publisher_count())
+        writers = None if waiting else self.sub_ref.get_publisher_count()
+        self.ctl.rate.single_writer = writers == 1
+        clash = same_name_problem(self, TOPIC_COMMAND)
+        level, msg, values = self.health.tick(writers, [clash] if clash else [])
+        self._error_log.status(level, msg)
         if self.sub_meas is not None:
             values['measurement_publishers'] = self.sub_meas.get_publisher_count()
         values['command_subscribers'] = self.pub.get_subscription_count()

@@ -13,9 +13,11 @@ import math
 
 from std_srvs.srv import Trigger
 
+from piezo_narx_ros.command.stamps import RATE_TOLERANCE
 from piezo_narx_ros.errors import ConfigError
 from piezo_narx_ros.estimator.free_run import INIT_MODES, FreeRunEstimator
 from piezo_narx_ros.estimator.health import EstimatorHealth
+from piezo_narx_ros.nodes.graph import EpisodeLog, same_name_problem
 from piezo_narx_ros.nodes.common import (TOPIC_COMMAND, TOPIC_DEFLECTION, TOPIC_ESTIMATE,
                                          Diagnostics, ParamSpec, PiezoNode, decode_joint_state,
                                          encode_joint_state, main_for)
@@ -30,8 +32,11 @@ class EstimatorNode(PiezoNode):
                   check=(lambda v: bool(v.strip()), 'must name a model file (.json)')),
         ParamSpec('axis', 'x', 'axis read from voltage_command/deflection and published',
                   read_only=True, check=(lambda v: bool(v.strip()), 'must not be empty')),
-        ParamSpec('fs', 0.0, "command sample rate, Hz (0: the model file's fs)", low=0.0,
-                  high=100000.0, read_only=True),
+        ParamSpec('fs', 0.0, "command sample rate, Hz (0: the model file's fs; any other value "
+                  'must equal it)', low=0.0, high=100000.0, read_only=True),
+        ParamSpec('rate_tolerance', RATE_TOLERANCE, 'relative difference between the command '
+                  "stream's stamp rate and the model's beyond which estimates are withheld "
+                  '(ERROR on /diagnostics)', low=1e-6, high=0.5, read_only=True),
         ParamSpec('init', 'auto', 'initial state: rest, measurement (first n0 measured samples), '
                   'or auto (measurement when deflection has a publisher)', choices=INIT_MODES,
                   read_only=True),
@@ -59,7 +64,8 @@ class EstimatorNode(PiezoNode):
         self.est = FreeRunEstimator(
             self.model, fs=p['fs'] or None, init=p['init'], u_min=p['u_min'], u_max=p['u_max'],
             max_fill=p['max_fill'], range_margin=p['range_margin'], window=p['window'],
-            reanchor_every=p['reanchor_every'], init_timeout=p['init_timeout'])
+            reanchor_every=p['reanchor_every'], init_timeout=p['init_timeout'],
+            rate_tolerance=p['rate_tolerance'])
         self.est.model.stepper().step(0.0)   # compile/load the kernel before the first sample
         self.axis = p['axis']
         self.pub = self.sample_publisher(TOPIC_ESTIMATE)
@@ -68,6 +74,7 @@ class EstimatorNode(PiezoNode):
         self.sub_meas = self.sample_subscription(TOPIC_DEFLECTION, self.on_measurement)
         self._names = [self.axis]
         self.health = EstimatorHealth(self.est)
+        self._error_log = EpisodeLog(self.get_logger())
         # A command held back for its ambiguous stamp is decided when commands stop (the stream
         # ended right after a gap); checked a few times a second, nothing to do otherwise.
         self._commands_at_last_check = 0
@@ -126,6 +133,7 @@ class EstimatorNode(PiezoNode):
             return
         if self.est.stats.commands == 0:
             self.est.start(self.sub_meas.get_publisher_count() > 0)
+            self.est.rate.single_writer = self.sub_cmd.get_publisher_count() == 1
         self.publish(self.est.on_command(*got))
 
     def on_measurement(self, msg: bytes) -> None:
@@ -147,7 +155,12 @@ class EstimatorNode(PiezoNode):
 
     def status(self):
         """Everything since the previous tick (EstimatorHealth), plus the running error."""
-        level, msg, values = self.health.tick(self.sub_cmd.get_publisher_count())
+        writers = self.sub_cmd.get_publisher_count()
+        self.est.rate.single_writer = writers == 1
+        clash = same_name_problem(self, TOPIC_ESTIMATE)
+        level, msg, values = self.health.tick(
+            writers, self.count_publishers(self.pub.topic_name), [clash] if clash else [])
+        self._error_log.status(level, msg)
         rms, r2, n = self.est.running_error()
         # Matched deflection publishers: a launcher waits for 1 before streaming, so that the
         # first measured samples (the initial values) are not published before this matches.

@@ -26,8 +26,9 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from piezo_narx_ros.bag.player import (BagSchedule, PlaybackClock, replay_qos, topic_offered_qos,
                                        topic_types)
 from piezo_narx_ros.errors import ConfigError
-from piezo_narx_ros.nodes.common import (DIAG_ERROR, DIAG_OK, SAMPLE_DEPTH, Diagnostics,
-                                         ParamSpec, PiezoNode, main_for, sample_qos)
+from piezo_narx_ros.nodes.common import (DIAG_ERROR, DIAG_OK, DIAG_WARN, SAMPLE_DEPTH,
+                                         Diagnostics, ParamSpec, PiezoNode, main_for,
+                                         sample_qos)
 from piezo_narx_ros.nodes.recorder_node import message_class
 
 
@@ -96,6 +97,7 @@ class PlayerNode(PiezoNode):
         self.late_max_s = 0.0
         self.error = ''
         self.done = False
+        self.state = 'starting'      # 'waiting for subscribers', 'playing' (for /diagnostics)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._play, name='bag-player', daemon=True)
         self._diag = Diagnostics(self, self._status, task='bag playback')
@@ -107,9 +109,11 @@ class PlayerNode(PiezoNode):
         if self._stop.wait(self.params['start_delay_s']):
             return
         need = self.params['wait_for_subscribers']
+        self.state = 'waiting for subscribers'
         while need and any(p.get_subscription_count() < need for p in self._pubs.values()):
             if self._stop.wait(0.02):
                 return
+        self.state = 'playing'
         start = time.monotonic()
         try:
             for due, topic, _, data in self.schedule:
@@ -152,7 +156,10 @@ class PlayerNode(PiezoNode):
                   'passes': self.schedule.passes, 'late_max_s': self.late_max_s}
         if self.error:
             return DIAG_ERROR, f'playback stopped: {self.error}', values
-        return DIAG_OK, 'done' if self.done else 'playing', values
+        if self.state == 'waiting for subscribers' and not self.done:
+            need = self.params['wait_for_subscribers']
+            return DIAG_WARN, f'waiting for {need} subscriber(s) on every topic', values
+        return DIAG_OK, 'done' if self.done else self.state, values
 
     def close(self) -> None:
         """Stop the pacing thread."""

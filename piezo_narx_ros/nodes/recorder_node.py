@@ -14,6 +14,7 @@ SIGINT/SIGTERM close the bag (summary and metadata.yaml); after SIGKILL,
 from __future__ import annotations
 
 import importlib
+import os
 import re
 import sys
 import time
@@ -92,7 +93,10 @@ class RecorderNode(PiezoNode):
         self._wanted = dict(zip(topics, expand_types(topics, p['types'])))
         for kind in set(self._wanted.values()) - {AUTO_TYPE}:
             message_class(kind)  # refuse unknown types at start-up
-        output = p['output'] or datetime.now().strftime('bags/rec_%Y%m%d_%H%M%S')
+        # `output:=~/x` reaches the node unexpanded (no shell expands a ~ after ':='): a folder
+        # named '~' in the working directory was created.
+        output = os.path.expanduser(p['output'] or
+                                    datetime.now().strftime('bags/rec_%Y%m%d_%H%M%S'))
         self.recorder = BagRecorder(output, chunk_period_s=p['chunk_period_s'],
                                     custom_data={'recorded_by': 'piezo_narx_ros recorder_node'})
         self._subs = {}

@@ -4,19 +4,22 @@ simulator_node: the piezo plant answering each voltage_command with a deflection
 One PiezoCantilever per axis. Each command sample advances the plant one period and is answered
 on deflection with the command's stamp (position = measured m, effort = volts applied). Missing
 samples (stamp gaps) advance the plant with the held command, as a real amplifier would hold its
-output; they are not published (no command, no answer). The logic is in PlantResponder, tested
-without DDS.
+output; they are not published (no command, no answer). A command stream whose stamps step at
+another rate than the plant's `fs` is not answered while it lasts (the plant would be stepped
+1/fs per command, whatever the stamps say): ERROR on /diagnostics. The logic is in PlantResponder,
+tested without DDS.
 """
 from __future__ import annotations
 
 import math
 
-from piezo_narx_ros.command.stamps import RESTART, StampGate
+from piezo_narx_ros.command.stamps import RATE_TOLERANCE, RESTART, RateMonitor, StampGate
 from piezo_narx_ros.counters import Since
 from piezo_narx_ros.errors import DataError
-from piezo_narx_ros.nodes.common import (DIAG_OK, DIAG_WARN, TOPIC_COMMAND, TOPIC_DEFLECTION,
-                                         Diagnostics, ParamSpec, PiezoNode,
+from piezo_narx_ros.nodes.common import (DIAG_ERROR, DIAG_OK, DIAG_WARN, TOPIC_COMMAND,
+                                         TOPIC_DEFLECTION, Diagnostics, ParamSpec, PiezoNode,
                                          decode_joint_state, encode_joint_state, main_for)
+from piezo_narx_ros.nodes.graph import EpisodeLog, same_name_problem
 
 
 class PlantResponder:
@@ -27,15 +30,21 @@ class PlantResponder:
     bridged by holding the command. Stamps go through a `command.stamps.StampGate`: an isolated
     outlier stamp is refused (`stamp_outliers`) instead of making every later command look stale,
     and a new stream (a loop, a new run, a jump beyond max_fill) is followed: the plant just
-    continues from its state, as a real one would (`stream_restarts`).
+    continues from its state, as a real one would (`stream_restarts`). A stream at another rate
+    (`rate`, a command.stamps.RateMonitor) still drives the plants, but gets no answer
+    (`rate_withheld`): deflections paired with those stamps would be wrong data.
     """
 
-    def __init__(self, plants: dict, fs: float, max_fill: int = 20000):
+    def __init__(self, plants: dict, fs: float, max_fill: int = 20000,
+                 rate_tolerance: float = RATE_TOLERANCE):
         self.plants = plants
         self.axes = list(plants)
+        self.fs = float(fs)
         self.period_ns = 1e9 / fs
         self.max_fill = max_fill
         self.gate = StampGate(self.period_ns, max_fill)
+        self.rate = RateMonitor(self.period_ns, rate_tolerance)
+        self.rate_withheld = 0
         self.last_t: int | None = None
         self.last_u = dict.fromkeys(self.axes, 0.0)
         self.received = 0
@@ -62,6 +71,7 @@ class PlantResponder:
         (the plant is not touched).
         """
         self.received += 1
+        self.rate.received()
         try:
             u = [float(volts[a]) for a in self.axes]
         except KeyError as exc:
@@ -82,7 +92,9 @@ class PlantResponder:
         for kind, t_ns, u in events:
             if kind == RESTART:
                 self.last_t = None      # no gap to bridge into a new stream
+                self.rate.reset()
                 continue
+            self.rate.observe(t_ns)
             if self.last_t is not None:
                 missing = int(round((t_ns - self.last_t) / self.period_ns)) - 1
                 if missing > 0:
@@ -99,9 +111,17 @@ class PlantResponder:
                 u_out.append(u_app)
                 self.last_u[a] = x
             self.last_t = t_ns
+            if self.rate.off:
+                self.rate_withheld += 1
+                continue
             self.answered += 1
             out.append((t_ns, y_out, u_out))
         return out
+
+    def rate_line(self) -> str:
+        """Return the one line that says why deflections are withheld (the stream's rate)."""
+        return (f'{self.rate.describe("command")}: deflections withheld, the plant is simulated '
+                f'at {self.fs:g} Hz (start simulator_node with -p fs:= the stream rate)')
 
 
 class SimulatorNode(PiezoNode):
@@ -120,6 +140,9 @@ class SimulatorNode(PiezoNode):
                   high=2**31 - 1, read_only=True),
         ParamSpec('max_fill', 20000, 'longest command gap bridged by holding the voltage, '
                   'samples', low=0, high=10**8, read_only=True),
+        ParamSpec('rate_tolerance', RATE_TOLERANCE, 'relative difference between the command '
+                  "stream's stamp rate and fs beyond which no deflection is published (ERROR)",
+                  low=1e-6, high=0.5, read_only=True),
     )
 
     def __init__(self, **kwargs):
@@ -132,7 +155,8 @@ class SimulatorNode(PiezoNode):
         for plant in plants.values():
             plant.step(0.0)   # compile/load the numba kernel now, not on the first command
             plant.reset()
-        self.responder = PlantResponder(plants, p['fs'], p['max_fill'])
+        self.responder = PlantResponder(plants, p['fs'], p['max_fill'], p['rate_tolerance'])
+        self._error_log = EpisodeLog(self.get_logger())
         self.pub = self.sample_publisher(TOPIC_DEFLECTION)
         # Raw CDR bytes in and out (see common.decode_joint_state: 8x cheaper).
         self.sub = self.sample_subscription(TOPIC_COMMAND, self.on_command)
@@ -141,8 +165,9 @@ class SimulatorNode(PiezoNode):
         self.flush_timer = self.create_timer(0.2, self.on_idle_check)
         r = self.responder
         self._since = Since(lambda: {'rejected': r.rejected, 'stamp_outliers': r.stamp_outliers,
-                                     'stream_restarts': r.stream_restarts},
-                            ('rejected', 'stamp_outliers', 'stream_restarts'))
+                                     'stream_restarts': r.stream_restarts,
+                                     'rate_withheld': r.rate_withheld},
+                            ('rejected', 'stamp_outliers', 'stream_restarts', 'rate_withheld'))
         self.diagnostics = Diagnostics(
             self, self.status, task='plant simulation',
             hardware_id=f"simulated cantilever (seed {p['seed']})")
@@ -175,9 +200,17 @@ class SimulatorNode(PiezoNode):
         n = self.responder.received
         if n == self._seen and self.responder.gate.holding:
             self.publish(self.responder.flush())
+        # One writer: more commands than grid points are a faster stream (RateMonitor).
+        self.responder.rate.single_writer = self.sub.get_publisher_count() == 1
         self._seen = n
 
     def status(self):
+        """Log an ERROR status once per episode (see `_status`)."""
+        level, message, values = self._status()
+        self._error_log.status(level[0], message)
+        return level, message, values
+
+    def _status(self):
         """WARN when commands were refused since the previous tick (not forever after one)."""
         r = self.responder
         d = self._since.tick()
@@ -187,7 +220,15 @@ class SimulatorNode(PiezoNode):
             (d['stream_restarts'], 'command stream restart(s) followed')) if n]
         values = {'answered': r.answered, 'rejected': r.rejected, 'gaps': r.gaps,
                   'filled': r.filled, 'stamp_outliers': r.stamp_outliers,
-                  'stream_restarts': r.stream_restarts, 'holding': r.gate.holding}
+                  'stream_restarts': r.stream_restarts, 'holding': r.gate.holding,
+                  'rate_withheld': r.rate_withheld}
+        clash = same_name_problem(self, TOPIC_DEFLECTION)
+        if clash:
+            return DIAG_ERROR, clash, values
+        if r.rate.off or d['rate_withheld']:
+            return DIAG_ERROR, (f'{r.rate_line()} ({d["rate_withheld"]} withheld since the '
+                                'last report)'
+                                + ('; ' + '; '.join(problems) if problems else '')), values
         if problems:
             return DIAG_WARN, '; '.join(problems) + ' since the last report', values
         return DIAG_OK, 'ok', values

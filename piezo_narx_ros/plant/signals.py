@@ -10,12 +10,10 @@ OPTIONS.
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 
 from piezo_narx_ros.errors import ConfigError
-from piezo_narx_ros.npzfile import read_npz
 
 COMMON = {'u_min': -200.0, 'u_max': 200.0, 'slew_rate': math.inf}
 OPTIONS = {
@@ -28,7 +26,8 @@ OPTIONS = {
     'aprbs': {'min_hold': 0.01, 'max_hold': 0.5},                   # s
     # levels x amplitude; hold None: even split
     'steps': {'levels': (0.0, 1.0, 0.0, -1.0, 0.0), 'hold': None},
-    'playback': {'path': None, 'key': 'u', 'column': None, 'file_fs': None},
+    'playback': {'path': None, 'key': 'u', 'column': None, 'file_fs': None, 'resample': False,
+                 'loop': False},
     # The identification protocol (docs/envelope.md): `cycles` repeats of [hold, multisine up to
     # f_max, slow sine at slow_freq decaying from full to a fifth of the amplitude, steps held
     # 0.15-1 s, ramps at 0.2-30 amplitudes/s], each repeat with fresh random draws.
@@ -304,77 +303,42 @@ def _steps(t, fs, opt, rng):
 
 
 def _playback(fs, n, opt):
-    """Read samples from a file: .npz key `key` (default u) or a .csv column (name or index)."""
+    """
+    Return the signal of a file as recorded: volts untouched, at its own rate.
+
+    The same column rules as `fit` (ident.data.read_signal). A file whose rate (fs key or time
+    column, or the file_fs option) is not `fs` is refused unless the `resample` option asks for
+    linear resampling; n samples (seconds given) shorter than the file cut it, longer ones need
+    the `loop` option (the file repeated, with whatever jump its ends make).
+    """
+    from piezo_narx_ros.ident.data import read_signal
     path = opt['path']
     if not path:
         raise ConfigError('signal parameter path (the file to play back) is required for playback')
-    path = Path(path)
-    file_fs = None
-    if path.suffix == '.npz':
-        data = read_npz(path, error=ConfigError)
-        if opt['key'] not in data:
-            raise ConfigError(f'playback file {path} has no key {opt["key"]!r} '
-                              f'(keys: {", ".join(data)})')
-        try:
-            u = np.asarray(data[opt['key']], dtype=float)
-        except (TypeError, ValueError):
-            raise ConfigError(f'playback file {path}: key {opt["key"]!r} is not numeric') from None
-        if 'fs' in data:
-            try:
-                file_fs = float(data['fs'])
-            except (TypeError, ValueError):
-                raise ConfigError(f'playback file {path}: fs is not a number') from None
-    elif path.suffix == '.csv':
-        u = _csv_column(path, opt['column'])
-    else:
-        raise ConfigError(f'playback file {path} must be .npz or .csv')
-    if u.ndim != 1 or u.size < 1:
-        raise ConfigError(f'playback file {path}: the signal must be a non-empty 1-D array, '
-                          f'got shape {u.shape}')
-    if not np.all(np.isfinite(u)):
-        raise ConfigError(f'playback file {path}: the signal has non-finite values')
+    rec = read_signal(path, opt['column'], opt['key'])
+    u, file_fs = rec.u, rec.fs
     if opt['file_fs'] is not None:
-        file_fs = _num('file_fs', opt['file_fs'], 0.0, lo_open=True)
+        given = _num('file_fs', opt['file_fs'], 0.0, lo_open=True)
+        if file_fs is not None and abs(given - file_fs) > 1e-9 * given:
+            raise ConfigError(f'playback file {path} is at {file_fs:g} Hz, not file_fs = '
+                              f'{given:g} Hz')
+        file_fs = given
     if file_fs is not None and abs(file_fs - fs) > 1e-9 * fs:
-        # Linear resampling onto the output rate.
+        if not opt['resample']:
+            raise ConfigError(f'playback file {path} was recorded at {file_fs:g} Hz, not at fs = '
+                              f'{fs:g} Hz: play it at its own rate, or ask for linear '
+                              'resampling (resample)')
         t_file = np.arange(u.size) / file_fs
         _check_size(t_file[-1] * fs, t_file[-1], fs)
         u = np.interp(np.arange(int(round(t_file[-1] * fs)) + 1) / fs, t_file, u)
-    if n is None:
+    if n is None or n == u.size:
         return u
-    return np.resize(u, n)  # loops the file when the requested duration is longer
-
-
-def _csv_column(path, column):
-    try:
-        with open(path, encoding='utf-8-sig') as fh:   # -sig: a spreadsheet's byte-order mark
-            header = fh.readline().strip().split(',')
-        has_header = any(not _is_float(h) for h in header)
-        data = np.loadtxt(path, delimiter=',', skiprows=1 if has_header else 0, ndmin=2,
-                          encoding='utf-8-sig')
-    except (OSError, ValueError) as exc:
-        raise ConfigError(f'cannot read playback file {path}: {exc}') from None
-    names = [h.strip() for h in header] if has_header else []
-    if column is None:
-        column = 'u' if 'u' in names else 0
-    if isinstance(column, str) and not column.isdigit():
-        if column not in names:
-            raise ConfigError(f'playback file {path} has no column {column!r} '
-                              f'(columns: {", ".join(names)})')
-        idx = names.index(column)
-    else:
-        idx = int(column)
-    if not 0 <= idx < data.shape[1]:
-        raise ConfigError(f'playback file {path} has no column {idx} ({data.shape[1]} columns)')
-    return data[:, idx]
-
-
-def _is_float(text):
-    try:
-        float(text)
-        return True
-    except ValueError:
-        return False
+    if n < u.size:
+        return u[:n]
+    if not opt['loop']:
+        raise ConfigError(f'playback: {n} samples asked for but {path} holds {u.size}; ask for '
+                          'loop to repeat it')
+    return np.resize(u, n)  # the file repeated
 
 
 def _growing_sine(t, fs, opt, rng):

@@ -21,6 +21,7 @@ from typing import Callable
 
 import numpy as np
 
+from piezo_narx_ros.command.stamps import RateMonitor
 from piezo_narx_ros.errors import ConfigError, DataError
 from piezo_narx_ros.rig import protocol
 from piezo_narx_ros.rig.limits import SlewLimiter, Watchdog
@@ -125,6 +126,10 @@ class RigDriver:
         self._send_bytes = send
         self.limiter = SlewLimiter(config.v_min, config.v_max, config.max_slew_rate, config.n_axes)
         self.watchdog = Watchdog(config.watchdog_timeout)
+        # The commands' stamp rate against sample_rate: only reported (an ERROR while they
+        # differ); the rig keeps being driven, since refusing commands would trip the watchdog.
+        self.rate = RateMonitor(1e9 / config.sample_rate)
+        self._last_stamp: int | None = None
         self.state = STATE_IDLE
         self.counts = dict.fromkeys(COUNTERS, 0)
         self._seq = seq0 % protocol.SEQ_MODULO
@@ -165,8 +170,16 @@ class RigDriver:
             self.counts['commands_slewed'] += slewed
             self.watchdog.feed(now)
             self.state = STATE_STREAMING
+            self._observe_stamp(int(stamp_ns))
             self._send(out, int(stamp_ns), now, flags=0, publish=True)
             return out
+
+    def _observe_stamp(self, t_ns: int) -> None:
+        """Feed the rate check; a stamp going back or jumping far starts a new stream."""
+        last, self._last_stamp = self._last_stamp, t_ns
+        if last is not None and not 0 < t_ns - last <= 100 * self.rate.period_ns:
+            self.rate.reset()
+        self.rate.observe(t_ns)
 
     @property
     def connected(self) -> bool:
@@ -356,6 +369,12 @@ class RigDriver:
             if self.state == STATE_RAMPING:
                 level = max(level, DIAG_WARN)
                 problems.append('watchdog: no command, ramping output to 0 V')
+            if self.rate.off and self.state == STATE_STREAMING:
+                level = DIAG_ERROR
+                problems.append(f'{self.rate.describe("command")}: the rig samples at '
+                                'sample_rate; set it to the stream rate or stream at its own')
+            if self.rate.ratio == self.rate.ratio:
+                values['stream_rate_hz'] = self.config.sample_rate / self.rate.ratio
             for key, what in (('replies_malformed', 'malformed datagrams'),
                               ('replies_duplicate', 'duplicate replies'),
                               ('replies_unknown', 'replies to unknown commands'),

@@ -1,0 +1,51 @@
+"""
+The options that say how to read a recording, shared by `fit`, `evaluate` and `bag export`.
+
+    --columns u=1,y=5[,t=N]   which columns of a text table (1-based numbers or header names)
+    --u-unit V|mV|kV          the unit u is recorded in (default V)
+    --y-unit m|mm|um|nm       the unit y is recorded in (default m)
+    --y-scale M               metres per recorded unit of y (sensor counts), instead of --y-unit
+    --t-unit s|ms|us|ns       the unit of a time column (default s)
+    --axis NAME               the joint of a bag whose command and deflection are paired
+
+Everything is converted to volts, metres and seconds on reading; an implausible magnitude with no
+unit stated is refused with the option that fixes it (ident.units).
+"""
+from __future__ import annotations
+
+Y_UNIT_CHOICES = ('m', 'mm', 'um', 'nm')
+U_UNIT_CHOICES = ('V', 'mV', 'kV')
+T_UNIT_CHOICES = ('s', 'ms', 'us', 'ns')
+
+
+def add_reading_options(parser, table: bool = True, bag: bool = True) -> None:
+    """Add the reading options to an argparse parser (table: --columns; bag: --axis)."""
+    g = parser.add_argument_group('reading the data (units are converted to V, m, s)')
+    if table:
+        g.add_argument('--columns', metavar='SPEC',
+                       help='columns of a text table (.csv, .tsv, .txt, .dat): ROLE=COLUMN '
+                            'pairs, roles t, u, y, y_true, columns 1-based or header names, '
+                            'e.g. u=1,y=5 (default: the header, or t,u,y / u,y by count)')
+        g.add_argument('--t-unit', choices=T_UNIT_CHOICES,
+                       help='unit of the time column (default s)')
+    g.add_argument('--u-unit', choices=U_UNIT_CHOICES, help='unit u is recorded in (default V)')
+    g.add_argument('--y-unit', choices=Y_UNIT_CHOICES,
+                   help='unit y is recorded in (default m); stating it also accepts magnitudes '
+                        'that look implausible for it')
+    g.add_argument('--y-scale', type=float, metavar='M',
+                   help="metres per recorded unit of y, e.g. a sensor's metres per count "
+                        '(instead of --y-unit)')
+    if bag:
+        g.add_argument('--axis', metavar='NAME',
+                       help='bag joint whose command (effort) and deflection (position) are '
+                            "paired, by name in each message (default: the bag's one axis)")
+
+
+def reading_options(args) -> dict:
+    """Keyword arguments for ident.data.load_records from parsed options (absent ones: None)."""
+    from piezo_narx_ros.ident.data import parse_columns
+    from piezo_narx_ros.ident.units import Units
+    units = Units.from_options(getattr(args, 'u_unit', None), getattr(args, 'y_unit', None),
+                               getattr(args, 't_unit', None), getattr(args, 'y_scale', None))
+    return {'columns': parse_columns(getattr(args, 'columns', None)), 'units': units,
+            'axis': getattr(args, 'axis', None)}

@@ -1,0 +1,56 @@
+"""
+Reading a model file's JSON document and weight arrays: the typed getters every family uses.
+
+model_io reads the format envelope (format, version, units, ranges, sha256) with them, and each
+family reads its own blocks (structure, normalisation, training, weight arrays) with them, so a
+malformed field gives the same one-line ModelFileError whichever part reads it.
+"""
+import numpy as np
+
+from ..errors import ModelFileError
+
+
+def get(doc, dotted, name, types):
+    """
+    Return the value at a dotted key of the JSON document, type-checked.
+
+    name: the file, for the message; types: accepted Python types (bool only when listed).
+    """
+    cur = doc
+    for part in dotted.split('.'):
+        if not isinstance(cur, dict) or part not in cur:
+            raise ModelFileError(f'{name}: missing key {dotted!r}')
+        cur = cur[part]
+    if not isinstance(cur, types) or isinstance(cur, bool) and bool not in types:
+        raise ModelFileError(f'{name}: key {dotted!r} has the wrong type ({type(cur).__name__})')
+    return cur
+
+
+def get_int(doc, dotted, name, minimum):
+    """Return the integer at a dotted key, at least `minimum`."""
+    v = get(doc, dotted, name, (int,))
+    if v < minimum:
+        raise ModelFileError(f'{name}: key {dotted!r} must be >= {minimum}, got {v}')
+    return v
+
+
+def training_block(doc):
+    """Return the document's 'training' object, or {} when it is missing or not an object."""
+    training = doc.get('training')
+    return training if isinstance(training, dict) else {}
+
+
+def weight_array(arrays, key, shape, wpath):
+    """Return the float64 array `key` of the weights file `wpath`, of `shape`, all finite."""
+    if key not in arrays:
+        raise ModelFileError(f'{wpath}: missing weight array {key!r}')
+    a = arrays[key]
+    if a.dtype != np.float64:
+        raise ModelFileError(f'{wpath}: weight array {key!r} has dtype {a.dtype}, '
+                             'expected float64')
+    if a.shape != tuple(shape):
+        raise ModelFileError(f'{wpath}: weight array {key!r} has shape {a.shape}, '
+                             f'expected {tuple(shape)}')
+    if not np.all(np.isfinite(a)):
+        raise ModelFileError(f'{wpath}: weight array {key!r} contains NaN or infinite values')
+    return a
