@@ -27,8 +27,9 @@ Scenarios (SCENARIOS below):
            same session: 3 Hz (between them), triangle, multisine 0.1-10 Hz, held levels.
   rate     10 kHz, 16-bit sensor over 200 um: EST 40,000 samples of the protocol (fit wall time
            printed: target <= 60 s), VAL another; tests: multisine, a triangle of another session.
-  yan9a    the real 200 Hz micromanipulator (DATA/piezo_yan9a, converted to .npz here): fit on
-           Model_Vi_Do, free run of Test_Vi_Do_Di with --init-samples 200 (target R² >= 0.98).
+  yan9a    the real 200 Hz micromanipulator (DATA/piezo_yan9a, read as .dat with --columns
+           u=1,y=5 --y-unit um, or converted to .npz where the CLI cannot): fit on Model_Vi_Do,
+           free run of Test_Vi_Do_Di with --init-samples 200 (target R² >= 0.98).
 
 Until `fit --validate` and `evaluate --init-samples` exist (the CLI rejects them with an argparse
 error), the bench says "not available yet": fits then take EST and VAL with the 50/50 split,
@@ -61,6 +62,8 @@ HISTORY = ('--history', '20', '--history-hold', '1')   # unknown past: 20 s, the
 SESSION_SPREAD = 2.5e-6       # session zeros uniform in +-2.5 um: they differ by up to 5 um
 YAN9A_FS = 200.0
 YAN9A_INIT = 200              # 1 s (issue 18's target for this record)
+# Column 1: actuator input, V; column 5: sensor, um; no time column (the data set's README).
+YAN9A_READING = ('--fs', '200', '--columns', 'u=1,y=5', '--y-unit', 'um')
 
 
 @dataclass(frozen=True)
@@ -147,13 +150,21 @@ class Cli:
             raise RuntimeError(lines[-1])
         return proc.stdout
 
+    def accepts(self, command, option) -> bool:
+        """Return True when `piezo-narx COMMAND --help` lists `option`."""
+        return option in self.run(command, '--help').stdout
+
     def simulate(self, out, *argv):
         self.check(self.run('simulate', *argv, '--out', out))
 
-    def fit(self, est, val, preset, out):
-        """Fit; returns (model path, wall s, how: 'validate' or 'split', estimation paths)."""
+    def fit(self, est, val, preset, out, reading=()):
+        """
+        Fit; returns (model path, wall s, how: 'validate' or 'split', estimation paths).
+
+        reading: how to read the inputs (e.g. --columns u=1,y=5 --y-unit um).
+        """
         common = ['--preset', preset, '--out', out, '--jobs', self.jobs, '--quiet',
-                  '--no-report', '--force']
+                  '--no-report', '--force', *reading]
         t0 = time.perf_counter()
         if val and '--validate' not in self.missing:
             proc = self.run('fit', *est, '--validate', *val, *common)
@@ -164,13 +175,13 @@ class Cli:
         self.check(self.run('fit', *est, *val, *common))
         return Path(out) / 'model.json', time.perf_counter() - t0, 'split', list(est) + list(val)
 
-    def evaluate(self, model, data, init=None):
+    def evaluate(self, model, data, init=None, reading=()):
         """Free-run {'r2', 'rmse'} (None when diverged), or None when --init-samples is missing."""
-        extra = []
+        extra = list(reading)
         if init is not None:
             if '--init-samples' in self.missing:
                 return None
-            extra = ['--init-samples', init]
+            extra += ['--init-samples', init]
         proc = self.run('evaluate', model, data, '--json', *extra)
         if init is not None and self._rejects(proc, '--init-samples'):
             return None
@@ -283,16 +294,18 @@ def simulate_takes(cli, work, scenario, plant, seed, takes, start, rest=None):
     return paths
 
 
-def fit_models(cli, work, est, val, presets):
+def fit_models(cli, work, est, val, presets, reading=(), arx_est=None):
     """
     {name: (model path or None, error, wall s, how)} for each preset, then 'best ARX'.
 
-    The best ARX comes from the paper fit's grid (ARX 1..10 x 1..10), else from the first fit.
+    The best ARX comes from the paper fit's grid (ARX 1..10 x 1..10), else from the first fit;
+    arx_est: .npz copies of the estimation inputs for its refit (None: the inputs themselves).
     """
     models, used = {}, {}
     for preset in presets:
         try:
-            path, wall, how, used[preset] = cli.fit(est, val, preset, work / f'fit_{preset}')
+            path, wall, how, used[preset] = cli.fit(est, val, preset, work / f'fit_{preset}',
+                                                    reading)
             models[preset] = (path, '', wall, how)
         except RuntimeError as exc:
             models[preset] = (None, str(exc), 0.0, '')
@@ -302,7 +315,7 @@ def fit_models(cli, work, est, val, presets):
         return models
     how = models[source][3]
     try:
-        arx = best_arx(work / f'fit_{source}', used[source], how, work / 'fit_arx')
+        arx = best_arx(work / f'fit_{source}', arx_est or used[source], how, work / 'fit_arx')
         models['best ARX'] = (arx, '', 0.0, how)
     except (RuntimeError, OSError, ValueError) as exc:
         models['best ARX'] = (None, str(exc), 0.0, how)
@@ -375,7 +388,11 @@ def reference(cli, model, rests):
 
 
 def yan9a_npz(data_dir, work):
-    """Convert the two .dat files to .npz (u V, y m, fs 200 Hz); None when absent."""
+    """
+    Convert the two .dat files to .npz (u V, y m, fs 200 Hz); None when absent.
+
+    For a CLI that cannot read .dat files yet, and for the ARX refit (the bench's own loader).
+    """
     import numpy as np
     src = Path(data_dir) / 'piezo_yan9a'
     out = {}
@@ -397,8 +414,16 @@ def run_yan9a(cli, work, data_dir, presets, rows):
     if files is None:
         print(f'\n[yan9a] skipped: {Path(data_dir) / "piezo_yan9a"} not found', flush=True)
         return
-    models = fit_models(cli, work, [files['Model_Vi_Do']], [], presets)
-    print('\n[yan9a | real micromanipulator, 200 Hz] fits: ' + ', '.join(
+    # The .dat files as a user reads them, once fit can (--columns); else the .npz copies.
+    if cli.accepts('fit', '--columns'):
+        inputs = {stem: Path(data_dir) / 'piezo_yan9a' / f'{stem}.dat' for stem in files}
+        reading = YAN9A_READING
+    else:
+        inputs, reading = files, ()
+    models = fit_models(cli, work, [inputs['Model_Vi_Do']], [], presets, reading,
+                        arx_est=[files['Model_Vi_Do']])
+    print(f'\n[yan9a | real micromanipulator, 200 Hz; read from {inputs["Model_Vi_Do"].suffix} '
+          f'{" ".join(reading)}] fits: ' + ', '.join(
         f'{m} {"failed" if p is None else f"{w:.1f} s"}'
         for m, (p, _, w, _) in models.items() if m != 'best ARX'), flush=True)
     print(HEADER, flush=True)
@@ -409,8 +434,8 @@ def run_yan9a(cli, work, data_dir, presets, rows):
         else:
             row.structure = structure_label(mpath)
             try:
-                row.today = cli.evaluate(mpath, files['Test_Vi_Do_Di'])
-                row.init = cli.evaluate(mpath, files['Test_Vi_Do_Di'], YAN9A_INIT)
+                row.today = cli.evaluate(mpath, inputs['Test_Vi_Do_Di'], reading=reading)
+                row.init = cli.evaluate(mpath, inputs['Test_Vi_Do_Di'], YAN9A_INIT, reading)
             except RuntimeError as exc:
                 row.error = str(exc)
         print_row(row)
