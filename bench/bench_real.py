@@ -371,7 +371,7 @@ def run_cell(cli, work, name, plant, seed, presets, rows):
 
 def reference(cli, model, rests):
     """
-    The model started at rest on the plant at rest: the better of the two sensor zeros.
+    Score the model started at rest on the plant at rest, with the better of two sensor zeros.
 
     rests: (.npz with zero 0, .npz with the estimation session's zero). Without --init-samples,
     today's start (from the first measured outputs) stands in. Returns (scores, which zero).
@@ -422,10 +422,10 @@ def run_yan9a(cli, work, data_dir, presets, rows):
         inputs, reading = files, ()
     models = fit_models(cli, work, [inputs['Model_Vi_Do']], [], presets, reading,
                         arx_est=[files['Model_Vi_Do']])
+    fits = ', '.join(f'{m} {"failed" if p is None else f"{w:.1f} s"}'
+                     for m, (p, _, w, _) in models.items() if m != 'best ARX')
     print(f'\n[yan9a | real micromanipulator, 200 Hz; read from {inputs["Model_Vi_Do"].suffix} '
-          f'{" ".join(reading)}] fits: ' + ', '.join(
-        f'{m} {"failed" if p is None else f"{w:.1f} s"}'
-        for m, (p, _, w, _) in models.items() if m != 'best ARX'), flush=True)
+          f'{" ".join(reading)}] fits: {fits}', flush=True)
     print(HEADER, flush=True)
     for model, (mpath, info, wall, how) in models.items():
         row = Row('yan9a', 'real', 0, 'Test_Vi_Do_Di', model, extra={'fit_s': wall})
