@@ -43,8 +43,8 @@ soak: setup
 # requirements.txt, so neither `make test` nor CI installs it. Settings: [mutmut] in setup.cfg;
 # results in mutants/ (a second run only retests what changed); figures: docs/testing.md.
 MUTATE := ident.regressors ident.checks ident.correlation ident.metrics ident.noise_model \
-	ident.narx ident.model_io estimator.free_run bag.pairing nodes.common.x_decode_joint_state \
-	nodes.common.x_encode_joint_state
+	ident.narx ident.model_io estimator.free_run bag.pairing nodes.codec.x_decode_joint_state \
+	nodes.codec.x_encode_joint_state
 
 mutate: setup
 	$(PY) -m pip install -q -r requirements-dev.txt

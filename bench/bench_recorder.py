@@ -5,14 +5,17 @@ Messages lost at 2 kHz (and higher) on three topics, CPU of the recorder process
 writer/reader throughput.
 
     python bench/bench_recorder.py --seconds 5 --rates 2000 5000
+    python bench/bench_recorder.py --seconds 60 --rates 20000 --batch 20
 
 Live part: recorder_node runs in its own process (isolated DDS domain, localhost only); this
 process publishes JointState samples on voltage_command, deflection and deflection_estimate at
 each rate for `seconds`, then SIGINTs the recorder and counts what is in the bag ('lost' = sent
 - recorded, 'gaps' = samples missing in the header stamps). 'CPU %' is the recorder's user+system
 time while the samples stream (/proc) per wall second, in % of one core; 'CPU % all' is over the
-recorder's whole life (start-up, drain and close included, os.wait4). Offline part: BagWriter and
-read_uy on the same message count, median of `--repeats` runs.
+recorder's whole life (start-up, drain and close included, os.wait4). With `--batch N` the
+samples go out N per message as the nodes' batched streams (JointTrajectory on `<topic>_batch`,
+recorder_node batch:=N); 'sent', 'recorded' and 'lost' still count samples. Offline part:
+BagWriter and read_uy on the same message count, median of `--repeats` runs.
 """
 from __future__ import annotations
 
@@ -25,6 +28,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+import numpy as np
 
 
 os.environ.setdefault('ROS_DOMAIN_ID', str(101 + os.getpid() % 100))
@@ -40,39 +45,49 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
-def live_run(rate: float, seconds: float, workdir: Path) -> dict:
-    """One recorder process, three topics at `rate` Hz for `seconds` s."""
+def live_run(rate: float, seconds: float, workdir: Path, batch: int = 1) -> dict:
+    """One recorder process, three topics at `rate` Hz for `seconds` s, `batch` per message."""
     import rclpy
     from rclpy.node import Node
     from rclpy.serialization import serialize_message
-    from sensor_msgs.msg import JointState
 
     from piezo_narx_ros.bag.reader import bag_info
-    from piezo_narx_ros.nodes.common import make_joint_state, sample_qos
+    from piezo_narx_ros.nodes.batching import batch_topic, sample_type
+    from piezo_narx_ros.nodes.codec import encode_joint_trajectory, make_joint_state
+    from piezo_narx_ros.nodes.qos import sample_qos
 
     ns = f'/bench{int(rate)}'
     bag = workdir / f'rec_{int(rate)}'
     proc = subprocess.Popen([sys.executable, '-m', 'piezo_narx_ros.nodes.recorder_node',
-                             '--ros-args', '-r', f'__ns:={ns}', '-p', f'output:={bag}'],
+                             '--ros-args', '-r', f'__ns:={ns}', '-p', f'output:={bag}',
+                             '-p', f'batch:={batch}'],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     started = time.monotonic()
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     node = Node('bench_pub', namespace=ns, context=ctx)
-    pubs = [node.create_publisher(JointState, t, sample_qos(depth=1000)) for t in TOPICS]
+    pubs = [node.create_publisher(sample_type(batch), batch_topic(t, batch),
+                                  sample_qos(depth=1000)) for t in TOPICS]
     end = time.monotonic() + 30
     while any(p.get_subscription_count() < 1 for p in pubs) and time.monotonic() < end:
         time.sleep(0.02)
     n = int(rate * seconds)
     period = int(round(1e9 / rate))
     # Pre-serialized payloads keep this publisher cheap, so the recorder is what is measured.
-    payloads = [[serialize_message(make_joint_state(T0 + k * period, ['x'], effort=[k * 1e-3],
-                                                    position=[k * 1e-9])) for k in range(n)]]
+    if batch > 1:
+        k = np.arange(n)
+        payloads = [encode_joint_trajectory(T0 + k[i:i + batch] * period, ['x'],
+                                            k[i:i + batch, None] * 1e-9,
+                                            k[i:i + batch, None] * 1e-3)
+                    for i in range(0, n, batch)]
+    else:
+        payloads = [serialize_message(make_joint_state(T0 + k * period, ['x'], effort=[k * 1e-3],
+                                                       position=[k * 1e-9])) for k in range(n)]
     cpu0, t_pub = cpu_seconds(proc.pid), time.monotonic()
-    for k in range(n):
+    for i, payload in enumerate(payloads):
         for p in pubs:
-            p.publish(payloads[0][k])
-        ahead = t_pub + (k + 1) / rate - time.monotonic()
+            p.publish(payload)
+        ahead = t_pub + (i + 1) * batch / rate - time.monotonic()
         if ahead > 0.002:
             time.sleep(ahead)
     pub_wall = time.monotonic() - t_pub
@@ -85,9 +100,9 @@ def live_run(rate: float, seconds: float, workdir: Path) -> dict:
     node.destroy_node()
     rclpy.try_shutdown(context=ctx)
     info = bag_info(bag)
-    counts = {t.name: t.count for t in info.topics}
+    counts = {t.name: t.samples for t in info.topics}
     gaps = sum(t.missing for t in info.topics)
-    return {'rate': rate, 'sent_per_topic': n, 'pub_rate': n / pub_wall,
+    return {'rate': rate, 'batch': batch, 'sent_per_topic': n, 'pub_rate': n / pub_wall,
             'recorded': counts, 'lost': 3 * n - sum(counts.values()), 'missing_in_stamps': gaps,
             'cpu_total': (usage.ru_utime + usage.ru_stime) / wall, 'cpu': cpu_streaming,
             'exit': proc.returncode,
@@ -130,15 +145,18 @@ def main(argv=None) -> int:
     parser.add_argument('--rates', type=float, nargs='+', default=[2000.0, 5000.0])
     parser.add_argument('--offline-samples', type=int, default=60000)
     parser.add_argument('--repeats', type=int, default=3)
+    parser.add_argument('--batch', type=int, default=1,
+                        help='samples per message (N > 1: JointTrajectory on <topic>_batch)')
     args = parser.parse_args(argv)
     print(f'cores: {os.cpu_count()}  load average: {os.getloadavg()[0]:.2f}')
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        print(f'\nlive: recorder_node process, 3 topics, {args.seconds:g} s per rate')
+        print(f'\nlive: recorder_node process, 3 topics, {args.seconds:g} s per rate, batch '
+              f'{args.batch}')
         print(f'{"rate Hz":>8} {"pub Hz":>8} {"sent":>7} {"recorded":>9} {"lost":>5} '
               f'{"gaps":>5} {"CPU %":>6} {"CPU % all":>9} {"MB":>6} exit')
         for rate in args.rates:
-            r = live_run(rate, args.seconds, tmp)
+            r = live_run(rate, args.seconds, tmp, args.batch)
             print(f'{r["rate"]:>8.0f} {r["pub_rate"]:>8.0f} {3 * r["sent_per_topic"]:>7} '
                   f'{sum(r["recorded"].values()):>9} {r["lost"]:>5} {r["missing_in_stamps"]:>5} '
                   f'{100 * r["cpu"]:>6.1f} {100 * r["cpu_total"]:>9.1f} {r["bag_mb"]:>6.2f} '

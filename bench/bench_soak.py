@@ -83,7 +83,7 @@ class Probe:
         from rclpy.experimental import EventsExecutor
         from rclpy.node import Node
 
-        from piezo_narx_ros.nodes.common import diagnostic_values
+        from piezo_narx_ros.nodes.diagnostics import diagnostic_values
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
         self.node = Node('soak_probe', namespace=ns, context=self.context)
@@ -127,7 +127,7 @@ class Probe:
         """Return the stamp of one voltage_command (a temporary raw subscription)."""
         from sensor_msgs.msg import JointState
 
-        from piezo_narx_ros.nodes.common import sample_qos
+        from piezo_narx_ros.nodes.qos import sample_qos
         got = []
         head = struct.Struct('<iI')
 
@@ -210,7 +210,8 @@ class Soak:
     def fault_burst(self, probe: Probe) -> None:
         from sensor_msgs.msg import JointState
 
-        from piezo_narx_ros.nodes.common import encode_joint_state, sample_qos
+        from piezo_narx_ros.nodes.codec import encode_joint_state
+        from piezo_narx_ros.nodes.qos import sample_qos
         last = probe.one_command_stamp()
         pub = probe.node.create_publisher(JointState, 'voltage_command', sample_qos(1000))
         probe.wait_for(lambda: pub.get_subscription_count() >= 3, 10.0)

@@ -20,7 +20,7 @@ def test_info_and_export(tmp_path, capsys):
     out = capsys.readouterr().out
     assert 'messages:  2000' in out
     line = next(s for s in out.splitlines() if s.startswith('/piezo/deflection'))
-    assert line.split()[1:6] == ['sensor_msgs/msg/JointState', '1000', '1000', '0', '0']
+    assert line.split()[1:7] == ['sensor_msgs/msg/JointState', '1000', '1000', '1000', '0', '0']
 
     assert _run(['bag', 'export', str(bag), '--out', str(tmp_path / 'd.npz')]) == 0
     with np.load(tmp_path / 'd.npz', allow_pickle=False) as d:

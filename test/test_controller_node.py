@@ -18,7 +18,8 @@ import pytest
 from sensor_msgs.msg import JointState
 from test_estimator_node import Collector, start_node, stop
 
-from piezo_narx_ros.nodes.common import make_joint_state, sample_qos
+from piezo_narx_ros.nodes.codec import make_joint_state
+from piezo_narx_ros.nodes.qos import sample_qos
 
 FS = 2000.0
 P = 500_000  # ns

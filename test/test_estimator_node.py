@@ -23,8 +23,9 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from piezo_narx_ros.nodes.common import (diagnostic_values, make_joint_state, sample_qos,
-                                         stamp_to_ns, status_node)
+from piezo_narx_ros.nodes.codec import make_joint_state, stamp_to_ns
+from piezo_narx_ros.nodes.diagnostics import diagnostic_values, status_node
+from piezo_narx_ros.nodes.qos import sample_qos
 
 FS = 2000.0
 P = 500_000  # ns

@@ -182,7 +182,8 @@ def test_recorder_on_a_full_disk_reports_the_error_and_leaves_a_repairable_bag(t
 
     from piezo_narx_ros.bag.reader import iter_raw
     from piezo_narx_ros.bag.repair import repair_bag
-    from piezo_narx_ros.nodes.common import DIAG_ERROR, decode_joint_state
+    from piezo_narx_ros.nodes.codec import decode_joint_state
+    from piezo_narx_ros.nodes.diagnostics import DIAG_ERROR
 
     def small_files():
         resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))

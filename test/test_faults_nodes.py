@@ -22,8 +22,13 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 from piezo_narx_ros.errors import ConfigError
-from piezo_narx_ros.nodes import common
-from piezo_narx_ros.nodes.common import DIAG_OK, DIAG_WARN, PiezoNode
+from piezo_narx_ros.nodes.codec import encode_joint_state, make_joint_state
+from piezo_narx_ros.nodes.diagnostics import Diagnostics, diagnostic_values
+from piezo_narx_ros.nodes.params import ParamSpec
+from piezo_narx_ros.nodes.qos import sample_qos
+from piezo_narx_ros.nodes.runtime import RETIRED_QOS_PARAMETERS, check_overrides
+from piezo_narx_ros.nodes.diagnostics import DIAG_OK, DIAG_WARN
+from piezo_narx_ros.nodes.runtime import PiezoNode
 
 
 @pytest.fixture
@@ -41,7 +46,7 @@ class _Listener(PiezoNode):
         super().__init__(**kwargs)
         self.got = []
         self.sub = self.sample_subscription('stream', self.got.append)
-        self.diagnostics = common.Diagnostics(self, lambda: (DIAG_OK, 'ok', {}), task='qos test')
+        self.diagnostics = Diagnostics(self, lambda: (DIAG_OK, 'ok', {}), task='qos test')
 
 
 def _wait(predicate, timeout=15.0):
@@ -65,7 +70,7 @@ def test_incompatible_publisher_is_warned_while_it_exists(ctx):
         assert status.level == DIAG_WARN
         assert status.message.startswith('incompatible QoS: /qos1/stream: '
                                          '/qos1/best_effort_talker cannot match')
-        assert common.diagnostic_values(status)['incompatible_qos'] == '1'
+        assert diagnostic_values(status)['incompatible_qos'] == '1'
         other.destroy_publisher(pub)
         assert _wait(lambda: not node.qos_watch.problems()), 'warning outlived the publisher'
         assert node.diagnostics.build().status[0].level == DIAG_OK
@@ -78,7 +83,7 @@ def test_compatible_peer_is_not_reported(ctx):
     node = _Listener(context=ctx, namespace='/qos2')
     other = Node('reliable_talker', namespace='/qos2', context=ctx)
     try:
-        other.create_publisher(JointState, 'stream', common.sample_qos(10))
+        other.create_publisher(JointState, 'stream', sample_qos(10))
         assert _wait(lambda: node.sub.get_publisher_count() == 1)
         assert node.qos_watch.problems() == []
     finally:
@@ -103,7 +108,7 @@ def test_compatible_subscriber_of_our_publisher_is_not_reported(ctx):
     node = _Talker(context=ctx, namespace='/qos6')
     other = Node('plain_listener', namespace='/qos6', context=ctx)
     try:
-        other.create_subscription(JointState, 'stream', lambda m: None, common.sample_qos(10))
+        other.create_subscription(JointState, 'stream', lambda m: None, sample_qos(10))
         assert _wait(lambda: node.pub.get_subscription_count() == 1)
         assert _wait(lambda: node.get_subscriptions_info_by_topic('/qos6/stream'))
         assert node.qos_watch.problems() == []
@@ -124,18 +129,18 @@ def test_standard_qos_override_changes_the_stream(ctx):
     try:
         assert node.sub.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
         assert node.sub.qos_profile.depth == 7
-        common.check_overrides(node)   # declared by the subscription: known
+        check_overrides(node)   # declared by the subscription: known
     finally:
         node.destroy_node()
 
 
-@pytest.mark.parametrize('name', common.RETIRED_QOS_PARAMETERS)
+@pytest.mark.parametrize('name', RETIRED_QOS_PARAMETERS)
 def test_retired_qos_parameter_is_refused_with_the_override_name(ctx, name):
     node = _Listener(context=ctx, namespace='/qos4',
                      parameter_overrides=[Parameter(name, value=True)])
     try:
         with pytest.raises(ConfigError, match=f'{name} no longer exists.*qos_overrides'):
-            common.check_overrides(node)
+            check_overrides(node)
     finally:
         node.destroy_node()
 
@@ -144,14 +149,14 @@ def test_unknown_parameter_is_only_warned(ctx):
     node = _Listener(context=ctx, namespace='/qos5',
                      parameter_overrides=[Parameter('gian', value=2.0)])
     try:
-        common.check_overrides(node)   # logged, not fatal: wildcard params files are common
+        check_overrides(node)   # logged, not fatal: wildcard params files are common
     finally:
         node.destroy_node()
 
 
 def test_empty_list_parameter_is_one_line_not_a_type_error():
-    spec = common.ParamSpec('axes', ['x'], 'axes', check=(lambda v: len(v) > 0, 'must not be '
-                                                                                'empty'))
+    spec = ParamSpec('axes', ['x'], 'axes', check=(lambda v: len(v) > 0, 'must not be '
+                                                                         'empty'))
     assert 'has no value' in spec.validate(None)
     assert spec.validate(5) == 'axes must not be empty, got 5'   # check raising TypeError
     proc = subprocess.run([sys.executable, '-m', 'piezo_narx_ros.nodes.command_node',
@@ -172,7 +177,7 @@ def test_unexpected_error_in_a_node_exits_1_with_one_line(where):
     fault = ('raise KeyError("gain")' if where == 'constructor'
              else 'self.timer = self.create_timer(0.05, lambda: 1 / 0)')
     code = ('import sys\n'
-            'from piezo_narx_ros.nodes.common import PiezoNode, run_node\n'
+            'from piezo_narx_ros.nodes.runtime import PiezoNode, run_node\n'
             'class Boom(PiezoNode):\n'
             '    NODE_NAME = "boom_node"\n'
             '    def __init__(self, **kwargs):\n'
@@ -264,7 +269,8 @@ def test_live_estimator_refuses_outliers_and_reports_a_second_writer(tmp_path):
 
     from piezo_narx_ros.estimator.toy import toy_narx
     from piezo_narx_ros.ident.model_io import save_model
-    from piezo_narx_ros.nodes.common import make_joint_state, sample_qos
+    from piezo_narx_ros.nodes.codec import make_joint_state
+    from piezo_narx_ros.nodes.qos import sample_qos
     model = toy_narx(fs=2000.0)
     save_model(model, tmp_path / 'toy.json')
     col = Collector('/twowriters', ('deflection_estimate',), diagnostics=True)
@@ -404,7 +410,7 @@ def test_malformed_bytes_reaching_a_running_simulator_and_estimator_are_counted_
     est = start_node('estimator_node', '-p', f'model:={tmp_path / "toy.json"}', '-p', 'init:=rest',
                      ns='/garbled')
     p, t0, n = 500_000, 10**18, 300
-    good = common.encode_joint_state(t0, ['x'], effort=[1.0])
+    good = encode_joint_state(t0, ['x'], effort=[1.0])
     bad = {50: good[:30],                                              # truncated
            120: good[:20] + (10**6).to_bytes(4, 'little') + good[24:],  # a million names
            200: bytes(np.random.default_rng(1).integers(0, 256, 64, dtype=np.uint8))}
@@ -414,7 +420,7 @@ def test_malformed_bytes_reaching_a_running_simulator_and_estimator_are_counted_
         for k in range(n):
             if k in bad:
                 col.pub.publish(bad[k])
-            col.pub.publish(common.make_joint_state(t0 + k * p, ['x'], effort=[u[k]]))
+            col.pub.publish(make_joint_state(t0 + k * p, ['x'], effort=[u[k]]))
             time.sleep(0.0005)
         assert col.wait_for(lambda: len(col.data['deflection']) >= n
                             and len(col.data['deflection_estimate']) >= n, 20.0)
@@ -441,7 +447,7 @@ def test_malformed_bytes_reaching_a_running_simulator_and_estimator_are_counted_
 def test_run_node_paces_a_node_that_asks():
     """run_node, as a process: a node that takes the pacing gets pace() after every spin_once."""
     code = ('import os, signal, sys, time\n'
-            'from piezo_narx_ros.nodes.common import PiezoNode, run_node\n'
+            'from piezo_narx_ros.nodes.runtime import PiezoNode, run_node\n'
             'class Paced(PiezoNode):\n'
             '    NODE_NAME = "paced_node"\n'
             '    calls = 0\n'
@@ -502,7 +508,8 @@ def test_live_streams_at_another_rate_and_two_estimators_of_one_name_are_errors(
 
     from piezo_narx_ros.estimator.toy import toy_narx
     from piezo_narx_ros.ident.model_io import save_model
-    from piezo_narx_ros.nodes.common import DIAG_ERROR, make_joint_state
+    from piezo_narx_ros.nodes.codec import make_joint_state
+    from piezo_narx_ros.nodes.diagnostics import DIAG_ERROR
     save_model(toy_narx(fs=2000.0), tmp_path / 'toy.json')
     model = f'model:={tmp_path / "toy.json"}'
     col = Collector('/rates', ('deflection_estimate',), diagnostics=True)

@@ -1,4 +1,4 @@
-"""nodes/common.py: QoS, validated parameters, JointState/CDR helpers, diagnostics (in-process)."""
+"""nodes/ plumbing: QoS, validated parameters, JointState/CDR codec, diagnostics (in-process)."""
 import numpy as np
 import pytest
 import rclpy
@@ -6,8 +6,12 @@ from rclpy.parameter import Parameter
 from rclpy.qos import ReliabilityPolicy
 
 from piezo_narx_ros.errors import ConfigError, DataError
-from piezo_narx_ros.nodes import common
-from piezo_narx_ros.nodes.common import ParamSpec, PiezoNode
+from piezo_narx_ros.nodes.codec import (decode_joint_state, encode_joint_state, make_joint_state,
+                                        parse_joint_state)
+from piezo_narx_ros.nodes.diagnostics import DIAG_WARN, Diagnostics, diagnostic_values, status_node
+from piezo_narx_ros.nodes.params import ParamSpec
+from piezo_narx_ros.nodes.qos import sample_qos
+from piezo_narx_ros.nodes.runtime import PiezoNode, make_executor
 
 
 @pytest.fixture
@@ -38,11 +42,11 @@ def _make(ctx, **overrides):
 
 
 def test_sample_qos_is_reliable_keep_last_10000():
-    q = common.sample_qos()
+    q = sample_qos()
     assert q.reliability == ReliabilityPolicy.RELIABLE and q.depth == 10000
-    assert common.sample_qos(depth=5).depth == 5
+    assert sample_qos(depth=5).depth == 5
     with pytest.raises(ConfigError):
-        common.sample_qos(depth=0)
+        sample_qos(depth=0)
 
 
 def test_parameters_declared_with_descriptor_and_int_accepted_for_float(ctx):
@@ -104,14 +108,14 @@ def test_runtime_set_is_validated(ctx):
 
 def test_joint_state_round_trip_keeps_exact_nanoseconds():
     t_ns = 1_700_000_000 * 10**9 + 123_456_789
-    msg = common.make_joint_state(t_ns, ['x', 'y'], position=[1e-6, 2e-6], effort=[10.0, -5.0])
+    msg = make_joint_state(t_ns, ['x', 'y'], position=[1e-6, 2e-6], effort=[10.0, -5.0])
     assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (1_700_000_000, 123_456_789)
-    s = common.parse_joint_state(msg)
+    s = parse_joint_state(msg)
     assert s.t_ns == t_ns
     assert s.value('position', 'y') == 2e-6 and s.value('effort', 'x') == 10.0
     with pytest.raises(DataError, match="axis 'z'"):
         s.value('effort', 'z')
-    unnamed = common.parse_joint_state(common.make_joint_state(5, [], effort=[3.0]))
+    unnamed = parse_joint_state(make_joint_state(5, [], effort=[3.0]))
     assert unnamed.value('effort', 'x') == 3.0
     with pytest.raises(DataError, match='no position'):
         unnamed.value('position', 'x')
@@ -121,26 +125,26 @@ def test_diagnostics_status_carries_node_name_level_and_values(ctx):
     node = _make(ctx)
     try:
         state = {'n': 3}
-        diag = common.Diagnostics(node, lambda: (common.DIAG_WARN, 'late',
-                                                 {'count': state['n'], 'rms': 1.5e-7}),
-                                  task='sample stream', hardware_id='udp://10.0.0.2:50000')
+        diag = Diagnostics(node, lambda: (DIAG_WARN, 'late',
+                                          {'count': state['n'], 'rms': 1.5e-7}),
+                           task='sample stream', hardware_id='udp://10.0.0.2:50000')
         arr = diag.build()
         assert len(arr.status) == 1
         st = arr.status[0]
         # diagnostic_updater's naming: fully qualified node name without the slash, ': ', task
-        assert st.name == 'piezo/common_test: sample stream' and st.level == common.DIAG_WARN
+        assert st.name == 'piezo/common_test: sample stream' and st.level == DIAG_WARN
         assert st.hardware_id == 'udp://10.0.0.2:50000'
-        assert common.status_node(st.name) == '/piezo/common_test'
-        assert common.diagnostic_values(st) == {'count': '3', 'rms': '1.5e-07'}
+        assert status_node(st.name) == '/piezo/common_test'
+        assert diagnostic_values(st) == {'count': '3', 'rms': '1.5e-07'}
         state['n'] = 4
-        assert common.diagnostic_values(diag.build().status[0])['count'] == '4'
+        assert diagnostic_values(diag.build().status[0])['count'] == '4'
     finally:
         node.destroy_node()
 
 
 def test_make_executor_rejects_unknown_kind():
     with pytest.raises(ConfigError, match='executor'):
-        common.make_executor('threads')
+        make_executor('threads')
 
 
 @pytest.mark.parametrize('names, position, velocity, effort, frame', [
@@ -151,10 +155,10 @@ def test_make_executor_rejects_unknown_kind():
 ])
 def test_cdr_decode_reads_what_rclpy_serialises(names, position, velocity, effort, frame):
     from rclpy.serialization import serialize_message
-    msg = common.make_joint_state(1_795_241_581_123_456_789, names, position, effort)
+    msg = make_joint_state(1_795_241_581_123_456_789, names, position, effort)
     msg.velocity = velocity
     msg.header.frame_id = frame
-    s = common.decode_joint_state(serialize_message(msg))
+    s = decode_joint_state(serialize_message(msg))
     assert (s.t_ns, s.names, s.position, s.effort) == (1_795_241_581_123_456_789, names,
                                                        position, effort)
 
@@ -166,7 +170,7 @@ def test_cdr_decode_reads_what_rclpy_serialises(names, position, velocity, effor
 def test_cdr_encode_is_read_back_by_rclpy(names, position, effort):
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import JointState
-    msg = deserialize_message(common.encode_joint_state(123_000_000_007, names, position, effort),
+    msg = deserialize_message(encode_joint_state(123_000_000_007, names, position, effort),
                               JointState)
     assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (123, 7)
     assert (list(msg.name), list(msg.position), list(msg.effort)) == (names, position, effort)
@@ -198,7 +202,7 @@ def test_cdr_decode_reads_both_byte_orders_as_rosbags_writes_them(
     raw = bytes(store.serialize_cdr(msg, 'sensor_msgs/msg/JointState',
                                     little_endian=little_endian))
     assert raw[1] == int(little_endian)          # the encapsulation says which order follows
-    s = common.decode_joint_state(raw)
+    s = decode_joint_state(raw)
     assert (s.t_ns, s.names, s.position, s.effort) == (1_795_241_581_123_456_789, names,
                                                        position, effort)
 
@@ -222,22 +226,22 @@ def test_cdr_encode_is_byte_for_byte_what_rosbags_serialises(t_ns, names, positi
                      velocity=np.array([], dtype=np.float64),
                      effort=np.array(effort, dtype=np.float64))
     ref = bytes(store.serialize_cdr(msg, 'sensor_msgs/msg/JointState', little_endian=True))
-    raw = common.encode_joint_state(t_ns, names, position, effort)
+    raw = encode_joint_state(t_ns, names, position, effort)
     assert raw == ref
-    s = common.decode_joint_state(raw)
+    s = decode_joint_state(raw)
     assert (s.t_ns, s.names, s.position, s.effort) == (t_ns, names, position, effort)
 
 
 @pytest.mark.parametrize('offset', [12, 20, 24])   # frame_id length, name count, name length
 def test_cdr_decode_refuses_a_length_field_beyond_any_buffer(offset):
-    raw = bytearray(common.encode_joint_state(5, ['x'], [1.0], [2.0]))
+    raw = bytearray(encode_joint_state(5, ['x'], [1.0], [2.0]))
     raw[offset:offset + 4] = b'\xff\xff\xff\xff'
     with pytest.raises(DataError, match='malformed JointState'):
-        common.decode_joint_state(bytes(raw))
+        decode_joint_state(bytes(raw))
 
 
 def test_cdr_decode_refuses_truncated_bytes():
     from rclpy.serialization import serialize_message
-    raw = serialize_message(common.make_joint_state(5, ['x'], effort=[1.0]))
+    raw = serialize_message(make_joint_state(5, ['x'], effort=[1.0]))
     with pytest.raises(DataError, match='malformed JointState'):
-        common.decode_joint_state(raw[:30])
+        decode_joint_state(raw[:30])

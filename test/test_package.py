@@ -13,6 +13,7 @@ from conftest import REPO
 ROSDEP_KEY = {
     'rclpy': 'rclpy', 'rcl_interfaces': 'rcl_interfaces', 'sensor_msgs': 'sensor_msgs',
     'diagnostic_msgs': 'diagnostic_msgs', 'std_srvs': 'std_srvs',
+    'trajectory_msgs': 'trajectory_msgs',
     'lifecycle_msgs': 'lifecycle_msgs', 'rosgraph_msgs': 'rosgraph_msgs',
     'ament_index_python': 'ament_index_python',
     'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'numba': 'python3-numba',

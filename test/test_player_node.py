@@ -17,7 +17,7 @@ from sensor_msgs.msg import JointState
 
 from piezo_narx_ros.bag.reader import iter_raw
 from piezo_narx_ros.bag.writer import write_uy_bag
-from piezo_narx_ros.nodes.common import sample_qos
+from piezo_narx_ros.nodes.qos import sample_qos
 
 N = 400
 FS = 2000.0

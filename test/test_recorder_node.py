@@ -22,7 +22,8 @@ from sensor_msgs.msg import JointState
 from piezo_narx_ros.bag.reader import bag_info, iter_raw, read_uy
 from piezo_narx_ros.bag.repair import repair_bag
 from piezo_narx_ros.bag.writer import typestore
-from piezo_narx_ros.nodes.common import make_joint_state, sample_qos
+from piezo_narx_ros.nodes.codec import make_joint_state
+from piezo_narx_ros.nodes.qos import sample_qos
 
 T0 = 1_700_000_000_000_000_000
 P = 500_000  # ns, 2 kHz
@@ -193,7 +194,7 @@ def test_status_reports_waiting_topics_then_closes_the_bag(tmp_path):
     """In-process, no traffic: an 'auto' topic nobody publishes keeps the node in WARN."""
     from rclpy.parameter import Parameter
 
-    from piezo_narx_ros.nodes.common import DIAG_WARN
+    from piezo_narx_ros.nodes.diagnostics import DIAG_WARN
     from piezo_narx_ros.nodes.recorder_node import RecorderNode
     ctx = rclpy.Context()
     rclpy.init(context=ctx)

@@ -18,8 +18,9 @@ import numpy as np
 
 from piezo_narx_ros.bag.pairing import (StreamCheck, clean_stream, pair_by_stamp,
                                         sample_clock)
-from piezo_narx_ros.bag.writer import (COMMAND_TOPIC, DEFLECTION_TOPIC, JOINT_STATE,
-                                       absolute_topic, is_being_recorded, typestore)
+from piezo_narx_ros.bag.writer import (BATCH_SUFFIX, COMMAND_TOPIC, DEFLECTION_TOPIC,
+                                       JOINT_STATE, JOINT_TRAJECTORY, absolute_topic,
+                                       is_being_recorded, typestore)
 from piezo_narx_ros.errors import BagError
 from piezo_narx_ros.record import Record
 
@@ -116,6 +117,47 @@ def find_topic(reader, topic: str, msgtype: str | None = None, path='bag') -> li
     return conns
 
 
+SAMPLE_TYPES = (JOINT_STATE, JOINT_TRAJECTORY)
+
+
+def find_sample_topic(reader, topic: str, path='bag') -> tuple[list, str]:
+    """
+    Return (connections, type) of a sample stream: `topic`, or its batched twin `<topic>_batch`.
+
+    A batched recording (DESIGN.md "High-rate streams") reads like a one-sample one: asked for
+    /piezo/deflection, a bag holding only /piezo/deflection_batch gives that. BagError when
+    neither is there, or when the type is neither JointState nor JointTrajectory.
+    """
+    name = absolute_topic(topic)
+    have = {absolute_topic(c.topic) for c in reader.connections}
+    if name not in have and name + BATCH_SUFFIX in have:
+        name += BATCH_SUFFIX
+    conns = find_topic(reader, name, None, path)
+    types = sorted({c.msgtype for c in conns})
+    if len(types) != 1 or types[0] not in SAMPLE_TYPES:
+        raise BagError(f'topic {name} in bag {path} has type {types[0]}, expected '
+                       f'{JOINT_STATE} (or {JOINT_TRAJECTORY} for batches)')
+    return find_topic(reader, name, types[0], path), types[0]
+
+
+def joint_samples(msg, msgtype: str, field: str) -> list[tuple[int, object]]:
+    """
+    Return [(stamp ns, array of `field`)] of one decoded sample message.
+
+    One pair for a JointState, one per point for a JointTrajectory (stamp = header.stamp +
+    time_from_start, exact).
+
+    field: 'position', 'velocity' or 'effort' (the JointState names; a point's are plural).
+    """
+    st = msg.header.stamp
+    t0 = st.sec * 1_000_000_000 + st.nanosec
+    if msgtype == JOINT_STATE:
+        return [(t0, getattr(msg, field))]
+    name = {'position': 'positions', 'velocity': 'velocities'}.get(field, field)
+    return [(t0 + p.time_from_start.sec * 1_000_000_000 + p.time_from_start.nanosec,
+             getattr(p, name)) for p in msg.points]
+
+
 def decode_cdr(raw: bytes, typename: str):
     """
     Decode CDR bytes of a built-in type with the rosbags type store.
@@ -140,10 +182,11 @@ def decode_cdr(raw: bytes, typename: str):
 @dataclass
 class JointSeries:
     """
-    One JointState topic's values in arrival order.
+    One sample topic's values in arrival order (JointState, or JointTrajectory batches).
 
-    Header stamps (ns), receive times (ns), the chosen field of the chosen axis, how many
-    messages lacked it, and the joint names the messages carried (first seen first).
+    Header stamps (ns, per sample: a batch's points each have theirs), receive times (ns, of the
+    message that carried the sample), the chosen field of the chosen axis, how many samples
+    lacked it, and the joint names the messages carried (first seen first).
     """
 
     topic: str
@@ -182,14 +225,16 @@ def read_joint_series(path: str | Path, fields: dict[str, str], axis: str | int 
 
     fields: {topic: 'position' | 'effort'}; axis: the joint name to read (matched by name in each
     message), an index for messages without names, or None for a bag with one axis. Returns
-    {topic (as given): JointSeries}. Messages lacking the axis are counted in `malformed`.
+    {topic (as given): JointSeries}. Samples lacking the axis are counted in `malformed`. A topic
+    recorded batched (`<topic>_batch`, JointTrajectory) gives the same samples and stamps.
     """
     with open_bag(path) as reader:
-        by_conn = {}
+        by_conn, kinds = {}, {}
         for topic, fld in fields.items():
             if fld not in ('position', 'effort', 'velocity'):
                 raise BagError(f'unknown JointState field {fld!r}')
-            for c in find_topic(reader, topic, JOINT_STATE, path):
+            conns, kinds[topic] = find_sample_topic(reader, topic, path)
+            for c in conns:
                 by_conn[c.id] = topic
         acc = {t: ([], [], []) for t in fields}
         bad = dict.fromkeys(fields, 0)
@@ -197,25 +242,27 @@ def read_joint_series(path: str | Path, fields: dict[str, str], axis: str | int 
         conns = [c for c in reader.connections if c.id in by_conn]
         for conn, log_ns, raw in _messages(reader, conns, path):
             topic = by_conn[conn.id]
+            kind = kinds[topic]
             try:
-                msg = decode_cdr(raw, JOINT_STATE)
+                msg = decode_cdr(raw, kind)
             except Exception as exc:  # noqa: BLE001 - any decode failure is a damaged message
-                raise BagError(f'bag {path}: cannot decode a {JOINT_STATE} message on '
-                               f'{absolute_topic(topic)} at log time {log_ns} ns: '
+                raise BagError(f'bag {path}: cannot decode a {kind} message on '
+                               f'{absolute_topic(conn.topic)} at log time {log_ns} ns: '
                                f'{_one_line(exc)}') from None
-            arr = getattr(msg, fields[topic])
-            names = tuple(msg.name)
+            names = tuple(msg.name if kind == JOINT_STATE else msg.joint_names)
+            samples = joint_samples(msg, kind, fields[topic])
             cache = seen[topic]
             if names not in cache:
-                cache[names] = _axis_index(names, axis, len(arr))
+                cache[names] = _axis_index(names, axis, len(samples[0][1]) if samples else 0)
             i = cache[names]
-            if i is None or i >= len(arr):
-                bad[topic] += 1
-                continue
             stamps, logs, values = acc[topic]
-            stamps.append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
-            logs.append(log_ns)
-            values.append(float(arr[i]))
+            for t_ns, arr in samples:
+                if i is None or i >= len(arr):
+                    bad[topic] += 1
+                    continue
+                stamps.append(t_ns)
+                logs.append(log_ns)
+                values.append(float(arr[i]))
     out = {}
     for t, (s, lg, v) in acc.items():
         names = list(dict.fromkeys(n for key in seen[t] for n in key))
@@ -294,12 +341,15 @@ class TopicInfo:
     """
     One topic of a bag.
 
-    Stamp figures come from header.stamp for JointState topics and from the receive time otherwise.
+    Stamp figures come from header.stamp for JointState topics (from every point's stamp for
+    JointTrajectory batches, so a batched stream shows its sample rate) and from the receive time
+    otherwise.
     """
 
     name: str
     msgtype: str
     count: int
+    samples: int = 0          # samples (= count, or the points of every batch) with a stamp
     first_ns: int = 0
     last_ns: int = 0
     rate_hz: float = 0.0
@@ -336,7 +386,7 @@ def bag_info(path: str | Path) -> BagInfo:
     """
     Summarise a bag: topics, counts, duration, per-topic rate, gaps and stamp order.
 
-    Reads every message; JointState topics are decoded for their header stamps.
+    Reads every message; JointState and JointTrajectory topics are decoded for their stamps.
     """
     store = typestore()
     path = Path(path)
@@ -347,17 +397,18 @@ def bag_info(path: str | Path) -> BagInfo:
         headers: dict[int, list[int]] = {c.id: [] for c in reader.connections}
         joints: dict[int, dict] = {c.id: {} for c in reader.connections}
         decodable = {c.id for c in reader.connections
-                     if c.msgtype == JOINT_STATE and not (
+                     if c.msgtype in SAMPLE_TYPES and not (
                          c.digest and c.digest.startswith('RIHS01_')
-                         and c.digest != store.hash_rihs01(JOINT_STATE))}
+                         and c.digest != store.hash_rihs01(c.msgtype))}
         for conn, log_ns, raw in _messages(reader, reader.connections, path):
             logs[conn.id].append(log_ns)
             if conn.id in decodable:
                 try:
-                    msg = decode_cdr(raw, JOINT_STATE)
-                    st = msg.header.stamp
-                    headers[conn.id].append(st.sec * 1_000_000_000 + st.nanosec)
-                    joints[conn.id].update(dict.fromkeys(msg.name))
+                    msg = decode_cdr(raw, conn.msgtype)
+                    samples = joint_samples(msg, conn.msgtype, 'position')
+                    headers[conn.id] += [t for t, _ in samples]
+                    joints[conn.id].update(dict.fromkeys(
+                        msg.name if conn.msgtype == JOINT_STATE else msg.joint_names))
                 except Exception:  # noqa: BLE001 - fall back to receive times for this topic
                     decodable.discard(conn.id)
         stamps = {cid: headers[cid] if cid in decodable else logs[cid] for cid in logs}
@@ -368,6 +419,7 @@ def bag_info(path: str | Path) -> BagInfo:
             s, _, check = clean_stream(np.asarray(stamps[conn.id], np.int64),
                                        np.zeros(len(stamps[conn.id])))
             info = TopicInfo(absolute_topic(conn.topic), conn.msgtype, len(logs[conn.id]),
+                             len(stamps[conn.id]),
                              check=check if conn.id in decodable else None,
                              names=list(joints[conn.id]))
             if s.size:

@@ -22,6 +22,9 @@ import numpy as np
 from piezo_narx_ros.errors import BagError
 
 JOINT_STATE = 'sensor_msgs/msg/JointState'
+# A batch of samples (DESIGN.md "High-rate streams"), on `<topic>_batch` topics.
+JOINT_TRAJECTORY = 'trajectory_msgs/msg/JointTrajectory'
+BATCH_SUFFIX = '_batch'
 COMMAND_TOPIC = 'piezo/voltage_command'
 DEFLECTION_TOPIC = 'piezo/deflection'
 ESTIMATE_TOPIC = 'piezo/deflection_estimate'
@@ -332,16 +335,47 @@ def joint_state_cdr(stamp_ns: int, names: Sequence[str] = ('x',),
     return bytes(store.serialize_cdr(msg, JOINT_STATE))
 
 
+def joint_trajectory_cdr(stamps_ns: Sequence[int], names: Sequence[str] = ('x',),
+                         position=None, effort=None) -> bytes:
+    """
+    CDR bytes of one trajectory_msgs/JointTrajectory: a batch of samples.
+
+    header.stamp = the first stamp, one point per sample with time_from_start = t_k - t_first
+    (ns, exact); position (n, a) m and effort (n, a) V, or None for empty fields.
+    """
+    store = typestore()
+    types = store.types
+    stamps = [int(t) for t in stamps_ns]
+    t0 = stamps[0] if stamps else 0
+    sec, nsec = divmod(t0, 1_000_000_000)
+    empty = np.empty(0, dtype=np.float64)
+    points = []
+    for k, t in enumerate(stamps):
+        d_sec, d_nsec = divmod(t - t0, 1_000_000_000)
+        points.append(types['trajectory_msgs/msg/JointTrajectoryPoint'](
+            positions=empty if position is None else np.asarray(position[k], np.float64).ravel(),
+            velocities=empty, accelerations=empty,
+            effort=empty if effort is None else np.asarray(effort[k], np.float64).ravel(),
+            time_from_start=types['builtin_interfaces/msg/Duration'](sec=d_sec, nanosec=d_nsec)))
+    msg = types[JOINT_TRAJECTORY](
+        header=types['std_msgs/msg/Header'](
+            stamp=types['builtin_interfaces/msg/Time'](sec=sec, nanosec=nsec), frame_id=''),
+        joint_names=list(names), points=points)
+    return bytes(store.serialize_cdr(msg, JOINT_TRAJECTORY))
+
+
 def write_uy_bag(path: str | Path, u: np.ndarray, y: np.ndarray, fs: float,
                  t0_ns: int = 1_700_000_000_000_000_000, axis: str = 'x',
                  command_topic: str = COMMAND_TOPIC, deflection_topic: str = DEFLECTION_TOPIC,
-                 latency_ns: int = 0) -> Path:
+                 latency_ns: int = 0, batch: int = 1) -> Path:
     """
     Write a bag like a recording of the command and simulator nodes.
 
     Sample k is stamped t_k = t0_ns + round(k * 1e9 / fs) on both topics; u (N,) volts goes to the
     command's effort, y (N,) metres to the deflection's position (its effort repeats u). Receive
-    times are t_k plus `latency_ns`. Returns the bag path.
+    times are t_k plus `latency_ns`. batch > 1: the nodes' batched streams instead, JointTrajectory
+    messages of `batch` samples on `<topic>_batch`, received when their last sample is due.
+    Returns the bag path.
     """
     u = np.asarray(u, dtype=np.float64).ravel()
     y = np.asarray(y, dtype=np.float64).ravel()
@@ -350,6 +384,17 @@ def write_uy_bag(path: str | Path, u: np.ndarray, y: np.ndarray, fs: float,
     if not fs > 0:
         raise BagError(f'fs must be > 0 Hz, got {fs}')
     stamps = t0_ns + np.round(np.arange(u.size) * (1e9 / fs)).astype(np.int64)
+    if batch > 1:
+        with BagWriter(path) as bag:
+            cmd = bag.add_topic(command_topic + BATCH_SUFFIX, JOINT_TRAJECTORY)
+            dfl = bag.add_topic(deflection_topic + BATCH_SUFFIX, JOINT_TRAJECTORY)
+            for k in range(0, u.size, batch):
+                t, uk, yk = stamps[k:k + batch], u[k:k + batch, None], y[k:k + batch, None]
+                last = int(t[-1])
+                bag.write(cmd, last + latency_ns, joint_trajectory_cdr(t, (axis,), effort=uk))
+                bag.write(dfl, last + 2 * latency_ns,
+                          joint_trajectory_cdr(t, (axis,), position=yk, effort=uk))
+        return Path(path)
     with BagWriter(path) as bag:
         cmd = bag.add_topic(command_topic, JOINT_STATE)
         dfl = bag.add_topic(deflection_topic, JOINT_STATE)

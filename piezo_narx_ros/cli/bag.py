@@ -47,8 +47,8 @@ def _info(args) -> int:
     print(f'messages:  {info.message_count}')
     print(f'duration:  {info.duration_s:.6g} s')
     width = max([len(t.name) for t in info.topics] + [5])
-    print(f'{"topic":<{width}}  {"type":<36} {"count":>8} {"rate Hz":>10} {"gaps":>5} '
-          f'{"missing":>8}  {"axes":<8}  stamps')
+    print(f'{"topic":<{width}}  {"type":<36} {"count":>8} {"samples":>8} {"rate Hz":>10} '
+          f'{"gaps":>5} {"missing":>8}  {"axes":<8}  stamps')
     for t in info.topics:
         if t.check is None:
             order = 'receive time'
@@ -58,8 +58,8 @@ def _info(args) -> int:
                      if n]
             order = 'header' + (' (' + ', '.join(notes) + ')' if notes else '')
         axes = ','.join(t.names) or '-'
-        print(f'{t.name:<{width}}  {t.msgtype:<36} {t.count:>8} {t.rate_hz:>10.6g} '
-              f'{t.gaps:>5} {t.missing:>8}  {axes:<8}  {order}')
+        print(f'{t.name:<{width}}  {t.msgtype:<36} {t.count:>8} {t.samples:>8} '
+              f'{t.rate_hz:>10.6g} {t.gaps:>5} {t.missing:>8}  {axes:<8}  {order}')
     return 0
 
 

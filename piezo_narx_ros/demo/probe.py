@@ -1,8 +1,8 @@
 """
 A listener on /diagnostics, so the demo knows when nodes are up and when a run is complete.
 
-The nodes publish one DiagnosticStatus each about once a second (nodes/common.Diagnostics); the
-demo reads the command node's `published` count and state, and the recorder's `received` count.
+The nodes publish one DiagnosticStatus each about once a second (nodes.diagnostics.Diagnostics);
+the demo reads the command node's `published` count and state, and the recorder's `received` count.
 This is the only ROS code of the demo process; it installs no signal handlers.
 """
 from __future__ import annotations
@@ -29,7 +29,7 @@ class DiagnosticsProbe:
         self.executor.add_node(self.node)
 
     def _on_diag(self, arr) -> None:
-        from piezo_narx_ros.nodes.common import status_node
+        from piezo_narx_ros.nodes.diagnostics import status_node
         now = time.monotonic()
         for st in arr.status:
             # Statuses are named 'ns/node: task'; the demo asks by fully qualified node name.

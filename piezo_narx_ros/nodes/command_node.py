@@ -27,8 +27,10 @@ restarts the sample clock there. Otherwise they are paced on the monotonic clock
 """
 from __future__ import annotations
 
+import math
 import time
 
+import numpy as np
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.parameter import Parameter
 from std_srvs.srv import SetBool
@@ -36,10 +38,13 @@ from std_srvs.srv import SetBool
 from piezo_narx_ros.command.playback import playback_signal
 from piezo_narx_ros.command.stream import CommandStreamer, make_signal
 from piezo_narx_ros.errors import ConfigError
-from piezo_narx_ros.nodes.common import (DIAG_ERROR, DIAG_OK, DIAG_WARN, TOPIC_COMMAND,
-                                         TOPIC_REFERENCE, Diagnostics, ParamSpec, PiezoNode,
-                                         encode_joint_state, main_for)
+from piezo_narx_ros.nodes.batching import BATCH_PARAM, batch_topic, sample_type
+from piezo_narx_ros.nodes.codec import encode_joint_state, encode_joint_trajectory
+from piezo_narx_ros.nodes.diagnostics import DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics
 from piezo_narx_ros.nodes.graph import same_name_problem
+from piezo_narx_ros.nodes.params import ParamSpec
+from piezo_narx_ros.nodes.runtime import PiezoNode, main_for
+from piezo_narx_ros.nodes.topics import TOPIC_COMMAND, TOPIC_REFERENCE
 from piezo_narx_ros.plant.signals import KINDS
 
 OUTPUTS = ('voltage', 'position')
@@ -119,6 +124,7 @@ class CommandNode(PiezoNode):
                   'values publish the due samples in batches)', low=0.0, high=1.0, read_only=True),
         ParamSpec('max_burst', 10000, 'most samples published in one tick (the rest follow on '
                   'the next ones; nothing is dropped)', low=1, high=10**7, read_only=True),
+        BATCH_PARAM,
     )
 
     def __init__(self, **kwargs):
@@ -153,7 +159,12 @@ class CommandNode(PiezoNode):
         self.clock_jumps = 0
         self._last_pace: int | None = None
         self.position = p['output'] == 'position'
-        self.pub = self.sample_publisher(TOPIC_REFERENCE if self.position else TOPIC_COMMAND)
+        b = self.batch = p['batch']
+        self.pub = self.sample_publisher(
+            batch_topic(TOPIC_REFERENCE if self.position else TOPIC_COMMAND, b), sample_type(b))
+        # batch > 1: samples wait here until `batch` of them make a message.
+        self._held_t = np.empty(0, dtype=np.int64)
+        self._held_v = np.empty((0, len(self.axes)))
         self.add_post_set_parameters_callback(self._on_set)
         self.add_on_set_parameters_callback(self._keep_clock)
         self.srv_running = self.create_service(SetBool, '~/set_running', self.on_set_running)
@@ -228,6 +239,9 @@ class CommandNode(PiezoNode):
         due = self.streamer.next_due_ns()
         if due is None:      # paused, waiting for listeners or finished: look again soon
             return 0.005
+        if self.batch > 1:   # wake when the sample that completes the batch is due
+            need = self.batch - self._held_t.size
+            due += math.ceil((need - 1) * 1e9 / self.streamer.fs)
         # publish_period > 1/fs: wake once per period and publish the samples due by then.
         self._next_wake = max(due, self._next_wake + self._period_ns)
         return min(max(self._next_wake - now, 0) * 1e-9, 0.1)
@@ -246,6 +260,7 @@ class CommandNode(PiezoNode):
             s.start(pace, pace)
         self._last_pace = pace
         if not s.running:
+            self._publish_batches(flush=True)      # a pause or the end: nothing waits
             if not self.want_running or s.finished:
                 return
             if self.pub.get_subscription_count() < self.params['wait_for_subscribers']:
@@ -253,7 +268,11 @@ class CommandNode(PiezoNode):
             s.start(self.get_clock().now().nanoseconds, pace)
         stamps, volts = s.poll(pace)
         names, pub = self.axes, self.pub
-        if self.position:
+        if self.batch > 1:
+            self._held_t = np.concatenate((self._held_t, stamps))
+            self._held_v = np.concatenate((self._held_v, volts))
+            self._publish_batches(flush=s.finished)
+        elif self.position:
             for t, r in zip(stamps.tolist(), volts.tolist()):
                 pub.publish(encode_joint_state(t, names, position=r))
         else:
@@ -261,6 +280,16 @@ class CommandNode(PiezoNode):
                 pub.publish(encode_joint_state(t, names, effort=u))   # CDR bytes: 2x cheaper
         if s.finished and stamps.size:
             self.get_logger().info(f'signal finished after {s.published} samples')
+
+    def _publish_batches(self, flush: bool) -> None:
+        """Publish the held samples `batch` at a time (and the rest too when `flush`)."""
+        n, t, v = self.batch, self._held_t, self._held_v
+        full = t.size if flush else t.size - t.size % n
+        field = 'position' if self.position else 'effort'
+        for k in range(0, full, n):
+            self.pub.publish(encode_joint_trajectory(t[k:k + n], self.axes,
+                                                     **{field: v[k:k + n]}))
+        self._held_t, self._held_v = t[full:], v[full:]
 
     def status(self):
         s = self.streamer
@@ -278,7 +307,7 @@ class CommandNode(PiezoNode):
                               'fs': s.fs, 'subscribers': self.pub.get_subscription_count(),
                               'holding': s.holding,
                               'clock': 'sim' if self.sim_time else 'steady',
-                              'output': self.params['output'],
+                              'output': self.params['output'], 'batch': self.batch,
                               'clock_jumps': self.clock_jumps}
 
 

@@ -18,10 +18,14 @@ from piezo_narx_ros.command.stamps import RATE_TOLERANCE
 from piezo_narx_ros.control.controller import MODES, PositionController, input_limits
 from piezo_narx_ros.control.health import ControllerHealth
 from piezo_narx_ros.control.inverse import TARGETS
-from piezo_narx_ros.nodes.common import (DIAG_WARN, TOPIC_COMMAND, TOPIC_DEFLECTION,
-                                         TOPIC_REFERENCE, Diagnostics, ParamSpec, PiezoNode,
-                                         decode_joint_state, encode_joint_state, main_for)
+from piezo_narx_ros.nodes.batching import BATCH_PARAM, batch_topic, batch_values, sample_type
+from piezo_narx_ros.nodes.codec import (decode_joint_state, encode_joint_state,
+                                        encode_joint_trajectory)
+from piezo_narx_ros.nodes.diagnostics import DIAG_WARN, Diagnostics
 from piezo_narx_ros.nodes.graph import EpisodeLog, same_name_problem
+from piezo_narx_ros.nodes.params import ParamSpec
+from piezo_narx_ros.nodes.runtime import PiezoNode, main_for
+from piezo_narx_ros.nodes.topics import TOPIC_COMMAND, TOPIC_DEFLECTION, TOPIC_REFERENCE
 
 
 class ControllerNode(PiezoNode):
@@ -80,6 +84,7 @@ class ControllerNode(PiezoNode):
                   'voltage_command has this many subscriptions (so the first commands are '
                   'heard; a reference streamer waiting for this node then waits for them too)',
                   low=0, high=1000, read_only=True),
+        BATCH_PARAM,
     )
 
     def __init__(self, **kwargs):
@@ -110,13 +115,16 @@ class ControllerNode(PiezoNode):
         self.ctl.inverse.reset()      # ...and forget that solve (its remembered slope)
         self.axis = p['axis']
         self._names = [self.axis]
-        self.pub = self.sample_publisher(TOPIC_COMMAND)
-        # The callbacks get CDR bytes (see common.decode_joint_state: 8x cheaper).
+        b = self.batch = p['batch']
+        self.pub = self.sample_publisher(batch_topic(TOPIC_COMMAND, b), sample_type(b))
+        # The callbacks get CDR bytes (see nodes.codec.decode_joint_state: 8x cheaper).
         self.sub_ref = None
         self._wait_timer = self.create_timer(0.05, self.on_wait_check)
         self.on_wait_check()
-        self.sub_meas = (self.sample_subscription(TOPIC_DEFLECTION, self.on_measurement)
-                         if p['use_deflection'] else None)
+        self.sub_meas = (self.sample_subscription(
+            batch_topic(TOPIC_DEFLECTION, b),
+            self.on_measurement_batch if b > 1 else self.on_measurement, sample_type(b))
+            if p['use_deflection'] else None)
         self.health = ControllerHealth(self.ctl)
         self._error_log = EpisodeLog(self.get_logger())
         # A reference held back for its ambiguous stamp is decided when references stop.
@@ -138,12 +146,16 @@ class ControllerNode(PiezoNode):
         """Subscribe to the references once the commands have their listeners."""
         if self.sub_ref is None and \
                 self.pub.get_subscription_count() >= self.params['wait_for_subscribers']:
-            self.sub_ref = self.sample_subscription(TOPIC_REFERENCE, self.on_reference)
+            b = self.batch
+            self.sub_ref = self.sample_subscription(
+                batch_topic(TOPIC_REFERENCE, b),
+                self.on_reference_batch if b > 1 else self.on_reference, sample_type(b))
             self._wait_timer.cancel()
 
     def pending_parameter_prefixes(self) -> list[str]:
         """position_reference may be subscribed after construction: its QoS overrides too."""
-        return [f'qos_overrides.{self.resolve_topic_name(TOPIC_REFERENCE)}.subscription.']
+        topic = batch_topic(TOPIC_REFERENCE, self.params['batch'])
+        return [f'qos_overrides.{self.resolve_topic_name(topic)}.subscription.']
 
     def on_reset(self, _request, response):
         """
@@ -181,6 +193,29 @@ class ControllerNode(PiezoNode):
             return
         self.ctl.on_measurement(*got)
 
+    def _values(self, msg: bytes, what: str) -> list[tuple[int, float]] | None:
+        try:
+            return batch_values(msg, 'position', self.axis)
+        except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the node
+            self.get_logger().warning(f'{what} batch ignored: {exc}', throttle_duration_sec=1.0)
+            return None
+
+    def on_reference_batch(self, msg: bytes) -> None:
+        """Feed a batch sample by sample through the one-sample call; answer with one batch."""
+        got = self._values(msg, 'reference')
+        if got is None:
+            self.ctl.stats.rejected_nonfinite += 1   # a refused message, as in on_reference
+            return
+        self.publish([c for t, r in got for c in self.ctl.on_reference(t, r)])
+
+    def on_measurement_batch(self, msg: bytes) -> None:
+        got = self._values(msg, 'deflection')
+        if got is None:
+            self.ctl.stats.measurements_rejected += 1
+            return
+        for t, y in got:
+            self.ctl.on_measurement(t, y)
+
     def on_idle_check(self) -> None:
         """Decide on a held-back reference now that references have stopped coming."""
         n = self.ctl.stats.references
@@ -190,6 +225,11 @@ class ControllerNode(PiezoNode):
 
     def publish(self, commands) -> None:
         names, pub = self._names, self.pub
+        if self.batch > 1:
+            if commands:
+                pub.publish(encode_joint_trajectory([t for t, _ in commands], names,
+                                                    effort=[[u] for _, u in commands]))
+            return
         for t, u in commands:
             pub.publish(encode_joint_state(t, names, effort=(u,)))
 

@@ -26,8 +26,13 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from piezo_narx_ros.errors import ConfigError, DataError
-from piezo_narx_ros.nodes.common import (TOPIC_COMMAND, TOPIC_DEFLECTION, Diagnostics, ParamSpec,
-                                         PiezoNode, main_for, make_joint_state, parse_joint_state)
+from piezo_narx_ros.nodes.batching import BATCH_PARAM, batch_topic, sample_type
+from piezo_narx_ros.nodes.codec import (decode_joint_trajectory, encode_joint_trajectory,
+                                        make_joint_state, parse_joint_state)
+from piezo_narx_ros.nodes.diagnostics import Diagnostics
+from piezo_narx_ros.nodes.params import ParamSpec
+from piezo_narx_ros.nodes.runtime import PiezoNode, main_for
+from piezo_narx_ros.nodes.topics import TOPIC_COMMAND, TOPIC_DEFLECTION
 from piezo_narx_ros.rig.client import RigClient, resolve_target
 from piezo_narx_ros.rig.driver import (DIAG_ERROR, DIAG_OK, DIAG_WARN, STATE_RAMPING,
                                        DriverConfig, RigDriver)   # levels as ints
@@ -77,6 +82,10 @@ class DriverNode(PiezoNode, LifecycleNode):
         ParamSpec('autostart', True, 'configure and activate without a lifecycle manager (retry '
                   'configure until the target answers); false: wait for lifecycle transitions',
                   read_only=True),
+        ParamSpec('protocol_version', 1, 'UDP datagrams: 1 (one sample each), 2 (several samples '
+                  'each, docs/driver.md) or 0 (negotiate: 2 when the target answers a version-2 '
+                  'ping, else 1)', low=0, high=2, read_only=True),
+        BATCH_PARAM,
     )
 
     def __init__(self, **kwargs):
@@ -88,7 +97,8 @@ class DriverNode(PiezoNode, LifecycleNode):
         self.config = DriverConfig(
             n_axes=1, v_min=p['v_min'], v_max=p['v_max'], max_slew_rate=p['max_slew_rate'],
             sample_rate=p['sample_rate'], watchdog_timeout=p['watchdog_timeout'],
-            ramp_rate=p['ramp_rate'], reply_timeout=p['reply_timeout'])
+            ramp_rate=p['ramp_rate'], reply_timeout=p['reply_timeout'],
+            protocol_version=p['protocol_version'] or 1)
         self.config.validate()
         resolve_target(p['target_host'], p['target_port'])   # refuse a bad host at start-up
         self.axis = p['axis']
@@ -101,7 +111,9 @@ class DriverNode(PiezoNode, LifecycleNode):
         self.estopped = False
         self.problem = ''        # why the last configure failed, for /diagnostics
         # deflection is advertised from the start; it carries samples only while active.
-        self.pub = self.sample_publisher(TOPIC_DEFLECTION)
+        self.batch = p['batch']
+        self.pub = self.sample_publisher(batch_topic(TOPIC_DEFLECTION, self.batch),
+                                         sample_type(self.batch))
         self.srv_arm = self.create_service(Trigger, '~/arm', self.on_arm)
         self.srv_estop = self.create_service(Trigger, '~/estop', self.on_estop)
         self.diagnostics = Diagnostics(self, self.provide_diagnostics, task='rig link',
@@ -132,12 +144,18 @@ class DriverNode(PiezoNode, LifecycleNode):
         self.driver = RigDriver(self.config, self.client.send)
         self.client.start(self.on_datagram)
         deadline = time.monotonic() + p['connect_timeout']
+        # protocol_version 0: ping in both versions; a version-2 answer selects version 2.
+        versions = (2, 1) if p['protocol_version'] == 0 else (None,)
         while not self.driver.connected and time.monotonic() < deadline:
-            self.driver.ping(time.monotonic(), self.get_clock().now().nanoseconds)
+            for version in versions:
+                self.driver.ping(time.monotonic(), self.get_clock().now().nanoseconds, version)
             time.sleep(_PING_PERIOD_S)
         if not self.driver.connected:
             return self._configure_failed(f'target {self.address} did not answer a ping within '
                                           f"{p['connect_timeout']:g} s")
+        if p['protocol_version'] == 0:
+            time.sleep(_PING_PERIOD_S)      # the version-2 answer of the same round, if any
+            self.driver.use_version(max(self.driver.versions_seen))
         # A slow supervision tick notices the watchdog; the fast ramp timer runs only while
         # ramping (a 1 kHz timer all the time costs ~10 % of a core in rclpy).
         supervision = min(max(p['watchdog_timeout'] / 4.0, 1e-3), 0.05)
@@ -147,7 +165,8 @@ class DriverNode(PiezoNode, LifecycleNode):
         self.problem = ''
         self.lifecycle = 'inactive'
         self.get_logger().info(f'configured: target {self.address} answered (UDP port '
-                               f'{self.client.local_port})')
+                               f'{self.client.local_port}, protocol version '
+                               f'{self.driver.version})')
         return TransitionCallbackReturn.SUCCESS
 
     def _configure_failed(self, why: str) -> TransitionCallbackReturn:
@@ -160,7 +179,11 @@ class DriverNode(PiezoNode, LifecycleNode):
         """Subscribe voltage_command and enable the output (unless e-stopped)."""
         if not self.estopped:
             self.driver.enable_output()
-        self.sub = self.sample_subscription(TOPIC_COMMAND, self.on_command, raw=False)
+        if self.batch > 1:
+            self.sub = self.sample_subscription(batch_topic(TOPIC_COMMAND, self.batch),
+                                                self.on_command_batch, sample_type(self.batch))
+        else:
+            self.sub = self.sample_subscription(TOPIC_COMMAND, self.on_command, raw=False)
         self.lifecycle = 'active'
         self.get_logger().info('active: subscribed to voltage_command'
                                + (' (e-stopped: output held at 0 V until ~/arm)'
@@ -263,13 +286,36 @@ class DriverNode(PiezoNode, LifecycleNode):
         except DataError as exc:
             self.get_logger().warning(f'command rejected: {exc}', throttle_duration_sec=1.0)
 
-    def on_datagram(self, data: bytes, now: float) -> None:
-        """Receive thread: a reply that answers a command becomes a deflection message."""
+    def on_command_batch(self, msg: bytes) -> None:
+        """Send a batch of command samples to the target (protocol version 2: one datagram)."""
+        now = time.monotonic()
         driver = self.driver
         if driver is None:
             return
-        sample = driver.receive(data, now)
-        if sample is not None and self.lifecycle == 'active':
+        try:
+            batch = decode_joint_trajectory(msg)
+            volts = batch.column('effort', self.axis)
+        except DataError as exc:
+            driver.reject()
+            self.get_logger().warning(f'command batch rejected: {exc}',
+                                      throttle_duration_sec=1.0)
+            return
+        driver.command_batch(volts[:, None], batch.t_ns.tolist(), now)
+
+    def on_datagram(self, data: bytes, now: float) -> None:
+        """Receive thread: a reply that answers commands becomes deflection message(s)."""
+        driver = self.driver
+        if driver is None:
+            return
+        samples = driver.receive_batch(data, now)
+        if not samples or self.lifecycle != 'active':
+            return
+        if self.batch > 1:     # the samples of one datagram make one batch
+            self.pub.publish(encode_joint_trajectory(
+                [s.stamp_ns for s in samples], [self.axis], [s.position_m for s in samples],
+                [s.applied_volts for s in samples]))
+            return
+        for sample in samples:
             self.pub.publish(make_joint_state(sample.stamp_ns, [self.axis], sample.position_m,
                                               sample.applied_volts))
 
@@ -286,7 +332,8 @@ class DriverNode(PiezoNode, LifecycleNode):
 
     def pending_parameter_prefixes(self) -> list[str]:
         """voltage_command is subscribed on activation: its QoS overrides are declared then."""
-        return [f'qos_overrides.{self.resolve_topic_name(TOPIC_COMMAND)}.subscription.']
+        topic = batch_topic(TOPIC_COMMAND, self.params['batch'])
+        return [f'qos_overrides.{self.resolve_topic_name(topic)}.subscription.']
 
     def provide_diagnostics(self):
         values = {'lifecycle': self.lifecycle, 'estop': self.estopped}
@@ -295,6 +342,7 @@ class DriverNode(PiezoNode, LifecycleNode):
             return bytes([level]), self.problem or self.lifecycle, values
         level, message, report = self.driver.report(time.monotonic())
         values.update(report)
+        values['protocol_version'] = self.driver.version
         values.update(datagrams_foreign=self.client.foreign,
                       receive_errors=self.client.callback_errors)
         if self.client.callback_errors:

@@ -17,10 +17,14 @@ from piezo_narx_ros.command.stamps import RATE_TOLERANCE
 from piezo_narx_ros.errors import ConfigError
 from piezo_narx_ros.estimator.free_run import INIT_MODES, FreeRunEstimator
 from piezo_narx_ros.estimator.health import EstimatorHealth
+from piezo_narx_ros.nodes.batching import BATCH_PARAM, batch_topic, batch_values, sample_type
+from piezo_narx_ros.nodes.codec import (decode_joint_state, encode_joint_state,
+                                        encode_joint_trajectory)
+from piezo_narx_ros.nodes.diagnostics import Diagnostics
 from piezo_narx_ros.nodes.graph import EpisodeLog, same_name_problem
-from piezo_narx_ros.nodes.common import (TOPIC_COMMAND, TOPIC_DEFLECTION, TOPIC_ESTIMATE,
-                                         Diagnostics, ParamSpec, PiezoNode, decode_joint_state,
-                                         encode_joint_state, main_for)
+from piezo_narx_ros.nodes.params import ParamSpec
+from piezo_narx_ros.nodes.runtime import PiezoNode, main_for
+from piezo_narx_ros.nodes.topics import TOPIC_COMMAND, TOPIC_DEFLECTION, TOPIC_ESTIMATE
 
 
 class EstimatorNode(PiezoNode):
@@ -54,6 +58,7 @@ class EstimatorNode(PiezoNode):
                   read_only=True),
         ParamSpec('reanchor_every', 0, 're-anchor the recursion to the measurement every that '
                   'many samples (0: never)', low=0, high=10**9, read_only=True),
+        BATCH_PARAM,
     )
 
     def __init__(self, **kwargs):
@@ -68,10 +73,15 @@ class EstimatorNode(PiezoNode):
             rate_tolerance=p['rate_tolerance'])
         self.est.model.stepper().step(0.0)   # compile/load the kernel before the first sample
         self.axis = p['axis']
-        self.pub = self.sample_publisher(TOPIC_ESTIMATE)
-        # The callbacks get CDR bytes (see common.decode_joint_state: 8x cheaper).
-        self.sub_cmd = self.sample_subscription(TOPIC_COMMAND, self.on_command)
-        self.sub_meas = self.sample_subscription(TOPIC_DEFLECTION, self.on_measurement)
+        b = self.batch = p['batch']
+        self.pub = self.sample_publisher(batch_topic(TOPIC_ESTIMATE, b), sample_type(b))
+        # The callbacks get CDR bytes (see nodes.codec.decode_joint_state: 8x cheaper).
+        self.sub_cmd = self.sample_subscription(
+            batch_topic(TOPIC_COMMAND, b), self.on_command_batch if b > 1 else self.on_command,
+            sample_type(b))
+        self.sub_meas = self.sample_subscription(
+            batch_topic(TOPIC_DEFLECTION, b),
+            self.on_measurement_batch if b > 1 else self.on_measurement, sample_type(b))
         self._names = [self.axis]
         self.health = EstimatorHealth(self.est)
         self._error_log = EpisodeLog(self.get_logger())
@@ -126,20 +136,43 @@ class EstimatorNode(PiezoNode):
                                       throttle_duration_sec=1.0)
             return None
 
+    def _values(self, msg: bytes, field: str) -> list[tuple[int, float]] | None:
+        try:
+            return batch_values(msg, field, self.axis)
+        except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the node
+            self.get_logger().warning(f'{field} batch ignored: {exc}', throttle_duration_sec=1.0)
+            return None
+
     def on_command(self, msg: bytes) -> None:
         got = self._value(msg, 'effort')
         if got is None:
             self.est.stats.rejected_nonfinite += 1   # unusable: counted like a non-finite one
             return
+        self.publish(self._command(*got))
+
+    def _command(self, t_ns: int, volts: float):
         if self.est.stats.commands == 0:
             self.est.start(self.sub_meas.get_publisher_count() > 0)
             self.est.rate.single_writer = self.sub_cmd.get_publisher_count() == 1
-        self.publish(self.est.on_command(*got))
+        return self.est.on_command(t_ns, volts)
+
+    def on_command_batch(self, msg: bytes) -> None:
+        """Feed a batch sample by sample through the one-sample call; answer with one batch."""
+        got = self._values(msg, 'effort')
+        if got is None:
+            self.est.stats.rejected_nonfinite += 1   # a refused message, as in on_command
+            return
+        self.publish([e for t, u in got for e in self._command(t, u)])
 
     def on_measurement(self, msg: bytes) -> None:
         got = self._value(msg, 'position')
         if got is not None:
             self.publish(self.est.on_measurement(*got))
+
+    def on_measurement_batch(self, msg: bytes) -> None:
+        got = self._values(msg, 'position')
+        if got is not None:
+            self.publish([e for t, y in got for e in self.est.on_measurement(t, y)])
 
     def on_idle_check(self) -> None:
         """Commands stopped while one was held back: decide on it now."""
@@ -150,6 +183,11 @@ class EstimatorNode(PiezoNode):
 
     def publish(self, estimates) -> None:
         names, pub = self._names, self.pub
+        if self.batch > 1:
+            if estimates:
+                pub.publish(encode_joint_trajectory([t for t, _ in estimates], names,
+                                                    position=[[y] for _, y in estimates]))
+            return
         for t, y in estimates:
             pub.publish(encode_joint_state(t, names, position=(y,)))
 

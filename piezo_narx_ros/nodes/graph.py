@@ -1,8 +1,8 @@
 """
 What a node learns about its peers from the ROS graph, and one log line per new problem.
 
-Kept out of nodes/common.py (the shared plumbing); every check here is cheap enough for a 1 Hz
-diagnostics tick.
+Kept out of the shared plumbing (nodes.qos, params, codec, diagnostics, runtime); every check
+here is cheap enough for a 1 Hz diagnostics tick.
 """
 from __future__ import annotations
 

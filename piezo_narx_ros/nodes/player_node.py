@@ -26,9 +26,10 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from piezo_narx_ros.bag.player import (BagSchedule, PlaybackClock, replay_qos, topic_offered_qos,
                                        topic_types)
 from piezo_narx_ros.errors import ConfigError
-from piezo_narx_ros.nodes.common import (DIAG_ERROR, DIAG_OK, DIAG_WARN, SAMPLE_DEPTH,
-                                         Diagnostics, ParamSpec, PiezoNode, main_for,
-                                         sample_qos)
+from piezo_narx_ros.nodes.diagnostics import DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics
+from piezo_narx_ros.nodes.params import ParamSpec
+from piezo_narx_ros.nodes.qos import SAMPLE_DEPTH, sample_qos
+from piezo_narx_ros.nodes.runtime import PiezoNode, main_for
 from piezo_narx_ros.nodes.recorder_node import message_class
 
 

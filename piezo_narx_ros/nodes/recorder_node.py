@@ -24,10 +24,13 @@ from functools import partial
 
 from piezo_narx_ros.bag.recorder import (AUTO_TYPE, BagRecorder, discovered_types,
                                          expand_types)
-from piezo_narx_ros.bag.writer import check_type, qos_from_rclpy, typestore
+from piezo_narx_ros.bag.writer import (JOINT_STATE, JOINT_TRAJECTORY, check_type,
+                                       qos_from_rclpy, typestore)
 from piezo_narx_ros.errors import BagError, ConfigError
-from piezo_narx_ros.nodes.common import (DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics, ParamSpec,
-                                         PiezoNode, main_for)
+from piezo_narx_ros.nodes.batching import BATCH_PARAM, batch_topic
+from piezo_narx_ros.nodes.diagnostics import DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics
+from piezo_narx_ros.nodes.params import ParamSpec
+from piezo_narx_ros.nodes.runtime import PiezoNode, main_for
 
 _TYPE_NAME = re.compile(r'^([a-z][a-z0-9_]*)/msg/([A-Z][A-Za-z0-9]*)$')
 
@@ -84,6 +87,9 @@ class RecorderNode(PiezoNode):
                   'on SIGKILL), s', low=0.01, high=60.0, read_only=True),
         ParamSpec('discovery_period_s', 0.2, "how often 'auto' topics are looked up, s",
                   low=0.01, high=10.0, read_only=True),
+        ParamSpec('batch', 1, 'batch > 1: record the batched streams of nodes run with that '
+                  'batch: each JointState topic becomes <topic>_batch, JointTrajectory',
+                  low=BATCH_PARAM.low, high=BATCH_PARAM.high, read_only=True),
     )
 
     def __init__(self, **kwargs):
@@ -91,6 +97,10 @@ class RecorderNode(PiezoNode):
         p = self.params
         topics = [self.resolve_topic_name(t) for t in p['topics']]
         self._wanted = dict(zip(topics, expand_types(topics, p['types'])))
+        if p['batch'] > 1:      # the nodes' batched streams (DESIGN.md "High-rate streams")
+            self._wanted = {(batch_topic(t, p['batch']) if k == JOINT_STATE else t):
+                            (JOINT_TRAJECTORY if k == JOINT_STATE else k)
+                            for t, k in self._wanted.items()}
         for kind in set(self._wanted.values()) - {AUTO_TYPE}:
             message_class(kind)  # refuse unknown types at start-up
         # `output:=~/x` reaches the node unexpanded (no shell expands a ~ after ':='): a folder

@@ -16,10 +16,14 @@ import math
 from piezo_narx_ros.command.stamps import RATE_TOLERANCE, RESTART, RateMonitor, StampGate
 from piezo_narx_ros.counters import Since
 from piezo_narx_ros.errors import DataError
-from piezo_narx_ros.nodes.common import (DIAG_ERROR, DIAG_OK, DIAG_WARN, TOPIC_COMMAND,
-                                         TOPIC_DEFLECTION, Diagnostics, ParamSpec, PiezoNode,
-                                         decode_joint_state, encode_joint_state, main_for)
+from piezo_narx_ros.nodes.batching import BATCH_PARAM, batch_topic, sample_type
+from piezo_narx_ros.nodes.codec import (decode_joint_state, decode_joint_trajectory,
+                                        encode_joint_state, encode_joint_trajectory)
+from piezo_narx_ros.nodes.diagnostics import DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics
 from piezo_narx_ros.nodes.graph import EpisodeLog, same_name_problem
+from piezo_narx_ros.nodes.params import ParamSpec
+from piezo_narx_ros.nodes.runtime import PiezoNode, main_for
+from piezo_narx_ros.nodes.topics import TOPIC_COMMAND, TOPIC_DEFLECTION
 
 
 class PlantResponder:
@@ -143,6 +147,7 @@ class SimulatorNode(PiezoNode):
         ParamSpec('rate_tolerance', RATE_TOLERANCE, 'relative difference between the command '
                   "stream's stamp rate and fs beyond which no deflection is published (ERROR)",
                   low=1e-6, high=0.5, read_only=True),
+        BATCH_PARAM,
     )
 
     def __init__(self, **kwargs):
@@ -157,9 +162,12 @@ class SimulatorNode(PiezoNode):
             plant.reset()
         self.responder = PlantResponder(plants, p['fs'], p['max_fill'], p['rate_tolerance'])
         self._error_log = EpisodeLog(self.get_logger())
-        self.pub = self.sample_publisher(TOPIC_DEFLECTION)
-        # Raw CDR bytes in and out (see common.decode_joint_state: 8x cheaper).
-        self.sub = self.sample_subscription(TOPIC_COMMAND, self.on_command)
+        b = self.batch = p['batch']
+        self.pub = self.sample_publisher(batch_topic(TOPIC_DEFLECTION, b), sample_type(b))
+        # Raw CDR bytes in and out (see nodes.codec.decode_joint_state: 8x cheaper).
+        self.sub = self.sample_subscription(
+            batch_topic(TOPIC_COMMAND, b), self.on_command_batch if b > 1 else self.on_command,
+            sample_type(b))
         self._names = list(p['axes'])
         self._seen = 0
         self.flush_timer = self.create_timer(0.2, self.on_idle_check)
@@ -180,18 +188,38 @@ class SimulatorNode(PiezoNode):
             self.responder.rejected += 1
             self.get_logger().warning(f'command refused: {exc}', throttle_duration_sec=1.0)
             return
-        if sample.names:
-            volts = dict(zip(sample.names, sample.effort))
+        self.publish(self._command(sample.t_ns, sample.names, sample.effort))
+
+    def _command(self, t_ns: int, names, effort) -> list:
+        if names:
+            volts = dict(zip(names, effort))
         else:  # an unnamed message drives the first axis
-            volts = {self.responder.axes[0]: sample.effort[0]} if sample.effort else {}
+            volts = {self.responder.axes[0]: effort[0]} if len(effort) else {}
         try:
-            answers = self.responder.on_command(sample.t_ns, volts)
+            return self.responder.on_command(t_ns, volts)
         except DataError as exc:
             self.get_logger().warning(f'command refused: {exc}', throttle_duration_sec=1.0)
+            return []
+
+    def on_command_batch(self, msg: bytes) -> None:
+        """Feed a batch sample by sample through the one-sample call; answer with one batch."""
+        try:
+            batch = decode_joint_trajectory(msg)
+        except DataError as exc:
+            self.responder.rejected += 1
+            self.get_logger().warning(f'command batch refused: {exc}', throttle_duration_sec=1.0)
             return
-        self.publish(answers)
+        names = batch.names
+        self.publish([a for t, u in zip(batch.t_ns.tolist(), batch.effort.tolist())
+                      for a in self._command(t, names, u)])
 
     def publish(self, answers) -> None:
+        if self.batch > 1:
+            if answers:
+                self.pub.publish(encode_joint_trajectory(
+                    [a[0] for a in answers], self._names, [a[1] for a in answers],
+                    [a[2] for a in answers]))
+            return
         for t_ns, y, u in answers:
             self.pub.publish(encode_joint_state(t_ns, self._names, y, u))
 

@@ -6,6 +6,8 @@ RigDriver is driven by three calls, each given the monotonic time `now` (s) so t
   receive(data, now)             a datagram arrived from the target: the Sample to publish, or
                                  None;
   tick(now)                      periodic: expire unanswered commands, run the watchdog ramp.
+command_batch(volts, stamps_ns, now) and receive_batch(data, now) do the same for several
+samples: in protocol version 2 one datagram carries them all (docs/driver.md).
 Outgoing datagrams go through the `send(bytes)` callable (a UDP socket in the node, a list in
 tests).
 The three calls may come from different threads (the node receives on its own thread), so each one
@@ -46,6 +48,7 @@ class DriverConfig:
     watchdog_timeout: float = 0.1  # s without a command before the ramp to 0 V starts
     ramp_rate: float = 1000.0      # Hz, datagrams per second while ramping
     reply_timeout: float = 0.01    # s after which an unanswered command counts as a reply timeout
+    protocol_version: int = 1      # datagrams sent: 1 (one sample each) or 2 (several samples)
 
     def validate(self) -> None:
         """Raise ConfigError naming the first bad field."""
@@ -56,6 +59,9 @@ class DriverConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f'{name} must be a positive finite number, got {value}')
+        if self.protocol_version not in protocol.VERSIONS:
+            raise ConfigError(f'protocol_version must be one of {list(protocol.VERSIONS)}, got '
+                              f'{self.protocol_version}')
         # SlewLimiter checks the voltage window.
         SlewLimiter(self.v_min, self.v_max, self.max_slew_rate, self.n_axes)
 
@@ -114,6 +120,7 @@ COUNTERS = (
     'reply_timeouts',      # commands unanswered after reply_timeout
     'target_faults',       # replies carrying the target's fault flag
     'watchdog_trips',
+    'samples_answered',    # command samples answered (one per v1 reply, several per v2 reply)
 )
 
 
@@ -136,6 +143,7 @@ class RigDriver:
         self._pending: OrderedDict[int, _Pending] = OrderedDict()
         self._answered = _BoundedSeqSet()
         self._expired = _BoundedSeqSet()
+        self._ignored = _BoundedSeqSet()   # negotiation pings left unanswered on purpose
         self._last_send: float | None = None
         self._last_reply: float | None = None
         self._latencies: deque[float] = deque(maxlen=2000)
@@ -143,6 +151,8 @@ class RigDriver:
         self._report_counts = dict(self.counts)
         self._stopping = False
         self._lock = threading.Lock()
+        self.version = config.protocol_version
+        self.versions_seen: set[int] = set()   # versions of the replies received (negotiation)
 
     # ----------------------------------------------------------------------------- commands
     def command(self, volts, stamp_ns: int, now: float) -> np.ndarray:
@@ -157,22 +167,57 @@ class RigDriver:
             if self._stopping:
                 self.counts['commands_blocked'] += 1
                 return self.limiter.output.copy()
-            if v.size != self.config.n_axes:
-                self.counts['commands_rejected'] += 1
-                raise DataError(f'command has {v.size} values, the driver drives '
-                                f'{self.config.n_axes} axes')
-            if not np.all(np.isfinite(v)):
-                self.counts['commands_rejected'] += 1
-                raise DataError(f'command volts {v.tolist()} are not finite')
-            out, clamped, slewed = self.limiter.apply(v, 1.0 / self.config.sample_rate)
-            self.counts['commands'] += 1
-            self.counts['commands_clamped'] += clamped
-            self.counts['commands_slewed'] += slewed
-            self.watchdog.feed(now)
-            self.state = STATE_STREAMING
-            self._observe_stamp(int(stamp_ns))
+            out = self._limit(v, int(stamp_ns), now)
             self._send(out, int(stamp_ns), now, flags=0, publish=True)
             return out
+
+    def command_batch(self, volts, stamps_ns, now: float) -> np.ndarray:
+        """
+        Limit several command samples ((n, n_axes) V, stamps (n,) ns) and send them.
+
+        Each sample goes through the same checks and limits as in `command`, in order; a refused
+        sample (wrong axis count, NaN/inf) is counted and left out, the others are sent. Protocol
+        version 2: one datagram per MAX_SAMPLES samples; version 1: one datagram per sample.
+        Returns the volts sent, (m, n_axes).
+        """
+        rows = np.asarray(volts, dtype=float).reshape(len(stamps_ns), -1)
+        with self._lock:
+            if self._stopping:
+                self.counts['commands_blocked'] += len(rows)
+                return np.empty((0, self.config.n_axes))
+            sent, stamps = [], []
+            for row, stamp in zip(rows, stamps_ns):
+                try:
+                    sent.append(self._limit(row, int(stamp), now))
+                except DataError:
+                    continue          # counted in commands_rejected
+                stamps.append(int(stamp))
+            if self.version == protocol.VERSION_BATCH:
+                for k in range(0, len(sent), protocol.MAX_SAMPLES):
+                    self._send_batch(sent[k:k + protocol.MAX_SAMPLES],
+                                     stamps[k:k + protocol.MAX_SAMPLES], now)
+            else:
+                for out, stamp in zip(sent, stamps):
+                    self._send(out, stamp, now, flags=0, publish=True)
+            return np.array(sent).reshape(-1, self.config.n_axes)
+
+    def _limit(self, v: np.ndarray, stamp_ns: int, now: float) -> np.ndarray:
+        """Check and limit one sample (lock held); DataError (counted) when it is refused."""
+        if v.size != self.config.n_axes:
+            self.counts['commands_rejected'] += 1
+            raise DataError(f'command has {v.size} values, the driver drives '
+                            f'{self.config.n_axes} axes')
+        if not np.all(np.isfinite(v)):
+            self.counts['commands_rejected'] += 1
+            raise DataError(f'command volts {v.tolist()} are not finite')
+        out, clamped, slewed = self.limiter.apply(v, 1.0 / self.config.sample_rate)
+        self.counts['commands'] += 1
+        self.counts['commands_clamped'] += clamped
+        self.counts['commands_slewed'] += slewed
+        self.watchdog.feed(now)
+        self.state = STATE_STREAMING
+        self._observe_stamp(stamp_ns)
+        return out
 
     def _observe_stamp(self, t_ns: int) -> None:
         """Feed the rate check; a stamp going back or jumping far starts a new stream."""
@@ -186,15 +231,30 @@ class RigDriver:
         """Return True once the target has answered any datagram (a ping, typically)."""
         return self._last_reply is not None
 
-    def ping(self, now: float, stamp_ns: int = 0) -> None:
+    def ping(self, now: float, stamp_ns: int = 0, version: int | None = None) -> None:
         """
         Ask the target for its current measurement without applying anything.
 
         A start-up check that it is there; the reply is accounted like any other but not published.
+        `version`: the datagram version of this ping (default: the driver's); a target answers in
+        the version it understands, so pings of both versions negotiate it (`versions_seen`).
         """
         with self._lock:
             self._send(self.limiter.output.copy(), int(stamp_ns), now, flags=protocol.FLAG_PING,
-                       publish=False)
+                       publish=False, version=version)
+
+    def use_version(self, version: int) -> None:
+        """Send datagrams of protocol `version` (1 or 2) from now on."""
+        if version not in protocol.VERSIONS:
+            raise ConfigError(f'protocol version must be one of {list(protocol.VERSIONS)}, got '
+                              f'{version}')
+        with self._lock:
+            self.version = version
+            # The pings still pending (the version the target ignores) will never be answered:
+            # not reply timeouts; an answer that still comes is ignored too.
+            for seq in [s for s, pending in self._pending.items() if not pending.publish]:
+                del self._pending[seq]
+                self._ignored.add(seq)
 
     def reject(self) -> None:
         """Count a command message refused before it reached command() (e.g. axis missing)."""
@@ -260,10 +320,26 @@ class RigDriver:
                 self.state = STATE_PARKED
 
     def _send(self, volts: np.ndarray, stamp_ns: int, now: float, flags: int,
-              publish: bool) -> None:
+              publish: bool, version: int | None = None) -> None:
         seq = self._seq
+        if (version or self.version) == protocol.VERSION_BATCH:
+            data = protocol.pack_command_batch(protocol.CommandBatch(
+                seq, (stamp_ns,), (tuple(volts.tolist()),), flags))
+        else:
+            data = protocol.pack_command(protocol.Command(seq, stamp_ns, tuple(volts.tolist()),
+                                                          flags))
+        self._transmit(seq, data, now, publish)
+
+    def _send_batch(self, volts: list, stamps: list, now: float) -> None:
+        if not stamps:
+            return
+        seq = self._seq
+        data = protocol.pack_command_batch(protocol.CommandBatch(
+            seq, tuple(stamps), tuple(tuple(v.tolist()) for v in volts)))
+        self._transmit(seq, data, now, True)
+
+    def _transmit(self, seq: int, data: bytes, now: float, publish: bool) -> None:
         self._seq = (self._seq + 1) % protocol.SEQ_MODULO
-        data = protocol.pack_command(protocol.Command(seq, stamp_ns, tuple(volts.tolist()), flags))
         self._last_send = now
         self._answered.discard(seq)  # after a wrap-around the number is new again
         self._expired.discard(seq)
@@ -289,37 +365,76 @@ class RigDriver:
             except protocol.DatagramError:
                 self.counts['replies_malformed'] += 1
                 return None
-            seq = reply.seq
-            pending = self._pending.pop(seq, None)
-            if pending is not None:
-                late = now - pending.sent_at > self.config.reply_timeout
-                if late:
-                    # Not expired by tick() yet, but late all the same.
-                    self.counts['reply_timeouts'] += 1
-                    self.counts['replies_late'] += 1
-                else:
-                    self.counts['replies'] += 1
-                    self._latencies.append(now - pending.sent_at)
-                publish = pending.publish
-            elif seq in self._expired:
-                self._expired.discard(seq)
-                late, publish = True, True
+            got = self._account(reply.seq, reply.flags, reply.position_m, now, 1)
+            if got is None:
+                return None
+            return Sample(reply.seq, reply.stamp_ns, tuple(reply.position_m),
+                          tuple(reply.applied_volts), *got)
+
+    def receive_batch(self, data: bytes, now: float) -> list[Sample]:
+        """
+        Account for one datagram of either version; the Samples to publish, in datagram order.
+
+        A version-1 reply gives at most one (as `receive`), a version-2 reply one per sample, all
+        sharing the datagram's seq, lateness and fault flag.
+        """
+        if protocol.datagram_version(data) != protocol.VERSION_BATCH:
+            sample = self.receive(data, now)
+            return [] if sample is None else [sample]
+        with self._lock:
+            try:
+                reply = protocol.unpack_reply_batch(data, self.config.n_axes)
+            except protocol.DatagramError:
+                self.counts['replies_malformed'] += 1
+                return []
+            got = self._account(reply.seq, reply.flags, reply.position_m[-1], now,
+                                len(reply.stamps_ns), protocol.VERSION_BATCH)
+            if got is None:
+                return []
+            return [Sample(reply.seq, t, tuple(pos), tuple(app), *got) for t, pos, app in
+                    zip(reply.stamps_ns, reply.position_m, reply.applied_volts)]
+
+    def _account(self, seq: int, flags: int, position, now: float, n_samples: int,
+                 version: int = protocol.VERSION) -> tuple[bool, bool] | None:
+        """
+        Match a valid reply to its command (lock held): (late, target fault) to publish it.
+
+        None when it is not to be published (duplicate, unknown seq, ping or ramp reply).
+        """
+        self.versions_seen.add(version)
+        if seq in self._ignored:
+            self._ignored.discard(seq)
+            return None
+        pending = self._pending.pop(seq, None)
+        if pending is not None:
+            late = now - pending.sent_at > self.config.reply_timeout
+            if late:
+                # Not expired by tick() yet, but late all the same.
+                self.counts['reply_timeouts'] += 1
                 self.counts['replies_late'] += 1
-            elif seq in self._answered:
-                self.counts['replies_duplicate'] += 1
-                return None
             else:
-                self.counts['replies_unknown'] += 1
-                return None
-            self._answered.add(seq)
-            self._last_reply = now
-            self._last_position = tuple(reply.position_m)
-            fault = bool(reply.flags & protocol.FLAG_TARGET_FAULT)
-            self.counts['target_faults'] += fault
-            if not publish:
-                return None
-            return Sample(seq, reply.stamp_ns, tuple(reply.position_m), tuple(reply.applied_volts),
-                          late, fault)
+                self.counts['replies'] += 1
+                self._latencies.append(now - pending.sent_at)
+            publish = pending.publish
+        elif seq in self._expired:
+            self._expired.discard(seq)
+            late, publish = True, True
+            self.counts['replies_late'] += 1
+        elif seq in self._answered:
+            self.counts['replies_duplicate'] += 1
+            return None
+        else:
+            self.counts['replies_unknown'] += 1
+            return None
+        self._answered.add(seq)
+        self._last_reply = now
+        self._last_position = tuple(position)
+        fault = bool(flags & protocol.FLAG_TARGET_FAULT)
+        self.counts['target_faults'] += fault
+        if not publish:
+            return None
+        self.counts['samples_answered'] += n_samples
+        return late, fault
 
     def _expire(self, now: float) -> None:
         limit = now - self.config.reply_timeout

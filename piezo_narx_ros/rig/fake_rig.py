@@ -9,7 +9,9 @@ fake rig and simulator_node give the same stream for the same commands; watchdog
 stepped once each and end the gap bridging until the next command. A ping datagram is answered
 with the last measurement without stepping anything. A repeated datagram (same
 sequence number and volts as the previous one) is answered again from a cache without stepping
-the plant, as an idempotent target would. Malformed datagrams are counted and dropped.
+the plant, as an idempotent target would. Malformed datagrams are counted and dropped. It speaks
+both protocol versions and answers each datagram in its own version: a version-2 command steps
+the plant once per sample (the same rules per sample) and gets one version-2 reply.
 
     fake_rig --port 50000 --seed 0
 """
@@ -76,6 +78,8 @@ class FakeRig:
 
     def handle(self, data: bytes) -> bytes | None:
         """Return the reply datagram for one received datagram, or None when it is malformed."""
+        if protocol.datagram_version(data) == protocol.VERSION_BATCH:
+            return self._handle_batch(data)
         try:
             cmd = protocol.unpack_command(data, self.n_axes)
         except protocol.DatagramError:
@@ -94,16 +98,50 @@ class FakeRig:
         else:
             self._bridge_gap(cmd.stamp_ns)
             self._last_stamp = cmd.stamp_ns
-        self._held = list(cmd.volts)
-        position, applied = [], []
-        for plant, volts in zip(self.plants, cmd.volts):
-            y_meas, _y_true, u_applied = plant.step(volts)
-            position.append(float(y_meas))
-            applied.append(float(u_applied))
-        self._position, self._applied = tuple(position), tuple(applied)
+        self._step(cmd.volts)
         reply = protocol.pack_reply(protocol.Reply(cmd.seq, cmd.stamp_ns, self._position,
                                                    self._applied))
         self.commands += 1
+        self._last = (cmd.seq, cmd.volts, reply)
+        return reply
+
+    def _step(self, volts) -> None:
+        """Apply one sample's volts: step every plant once, keep the measurement."""
+        self._held = list(volts)
+        position, applied = [], []
+        for plant, v in zip(self.plants, volts):
+            y_meas, _y_true, u_applied = plant.step(v)
+            position.append(float(y_meas))
+            applied.append(float(u_applied))
+        self._position, self._applied = tuple(position), tuple(applied)
+
+    def _handle_batch(self, data: bytes) -> bytes | None:
+        """Answer a version-2 datagram: each sample as a version-1 command, one reply."""
+        try:
+            cmd = protocol.unpack_command_batch(data, self.n_axes)
+        except protocol.DatagramError:
+            self.malformed += 1
+            return None
+        if cmd.flags & protocol.FLAG_PING:
+            self.pings += 1
+            return protocol.pack_reply_batch(protocol.ReplyBatch(
+                cmd.seq, cmd.stamps_ns[:1], (self._position,), (self._applied,)))
+        if self._last is not None and self._last[0] == cmd.seq and self._last[1] == cmd.volts:
+            self.repeats += 1
+            return self._last[2]
+        positions, applied = [], []
+        for stamp, volts in zip(cmd.stamps_ns, cmd.volts):
+            if cmd.flags & protocol.FLAG_RAMP:
+                self._last_stamp = None
+            else:
+                self._bridge_gap(stamp)
+                self._last_stamp = stamp
+            self._step(volts)
+            positions.append(self._position)
+            applied.append(self._applied)
+            self.commands += 1
+        reply = protocol.pack_reply_batch(protocol.ReplyBatch(
+            cmd.seq, cmd.stamps_ns, tuple(positions), tuple(applied)))
         self._last = (cmd.seq, cmd.volts, reply)
         return reply
 

@@ -1,0 +1,423 @@
+"""
+The sample messages: JointState (one sample) and JointTrajectory (a batch), as objects and as CDR.
+
+Stamps are carried as integer nanoseconds (`int`) inside the nodes, so that t_k = t0 + k/fs is
+exact and never accumulates float error over long runs.
+"""
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Sequence
+
+import numpy as np
+from sensor_msgs.msg import JointState
+
+from piezo_narx_ros.errors import DataError
+
+
+def ns_to_stamp(t_ns: int) -> tuple[int, int]:
+    """Integer nanoseconds -> (sec, nanosec) of builtin_interfaces/Time."""
+    sec, nsec = divmod(int(t_ns), 1_000_000_000)
+    return sec, nsec
+
+
+def stamp_to_ns(stamp) -> int:
+    """builtin_interfaces/Time -> integer nanoseconds."""
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+def make_joint_state(t_ns: int, names: Sequence[str], position: Sequence[float] | None = None,
+                     effort: Sequence[float] | None = None) -> JointState:
+    """Build the JointState of one sample: stamp t_ns (ns), names, position (m), effort (V)."""
+    msg = JointState()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = ns_to_stamp(t_ns)
+    msg.name = list(names)
+    if position is not None:
+        msg.position = [float(v) for v in position]
+    if effort is not None:
+        msg.effort = [float(v) for v in effort]
+    return msg
+
+
+@dataclass
+class Sample:
+    """One parsed JointState: stamp (ns), axis names, positions (m) and efforts (V)."""
+
+    t_ns: int
+    names: list[str]
+    position: list[float]
+    effort: list[float]
+
+    def value(self, field: str, axis: str) -> float:
+        """Return the `field` ('position' or 'effort') of `axis`; raises DataError when absent."""
+        seq = self.position if field == 'position' else self.effort
+        if not self.names:
+            i = 0  # an unnamed single-axis message
+        else:
+            try:
+                i = self.names.index(axis)
+            except ValueError:
+                raise DataError(f'axis {axis!r} not in message (names: {self.names})') from None
+        if i >= len(seq):
+            raise DataError(f'message has no {field} for axis {axis!r}')
+        return float(seq[i])
+
+
+def parse_joint_state(msg: JointState) -> Sample:
+    """Convert a JointState to a Sample (no validation of values; see Sample.value)."""
+    return Sample(stamp_to_ns(msg.header.stamp), list(msg.name), list(msg.position),
+                  list(msg.effort))
+
+
+# ------------------------------------------------------------------- JointState as CDR bytes
+# rclpy turns every received JointState into a Python object (about 20 us here) and back on
+# publish (about 6 us). The sample streams carry one stamp and one or two numbers, so the nodes
+# subscribe with raw=True and read/write the CDR bytes directly (about 2 us each way). The layout
+# is the OMG CDR of sensor_msgs/msg/JointState: 4-byte encapsulation header, then header.stamp
+# (int32 sec, uint32 nanosec), header.frame_id (string), name (sequence<string>), position,
+# velocity, effort (sequence<float64>); primitives aligned to their size from the byte after the
+# encapsulation header. Test: test_nodes_common.py checks both directions against rclpy's own.
+_U32 = struct.Struct('<I')
+_STAMP = struct.Struct('<iI')
+
+
+def _read_header_names(buf: bytes):
+    """
+    Read the common prefix of JointState and JointTrajectory CDR: header, then a string sequence.
+
+    Returns (struct byte-order character, payload memoryview, stamp ns, names, offset after the
+    names). The frame_id is skipped.
+    """
+    e = '<' if buf[1] == 1 else '>'
+    data = memoryview(buf)[4:]
+    sec, nsec = struct.unpack_from(e + 'iI', data, 0)
+    (n,) = struct.unpack_from(e + 'I', data, 8)
+    off = 12 + n
+    off = (off + 3) & ~3
+    (count,) = struct.unpack_from(e + 'I', data, off)
+    off += 4
+    names = []
+    for _ in range(count):
+        off = (off + 3) & ~3
+        (n,) = struct.unpack_from(e + 'I', data, off)
+        names.append(bytes(data[off + 4:off + 3 + n]).decode())
+        off += 4 + n
+    return e, data, sec * 1_000_000_000 + nsec, names, off
+
+
+def _read_doubles(e: str, data, off: int) -> tuple[tuple, int]:
+    """Read one sequence<float64> at `off` (before alignment); returns (values, next offset)."""
+    off = (off + 3) & ~3
+    (count,) = struct.unpack_from(e + 'I', data, off)
+    off += 4
+    if not count:
+        return (), off
+    off = (off + 7) & ~7
+    return struct.unpack_from(f'{e}{count}d', data, off), off + 8 * count
+
+
+def decode_joint_state(buf: bytes) -> Sample:
+    """
+    Decode a serialized JointState (CDR, as from a raw=True subscription) to a Sample.
+
+    Raises DataError on a truncated or malformed buffer.
+    """
+    try:
+        e, data, t_ns, names, off = _read_header_names(buf)
+        position, off = _read_doubles(e, data, off)
+        _, off = _read_doubles(e, data, off)          # velocity
+        effort, off = _read_doubles(e, data, off)
+    except (struct.error, IndexError, UnicodeDecodeError) as exc:
+        raise DataError(f'malformed JointState ({len(buf)} bytes): {exc}') from None
+    return Sample(t_ns, names, list(position), list(effort))
+
+
+def _header_names(t_ns: int, names: Sequence[str]) -> bytearray:
+    """CDR of the common prefix: encapsulation (little endian), header (empty frame_id), names."""
+    sec, nsec = divmod(int(t_ns), 1_000_000_000)
+    out = bytearray(b'\x00\x01\x00\x00')
+    out += _STAMP.pack(sec, nsec)
+    out += b'\x01\x00\x00\x00\x00\x00\x00\x00'      # frame_id '' (length 1: the NUL) + pad
+    out += _U32.pack(len(names))
+    for name in names:
+        raw = name.encode() + b'\x00'
+        out += b'\x00' * (-(len(out) - 4) % 4)
+        out += _U32.pack(len(raw)) + raw
+    return out
+
+
+def _put_doubles(out: bytearray, values: Sequence[float]) -> None:
+    """Append one sequence<float64>, aligned from the byte after the encapsulation header."""
+    out += b'\x00' * (-(len(out) - 4) % 4)
+    out += _U32.pack(len(values))
+    if len(values):
+        out += b'\x00' * (-(len(out) - 4) % 8)
+        out += struct.pack(f'<{len(values)}d', *values)
+
+
+def encode_joint_state(t_ns: int, names: Sequence[str], position: Sequence[float] = (),
+                       effort: Sequence[float] = ()) -> bytes:
+    """Encode JointState CDR (little endian, empty frame_id and velocity) for Publisher.publish."""
+    out = _header_names(t_ns, names)
+    for values in (position, (), effort):
+        _put_doubles(out, values)
+    return bytes(out)
+
+
+# -------------------------------------------------------------- JointTrajectory as CDR bytes
+# A batch of samples (DESIGN.md "High-rate streams") is one trajectory_msgs/msg/JointTrajectory:
+# header.stamp = t of the first sample, joint_names = axes, one point per sample with
+# time_from_start = t_k - t_first (builtin_interfaces/Duration: int32 sec, uint32 nanosec in
+# [0, 1e9), so the offset and every stamp are exact integers of ns), positions = m, effort = V.
+# CDR after the shared prefix (header, string sequence): sequence<JointTrajectoryPoint>, each
+# point positions, velocities, accelerations, effort (sequence<float64>) and time_from_start.
+# The nodes use it on raw=True subscriptions for the same reason as the JointState codec.
+_DURATION = struct.Struct('<iI')
+
+
+@dataclass
+class SampleBatch:
+    """
+    One parsed batch: stamps (n,) int64 ns, axis names, positions (n, a) m and efforts (n, a) V.
+
+    An array a message does not fill has a = 0 columns (e.g. the positions of a command batch).
+    Decoded arrays may be read-only views of the message bytes: copy before writing to them.
+    """
+
+    t_ns: np.ndarray
+    names: list[str]
+    position: np.ndarray
+    effort: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.t_ns.shape[0])
+
+    def column(self, field: str, axis: str) -> np.ndarray:
+        """Return the `field` ('position' or 'effort') of `axis`, (n,); DataError when absent."""
+        values = self.position if field == 'position' else self.effort
+        if not self.names:
+            i = 0  # an unnamed single-axis batch
+        else:
+            try:
+                i = self.names.index(axis)
+            except ValueError:
+                raise DataError(f'axis {axis!r} not in message (names: {self.names})') from None
+        if i >= values.shape[1]:
+            raise DataError(f'batch has no {field} for axis {axis!r}')
+        return values[:, i]
+
+
+def _check_width(rows: list, names: list[str], field: str) -> int:
+    """Columns of one field over every point: all equal, and 0 or len(names) when named."""
+    width = len(rows[0]) if rows else 0
+    for k, row in enumerate(rows):
+        if len(row) != width:
+            raise DataError(f'batch point {k} has {len(row)} {field} value(s), point 0 has '
+                            f'{width}')
+    if width and names and width != len(names):
+        raise DataError(f'batch points have {width} {field} value(s) for {len(names)} joint '
+                        f'name(s)')
+    return width
+
+
+@dataclass(frozen=True)
+class _PointLayout:
+    """Byte offsets of the fields inside a JointTrajectoryPoint of fixed shape, and its size."""
+
+    size: int
+    n_pos: int      # offset of the positions count, its values at `pos`, ...
+    pos: int
+    n_vel: int
+    n_acc: int
+    n_eff: int
+    eff: int
+    sec: int
+    nsec: int
+
+
+@lru_cache(maxsize=64)
+def _point_layout(phase: int, n_pos: int, n_eff: int) -> _PointLayout | None:
+    """
+    Return the layout of a point starting at `phase` (its offset mod 8 after the encapsulation).
+
+    Points with `n_pos` positions, empty velocities and accelerations, `n_eff` efforts. None
+    unless the next point starts at the same phase: then every later point has this same layout
+    (its size a multiple of 8), so a run of them is a strided array per field.
+    """
+    off, where = phase, {}
+
+    def put(name: str, size: int, count: int = 1) -> None:
+        nonlocal off
+        if count:            # an empty sequence has no payload to align
+            off += -off % size
+        where[name] = off - phase
+        off += size * count
+
+    put('n_pos', 4)
+    put('pos', 8, n_pos)
+    for name in ('n_vel', 'n_acc', 'n_eff'):
+        put(name, 4)
+    put('eff', 8, n_eff)
+    put('sec', 4)
+    put('nsec', 4)
+    if off % 8 != phase:
+        return None
+    return _PointLayout(size=off - phase, **where)
+
+
+def _field(buf, layout: _PointLayout, name: str, start: int, count: int, code: str,
+           width: int = 0) -> np.ndarray:
+    """Strided view of one field over `count` points from byte `start`: (count,) or (count, w)."""
+    shape, strides = ((count, width), (layout.size, 8)) if width else ((count,), (layout.size,))
+    return np.ndarray(shape, code, buf, start + getattr(layout, name), strides)
+
+
+def _read_run(buf, start: int, count: int, layout: _PointLayout, e: str, n_pos: int,
+              n_eff: int):
+    """
+    Read `count` points of one layout from byte `start` of `buf` as arrays.
+
+    Returns (time_from_start ns (count,), positions (count, n_pos), efforts (count, n_eff)), or
+    None when a point's counts differ from the layout (the caller then reads point by point).
+    """
+    words = np.ndarray((count, layout.size // 4), e + 'u4', buf, start)
+    counts = words[:, [layout.n_pos // 4, layout.n_vel // 4, layout.n_acc // 4,
+                       layout.n_eff // 4]]
+    if not (counts == (n_pos, 0, 0, n_eff)).all():
+        return None
+    sec = words[:, layout.sec // 4].astype(np.int64)
+    sec[sec >= 1 << 31] -= 1 << 32                     # int32 seconds: negative offsets
+    offsets = sec * 1_000_000_000 + words[:, layout.nsec // 4]
+
+    def doubles(at: int, width: int) -> np.ndarray:
+        if not width:
+            return np.empty((count, 0))
+        return np.ndarray((count, width), e + 'f8', buf, start + at, (layout.size, 8))
+    return offsets, doubles(layout.pos, n_pos), doubles(layout.eff, n_eff)
+
+
+def _read_point(e: str, data, off: int):
+    """Read one point at `off`; returns (positions, efforts, (sec, nsec), next offset)."""
+    pos, off = _read_doubles(e, data, off)
+    _, off = _read_doubles(e, data, off)     # velocities
+    _, off = _read_doubles(e, data, off)     # accelerations
+    eff, off = _read_doubles(e, data, off)
+    off = (off + 3) & ~3
+    return pos, eff, struct.unpack_from(e + 'iI', data, off), off + 8
+
+
+def decode_joint_trajectory(buf: bytes) -> SampleBatch:
+    """
+    Decode a serialized JointTrajectory (CDR) to a SampleBatch of every point's stamp and values.
+
+    Stamp of point k: header.stamp + time_from_start, in exact integer ns. Raises DataError on a
+    truncated or malformed buffer, or on points whose positions/effort sizes differ from each
+    other or from joint_names (a bad batch is refused whole, as a bad JointState is).
+    """
+    try:
+        e, data, t0, names, off = _read_header_names(buf)
+        off = (off + 3) & ~3
+        (count,) = struct.unpack_from(e + 'I', data, off)
+        off += 4
+        if count > len(data) // 20:   # a point takes at least 20 bytes: no absurd allocation
+            raise DataError(f'malformed JointTrajectory ({len(buf)} bytes): {count} points '
+                            'cannot fit')
+        stamps, positions, efforts = [], [], []
+        for k in range(count):
+            pos, eff, (sec, nsec), next_off = _read_point(e, data, off)
+            if k == 0 or (k == 1 and (len(pos), len(eff)) == (len(positions[0]),
+                                                              len(efforts[0]))):
+                # The points from here on as arrays, when they share this point's shape: from
+                # point 0 when its layout repeats, else (it starts at the other phase) point 1.
+                layout = _point_layout(off % 8, len(pos), len(eff))
+                if layout is not None and off + (count - k) * layout.size <= len(data):
+                    run = _read_run(buf, off + 4, count - k, layout, e, len(pos), len(eff))
+                    if run is not None:
+                        if k:
+                            stamps = np.concatenate((stamps, run[0]))
+                            positions = np.concatenate((np.reshape(positions, (1, -1)), run[1]))
+                            efforts = np.concatenate((np.reshape(efforts, (1, -1)), run[2]))
+                        else:
+                            stamps, positions, efforts = run
+                        break
+            stamps.append(sec * 1_000_000_000 + nsec)
+            positions.append(pos)
+            efforts.append(eff)
+            off = next_off
+    except (struct.error, IndexError, UnicodeDecodeError) as exc:
+        raise DataError(f'malformed JointTrajectory ({len(buf)} bytes): {exc}') from None
+    if not isinstance(positions, np.ndarray):
+        n_pos = _check_width(positions, names, 'positions')
+        n_eff = _check_width(efforts, names, 'effort')
+        positions = np.array(positions, dtype=np.float64).reshape(count, n_pos)
+        efforts = np.array(efforts, dtype=np.float64).reshape(count, n_eff)
+    else:
+        _check_width(list(positions[:1]), names, 'positions')
+        _check_width(list(efforts[:1]), names, 'effort')
+    return SampleBatch(np.asarray(stamps, dtype=np.int64) + t0, names, positions, efforts)
+
+
+def encode_joint_trajectory(t_ns: Sequence[int], names: Sequence[str], position=None,
+                            effort=None) -> bytes:
+    """
+    Encode a batch as JointTrajectory CDR (little endian) for Publisher.publish.
+
+    t_ns: (n,) stamps, ns (any order; the first is header.stamp); position (n, a) m and effort
+    (n, a) V, or None for an empty field. Velocities and accelerations are empty.
+    """
+    stamps = np.asarray(t_ns, dtype=np.int64).ravel()
+    n = stamps.shape[0]
+    pos = np.empty((n, 0)) if position is None else \
+        np.asarray(position, dtype=np.float64).reshape(n, -1)
+    eff = np.empty((n, 0)) if effort is None else \
+        np.asarray(effort, dtype=np.float64).reshape(n, -1)
+    t0 = int(stamps[0]) if n else 0
+    out = _header_names(t0, names)
+    out += b'\x00' * (-(len(out) - 4) % 4)
+    out += _U32.pack(n)
+    sec, nsec = np.divmod(stamps - t0, 1_000_000_000)
+    for k in range(n):
+        layout = _point_layout((len(out) - 4) % 8, pos.shape[1], eff.shape[1])
+        if layout is not None:     # every remaining point has this layout: strided arrays
+            rest, start = n - k, len(out)
+            out += bytes(rest * layout.size)
+
+            def view(name, code, width=0):
+                return _field(out, layout, name, start, rest, code, width)
+            view('n_pos', '<u4')[:] = pos.shape[1]
+            view('n_eff', '<u4')[:] = eff.shape[1]
+            if pos.shape[1]:
+                view('pos', '<f8', pos.shape[1])[:] = pos[k:]
+            if eff.shape[1]:
+                view('eff', '<f8', eff.shape[1])[:] = eff[k:]
+            view('sec', '<i4')[:] = sec[k:]
+            view('nsec', '<u4')[:] = nsec[k:]
+            break
+        _put_doubles(out, pos[k].tolist())
+        out += b'\x00' * 8                            # velocities, accelerations: empty
+        _put_doubles(out, eff[k].tolist())
+        out += b'\x00' * (-(len(out) - 4) % 4)
+        out += _DURATION.pack(int(sec[k]), int(nsec[k]))
+    return bytes(out)
+
+
+def make_joint_trajectory(t_ns: Sequence[int], names: Sequence[str], position=None,
+                          effort=None):
+    """Build the trajectory_msgs/JointTrajectory of a batch (rclpy object; see the encoder)."""
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+    stamps = [int(t) for t in t_ns]
+    msg = JointTrajectory()
+    t0 = stamps[0] if stamps else 0
+    msg.header.stamp.sec, msg.header.stamp.nanosec = ns_to_stamp(t0)
+    msg.joint_names = list(names)
+    for k, t in enumerate(stamps):
+        point = JointTrajectoryPoint()
+        if position is not None:
+            point.positions = [float(v) for v in np.ravel(position[k])]
+        if effort is not None:
+            point.effort = [float(v) for v in np.ravel(effort[k])]
+        point.time_from_start.sec, point.time_from_start.nanosec = divmod(t - t0, 1_000_000_000)
+        msg.points.append(point)
+    return msg

@@ -1,0 +1,146 @@
+"""nodes/codec.py, batches: JointTrajectory CDR bytes against rclpy's and rosbags' serialisers."""
+import numpy as np
+import pytest
+from rclpy.serialization import deserialize_message, serialize_message
+from trajectory_msgs.msg import JointTrajectory
+
+from piezo_narx_ros.errors import DataError
+from piezo_narx_ros.nodes.codec import (decode_joint_trajectory, encode_joint_trajectory,
+                                        make_joint_trajectory)
+
+TRAJECTORY = 'trajectory_msgs/msg/JointTrajectory'
+T0 = 1_795_241_581_999_999_990          # 10 ns before a whole second: offsets cross it
+
+
+def _stamps(n, period_ns=50_000, t0=T0):
+    return [t0 + k * period_ns for k in range(n)]
+
+
+def _case(n, n_axes, fields, seed=0):
+    rng = np.random.default_rng(seed)
+    pos = rng.normal(size=(n, n_axes)) * 1e-6 if 'position' in fields else None
+    eff = rng.uniform(-200, 200, size=(n, n_axes)) if 'effort' in fields else None
+    return pos, eff
+
+
+SHAPES = [(n, a, f) for n in (1, 2, 3, 20) for a in (1, 2, 3)
+          for f in (('effort',), ('position',), ('position', 'effort'), ())]
+
+
+@pytest.mark.parametrize('n, n_axes, fields', SHAPES)
+def test_encode_is_what_rclpy_reads_and_decode_reads_what_rclpy_writes(n, n_axes, fields):
+    names = ['x', 'yy', 'zzz'][:n_axes]
+    pos, eff = _case(n, n_axes, fields)
+    stamps = _stamps(n)
+    msg = make_joint_trajectory(stamps, names, pos, eff)
+    assert deserialize_message(encode_joint_trajectory(stamps, names, pos, eff),
+                               JointTrajectory) == msg
+    for raw in (serialize_message(msg), encode_joint_trajectory(stamps, names, pos, eff)):
+        b = decode_joint_trajectory(raw)
+        assert b.t_ns.dtype == np.int64 and b.t_ns.tolist() == stamps   # every stamp exact
+        assert b.names == names and len(b) == n
+        assert np.array_equal(b.position, pos if pos is not None else np.empty((n, 0)))
+        assert np.array_equal(b.effort, eff if eff is not None else np.empty((n, 0)))
+
+
+@pytest.mark.parametrize('stamps', [
+    [T0, T0 + 1, T0 + 999_999_999, T0 + 1_000_000_000, T0 + 3_700_000_000_123],   # irregular
+    [T0, T0 - 7, T0 - 1_000_000_001, T0 + 5],        # out of order: negative offsets
+    [-1_500_000_000, -1_499_999_999, 2],             # before 1970
+    [T0] * 3,                                        # repeated stamps
+])
+def test_stamps_round_trip_exactly_whatever_their_spacing(stamps):
+    eff = np.arange(len(stamps), dtype=float)[:, None]
+    raw = encode_joint_trajectory(stamps, ['x'], effort=eff)
+    assert decode_joint_trajectory(raw).t_ns.tolist() == stamps
+    msg = deserialize_message(raw, JointTrajectory)
+    t0 = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+    assert t0 == stamps[0]                                         # header.stamp = t_first
+    assert [t0 + p.time_from_start.sec * 10**9 + p.time_from_start.nanosec
+            for p in msg.points] == stamps
+    assert all(0 <= p.time_from_start.nanosec < 10**9 for p in msg.points)
+
+
+@pytest.mark.parametrize('little_endian', [False, True])
+@pytest.mark.parametrize('names, velocities', [(['x', 'abc'], []), ([], [0.5]), (['a'], [])])
+def test_decode_reads_both_byte_orders_and_foreign_fields_as_rosbags_writes_them(
+        little_endian, names, velocities):
+    """Big-endian peers, a frame_id, velocities/accelerations: the general path reads them."""
+    from piezo_narx_ros.bag.writer import typestore
+    store = typestore()
+    types = store.types
+    n_axes = max(1, len(names))
+    stamps = _stamps(4, 100_000)
+    points = [types['trajectory_msgs/msg/JointTrajectoryPoint'](
+        positions=np.full(n_axes, 1e-6 * k), velocities=np.array(velocities * n_axes),
+        accelerations=np.array([]), effort=np.full(n_axes, 3.0 * k),
+        time_from_start=types['builtin_interfaces/msg/Duration'](sec=0, nanosec=100_000 * k))
+        for k in range(4)]
+    sec, nsec = divmod(stamps[0], 10**9)
+    msg = types[TRAJECTORY](
+        header=types['std_msgs/msg/Header'](
+            stamp=types['builtin_interfaces/msg/Time'](sec=sec, nanosec=nsec), frame_id='odd'),
+        joint_names=names, points=points)
+    raw = bytes(store.serialize_cdr(msg, TRAJECTORY, little_endian=little_endian))
+    b = decode_joint_trajectory(raw)
+    assert b.t_ns.tolist() == stamps and b.names == names
+    assert np.array_equal(b.effort[:, 0], [0.0, 3.0, 6.0, 9.0])
+    assert np.array_equal(b.position[:, -1], [0.0, 1e-6, 2e-6, 3e-6])
+
+
+def test_rosbags_reads_the_encoder_bytes():
+    """The bag reader decodes with rosbags' definitions: the node bytes must read the same."""
+    from piezo_narx_ros.bag.reader import decode_cdr
+    stamps = _stamps(5)
+    pos, eff = _case(5, 2, ('position', 'effort'))
+    msg = decode_cdr(encode_joint_trajectory(stamps, ['x', 'y'], pos, eff), TRAJECTORY)
+    t0 = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+    assert [t0 + p.time_from_start.sec * 10**9 + p.time_from_start.nanosec
+            for p in msg.points] == stamps
+    assert np.array_equal([p.effort for p in msg.points], eff)
+    assert np.array_equal([p.positions for p in msg.points], pos)
+
+
+def _points_with(sizes):
+    msg = make_joint_trajectory(_stamps(len(sizes)), ['x', 'y'],
+                                effort=np.zeros((len(sizes), 2)))
+    for point, size in zip(msg.points, sizes):
+        point.effort = [1.0] * size
+    return serialize_message(msg)
+
+
+@pytest.mark.parametrize('sizes, match', [
+    ([2, 2, 1, 2], 'point 2 has 1 effort value'),
+    ([2, 3, 3, 3], 'point 1 has 3 effort value'),
+    ([1, 1, 1], '1 effort value.* for 2 joint name'),
+    ([3], '3 effort value.* for 2 joint name'),
+])
+def test_points_whose_arrays_do_not_match_are_refused_with_one_line(sizes, match):
+    with pytest.raises(DataError, match=match):
+        decode_joint_trajectory(_points_with(sizes))
+
+
+def test_truncated_or_absurd_batches_are_refused():
+    raw = encode_joint_trajectory(_stamps(20), ['x'], effort=np.ones((20, 1)))
+    for cut in (30, len(raw) // 2, len(raw) - 1):
+        with pytest.raises(DataError, match='malformed JointTrajectory'):
+            decode_joint_trajectory(raw[:cut])
+    bad = bytearray(raw)
+    bad[32:36] = b'\xff\xff\xff\x7f'       # the point count (after header and 'x')
+    with pytest.raises(DataError, match='malformed JointTrajectory'):
+        decode_joint_trajectory(bytes(bad))
+
+
+def test_an_empty_batch_decodes_to_empty_arrays():
+    b = decode_joint_trajectory(encode_joint_trajectory([], ['x']))
+    assert len(b) == 0 and b.effort.shape == (0, 0)
+
+
+def test_column_names_the_missing_axis_or_field():
+    b = decode_joint_trajectory(encode_joint_trajectory(_stamps(3), ['x', 'y'],
+                                                        effort=np.ones((3, 2))))
+    assert b.column('effort', 'y').tolist() == [1.0, 1.0, 1.0]
+    with pytest.raises(DataError, match="axis 'z' not in message"):
+        b.column('effort', 'z')
+    with pytest.raises(DataError, match='no position'):
+        b.column('position', 'x')
