@@ -131,6 +131,7 @@ class Cli:
         self.jobs = jobs
         self.missing = set()      # options the CLI rejected ('--validate', '--init-samples')
         self.tried = set()        # options the bench has passed at least once
+        self.sim_force = None     # ['--force'] once simulate is known to take it
 
     def run(self, *argv) -> subprocess.CompletedProcess:
         return subprocess.run(self.cmd + [str(a) for a in argv], capture_output=True, text=True)
@@ -155,7 +156,9 @@ class Cli:
         return option in self.run(command, '--help').stdout
 
     def simulate(self, out, *argv):
-        self.check(self.run('simulate', *argv, '--out', out))
+        if self.sim_force is None:      # --keep DIR run twice: overwrite, where simulate can
+            self.sim_force = ['--force'] if self.accepts('simulate', '--force') else []
+        self.check(self.run('simulate', *argv, '--out', out, *self.sim_force))
 
     def fit(self, est, val, preset, out, reading=()):
         """
