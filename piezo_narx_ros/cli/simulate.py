@@ -7,7 +7,8 @@ string with the signal and plant parameters). Imports nothing heavy until run().
 import argparse
 
 # Literal (importing plant.signals would load numba here); test_plant_cli checks it against KINDS.
-KINDS = ('multisine', 'sine', 'triangle', 'chirp', 'aprbs', 'steps', 'playback', 'protocol')
+KINDS = ('multisine', 'sine', 'triangle', 'chirp', 'aprbs', 'steps', 'playback', 'protocol',
+         'growing_sine', 'holds')
 # CLI flag -> generate() option name; None values are left to the generator's defaults.
 SIGNAL_FLAGS = {
     'freq': 'freq', 'phase': 'phase', 'f_min': 'f_min', 'f_max': 'f_max', 'f_res': 'f_res',
@@ -15,7 +16,8 @@ SIGNAL_FLAGS = {
     'max_hold': 'max_hold', 'levels': 'levels', 'hold': 'hold', 'file': 'path', 'key': 'key',
     'column': 'column', 'file_fs': 'file_fs', 'u_min': 'u_min', 'u_max': 'u_max',
     'slew_rate': 'slew_rate', 'cycles': 'cycles', 'slow_freq': 'slow_freq',
-    'resample': 'resample', 'loop': 'loop',
+    'resample': 'resample', 'loop': 'loop', 'growth': 'growth',
+    'start_fraction': 'start_fraction', 'ramp': 'ramp',
 }
 
 
@@ -71,10 +73,76 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help='playback: repeat the file to fill --seconds')
     g.add_argument('--cycles', type=int, help='protocol: repeats of the section sequence (2)')
     g.add_argument('--slow-freq', type=float, help='protocol: slow-loop frequency, Hz (0.5)')
+    g.add_argument('--growth', choices=('linear', 'exponential'),
+                   help='growing_sine: how the amplitude grows (linear)')
+    g.add_argument('--start-fraction', type=float,
+                   help='growing_sine: amplitude when the sweep starts, fraction (0.05)')
+    g.add_argument('--ramp', type=float, help='holds: ramp time between levels, s (0.01)')
     g.add_argument('--u-min', type=float, help='command clamp, V (-200)')
     g.add_argument('--u-max', type=float, help='command clamp, V (200)')
     g.add_argument('--slew-rate', type=float, help='command slew limit, V/s (none)')
+    r = p.add_argument_group('a rig session (docs/real.md; all off by default)')
+    r.add_argument('--history', type=float, default=0.0, metavar='SECONDS',
+                   help='seconds of random past input before the record (0: the plant starts '
+                        'at rest); it ends at the first command and holds there --history-hold s, '
+                        'so the record starts with hysteresis memory set and creep moving')
+    r.add_argument('--history-hold', type=float, default=1.0, metavar='SECONDS',
+                   help='hold at the first command between the history and the record (1)')
+    r.add_argument('--history-amplitude', type=float, metavar='V',
+                   help="the history's peak deviation from --offset, V (the record's)")
+    r.add_argument('--history-seed', type=int, metavar='N',
+                   help='seed of the history (default --seed; its own stream either way)')
+    r.add_argument('--sensor-offset', type=float, metavar='M',
+                   help='constant added to the measured output, m (0; a negative value as '
+                        '--sensor-offset=-2e-6)')
+    r.add_argument('--session', type=int, metavar='K',
+                   help='draw the sensor offset of session K, uniform in +-'
+                        '--session-spread')
+    r.add_argument('--session-spread', type=float, default=2.5e-6, metavar='M',
+                   help='largest session offset, m (2.5e-6: sessions differ by up to 5 um)')
+    r.add_argument('--sensor-bits', type=int, metavar='B',
+                   help='a B-bit sensor over --sensor-span: its quantisation and full scale '
+                        "replace the plant config's quantisation")
+    r.add_argument('--sensor-span', type=float, metavar='M',
+                   help='full scale of the --sensor-bits converter, m, centred on 0')
     return p
+
+
+def session_settings(args, u, amplitude):
+    """
+    Check the rig-session settings: (history volts or None, sensor kwargs, meta).
+
+    u: the record's commands (V); amplitude: its peak deviation (None: taken from u).
+    """
+    import numpy as np
+
+    from piezo_narx_ros.errors import ConfigError
+    from piezo_narx_ros.plant import random_history, session_offset
+
+    if not args.history >= 0.0:
+        raise ConfigError(f'--history must be >= 0 s, got {args.history}')
+    if args.sensor_offset is not None and args.session is not None:
+        raise ConfigError('--sensor-offset and --session both set the sensor offset: give one')
+    if (args.sensor_bits is None) != (args.sensor_span is None):
+        raise ConfigError('--sensor-bits and --sensor-span go together: give both or neither')
+    offset = args.sensor_offset or 0.0
+    if args.session is not None:
+        offset = session_offset(args.session, args.session_spread)
+    sensor = {'sensor_offset': offset, 'sensor_bits': args.sensor_bits,
+              'sensor_span': args.sensor_span}
+    meta = {'sensor': {'offset_m': offset, 'session': args.session, 'bits': args.sensor_bits,
+                       'span_m': args.sensor_span}}
+    history = None
+    if args.history > 0.0:
+        seed = args.seed if args.history_seed is None else args.history_seed
+        amp = args.history_amplitude
+        if amp is None:
+            amp = amplitude if amplitude is not None else float(np.max(np.abs(u - args.offset)))
+        history = random_history(args.fs, args.history, amp, offset=args.offset, seed=seed,
+                                 end=float(u[0]), hold=args.history_hold)
+        meta['history'] = {'seconds': args.history, 'hold_s': args.history_hold,
+                           'amplitude_V': amp, 'seed': seed}
+    return history, sensor, meta
 
 
 def run(args) -> int:
@@ -110,11 +178,15 @@ def run(args) -> int:
     params = load_plant_params(args.plant_config)
     u = generate(args.signal, args.fs, seconds, amplitude, offset=args.offset, seed=args.seed,
                  **options)
-    plant = PiezoCantilever(params, fs=args.fs, seed=args.seed)
-    res = plant.run(u)
+    history, sensor, session_meta = session_settings(args, u, amplitude)
+    plant = PiezoCantilever(params, fs=args.fs, seed=args.seed, **sensor)
+    res = plant.run(u, history=history)
     meta = {'signal': args.signal, 'seconds': u.size / args.fs, 'amplitude_V': amplitude,
             'offset_V': args.offset, 'seed': args.seed, 'options': options,
             'plant': params.as_dict(), 'units': {'u': 'V', 'y': 'm', 't': 's', 'fs': 'Hz'}}
+    session_on = history is not None or any(sensor.values())
+    if session_on:
+        meta.update(session_meta)   # only then: records without them keep their exact meta
     np.savez(out, u=u, u_applied=res.u_applied, y=res.y, y_true=res.y_true, fs=np.float64(args.fs),
              t=np.arange(u.size) / args.fs, meta=np.str_(json.dumps(meta)))
     print(f'wrote {out}: {u.size} samples at {args.fs:g} Hz, u {u.min():.1f}..{u.max():.1f} V, '

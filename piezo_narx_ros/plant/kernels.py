@@ -10,9 +10,11 @@ import math
 import numpy as np
 from numba import njit
 
-# Layout of the `consts` vector passed to advance().
-C_VMIN, C_VMAX, C_SLEW, C_AMP_W, C_H, C_DP, C_A, C_B, C_GAMMA, C_NOISE, C_QUANT = range(11)
-N_CONSTS = 11
+# Layout of the `consts` vector passed to advance(). C_OFFSET (m): sensor offset added to the
+# measured output; C_YMIN, C_YMAX (m): the sensor's full scale (-inf, inf: none).
+(C_VMIN, C_VMAX, C_SLEW, C_AMP_W, C_H, C_DP, C_A, C_B, C_GAMMA, C_NOISE, C_QUANT, C_OFFSET, C_YMIN,
+ C_YMAX) = range(14)
+N_CONSTS = 14
 # Layout of the `state` vector: amplifier output (V), Bouc-Wen state h (m), then the linear states
 # [creep x_1..x_m (m), tip deflection y (m), tip velocity (m/s), sensor output (m)].
 S_V, S_H, S_LIN = 0, 1, 2
@@ -99,11 +101,25 @@ def _linear_substep(lin, tmp, phi, g0, g1, w0, w1):
 
 
 @njit(cache=True)
-def _outputs(lin, noise, quant):
-    """Return (true tip deflection m, measured m): the sensor state plus noise (m), quantised."""
+def _outputs(lin, noise, consts):
+    """
+    Return (true tip deflection m, measured m).
+
+    Measured: the sensor state plus noise (m) plus the sensor offset, quantised, clipped to the
+    sensor's full scale. The offset and the clip are skipped when off, so that the numbers
+    without them stay bit-identical to the plant before they existed.
+    """
     meas = lin[lin.shape[0] - 1] + noise
+    offset = consts[C_OFFSET]
+    if offset != 0.0:
+        meas += offset
+    quant = consts[C_QUANT]
     if quant > 0.0:
         meas = quant * math.floor(meas / quant + 0.5)
+    if meas < consts[C_YMIN]:
+        meas = consts[C_YMIN]
+    elif meas > consts[C_YMAX]:
+        meas = consts[C_YMAX]
     return lin[lin.shape[0] - 3], meas
 
 
@@ -124,7 +140,7 @@ def advance(u_cmd, noise, n_sub, consts, phi, g0, g1, state, work, y_meas, y_tru
     slew, w_a, h = consts[C_SLEW], consts[C_AMP_W], consts[C_H]
     d_p, a_bw = consts[C_DP], consts[C_A] * consts[C_DP]
     b_bw, gamma = consts[C_B], consts[C_GAMMA]
-    noise_std, quant = consts[C_NOISE], consts[C_QUANT]
+    noise_std = consts[C_NOISE]
     lin = state[S_LIN:]
     tmp = work
     for k in range(u_cmd.shape[0]):
@@ -140,7 +156,7 @@ def advance(u_cmd, noise, n_sub, consts, phi, g0, g1, state, work, y_meas, y_tru
             _linear_substep(lin, tmp, phi, g0, g1, w0, w1)
             state[S_V] = v1
             state[S_H] = h1
-        y_true[k], y_meas[k] = _outputs(lin, noise_std * noise[k], quant)
+        y_true[k], y_meas[k] = _outputs(lin, noise_std * noise[k], consts)
         u_applied[k] = state[S_V]
 
 
@@ -180,7 +196,7 @@ def advance_preisach(u_cmd, noise, n_sub, consts, phi, g0, g1, state, work, y_me
     vmin, vmax = consts[C_VMIN], consts[C_VMAX]
     slew, w_a, h = consts[C_SLEW], consts[C_AMP_W], consts[C_H]
     d_rev, rest, spread = consts[C_DP], consts[C_A], consts[C_B]
-    noise_std, quant = consts[C_NOISE], consts[C_QUANT]
+    noise_std = consts[C_NOISE]
     xs = state[1:1 + n_cr]
     plays = state[1 + n_cr:1 + n_cr + n_r]
     lin = state[1 + n_cr + n_r:]
@@ -208,7 +224,7 @@ def advance_preisach(u_cmd, noise, n_sub, consts, phi, g0, g1, state, work, y_me
             _linear_substep(lin, tmp, phi, g0, g1, w0, w1)
             state[0] = v1
             w0 = w1
-        y_true[k], y_meas[k] = _outputs(lin, noise_std * noise[k], quant)
+        y_true[k], y_meas[k] = _outputs(lin, noise_std * noise[k], consts)
         u_applied[k] = state[0]
 
 

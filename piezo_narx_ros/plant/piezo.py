@@ -7,7 +7,8 @@ Signal chain (continuous time, integrated per sample with sub-steps):
     v -> Bouc-Wen hysteresis -> w = d_p*v - h (m)
     w -> creep (parallel slow first-order elements) -> z (m)
     z -> first bending mode (2nd order, unit static gain) -> y_true (m, tip deflection)
-    y_true -> sensor: first-order low-pass, white noise, quantisation -> y (m, measured)
+    y_true -> sensor: first-order low-pass, white noise, offset, quantisation, full scale
+           -> y (m, measured)
 
 Sample k holds u_cmd[k] over [t_k, t_k + 1/fs] and reports y, y_true and v at the end of that
 period, so y[k] depends on u[k] (the NARX regressor includes u(k)).
@@ -81,6 +82,22 @@ def foh_discretise(a, b, h):
     return e[:n, :n].copy(), e[:n, n].copy(), e[:n, n + 1].copy()
 
 
+def adc_grid(bits: int, span: float) -> tuple[float, float, float]:
+    """
+    Quantisation step and full scale of a `bits`-bit converter over `span` m centred on 0.
+
+    Returns (step m, lowest code m, highest code m): 2**bits codes, step = span / 2**bits, codes
+    -span/2 .. span/2 - step (the grid holds 0, like the plant's own quantisation).
+    """
+    if isinstance(bits, bool) or not isinstance(bits, (int, np.integer)) or not 1 <= bits <= 32:
+        raise ConfigError(f'sensor bits must be an integer in 1..32, got {bits!r}')
+    if (isinstance(span, bool) or not isinstance(span, (int, float)) or not math.isfinite(span)
+            or span <= 0):
+        raise ConfigError(f'sensor span must be a positive number of metres, got {span!r}')
+    step = float(span) / 2.0 ** int(bits)
+    return step, -0.5 * float(span), 0.5 * float(span) - step
+
+
 class PiezoCantilever:
     """
     The plant, with a per-sample interface (step) and an array interface (run) on one state.
@@ -88,9 +105,15 @@ class PiezoCantilever:
     params: PlantParams (None: config/plant.yaml); fs: sample rate, Hz; seed: seed of the sensor
     noise. run(u) advances the state exactly as len(u) calls of step() would (same numbers to the
     last bit).
+    A rig's sensor (docs/real.md): sensor_offset (m) is added to every measured sample (a sensor
+    zero that differs per session); sensor_bits and sensor_span (m) replace params.quantisation
+    by a sensor_bits converter over sensor_span centred on 0, whose codes also clip the output
+    (adc_grid). All off by default: the numbers are then those of the plant without them.
     """
 
-    def __init__(self, params: PlantParams | None = None, fs: float = 2000.0, seed: int = 0):
+    def __init__(self, params: PlantParams | None = None, fs: float = 2000.0, seed: int = 0,
+                 sensor_offset: float = 0.0, sensor_bits: int | None = None,
+                 sensor_span: float | None = None):
         if params is None:
             params = load_plant_params()
         if not isinstance(params, PlantParams):
@@ -104,9 +127,16 @@ class PiezoCantilever:
             raise ConfigError(f'creep_input: {params.creep_input} is not implemented for the '
                               f'{params.hysteresis} plant (bouc_wen takes hysteresis, preisach '
                               f'takes voltage)')
+        if (isinstance(sensor_offset, bool) or not isinstance(sensor_offset, (int, float))
+                or not math.isfinite(sensor_offset)):
+            raise ConfigError(f'sensor offset must be a finite number of metres, got '
+                              f'{sensor_offset!r}')
+        if (sensor_bits is None) != (sensor_span is None):
+            raise ConfigError('sensor bits and sensor span go together: give both or neither')
         self.params = params
         self.fs = float(fs)
         self.seed = int(seed)
+        self.sensor_offset = float(sensor_offset)
         h = 1.0 / (self.fs * params.substeps)
         a, b = linear_system(params)
         self._phi, self._g0, self._g1 = foh_discretise(a, b, h)
@@ -122,6 +152,11 @@ class PiezoCantilever:
         consts[kernels.C_GAMMA] = params.gamma
         consts[kernels.C_NOISE] = params.noise_std
         consts[kernels.C_QUANT] = params.quantisation
+        consts[kernels.C_OFFSET] = self.sensor_offset
+        consts[kernels.C_YMIN], consts[kernels.C_YMAX] = -math.inf, math.inf
+        if sensor_bits is not None:
+            consts[kernels.C_QUANT], consts[kernels.C_YMIN], consts[kernels.C_YMAX] = adc_grid(
+                sensor_bits, sensor_span)
         self._consts = consts
         self._preisach = None
         if params.hysteresis == 'preisach':
@@ -185,6 +220,20 @@ class PiezoCantilever:
         """Amplifier output now, V."""
         return float(self._state[kernels.S_V])
 
+    @staticmethod
+    def _check_commands(u_cmd, what: str) -> np.ndarray:
+        """(N,) float64 contiguous volts; DataError naming the first bad index otherwise."""
+        try:
+            u = np.ascontiguousarray(u_cmd, dtype=float)
+        except (TypeError, ValueError):
+            raise DataError(f'{what} array must hold numbers (volts)') from None
+        if u.ndim != 1:
+            raise DataError(f'{what} array must be 1-D, got shape {u.shape}')
+        bad = np.flatnonzero(~np.isfinite(u))
+        if bad.size:
+            raise DataError(f'{what} has a non-finite value at index {bad[0]}: {u[bad[0]]}')
+        return u
+
     def _draw(self, n: int) -> np.ndarray:
         """Next n standard normals of the noise stream (buffered block first)."""
         left = self._noise[self._noise_pos:]
@@ -217,22 +266,39 @@ class PiezoCantilever:
         self._advance(self._u1, self._n1, self._y1, self._yt1, self._ua1)
         return float(self._y1[0]), float(self._yt1[0]), float(self._ua1[0])
 
-    def run(self, u_cmd) -> PlantRun:
+    @property
+    def sensor_quantisation(self) -> float:
+        """Quantisation step of the measured output, m (0: none)."""
+        return float(self._consts[kernels.C_QUANT])
+
+    @property
+    def sensor_full_scale(self) -> tuple[float, float]:
+        """Lowest and highest measured value, m (-inf, inf without sensor_bits)."""
+        return float(self._consts[kernels.C_YMIN]), float(self._consts[kernels.C_YMAX])
+
+    def prime(self, u_history) -> None:
+        """
+        Drive the plant through u_history (N,) V before a record starts, recording nothing.
+
+        The history leaves the hysteresis memory, creep and mode where that past input put them,
+        as on a rig switched on long before the record. It draws no sensor noise: the record's
+        noise is the same with or without a history (the two have separate seeds).
+        """
+        u = self._check_commands(u_history, 'plant history')
+        n = u.size
+        self._advance(u, np.zeros(n), np.empty(n), np.empty(n), np.empty(n))
+
+    def run(self, u_cmd, history=None) -> PlantRun:
         """
         Apply a whole command array u_cmd (N,) V from the current state; returns a PlantRun.
 
+        history: (M,) V applied first through prime() (None: start from the current state).
         Non-finite or non-1-D input raises DataError (naming the first bad index) before any
         change.
         """
-        try:
-            u = np.ascontiguousarray(u_cmd, dtype=float)
-        except (TypeError, ValueError):
-            raise DataError('plant command array must hold numbers (volts)') from None
-        if u.ndim != 1:
-            raise DataError(f'plant command array must be 1-D, got shape {u.shape}')
-        bad = np.flatnonzero(~np.isfinite(u))
-        if bad.size:
-            raise DataError(f'plant command has a non-finite value at index {bad[0]}: {u[bad[0]]}')
+        u = self._check_commands(u_cmd, 'plant command')
+        if history is not None:
+            self.prime(history)
         n = u.size
         noise = self._draw(n)
         y = np.empty(n)

@@ -32,10 +32,17 @@ OPTIONS = {
     # f_max, slow sine at slow_freq decaying from full to a fifth of the amplitude, steps held
     # 0.15-1 s, ramps at 0.2-30 amplitudes/s], each repeat with fresh random draws.
     'protocol': {'cycles': 2, 'f_max': 100.0, 'slow_freq': 0.5},
+    # A rig's identification record (docs/real.md): `hold` s at the offset, then one sine at
+    # `freq` Hz whose amplitude grows from start_fraction to 1 (linear or exponential growth).
+    'growing_sine': {'freq': 1.0, 'hold': 0.0, 'growth': 'linear', 'start_fraction': 0.05},
+    # Held levels (creep): random levels, the largest at the amplitude, each reached by a ramp of
+    # `ramp` s from the previous one (from the offset for the first) and held `hold` s.
+    'holds': {'hold': 1.0, 'ramp': 0.01},
 }
 KINDS = tuple(OPTIONS)
 SPECTRA = ('flat', 'pink', 'brown')
 CHIRP_METHODS = ('linear', 'logarithmic')
+GROWTHS = ('linear', 'exponential')
 # A default identification record (the paper's 25 s at 2 kHz): band 0.1-100 Hz, peak 100 V.
 IDENT_DEFAULTS = {'kind': 'multisine', 'seconds': 25.0, 'fs': 2000.0, 'amplitude': 100.0,
                   'f_min': 0.1, 'f_max': 100.0, 'spectrum': 'flat'}
@@ -334,5 +341,48 @@ def _playback(fs, n, opt):
     return np.resize(u, n)  # the file repeated
 
 
+def _growing_sine(t, fs, opt, rng):
+    """
+    Return a hold at 0, then a sine whose amplitude grows to 1 at the end of the record.
+
+    The usual record of a rig (docs/real.md): it holds a voltage, then sweeps one frequency with
+    a growing amplitude, so that its early part covers a fraction of the range only. The sine
+    starts at 0 going up (no jump after the hold); its envelope grows from start_fraction to 1,
+    linearly or exponentially (equal ratios per second) in time.
+    """
+    f = _check_freq('freq', opt['freq'], fs)
+    hold = _num('hold', opt['hold'], 0.0)
+    start = _num('start_fraction', opt['start_fraction'], 0.0, 1.0)
+    growth = opt['growth']
+    if growth not in GROWTHS:
+        raise ConfigError(f'signal parameter growth must be one of {", ".join(GROWTHS)}, '
+                          f'got {growth!r}')
+    if growth == 'exponential' and start <= 0.0:
+        raise ConfigError('signal parameter start_fraction must be > 0 for exponential growth')
+    n_hold = min(int(round(hold * fs)), t.size)
+    ts = t[n_hold:] - (t[n_hold] if n_hold < t.size else 0.0)
+    frac = ts / ts[-1] if ts.size > 1 else np.ones(ts.size)
+    env = start + (1.0 - start) * frac if growth == 'linear' else start ** (1.0 - frac)
+    return np.concatenate([np.zeros(n_hold), env * np.sin(2.0 * np.pi * f * ts)])
+
+
+def _holds(t, fs, opt, rng):
+    """Return random levels, the largest of magnitude 1, each ramped to and then held."""
+    hold = _num('hold', opt['hold'], 1.0 / fs)
+    ramp = _num('ramp', opt['ramp'], 0.0)
+    n = t.size
+    n_ramp, n_hold = int(round(ramp * fs)), max(int(round(hold * fs)), 1)
+    n_levels = -(-n // (n_ramp + n_hold))
+    levels = rng.uniform(-1.0, 1.0, size=n_levels)
+    levels /= np.max(np.abs(levels))
+    out, prev = [], 0.0
+    for level in levels:
+        out.append(np.linspace(prev, level, n_ramp + 1)[1:])
+        out.append(np.full(n_hold, level))
+        prev = level
+    return np.concatenate(out)[:n]
+
+
 _SHAPES = {'sine': _sine, 'triangle': _triangle, 'multisine': _multisine, 'chirp': _chirp,
-           'aprbs': _aprbs, 'steps': _steps, 'protocol': _protocol}
+           'aprbs': _aprbs, 'steps': _steps, 'protocol': _protocol,
+           'growing_sine': _growing_sine, 'holds': _holds}
