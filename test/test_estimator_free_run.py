@@ -29,7 +29,7 @@ W = 0.005        # s: an init window of 10 samples at 2 kHz keeps these cases sh
 
 
 def _from_state(model, u, y, n):
-    """The offline reference of an estimator initialised from the measured window u[:n], y[:n]."""
+    """Return the offline run of an estimator initialised from the window u[:n], y[:n]."""
     return model.simulate(u, state=model.estimate_state(u[:n], y[:n]))
 
 

@@ -22,7 +22,7 @@ def rms(x):
 
 @pytest.fixture(scope='module')
 def hnarx():
-    """A small HysteresisNARX fitted on 8 s of the identification protocol (default plant)."""
+    """Return a small HysteresisNARX fitted on 8 s of the protocol (default plant)."""
     u = generate('protocol', FS, 8.0, 100.0, seed=3)
     y = PiezoCantilever(fs=FS, seed=3).run(u).y
     return HysteresisNARX(hidden=6, n_plays=8, max_iter=25, seed=0).fit(u, y, fs=FS)
@@ -30,7 +30,7 @@ def hnarx():
 
 def session(history_s=3.0, record_s=4.0, offset=3e-6, seed=5):
     """
-    A plant record that starts after an unknown history, with a sensor offset (m).
+    Return a plant record that starts after an unknown history, with a sensor offset (m).
 
     Returns (u_history, u_record, y_record): the history is random steps and sweeps, then a hold
     at 30 V; the record is a 1 Hz sine of +-70 V about 30 V, its first samples still settling.

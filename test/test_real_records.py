@@ -26,7 +26,7 @@ P = 500_000
 
 
 def record(u, seed=0, offset=0.0, before=None, name='r'):
-    """A plant record (m); `before`: input the plant saw first, not recorded."""
+    """Return a plant Record (m); `before`: input the plant saw first, not recorded."""
     pre = np.zeros(0) if before is None else before
     y = PiezoCantilever(fs=FS, seed=seed).run(np.r_[pre, u]).y[pre.size:] + offset
     return Record(u=u, y=y, fs=FS, source=name)
@@ -39,7 +39,7 @@ def piezo_narx(*args):
 
 @pytest.fixture(scope='module')
 def hnarx():
-    """A small HysteresisNARX fitted on 8 s of the identification protocol."""
+    """Return a small HysteresisNARX fitted on 8 s of the identification protocol."""
     r = record(generate('protocol', FS, 8.0, 100.0, seed=3), seed=3)
     return HysteresisNARX(hidden=6, n_plays=8, max_iter=25, seed=0).fit(r.u, r.y, fs=FS)
 

@@ -28,10 +28,10 @@ def add_parser(subparsers):
                    help='.npz, text table (.csv, .tsv, .txt, .dat), .mcap or rosbag2 directory')
     p.add_argument('--json', action='store_true', help='print one JSON object')
     p.add_argument('--init-samples', type=int, metavar='N',
-                   help='the first N measured samples set the model\'s state (hysteresis memory, '
+                   help="the first N measured samples set the model's state (hysteresis memory, "
                         'creep, output dynamics, sensor offset); scores on the samples after '
                         'them; 0: free run from rest (default: the first n0 measured outputs, '
-                        'the paper\'s convention)')
+                        "the paper's convention)")
     p.add_argument('--resample', type=float, metavar='HZ',
                    help='resample the inputs to this slower rate first (anti-aliased), for a '
                         'model fitted with fit --resample')
@@ -208,10 +208,11 @@ def save_output(model, records, init_samples, path) -> None:
     if path.suffix != '.npz':
         raise ConfigError(f'--save-output must name an .npz file, got {path}')
     if len(records) != 1:
-        raise ConfigError(f'--save-output writes one record\'s free run; {len(records)} inputs '
+        raise ConfigError(f"--save-output writes one record's free run; {len(records)} inputs "
                           'were given')
-    rec = records[0] if init_samples is None else replace(records[0],
-                                                           state_window=int(init_samples))
+    rec = records[0]
+    if init_samples is not None:
+        rec = replace(rec, state_window=int(init_samples))
     _, sim = free_run(model, rec)
     tmp = path.with_name(path.name + '.tmp')
     with open(tmp, 'wb') as fh:

@@ -50,7 +50,7 @@ def add_parser(subparsers):
                         'score and select (worst case over them); without it each INPUT is '
                         'split (--split)')
     p.add_argument('--init-samples', type=int, metavar='N',
-                   help='measured samples at the start of each recording that set a model\'s '
+                   help="measured samples at the start of each recording that set a model's "
                         'state (hysteresis memory, creep, sensor offset) before its free run is '
                         'scored: for recordings that do not start at rest (default: the '
                         "preset's init_seconds; 0: from rest)")
@@ -288,7 +288,7 @@ def _load(args, settings, config, inputs, whole=False):
 
 def _load_validation(args, settings, records):
     """
-    The --validate records: same rate as the estimation records, none of them an estimation one.
+    Load the --validate records: the estimation rate, none of them an estimation record.
 
     Warns in words where the estimation data cover less than the validation data (coverage).
     """
@@ -318,21 +318,21 @@ def _load_validation(args, settings, records):
 
 
 def _warn_without_minor_loops(records, config) -> None:
-    """Warn when the paper's networks are fitted on an input that never reverses inside its range."""
+    """Warn when the paper's networks are fitted on an input that never reverses in its range."""
     import warnings
 
     from piezo_narx_ros.ident.coverage import inner_reversals
     from piezo_narx_ros.ident.hysteresis import MINOR_LOOPS
     if config.narx and config.family == 'narx' and inner_reversals(records) < MINOR_LOOPS:
         warnings.warn('the estimation input never reverses inside its range (no minor loops, '
-                      'e.g. one full-range sine): nothing in these data decides how the paper\'s '
+                      "e.g. one full-range sine): nothing in these data decides how the paper's "
                       'networks behave inside the loop, and their validation scores cannot tell '
                       '(on the micromanipulator of docs/real.md the selected one scored R² -0.22 '
                       'on its test record); --preset envelope keeps its network monotone there')
 
 
 def _resampled(records, args):
-    """The records at --resample HZ (anti-aliased), or as they are."""
+    """Return the records at --resample HZ (anti-aliased), or as they are."""
     if args.resample is None:
         return records
     from piezo_narx_ros.ident.resample import resample_record

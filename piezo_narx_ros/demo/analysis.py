@@ -115,7 +115,8 @@ def live_figures(run: LiveRun, skip: int = 0, input_range: tuple | None = None) 
     Free-run accuracy and latency of a live run.
 
     skip: paired samples left out of R²/RMSE at the start (the measured window the estimator's
-    state was fitted to, when it initialises from measurement). Returns a JSON-ready dict: r2, rmse_m,
+    state was fitted to, when it initialises from measurement). Returns a JSON-ready dict: r2,
+    rmse_m,
     rmse_nm, max_abs_error_nm, n_scored, latency_us (estimate receive time minus command receive
     time, same stamp, both at the recorder), lateness_us (estimate receive time minus the stamp,
     i.e. including the command node's timer lateness), lost samples. With input_range (V, the

@@ -78,7 +78,8 @@ class FreeRunEstimator:
     fs: command rate, Hz (gap detection). init: 'rest', 'measurement' (wait for init_window s of
     consecutive measured samples, at most init_timeout s, then rest), or 'auto' (measurement when
     the caller says a deflection source exists, see `start`). bracket: started from rest, follow
-    whether the state is determined yet (module docstring). u_min/u_max: accepted command range, V. max_fill: the
+    whether the state is determined yet (module docstring). u_min/u_max: accepted command range,
+    V. max_fill: the
     longest gap (samples) bridged by holding the command; a longer one restarts the estimator.
     range_margin: fraction of the trained output span allowed beyond it before an estimate is
     flagged. window: samples in the running error (RMS, R²). reanchor_every: every that many

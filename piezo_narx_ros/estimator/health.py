@@ -90,7 +90,7 @@ class EstimatorHealth:
         if st.state == 'undetermined' and st.state_spread_m > 0:
             # Started from rest without a sensor: until the input sweeps its range the unknown
             # past of the actuator (hysteresis memory, creep) is an offset nobody measured.
-            problems.append(f'state undetermined: the actuator\'s unknown past can still shift '
+            problems.append(f"state undetermined: the actuator's unknown past can still shift "
                             f'the estimate by up to {st.state_spread_m:.3g} m (until the input '
                             'sweeps its range, or init from measurement)')
         values = {k: getattr(st, k) for k in _CUMULATIVE}

@@ -169,7 +169,7 @@ class DynamicModel:
         raise NotImplementedError
 
     def _state_candidates(self, u):   # pragma: no cover - interface
-        """ModelStates the model reaches through input histories that end at u[0]."""
+        """Return the ModelStates the model reaches through input histories ending at u[0]."""
         raise NotImplementedError
 
     def _bracket_states(self, u0):   # pragma: no cover - interface
@@ -177,12 +177,12 @@ class DynamicModel:
         raise NotImplementedError
 
     def _adjustable_state(self, n_window):   # pragma: no cover - interface
-        """(indices of the state vector a window of n_window samples may adjust, their size)."""
+        """Return (indices of the state a window of n_window samples may adjust, their size)."""
         raise NotImplementedError
 
     def estimate_state(self, u, y, prior=None):
         """
-        ModelState at u[0] that best explains a measured window u (N,) V, y (N,) m.
+        Return the ModelState at u[0] that best explains a window u (N,) V, y (N,) m.
 
         Hysteresis memory, creep, output dynamics and sensor offset (ident/state.py); prior: a
         ModelState believed to hold (its memory is kept, the rest refined on the window).
@@ -191,7 +191,7 @@ class DynamicModel:
         return estimate_state(self, u, y, prior)
 
     def _check_state(self, state):
-        """State vector of a ModelState (float64 copy); DataError when it does not fit the model."""
+        """Return a ModelState's vector (float64 copy); DataError when it does not fit."""
         values = np.array(getattr(state, 'values', None), dtype=np.float64).ravel()
         if values.size != self.state_size or not np.all(np.isfinite(values)) \
                 or not math.isfinite(float(getattr(state, 'offset', math.nan))):

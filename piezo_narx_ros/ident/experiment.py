@@ -342,7 +342,7 @@ class ExperimentResult:
 
 
 def with_state_window(records: list[Record], config: ExperimentConfig) -> list[Record]:
-    """Copies of records whose free runs start from `config.init_seconds` of measurement."""
+    """Return copies of records whose free runs start from config.init_seconds measured."""
     if not config.init_seconds:
         return list(records)
     return [replace(r, state_window=max(1, int(round(config.init_seconds * r.fs))))
@@ -416,9 +416,7 @@ def scored_from(model, record: Record) -> int:
 
 
 def outputs_by_record(model, records: list[Record]) -> list[dict[str, np.ndarray]]:
-    """
-    Per record, the scored samples (`scored_from`): 'u' (V), 'y' (m), 'prediction', 'simulation' (m).
-    """
+    """Per record, the scored samples (`scored_from`): u (V), y, prediction, simulation (m)."""
     parts = []
     for r in records:
         pred, sim = free_run(model, r)

@@ -28,8 +28,6 @@ from collections import deque
 
 import numpy as np
 
-import math
-
 from ..errors import ConfigError, DataError, ModelFileError
 from . import document
 from . import hysteresis_kernels as hk
@@ -186,8 +184,8 @@ class HysteresisNARX(DynamicModel):
                 [np.r_[np.zeros(p.size), sign * x] / y_scale for p, x in zip(prefixes, ys)],
                 self.radii_, self.n_lags, self.hidden, self.n_duhem, self._lam(), self.na,
                 self.nb, self.seed, self.max_iter, self.val_fraction, self.max_fail,
-                self.hessian_stride, theta0=None if theta0 is None else self._signed(theta0,
-                                                                                   sign),
+                self.hessian_stride,
+                theta0=None if theta0 is None else self._signed(theta0, sign),
                 skip=skip, record_offsets=len(us) > 1,
                 monotone=monotone)
             info['record_offsets'] = [sign * o for o in info['record_offsets']]
@@ -213,7 +211,7 @@ class HysteresisNARX(DynamicModel):
         return self
 
     def _signed(self, theta, sign):
-        """theta with its output negated when sign < 0 (output layer and offset; a copy)."""
+        """Return theta with its output negated when sign < 0 (output layer, offset; a copy)."""
         theta = np.array(theta, dtype=np.float64)
         if sign < 0:
             lay, _ = hk.layout(self.hidden, self.n_inputs, self.n_duhem, len(self.creep_taus),
@@ -434,8 +432,9 @@ class HysteresisNARX(DynamicModel):
 
     def _bracket_states(self, u0):
         """
-        The two extreme pasts ending at u0 (V): down from the top of the trained input range, and
-        up from its bottom, each settled at u0 (estimator.memory).
+        Return the two extreme pasts ending at u0 (V), settled there (estimator.memory).
+
+        Down from the top of the trained input range, and up from its bottom.
 
         They differ only in the operators' memory: their creep and output states are cleared
         (as the estimate's from rest), so the spread bounds what the memory can change.
@@ -458,7 +457,7 @@ class HysteresisNARX(DynamicModel):
 
     def _adjustable_state(self, n_window):
         """
-        The output dynamics' history and the creep states a window of n_window samples observes.
+        Return the output dynamics' history and the creep states n_window samples observe.
 
         A creep state whose time constant exceeds a third of the window looks like an offset
         there: it keeps its settled value (normalised units, scale 1).
@@ -585,7 +584,7 @@ class HysteresisStepper:
 
     @property
     def state(self):
-        """The current ModelState (the kernel state vector, normalised, and the offset)."""
+        """Return the current ModelState (the kernel state vector, normalised; the offset)."""
         from .state import ModelState
         return ModelState(self._st.copy(), self.offset)
 

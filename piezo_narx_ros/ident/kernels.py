@@ -182,7 +182,7 @@ class Stepper:
 
     @property
     def state(self):
-        """The current ModelState (past inputs V and outputs m, and the offset)."""
+        """Return the current ModelState (past inputs V and outputs m, and the offset)."""
         from .state import ModelState
         return ModelState(np.r_[self._ubuf[1:], self._ybuf], self.offset)
 

@@ -160,7 +160,7 @@ class LaggedModel(DynamicModel):
                 self._state_candidates(np.array([u0]))[0]]
 
     def _adjustable_state(self, n_window):
-        """The output history (m), on the scale of the trained output span (any window)."""
+        """Return the output history's indices, on the scale of the trained output span (m)."""
         lo, hi = self.output_range if self.output_range is not None else (0.0, 1.0)
         span = hi - lo if hi > lo else max(abs(hi), 1e-6)
         return np.arange(self.nu, self.nu + self.ny), np.full(self.ny, span)

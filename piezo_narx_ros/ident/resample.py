@@ -34,14 +34,14 @@ def resample_record(record: Record, fs: float) -> Record:
     if not np.isfinite(fs) or fs <= 0:
         raise DataError(f'--resample must be a positive number of Hz, got {fs!r}')
     if fs >= record.fs:
-        raise DataError(f'{record.source}: --resample {fs:g} Hz is not below the record\'s '
+        raise DataError(f"{record.source}: --resample {fs:g} Hz is not below the record's "
                         f'{record.fs:g} Hz (only slower models: a faster one cannot learn what '
                         'the record never sampled)')
     from scipy.signal import resample_poly
     ratio = Fraction(fs / record.fs).limit_denominator(MAX_FACTOR)
     if ratio.numerator == 0:
         raise DataError(f'{record.source}: --resample {fs:g} Hz is below 1/{MAX_FACTOR} of the '
-                        f'record\'s {record.fs:g} Hz')
+                        f"record's {record.fs:g} Hz")
 
     def down(x):
         if x is None:

@@ -1,5 +1,5 @@
 """
-A model's free-run state set from a short measured window: the start of a record that is not at rest.
+A model's free-run state set from a short measured window: a record that does not start at rest.
 
 A real rig's record starts wherever the actuator is: mid-range, after an unknown input history
 (hysteresis memory), with creep in progress and a sensor whose zero moved since the model was
@@ -133,7 +133,7 @@ def _refine(model, values: np.ndarray, u: np.ndarray, y: np.ndarray, idx: np.nda
 def estimate_state(model, u, y, prior: ModelState | None = None,
                    iterations: int = 5) -> ModelState:
     """
-    ModelState at u[0] that best explains the measured window u (N,) V, y (N,) m.
+    Return the ModelState at u[0] that best explains the window u (N,) V, y (N,) m.
 
     See the module docstring. prior: the state the model is believed to be in (e.g. run through
     a known input history): the only candidate, refined on the window. N >= MIN_WINDOW;
