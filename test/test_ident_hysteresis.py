@@ -61,7 +61,7 @@ def test_training_jacobian_matches_finite_differences():
     theta += rng.normal(0, 0.05, theta.size)
     d = radii.size + L + q
     lay, P = hk.layout(H, d, q, lam.size, na, nb)
-    assert 0.05 < np.exp(theta[lay['drive'][0]]) < 1.0    # some steps are limited
+    theta[lay['drive'][0]] = np.log(0.5)                   # the two spikes are limited
 
     def out(t):
         W1, b1, w2, c, dh, rho, g, a, b, yo = _split_theta(t, lay, H, d, q)

@@ -7,9 +7,10 @@ output feedback is linear, the exact derivative of the whole free run is cheap
 (hysteresis_kernels.jacobian), so the training needs no segments or truncation: it fits the slow
 states (creep, hysteresis memory) over the full length of each record.
 
-Start: the drive's rate limit at half the largest input step (so that the largest jumps of the
-data are limited and its derivative is informative); a seeded random hidden layer; the output
-layer (w2, c) by least squares on the static map from the operators to the output; the output
+Start: the drive's rate limit at half the largest input step when the input jumps (so that the
+jumps are limited and its derivative is informative), inactive when it moves smoothly; a seeded
+random hidden layer; the output layer (w2, c) by least squares on the static map from the
+operators to the output; the output
 dynamics (a, b) by least squares (ARX) on that static prediction, replaced by a static gain when
 unstable. Then Marquardt's LM (the damping
 scaled by diag(J^T J)) until the error stops falling, `max_iter`, or `max_fail` iterations without
@@ -75,6 +76,29 @@ def monotone_mask(lay, P, H, m, n_lags, q):
     return mask
 
 
+#: The input's largest step is a jump when it is this many times the steps beside it.
+JUMP_FACTOR = 10.0
+
+
+def _initial_drive_limit(un):
+    """
+    Starting drive limit rho (normalised input per sample) for one record.
+
+    Half the largest step when that step is a jump (far larger than the steps beside it: a step
+    command the amplifier's slew must ramp), so that the limit acts on the jumps and its
+    derivative is informative; twice the largest step when the input moves smoothly there (a
+    sine, a sweep, a multisine), so that the limit starts inactive instead of distorting every
+    fast stretch of the record.
+    """
+    steps = np.abs(np.diff(np.r_[0.0, un]))
+    k = int(np.argmax(steps))
+    largest = float(steps[k])
+    beside = max(float(steps[k - 1]) if k > 0 else 0.0,
+                 float(steps[k + 1]) if k + 1 < steps.size else 0.0)
+    jump = largest > JUMP_FACTOR * beside
+    return max((0.5 if jump else 2.0) * largest, 1e-6)
+
+
 def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng, monotone=False,
                   record_offsets=False):
     """
@@ -84,8 +108,7 @@ def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng, monotone=
     hidden layer, the output layer by bounded least squares). record_offsets: the records after
     the first get their own output offset in the least squares (returned, normalised).
     """
-    rho = 0.5 * max(float(np.max(np.abs(np.diff(np.r_[0.0, un])))) for un in uns)
-    rho = max(rho, 1e-6)
+    rho = max(_initial_drive_limit(un) for un in uns)
     duhem = np.array([[1.0, 1.0] + [np.sqrt(1.0 + 2.0 * j)] * 4 for j in range(q)]).reshape(q, 6)
     phis = [operator_features(un, radii, n_lags, duhem, rho)[0] for un in uns]
     d = phis[0].shape[1]
