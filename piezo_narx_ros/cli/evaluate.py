@@ -67,7 +67,7 @@ def stored_noise_models(model) -> dict:
     Only numbers are read (coefficients as a float list); anything malformed is a ModelFileError.
     """
     from piezo_narx_ros.errors import DataError, ModelFileError
-    from piezo_narx_ros.ident.noise_model import ARNoiseModel
+    from piezo_narx_ros.ident.noise_model import noise_models_from_doc
 
     tests = (getattr(model, 'metadata', None) or {}).get('tests') or {}
     if not isinstance(tests, dict):
@@ -78,7 +78,7 @@ def stored_noise_models(model) -> dict:
         if doc is None:
             continue
         try:
-            out[mode] = ARNoiseModel.from_dict(doc)
+            out[mode] = noise_models_from_doc(doc)
         except DataError:
             raise ModelFileError(f'{getattr(model, "source", "model")}: tests.{mode}.noise_model '
                                  f'is malformed') from None
@@ -182,7 +182,9 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
         'tests': {k: v['passed'] for k, v in chosen.get('tests', {}).items()},
         'tests_passed': bool(chosen['passed']),
         'tests_residuals': residuals,
-        'tests_noise_model': None if nm is None else {**nm, 'source': source},
+        'tests_noise_model': (None if nm is None else
+                              {'per_output': nm, 'source': source} if isinstance(nm, list)
+                              else {**nm, 'source': source}),
         'tests_raw': {k: v['passed'] for k, v in tests['raw'][residuals].get('tests', {}).items()},
         'tests_detail': tests,
         'warnings': notes,
@@ -235,6 +237,7 @@ def run(args) -> int:
 def _run(args) -> int:
     import json
 
+    from piezo_narx_ros.ident.noise_model import describe as describe_noise
     from piezo_narx_ros.cli.reading import reading_options
     from piezo_narx_ros.ident.data import load_records
     from piezo_narx_ros.ident.model_io import load_model
@@ -263,7 +266,7 @@ def _run(args) -> int:
         print(f'{mode:>10}: R² {fmt(s["r2"], ".6f")}  RMSE {fmt(s["rmse"], ".4g")} m  '
               f'NRMSE {fmt(s["nrmse"], ".4g")}  fit {fmt(s["fit_percent"], ".2f")} %')
     nm = result['tests_noise_model']
-    how = 'raw' if nm is None else f'AR({nm["order"]}) noise model'
+    how = describe_noise(nm.get('per_output', nm) if nm else None)
     print(f'correlation tests ({result["tests_residuals"]} residuals, {how}): '
           + ', '.join(f'{k} {"pass" if v else "fail"}' for k, v in result['tests'].items())
           + f' -> {"PASS" if result["tests_passed"] else "FAIL"}')
