@@ -185,8 +185,8 @@ class ARXModel(LaggedModel):
 
     def c_emitter(self):
         """Return the C emitter of this model (piezo_narx_ros.ident.arx_export)."""
-        from .arx_export import ARXEmitter
-        return ARXEmitter(self)
+        from .arx_export import ARXChannelEmitter, ARXEmitter
+        return ARXEmitter(self) if self._scalar_io else ARXChannelEmitter(self)
 
     def __repr__(self):
         if self.n_in == 1 and self.n_out == 1:

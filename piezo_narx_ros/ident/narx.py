@@ -326,8 +326,8 @@ class NARXNetwork(LaggedModel):
 
     def c_emitter(self):
         """Return the C emitter of this model (piezo_narx_ros.ident.narx_export)."""
-        from .narx_export import NARXEmitter
-        return NARXEmitter(self)
+        from .narx_export import NARXChannelEmitter, NARXEmitter
+        return NARXEmitter(self) if self._scalar_io else NARXChannelEmitter(self)
 
     def __repr__(self):
         axes = '' if self._scalar_io else f', {self.n_in}x{self.n_out}'
