@@ -6,6 +6,7 @@ import subprocess
 import numpy as np
 import pytest
 
+from conftest import SHARED
 from piezo_narx_ros.errors import DataError
 from piezo_narx_ros.ident.arx import ARXModel
 from piezo_narx_ros.ident.model_io import load_model, save_model
@@ -176,3 +177,35 @@ def test_c_export_of_several_axes_equals_python(kind, narx_2x3, tmp_path):
     for v in u:
         stepper.step(v)
     assert np.max(np.abs(state_c - model.c_emitter().state_vector(stepper))) <= 1e-12
+
+
+FSM = SHARED / 'data' / 'fsm'
+
+
+@pytest.mark.skipif(not (FSM / 'train_100mV_r1.npz').is_file(),
+                    reason=f'FSM benchmark data not found at {FSM}')
+def test_fsm_record_fits_and_evaluates_per_output_after_100_samples(tmp_path, capsys):
+    """Before: piezo-narx fit stopped at 'u must be 1-D, got shape (16384, 3)'."""
+    from piezo_narx_ros.cli.main import main
+    (tmp_path / 'fit.yaml').write_text(
+        'training: {restarts: 1, max_iter: 3, refine_iter: 2, n_segments: 4}\n'
+        'final_training: {}\n')
+    args = ['fit', str(FSM / 'train_100mV_r1.npz'), '--out', str(tmp_path / 'm'), '--ny', '1',
+            '--nu', '1', '--hidden', '2', '--arx-na', '4', '--arx-nb', '4', '--no-report',
+            '--config', str(tmp_path / 'fit.yaml'), '--jobs', '1', '--quiet']
+    with pytest.raises(SystemExit) as stop:
+        main(args)
+    assert stop.value.code in (0, None)
+    doc = json.loads((tmp_path / 'm' / 'model.json').read_text())
+    assert doc['inputs'] == ['u1', 'u2', 'u3'] and doc['outputs'] == ['y1', 'y2', 'y3']
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as stop:
+        main(['evaluate', str(tmp_path / 'm' / 'model.json'), str(FSM / 'train_100mV_r2.npz'),
+              '--init-samples', '100', '--json'])
+    assert stop.value.code in (0, None)
+    out = json.loads(capsys.readouterr().out)
+    per = out['simulation']['per_output']
+    assert [o['name'] for o in per] == ['y1', 'y2', 'y3'] and out['n'] == 16384 - 100
+    rmse = [o['rmse'] for o in per]
+    assert out['simulation']['rmse'] == pytest.approx(np.sqrt(np.mean(np.square(rmse))))
+    assert all(0 < r < 2e-6 for r in rmse)          # a model, not a flat line (std ~1.3 µm)
