@@ -17,7 +17,7 @@ FS = 1000.0
 
 
 def mimo_plant(n=3000, seed=1, noise=0.0):
-    """A coupled 2-input 3-output ARX system (m, V): y1 feels y2, y3 feels y1."""
+    """Return a coupled 2-input 3-output ARX system (m, V): y1 feels y2, y3 feels y1."""
     rng = np.random.default_rng(seed)
     u = rng.standard_normal((n, 2)) * 5
     y = np.zeros((n, 3))

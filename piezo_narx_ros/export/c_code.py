@@ -286,4 +286,3 @@ class ChannelHistoryEmitter(HistoryEmitter):
                           '    int i, j, lag;'] + body + self.shift_lines()
                          + [f'    for (j = 0; j < {self.n_out}; ++j) {{',
                             '        y[j] = out[j];', '    }', '}'])
-

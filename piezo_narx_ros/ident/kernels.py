@@ -365,7 +365,7 @@ def narx_step_mimo(u_k, ubuf, ybuf, out, Wu, Wy, b1, W2, b2):
 
 @njit(cache=True)
 def narx_peek_mimo(u_k, ubuf, ybuf, scratch, out, Wu, Wy, b1, W2, b2):
-    """y(k) for u_k into out without changing the histories (scratch: (nu+1, n_in)); finite?"""
+    """Write y(k) for u_k into out, histories untouched (scratch (nu+1, n_in)); finite u_k."""
     if not _finite(u_k):
         return False
     scratch[:] = ubuf

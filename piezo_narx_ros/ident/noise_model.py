@@ -141,7 +141,7 @@ def fit_ar_noise_model(residuals, max_order: int = 20, criterion: str = 'bic') -
 
 def noise_models_from_doc(doc):
     """
-    An ARNoiseModel from its description, or a list of them (one per output) from a list.
+    Return an ARNoiseModel from its description, or a list of them (one per output) from a list.
 
     Several outputs store one noise model per output (experiment.fit_noise_models); DataError
     when malformed.
