@@ -21,6 +21,7 @@ every number. Results: docs/envelope.md.
 
 Run: python bench/bench_envelope.py [--seeds 0 1 2 3 4] [--plants default preisach]
      [--presets paper envelope] [--reference] [--jobs 2] [--json out.json]
+     [--hnarx '{"monotone": "no"}']
 """
 import argparse
 import json
@@ -69,11 +70,18 @@ def battery(params, seed):
     return out
 
 
-def identify(params, seed, preset, jobs, signal='protocol'):
-    """Identify one preset on one 25 s record: (selected model, fit wall time s, label)."""
+def identify(params, seed, preset, jobs, signal='protocol', hnarx=None):
+    """
+    Identify one preset on one 25 s record: (selected model, fit wall time s, label).
+
+    hnarx: HysteresisNARX options over the preset's (e.g. {'monotone': 'no'}).
+    """
     u = generate(signal, FS, 25.0, 100.0, seed=seed)
     y = PiezoCantilever(params, FS, seed=seed).run(u).y
-    cfg = replace(ExperimentConfig(), **PRESETS[preset], seed=seed, jobs=jobs, progress=False)
+    settings = dict(PRESETS[preset])
+    if hnarx:
+        settings['hnarx'] = {**settings.get('hnarx', {}), **hnarx}
+    cfg = replace(ExperimentConfig(), **settings, seed=seed, jobs=jobs, progress=False)
     t0 = time.perf_counter()
     result = run_experiment([Record(u=u, y=y, fs=FS, source=f'{signal} seed {seed}')], cfg)
     return result.best.model, time.perf_counter() - t0, result.best.spec.label
@@ -118,6 +126,8 @@ def main(argv=None):
                     help="also today's demo setup: paper preset identified on a multisine")
     ap.add_argument('--jobs', type=int, default=2)
     ap.add_argument('--json', help='write every figure to this file')
+    ap.add_argument('--hnarx', type=json.loads, default={}, metavar='JSON',
+                    help='HysteresisNARX options over the preset\'s, e.g. \'{"monotone": "no"}\'')
     args = ap.parse_args(argv)
     setups = [(p, 'protocol') for p in args.presets]
     if args.reference:
@@ -132,7 +142,8 @@ def main(argv=None):
         for preset, signal in setups:
             runs, times, labels = [], [], []
             for seed in args.seeds:
-                model, seconds, label = identify(params, seed, preset, args.jobs, signal)
+                model, seconds, label = identify(params, seed, preset, args.jobs, signal,
+                                                 args.hnarx)
                 runs.append(score(model, battery(params, seed)))
                 times.append(seconds)
                 labels.append(label)

@@ -30,6 +30,10 @@ class Record:
     y_true: np.ndarray | None = None  # (N,) noise-free output when a simulator wrote it, m
     u_before: np.ndarray | None = None  # inputs preceding this segment in its recording, V
     y_before: np.ndarray | None = None  # outputs preceding it, m
+    # How a model's free run on it starts: N > 0, the state that the first N measured samples of
+    # its recording set (a recording that did not start at rest); 0: from rest; None: from the
+    # first n0 measured outputs (lagged models, the paper's convention) or rest (the others).
+    state_window: int | None = None
 
     def __len__(self) -> int:
         return int(self.u.size)
@@ -50,7 +54,8 @@ class Record:
                       t=None if self.t is None else self.t[cut].copy(),
                       y_true=None if self.y_true is None else self.y_true[cut].copy(),
                       u_before=before_u.copy() if before_u.size else None,
-                      y_before=before_y.copy() if before_y.size else None)
+                      y_before=before_y.copy() if before_y.size else None,
+                      state_window=self.state_window)
 
     def split(self, fraction: float = 0.5) -> tuple['Record', 'Record']:
         """(estimation, validation): the first `fraction` of the samples and the rest."""

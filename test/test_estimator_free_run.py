@@ -25,6 +25,14 @@ def _u(n, seed=0):
     return np.random.default_rng(seed).uniform(-100.0, 100.0, n)
 
 
+W = 0.005        # s: an init window of 10 samples at 2 kHz keeps these cases short
+
+
+def _from_state(model, u, y, n):
+    """Return the offline run of an estimator initialised from the window u[:n], y[:n]."""
+    return model.simulate(u, state=model.estimate_state(u[:n], y[:n]))
+
+
 def _feed(est, u, t0=0, meas=None, skip=()):
     out = []
     for k, x in enumerate(u):
@@ -45,37 +53,41 @@ def test_from_rest_equals_offline_simulate(model):
     assert est.stats.init == 'rest' and est.stats.estimates == 3000
 
 
-def test_from_measurement_equals_simulate_with_measured_y0(model):
-    u = _u(1000, 1)
-    y_meas = model.simulate(u) + 3e-8          # a sensor offset: y0 differs from rest
-    est = FreeRunEstimator(model, init='auto')
+def test_from_measurement_equals_simulate_from_the_estimated_state(model):
+    u = _u(3000, 1)
+    y_meas = model.simulate(u) + 3e-8          # a sensor offset: the state is not rest
+    est = FreeRunEstimator(model, init='auto')  # the default window: 0.5 s = 1000 samples
     est.start(measurement_available=True)
     out = _feed(est, u, meas=y_meas)
-    assert est.stats.init == 'measurement'
-    assert [t for t, _ in out] == [k * P for k in range(1000)]
-    ref = model.simulate(u, y_meas[:model.n0])
+    assert est.stats.init == 'measurement' and est.stats.state == 'estimated'
+    assert [t for t, _ in out] == [k * P for k in range(3000)]
+    ref = _from_state(model, u, y_meas, 1000)
     assert np.max(np.abs(np.array([y for _, y in out]) - ref)) <= 1e-12
+    # The offset was found: after the lags' first samples (whose unmeasured past is taken as
+    # held) the run is the measurement's.
+    assert np.max(np.abs(ref - y_meas)[20:]) < 1e-12 and np.max(np.abs(ref - y_meas)) < 2e-9
 
 
 def test_initialises_at_the_first_measured_window_when_early_measurements_are_lost(model):
     u = _u(500, 11)
     y_meas = model.simulate(u) + 1e-8
-    est = FreeRunEstimator(model, init='measurement')
+    est = FreeRunEstimator(model, init='measurement', init_window=W)
     out = []
     for k in range(500):
         out += est.on_command(k * P, float(u[k]))
         if k >= 30 and k != 31:                  # 0..29 and 31 never arrive
             out += est.on_measurement(k * P, float(y_meas[k]))
-    j = 32                                        # first n0 = 3 consecutive measured: 32, 33, 34
+    j = 32                                        # the first 10 consecutive measured: 32..41
     assert est.stats.init == 'measurement' and est.stats.unestimated == j
     assert [t for t, _ in out] == [k * P for k in range(j, 500)]
-    ref = model.simulate(u[j:], y_meas[j:j + model.n0])
+    ref = _from_state(model, u[j:], y_meas[j:], 10)
     assert np.max(np.abs(np.array([y for _, y in out]) - ref)) <= 1e-12
 
 
 def test_measurement_that_never_comes_falls_back_to_rest_without_losing_samples(model):
     u = _u(400, 2)
-    est = FreeRunEstimator(model, init='measurement', init_timeout=0.05)   # 100 samples
+    est = FreeRunEstimator(model, init='measurement', init_timeout=0.05,   # 100 samples
+                           init_window=W)
     out = _feed(est, u)
     assert est.stats.init == 'rest (no measurement)'
     assert len(out) == 400
@@ -186,7 +198,7 @@ def test_requested_restart_from_rest_and_from_measurement(model):
     """
     u = _u(1200, 21)
     y_meas = model.simulate(u) + 2e-8
-    est = FreeRunEstimator(model, init='auto')
+    est = FreeRunEstimator(model, init='auto', init_window=W)
     est.start(measurement_available=True)
     _feed(est, u[:400], meas=y_meas[:400])
     est.request_restart(from_measurement=False)
@@ -197,7 +209,7 @@ def test_requested_restart_from_rest_and_from_measurement(model):
     est.request_restart(from_measurement=True)
     out = _feed(est, u[800:], t0=800 * P, meas=y_meas[800:])
     assert est.stats.init == 'measurement' and est.stats.requested_restarts == 2
-    ref = model.simulate(u[800:], y_meas[800:800 + model.n0])
+    ref = _from_state(model, u[800:], y_meas[800:], 10)
     assert np.max(np.abs(np.array([y for _, y in out]) - ref)) <= 1e-12
     rest_only = FreeRunEstimator(model, init='rest')
     with pytest.raises(ConfigError, match="init is 'rest'"):
@@ -234,11 +246,12 @@ def test_configuration_limits_are_inclusive_and_each_bad_value_refused(model):
     no_rate = copy.copy(model)
     no_rate.fs = None                  # a model file without fs: the node's fs is used
     est = FreeRunEstimator(no_rate, fs=0.5, max_fill=0, window=2, reanchor_every=0,
-                           init_timeout=0.0, confirm=1)
+                           init_timeout=0.0, init_window=0.0, confirm=1)
     assert est.fs == 0.5 and est.period_ns == 2e9
     for bad in ({'fs': -2000.0}, {'fs': math.inf}, {'u_min': 1.0, 'u_max': 1.0},
                 {'max_fill': -1}, {'window': 1}, {'reanchor_every': -1}, {'init_timeout': -0.1},
-                {'confirm': 0}):
+                {'confirm': 0}, {'init_window': -0.1}, {'init_window': 2.0, 'init_timeout': 1.0},
+                {'init_window': math.nan}):
         with pytest.raises(ConfigError):
             FreeRunEstimator(model, **bad)
 
@@ -316,7 +329,8 @@ def test_confirm_sets_how_many_commands_make_a_new_stream():
 
 
 def test_initial_measurement_timeout_is_counted_in_samples():
-    est = FreeRunEstimator(_Echo(), init='measurement', init_timeout=0.005)    # 10 samples
+    est = FreeRunEstimator(_Echo(), init='measurement', init_timeout=0.005,    # 10 samples
+                           init_window=0.0)
     out = _feed(est, [0.1] * 9)
     assert out == [] and est.stats.init == 'waiting'
     out = est.on_command(9 * P, 0.2)
@@ -324,38 +338,41 @@ def test_initial_measurement_timeout_is_counted_in_samples():
     assert est.stats.init == 'rest (no measurement)'
 
 
-def test_measurements_before_their_commands_initialise_at_the_n0th_command(model):
+def test_measurements_before_their_commands_initialise_at_the_window_s_last_command(model):
     u = _u(50, 12)
     y_meas = model.simulate(u) + 2e-8
-    est = FreeRunEstimator(model, init='measurement')
+    est = FreeRunEstimator(model, init='measurement', init_window=W)
     out = []
     for k in range(50):
         out += est.on_measurement(k * P, float(y_meas[k]))
-        out += est.on_command(k * P, float(u[k]))
+        got = est.on_command(k * P, float(u[k]))
+        if k == 9:                              # the 10th command completes the window
+            assert [t for t, _ in got] == [j * P for j in range(10)]
+        out += got
     assert [t for t, _ in out] == [k * P for k in range(50)]
-    assert np.max(np.abs(np.array(_ys(out)) - model.simulate(u, y_meas[:model.n0]))) <= 1e-12
+    assert np.max(np.abs(np.array(_ys(out)) - _from_state(model, u, y_meas, 10))) <= 1e-12
 
 
 def test_measurements_lagging_their_commands_release_the_held_estimates(model):
     # The sensor's first samples arrive after several commands: the measurement that completes
-    # the first n0 releases every command held so far, in order.
+    # the window releases every command held so far, in order.
     u = _u(60, 13)
     y_meas = model.simulate(u) + 2e-8
-    est = FreeRunEstimator(model, init='measurement')
-    assert _feed(est, u[:8]) == []
+    est = FreeRunEstimator(model, init='measurement', init_window=W)
+    assert _feed(est, u[:15]) == []
     out = []
-    for k in range(model.n0):
+    for k in range(10):
         out += est.on_measurement(k * P, float(y_meas[k]))
-    assert [t for t, _ in out] == [k * P for k in range(8)]
-    out += _feed(est, u[8:], t0=8 * P)
-    ref = model.simulate(u, y_meas[:model.n0])
+    assert [t for t, _ in out] == [k * P for k in range(15)]
+    out += _feed(est, u[15:], t0=15 * P)
+    ref = _from_state(model, u, y_meas, 10)
     assert np.max(np.abs(np.array(_ys(out)) - ref)) <= 1e-12
 
 
 def test_commands_without_measurement_are_counted_over_every_initialisation(model):
     u = _u(40, 14)
     y_meas = model.simulate(u)
-    est = FreeRunEstimator(model, init='measurement')
+    est = FreeRunEstimator(model, init='measurement', init_window=W)
     for k in range(20):
         est.on_command(k * P, float(u[k]))
         if k >= 2:                                      # the first 2 never measured
@@ -397,14 +414,14 @@ def test_a_new_stream_initialises_as_the_first_did(model, sensor):
     # and never published the commands held while the new stream was confirmed.
     u = _u(40, 15)
     y_meas = model.simulate(u) + 1e-8
-    est = FreeRunEstimator(model, init='auto', max_fill=10, confirm=1)
+    est = FreeRunEstimator(model, init='auto', max_fill=10, confirm=1, init_window=W)
     est.start(measurement_available=sensor)
     _feed(est, u[:20], meas=y_meas[:20] if sensor else None)
     t1 = 10_000 * P                                            # far beyond max_fill
     out = _feed(est, u[20:], t0=t1, meas=y_meas[20:] if sensor else None)
     assert est.stats.stream_restarts == 1
     assert [t for t, _ in out] == [t1 + k * P for k in range(20)]
-    ref = model.simulate(u[20:], y_meas[20:20 + model.n0] if sensor else None)
+    ref = _from_state(model, u[20:], y_meas[20:], 10) if sensor else model.simulate(u[20:])
     assert np.max(np.abs(np.array(_ys(out)) - ref)) <= 1e-12
     assert est.stats.init == ('measurement' if sensor else 'rest')
 

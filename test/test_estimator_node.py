@@ -171,11 +171,12 @@ def test_live_estimate_equals_offline_simulate(live_run, toy_model_file):
     t_y, y = col.arrays('deflection')
     t_hat, y_hat = col.arrays('deflection_estimate')
     assert np.array_equal(t_cmd, t_y) and t_hat.size > 0.99 * live_run['n']
-    # Initialised from the first n0 measured samples it saw (the first ones unless discovery of
-    # deflection was late; the loss test above asserts that separately).
+    # Initialised from the state of the first init_window (0.5 s = 1000 samples) of measured
+    # samples it saw (the first ones unless discovery of deflection was late; the loss test
+    # above asserts that separately).
     j = int(np.searchsorted(t_cmd, t_hat[0]))
     assert np.array_equal(t_hat, t_cmd[j:])
-    ref = model.simulate(u[j:], y[j:j + model.n0])
+    ref = model.simulate(u[j:], state=model.estimate_state(u[j:j + 1000], y[j:j + 1000]))
     assert np.max(np.abs(y_hat - ref)) <= 1e-9 * np.max(np.abs(ref))
     assert np.std(y_hat) > 1e-8                    # a real, moving estimate
 

@@ -366,7 +366,9 @@ def test_live_player_loop_feeding_the_estimator_restarts_each_pass(tmp_path):
     write_uy_bag(tmp_path / 'bag', u, model.simulate(u), 2000.0,
                  command_topic='/loop/voltage_command', deflection_topic='/loop/deflection')
     col = Collector('/loop', ('deflection_estimate',), diagnostics=True)
-    est = start_node('estimator_node', '-p', f'model:={tmp_path / "toy.json"}', ns='/loop')
+    # Each pass (0.2 s) is a new stream that initialises from its first 0.05 s of measurement.
+    est = start_node('estimator_node', '-p', f'model:={tmp_path / "toy.json"}',
+                     '-p', 'init_window:=0.05', ns='/loop')
     player = None
     try:
         assert col.wait_for(lambda: col.pub.get_subscription_count() >= 1, 30.0)

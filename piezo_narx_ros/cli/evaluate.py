@@ -27,6 +27,17 @@ def add_parser(subparsers):
     p.add_argument('inputs', nargs='+', metavar='INPUT',
                    help='.npz, text table (.csv, .tsv, .txt, .dat), .mcap or rosbag2 directory')
     p.add_argument('--json', action='store_true', help='print one JSON object')
+    p.add_argument('--init-samples', type=int, metavar='N',
+                   help="the first N measured samples set the model's state (hysteresis memory, "
+                        'creep, output dynamics, sensor offset); scores on the samples after '
+                        'them; 0: free run from rest (default: the first n0 measured outputs, '
+                        "the paper's convention)")
+    p.add_argument('--resample', type=float, metavar='HZ',
+                   help='resample the inputs to this slower rate first (anti-aliased), for a '
+                        'model fitted with fit --resample')
+    p.add_argument('--save-output', metavar='FILE.npz',
+                   help='write the free-run output as y_sim beside u and y (and the first '
+                        'scored sample as scored_from)')
     p.add_argument('--fs', type=float, metavar='HZ', help='sample rate for inputs without one')
     p.add_argument('--max-lag', type=int, default=20, metavar='L',
                    help='correlation test lags (default 20)')
@@ -97,15 +108,27 @@ def range_warnings(model, records, margin: float = 0.1) -> list[str]:
 
 
 def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='simulation',
-             noise_model='stored', noise_order=20):
-    """JSON-ready dict of scores and verdicts of a fitted model on records (all samples)."""
+             noise_model='stored', noise_order=20, init_samples=None):
+    """
+    JSON-ready dict of scores and verdicts of a fitted model on records.
+
+    init_samples: None scores every sample after the first n0 (free run from the first n0
+    measured outputs); 0 a free run from rest, every sample; N the samples after the first N,
+    whose measurement set the model's state (ModelState).
+    """
     import math
     import warnings
+    from dataclasses import replace
 
     import numpy as np
 
     from piezo_narx_ros.errors import ConfigError, DataError
-    from piezo_narx_ros.ident.experiment import evaluate_model, fit_noise_models
+    from piezo_narx_ros.ident.experiment import evaluate_model, fit_noise_models, scored_from
+
+    if init_samples is not None:
+        if init_samples < 0:
+            raise ConfigError(f'--init-samples must be >= 0, got {init_samples}')
+        records = [replace(r, state_window=int(init_samples)) for r in records]
 
     if max_lag < 1:
         raise ConfigError(f'--max-lag must be >= 1, got {max_lag}')
@@ -116,9 +139,12 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
             raise DataError(f'{r.source}: sampled at {r.fs:g} Hz but the model was fitted at '
                             f'{model.fs:g} Hz')
         # Whole records are scored here (no split), so half the usual length suffices.
-        if len(r) < model.n0 + 4 * max_lag:
+        if len(r) < scored_from(model, r) + 4 * max_lag:
             raise DataError(f'{r.source}: {len(r)} samples are too few for the model '
-                            f'(n0 = {model.n0}) and {max_lag} test lags')
+                            f'(n0 = {model.n0}'
+                            + (f', {init_samples} samples to set its state'
+                               if init_samples else '')
+                            + f') and {max_lag} test lags')
     if noise_model not in ('stored', 'ar', 'none'):
         raise ConfigError(f'--noise-model must be stored, ar or none, got {noise_model!r}')
     if not 0 <= noise_order <= 200:
@@ -149,7 +175,8 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
         'model': getattr(model, 'source', None),
         'structure': repr(model),
         'inputs': [r.source for r in records],
-        'n': int(sum(len(r) - model.n0 for r in records)),
+        'n': int(sum(len(r) - scored_from(model, r) for r in records)),
+        'init_samples': init_samples,
         'prediction': scores['prediction'],
         'simulation': scores['simulation'],
         'tests': {k: v['passed'] for k, v in chosen.get('tests', {}).items()},
@@ -160,6 +187,38 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
         'tests_detail': tests,
         'warnings': notes,
     }
+
+
+def save_output(model, records, init_samples, path) -> None:
+    """
+    Write the free run of the (first) record to an .npz: u (V), y, y_sim (m), scored_from.
+
+    The same free run as the scores (state from the first init_samples samples, or as
+    `evaluate` says for None and 0). Written to a temporary name and renamed.
+    """
+    import os
+    from dataclasses import replace
+    from pathlib import Path
+
+    import numpy as np
+
+    from piezo_narx_ros.errors import ConfigError
+    from piezo_narx_ros.ident.experiment import free_run, scored_from
+    path = Path(path)
+    if path.suffix != '.npz':
+        raise ConfigError(f'--save-output must name an .npz file, got {path}')
+    if len(records) != 1:
+        raise ConfigError(f"--save-output writes one record's free run; {len(records)} inputs "
+                          'were given')
+    rec = records[0]
+    if init_samples is not None:
+        rec = replace(rec, state_window=int(init_samples))
+    _, sim = free_run(model, rec)
+    tmp = path.with_name(path.name + '.tmp')
+    with open(tmp, 'wb') as fh:
+        np.savez(fh, u=rec.u, y=rec.y, y_sim=sim, fs=rec.fs,
+                 scored_from=scored_from(model, rec))
+    os.replace(tmp, path)
 
 
 def run(args) -> int:
@@ -180,8 +239,13 @@ def _run(args) -> int:
     model = load_model(args.model)
     records = load_records(args.inputs, fs=args.fs, command_topic=args.command_topic,
                            deflection_topic=args.deflection_topic, **reading_options(args))
+    if args.resample is not None:
+        from piezo_narx_ros.ident.resample import resample_record
+        records = [resample_record(r, args.resample) for r in records]
     result = evaluate(model, records, args.max_lag, args.max_outside_fraction, args.residuals,
-                      args.noise_model, args.noise_order)
+                      args.noise_model, args.noise_order, args.init_samples)
+    if args.save_output:
+        save_output(model, records, args.init_samples, args.save_output)
     if args.json:
         print(json.dumps(json_safe(result)))
         return 0

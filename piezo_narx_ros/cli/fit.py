@@ -27,7 +27,7 @@ import contextlib
 CONFIG_KEYS = ('preset', 'family', 'ny', 'nu', 'hidden', 'seed', 'n_seeds', 'hnarx', 'arx_na',
                'arx_nb', 'arx', 'split', 'max_lag', 'max_outside_fraction', 'residuals',
                'noise_model', 'noise_order', 'selection', 'jobs', 'training', 'final_training',
-               'command_topic', 'deflection_topic')
+               'init_seconds', 'command_topic', 'deflection_topic')
 # Settings that belong to the command line, not to ExperimentConfig, with their defaults.
 CLI_DEFAULTS = {'arx': True, 'command_topic': 'piezo/voltage_command',
                 'deflection_topic': 'piezo/deflection'}
@@ -45,6 +45,18 @@ def add_parser(subparsers):
                    help='.npz (u, y, fs), text table (.csv, .tsv, .txt, .dat: t,u,y or u,y, or '
                         '--columns), .mcap or rosbag2 directory, or a folder of these')
     p.add_argument('--out', required=True, metavar='DIR', help='output directory')
+    p.add_argument('--validate', nargs='+', metavar='VAL',
+                   help='validation recordings: the INPUTs then estimate whole and these only '
+                        'score and select (worst case over them); without it each INPUT is '
+                        'split (--split)')
+    p.add_argument('--init-samples', type=int, metavar='N',
+                   help="measured samples at the start of each recording that set a model's "
+                        'state (hysteresis memory, creep, sensor offset) before its free run is '
+                        'scored: for recordings that do not start at rest (default: the '
+                        "preset's init_seconds; 0: from rest)")
+    p.add_argument('--resample', type=float, metavar='HZ',
+                   help='fit a model at this slower rate: every record is low-pass filtered and '
+                        'resampled to it first (anti-aliased)')
     p.add_argument('--per-record', action='store_true',
                    help='fit each recording on its own: DIR/NAME/ per recording and '
                         'DIR/summary.csv')
@@ -190,7 +202,8 @@ def experiment_config(settings: dict, progress: bool):
             residuals=str(settings['residuals']), noise_model=str(settings['noise_model']),
             noise_order=int(settings['noise_order']), jobs=int(settings['jobs']),
             progress=None if progress else False, training=dict(settings['training']),
-            final_training=dict(settings['final_training']))
+            final_training=dict(settings['final_training']),
+            init_seconds=float(settings['init_seconds']))
     except (TypeError, ValueError) as exc:
         raise ConfigError(f'invalid setting: {exc}') from None
     cfg.validate()
@@ -231,22 +244,34 @@ def _run(args) -> int:
         raise ConfigError(f'--out {out}: exists and is not a directory')
     inputs = expand_inputs(args.inputs)
     if args.per_record:
+        if args.validate:
+            raise ConfigError('--validate serves one model; it cannot be combined with '
+                              '--per-record')
         return _run_fleet(args, settings, config, inputs, executor, out)
     if (out / 'model.json').exists() and not args.force:
         raise ConfigError(f'--out {out} already holds a model ({out / "model.json"}); choose '
                           'another directory or pass --force to overwrite it')
-    records = _load(args, settings, config, inputs)
+    records = _resampled(_load(args, settings, config, inputs, whole=bool(args.validate)), args)
+    validation = (_resampled(_load_validation(args, settings, records), args) if args.validate
+                  else None)
+    config = _with_init_samples(config, args.init_samples, records[0].fs)
     from piezo_narx_ros.ident.experiment import run_experiment
     with executor:
-        result = run_experiment(records, config, executor)
-    model_path, paths = _write_fit(out, result, records, config, settings, not args.no_report)
+        result = run_experiment(records, config, executor, validation)
+    _warn_without_minor_loops(records, config)
+    model_path, paths = _write_fit(out, result, records, config, settings, not args.no_report,
+                                   validation)
     if not args.quiet:
         _print_fit(result, config, executor, model_path, out, paths)
     return 0
 
 
-def _load(args, settings, config, inputs):
-    """Load the records of `inputs`, warning on identifiability (errors on the first bad one)."""
+def _load(args, settings, config, inputs, whole=False):
+    """
+    Load the records of `inputs`, warning on identifiability (errors on the first bad one).
+
+    whole: the records estimate whole (--validate), so the split is not checked.
+    """
     import warnings
 
     from piezo_narx_ros.cli.reading import reading_options
@@ -254,16 +279,83 @@ def _load(args, settings, config, inputs):
     records = load_records(inputs, fs=args.fs, command_topic=settings['command_topic'],
                            deflection_topic=settings['deflection_topic'],
                            **reading_options(args))
-    for record in records:
-        for line in check_identifiable(record, config.split):
-            warnings.warn(line)
+    if not whole:
+        for record in records:
+            for line in check_identifiable(record, config.split):
+                warnings.warn(line)
     return records
 
 
-def _write_fit(out, result, records, config, settings, report: bool):
+def _load_validation(args, settings, records):
+    """
+    Load the --validate records: the estimation rate, none of them an estimation record.
+
+    Warns in words where the estimation data cover less than the validation data (coverage).
+    """
+    import warnings
+
+    from piezo_narx_ros.cli.reading import reading_options
+    from piezo_narx_ros.errors import ConfigError, DataError
+    from piezo_narx_ros.ident.coverage import coverage_warnings
+    from piezo_narx_ros.ident.data import expand_inputs, load_records
+    val_paths = expand_inputs(args.validate)
+    est_paths = {p.resolve() for p in expand_inputs(args.inputs)}
+    shared = [str(p) for p in val_paths if p.resolve() in est_paths]
+    if shared:
+        raise ConfigError(f'--validate {shared[0]} is also an estimation input: a record cannot '
+                          'validate the model it estimates')
+    validation = load_records(val_paths, fs=args.fs, command_topic=settings['command_topic'],
+                              deflection_topic=settings['deflection_topic'],
+                              **reading_options(args))
+    fs = records[0].fs
+    for r in validation:
+        if abs(r.fs - fs) > 1e-6 * fs:
+            raise DataError(f'{r.source}: sampled at {r.fs:g} Hz but the estimation records at '
+                            f'{fs:g} Hz')
+    for line in coverage_warnings(records, validation):
+        warnings.warn(line)
+    return validation
+
+
+def _warn_without_minor_loops(records, config) -> None:
+    """Warn when the paper's networks are fitted on an input that never reverses in its range."""
+    import warnings
+
+    from piezo_narx_ros.ident.coverage import inner_reversals
+    from piezo_narx_ros.ident.hysteresis import MINOR_LOOPS
+    if config.narx and config.family == 'narx' and inner_reversals(records) < MINOR_LOOPS:
+        warnings.warn('the estimation input never reverses inside its range (no minor loops, '
+                      "e.g. one full-range sine): nothing in these data decides how the paper's "
+                      'networks behave inside the loop, and their validation scores cannot tell '
+                      '(on the micromanipulator of docs/real.md the selected one scored R² -0.22 '
+                      'on its test record); --preset envelope keeps its network monotone there')
+
+
+def _resampled(records, args):
+    """Return the records at --resample HZ (anti-aliased), or as they are."""
+    if args.resample is None:
+        return records
+    from piezo_narx_ros.ident.resample import resample_record
+    return [resample_record(r, args.resample) for r in records]
+
+
+def _with_init_samples(config, init_samples, fs):
+    """--init-samples N (at the records' rate fs, Hz) overrides the preset's init_seconds."""
+    from dataclasses import replace
+
+    from piezo_narx_ros.errors import ConfigError
+    if init_samples is None:
+        return config
+    if init_samples < 0:
+        raise ConfigError(f'--init-samples must be >= 0, got {init_samples}')
+    return replace(config, init_seconds=init_samples / fs)
+
+
+def _write_fit(out, result, records, config, settings, report: bool, validation=None):
     """
     DIR/model.json (+ .npz), DIR/candidates.json and, if `report`, DIR/report/.
 
+    validation: the --validate records (else the split halves of `records` are reported).
     Returns (model path, report paths).
     """
     from piezo_narx_ros.control.gain_check import data_line
@@ -272,8 +364,10 @@ def _write_fit(out, result, records, config, settings, report: bool):
     from piezo_narx_ros.ident.report import write_json, write_report
     out.mkdir(parents=True, exist_ok=True)
     best = result.best
-    data_info = {'sources': result.sources, 'fs': result.fs, 'split': config.split,
-                 'preset': settings['preset'],
+    data_info = {'sources': result.sources, 'fs': result.fs,
+                 'split': None if validation else config.split,
+                 'validation_sources': result.validation_sources,
+                 'init_seconds': config.init_seconds, 'preset': settings['preset'],
                  'n_estimation': result.n_estimation, 'n_validation': result.n_validation,
                  # The data's own least-squares line: what the model's static gain is checked
                  # against before controller_node's linear mode uses it (control.gain_check).
@@ -285,8 +379,10 @@ def _write_fit(out, result, records, config, settings, report: bool):
     write_json(result.to_dict(), out / 'candidates.json')
     paths = {}
     if report:
-        _, validation = split_records(records, config.split)
-        paths = write_report(result, validation, out / 'report')
+        from piezo_narx_ros.ident.experiment import with_state_window
+        scored = (with_state_window(validation, config) if validation else
+                  split_records(with_state_window(records, config), config.split)[1])
+        paths = write_report(result, scored, out / 'report')
     return model_path, paths
 
 

@@ -114,8 +114,9 @@ def live_figures(run: LiveRun, skip: int = 0, input_range: tuple | None = None) 
     """
     Free-run accuracy and latency of a live run.
 
-    skip: paired samples left out of R²/RMSE at the start (the estimator's first n0 outputs are
-    copies of the measurement when it initialises from it). Returns a JSON-ready dict: r2, rmse_m,
+    skip: paired samples left out of R²/RMSE at the start (the measured window the estimator's
+    state was fitted to, when it initialises from measurement). Returns a JSON-ready dict: r2,
+    rmse_m,
     rmse_nm, max_abs_error_nm, n_scored, latency_us (estimate receive time minus command receive
     time, same stamp, both at the recorder), lateness_us (estimate receive time minus the stamp,
     i.e. including the command node's timer lateness), lost samples. With input_range (V, the
@@ -152,20 +153,23 @@ def live_figures(run: LiveRun, skip: int = 0, input_range: tuple | None = None) 
     return out
 
 
-def offline_difference(run: LiveRun, model, skip: int) -> float | None:
+def offline_difference(run: LiveRun, model, init_samples: int) -> float | None:
     """
-    Return the largest |live estimate - model.simulate| (m) over the scored samples.
+    Return the largest |live estimate - model.simulate| (m) over every estimated sample.
 
-    The offline free run is started from the live estimate's first n0 values; None when samples are
-    missing in between (the live estimator then held the command, which the offline run cannot
-    know).
+    init_samples > 0: the estimator started from the state its first init_samples measured
+    samples set, so the offline run starts from model.estimate_state of the same window; 0: from
+    rest. None when samples are missing in between (the live estimator then held the command,
+    which the offline run cannot know).
     """
     if np.any(np.diff(run.stamps_ns) > 1.5e9 / run.fs):
         return None
-    n0 = int(model.n0)
-    u, y_hat = run.u[skip - n0:] if skip >= n0 else run.u, run.y_hat[max(skip - n0, 0):]
-    sim = model.simulate(u, y_hat[:n0])
-    return float(np.max(np.abs(sim[n0:] - y_hat[n0:])))
+    if init_samples:
+        n = int(init_samples)
+        sim = model.simulate(run.u, state=model.estimate_state(run.u[:n], run.y[:n]))
+    else:
+        sim = model.simulate(run.u)
+    return float(np.max(np.abs(sim - run.y_hat)))
 
 
 # ----------------------------------------------------------------------------------- figures

@@ -121,13 +121,16 @@ def analyse(out: Path, live: dict, model_doc: dict, est_diag, phase: str = 'live
     from piezo_narx_ros.ident.model_io import load_model
     model = load_model(out / 'fit' / 'model.json')
     run = load_live_run(out / phase, expected=live['published'])
-    skip = int(model.n0)   # first n0 estimates are copies of the measurement (init from it)
+    diag = dict(est_diag[1]) if est_diag else {}
+    # Initialised from measurement, the first init_samples estimates are the window the state
+    # was fitted to: not scored.
+    measured = diag.get('init') == 'measurement'
+    skip = int(diag.get('init_samples', model.n0)) if measured else 0
     in_range = getattr(model, 'input_range', None)
     in_range = None if in_range is None else tuple(float(v) for v in in_range)
     figures = live_figures(run, skip, in_range)
-    diff = offline_difference(run, model, skip)
+    diff = offline_difference(run, model, skip if measured else 0)
     paths = write_figures(run, skip, fig_dir or out / 'figures', in_range)
-    diag = dict(est_diag[1]) if est_diag else {}
     return {'live': {'bag': str(out / phase), 'published': live['published'],
                      'estimator_init': diag.get('init'), 'estimator_diagnostics': diag,
                      **figures,

@@ -8,7 +8,13 @@ re-anchoring. Nothing here imports torch: the model's Stepper (numpy/numba) does
 
 Conventions (so that the live estimate equals offline `model.simulate` to rounding):
 - from rest: every u, y before the first command is 0, as `simulate(u, y0=None)`;
-- from measurement: the first n0 estimates are the measured outputs, as `simulate(u, y[:n0])`.
+- from measurement: the model's state at the first of n_init consecutive measured commands
+  (`init_window` seconds) is the one that best explains them (hysteresis memory, creep, output
+  dynamics, sensor offset: `model.estimate_state`), and every command from there on is
+  estimated by the free run from it, as `simulate(u, state=model.estimate_state(u[:n], y[:n]))`.
+Started from rest, the estimate's unknown past is bracketed (`estimator.memory.MemoryBracket`):
+`stats.state` says whether the state is determined yet and `stats.state_spread_m` by how much the
+unknown past can still move the estimate.
 A missing sample (stamp gap) or a rejected command (NaN/inf or outside [u_min, u_max]) is replaced
 by the last good command (the amplifier holds its output), estimated, published and counted.
 
@@ -30,7 +36,9 @@ import numpy as np
 
 from piezo_narx_ros.command.stamps import (RATE_TOLERANCE, SAMPLE, RateMonitor, StampGate,
                                            model_rate)
-from piezo_narx_ros.errors import ConfigError
+from piezo_narx_ros.errors import ConfigError, DataError
+from piezo_narx_ros.estimator.memory import MemoryBracket
+from piezo_narx_ros.ident.state import MIN_WINDOW
 
 INIT_MODES = ('auto', 'rest', 'measurement')
 
@@ -56,15 +64,22 @@ class EstimatorStats:
     rate_withheld: int = 0     # estimates not published: the stream's rate is not the model's
     input_out_of_range: int = 0   # commands outside the model's trained input range (+ margin)
     init: str = 'waiting'      # 'waiting', 'rest', 'measurement', 'rest (no measurement)'
+    # Whether the free run's state is known: 'estimated' (from measurement), 'determined' (its
+    # unknown past no longer matters), 'undetermined' (it still may), '' before the run starts.
+    state: str = ''
+    state_spread_m: float = 0.0   # how far the unknown past can still move the estimate, m
+    state_rms_m: float = 0.0      # residual of the measured window the state was set from, m
 
 
 class FreeRunEstimator:
     """
-    Runs `model` (NARXNetwork/ARXModel: nu, ny, n0, stepper(), output_range) in free run.
+    Runs `model` (any family: nu, ny, n0, stepper(), estimate_state(), output_range) in free run.
 
-    fs: command rate, Hz (gap detection). init: 'rest', 'measurement' (wait for n0 measured
-    samples, at most init_timeout s, then rest), or 'auto' (measurement when the caller says a
-    deflection source exists, see `start`). u_min/u_max: accepted command range, V. max_fill: the
+    fs: command rate, Hz (gap detection). init: 'rest', 'measurement' (wait for init_window s of
+    consecutive measured samples, at most init_timeout s, then rest), or 'auto' (measurement when
+    the caller says a deflection source exists, see `start`). bracket: started from rest, follow
+    whether the state is determined yet (module docstring). u_min/u_max: accepted command range,
+    V. max_fill: the
     longest gap (samples) bridged by holding the command; a longer one restarts the estimator.
     range_margin: fraction of the trained output span allowed beyond it before an estimate is
     flagged. window: samples in the running error (RMS, R²). reanchor_every: every that many
@@ -77,8 +92,9 @@ class FreeRunEstimator:
 
     def __init__(self, model, fs: float | None = None, init: str = 'auto', u_min: float = -200.0,
                  u_max: float = 200.0, max_fill: int = 2000, range_margin: float = 0.1,
-                 window: int = 2000, reanchor_every: int = 0, init_timeout: float = 0.5,
-                 confirm: int = 3, rate_tolerance: float = RATE_TOLERANCE):
+                 window: int = 2000, reanchor_every: int = 0, init_timeout: float = 1.0,
+                 confirm: int = 3, rate_tolerance: float = RATE_TOLERANCE,
+                 init_window: float = 0.5, bracket: bool = True):
         for attr in ('nu', 'ny', 'n0', 'stepper'):
             if not hasattr(model, attr):
                 raise ConfigError(f'model has no {attr!r}: not a NARX/ARX model')
@@ -91,6 +107,9 @@ class FreeRunEstimator:
                 or not 0 < rate_tolerance < 1:
             raise ConfigError('max_fill, reanchor_every, init_timeout must be >= 0, window >= 2, '
                               'confirm >= 1 and rate_tolerance in (0, 1)')
+        if not (math.isfinite(init_window) and 0 <= init_window <= init_timeout):
+            raise ConfigError(f'init_window must be in [0, init_timeout = {init_timeout:g}] s, '
+                              f'got {init_window:g}')
         self.model = model
         self.fs = float(fs)
         self.period_ns = 1e9 / self.fs
@@ -100,7 +119,10 @@ class FreeRunEstimator:
         self.confirm = int(confirm)
         self.window = int(window)
         self.reanchor_every = int(reanchor_every)
-        self.init_timeout_samples = max(int(round(init_timeout * self.fs)), model.n0)
+        # Measured samples that set the state (at least the model's lags and a few more).
+        self.init_samples = max(int(round(init_window * self.fs)), int(model.n0), MIN_WINDOW)
+        self.init_timeout_samples = max(int(round(init_timeout * self.fs)), self.init_samples)
+        self.bracket = bool(bracket)
         self.nu, self.ny, self.n0 = int(model.nu), int(model.ny), int(model.n0)
         rng = getattr(model, 'output_range', None)
         if rng is not None:
@@ -119,7 +141,7 @@ class FreeRunEstimator:
         self.gate = StampGate(self.period_ns, self.max_fill, confirm)
         self.rate = RateMonitor(self.period_ns, rate_tolerance, max(self.window, 8))
         # u/t history kept for re-anchoring
-        self._hist = max(self.n0, 1) + 64 + self.reanchor_every
+        self._hist = max(self.n0, 1) + 64 + self.reanchor_every + self.init_samples
         self._err = deque(maxlen=self.window)
         self._ymeas = deque(maxlen=self.window)
         self.restart()
@@ -138,16 +160,18 @@ class FreeRunEstimator:
         self._wait = bool(wait_for_measurement) and self.init_mode != 'rest'
         self._decided = self.init_mode != 'auto'
         self._stepper = None
-        self._pending: list[tuple[int, float, bool]] = []   # commands while waiting for y0
+        self._pending: list[tuple[int, float, bool]] = []   # commands while the state waits
         self._last_t: int | None = None
         self._last_u = 0.0
         self._t_hist = deque(maxlen=self._hist)
         self._u_hist = deque(maxlen=self._hist)
         self._est: dict[int, float] = {}       # t -> y_hat, for matching measurements
-        self._meas: dict[int, float] = {}      # t -> y measured, not matched yet / for y0
+        self._meas: dict[int, float] = {}      # t -> y measured, not matched yet / for the state
         self._since_anchor = 0
+        self._memory = None
         self.out_of_range_now = False
         self.stats.init = 'waiting'
+        self.stats.state, self.stats.state_spread_m, self.stats.state_rms_m = '', 0.0, 0.0
 
     def start(self, measurement_available: bool) -> None:
         """
@@ -310,8 +334,7 @@ class FreeRunEstimator:
         self._u_hist.append(u)
         if self._stepper is None:
             if not self._wait:
-                self._stepper = self.model.stepper()
-                self.stats.init = 'rest'
+                self._start_from_rest(u, 'rest')
             else:
                 self._pending.append((t_ns, u, filled))
                 if not self._try_init_from_measurement() and \
@@ -320,11 +343,31 @@ class FreeRunEstimator:
                 else:
                     self._flush_init(out)
                 return
-        self._emit(t_ns, self._stepper.step(u), out)
+        self._step(t_ns, u, out)
         if self.reanchor_every:
             self._since_anchor += 1
             if self._since_anchor >= self.reanchor_every and self._reanchor():
                 self._since_anchor = 0
+
+    def _step(self, t_ns: int, u: float, out: list) -> None:
+        """Estimate one command with the running Stepper; the memory brackets follow it."""
+        self._emit(t_ns, self._stepper.step(u), out)
+        if self._memory is not None:
+            st = self.stats
+            st.state_spread_m = self._memory.step(u)
+            if self._memory.determined:
+                st.state, self._memory = 'determined', None
+
+    def _start_from_rest(self, u0: float, how: str) -> None:
+        """Start the Stepper from rest; bracket the unknown past from the first command u0 (V)."""
+        self._stepper = self.model.stepper()
+        self.stats.init = how
+        self.stats.state = 'undetermined'
+        if self.bracket:
+            try:
+                self._memory = MemoryBracket(self.model, u0)
+            except (AttributeError, NotImplementedError):   # a family without brackets
+                self._memory = None
 
     def _emit(self, t_ns: int, y_hat: float, out: list) -> None:
         if self.rate.off:                  # the model's state still follows the commands
@@ -353,46 +396,49 @@ class FreeRunEstimator:
 
     def _try_init_from_measurement(self) -> bool:
         """
-        Initialise at the first n0 consecutive pending commands that all have a measurement.
+        Initialise at the first init_samples consecutive pending commands with a measurement.
 
-        Usually the first n0; later ones when the first measurements were lost, e.g. while the
+        Usually the first ones; later ones when the first measurements were lost, e.g. while the
         deflection subscription was still being matched. Earlier commands get no estimate and are
-        counted as `unestimated`.
+        counted as `unestimated`. The state at the window's first command is the model's
+        estimate_state of the window; a window no state explains is skipped (wait for the next).
         """
-        n0, pending, meas = self.n0, self._pending, self._meas
+        n, pending, meas = self.init_samples, self._pending, self._meas
         run = 0
         for j, (t, _, _) in enumerate(pending):
             run = run + 1 if t in meas else 0
-            if run >= n0:
+            if run >= n:
                 break
         else:
             return False
-        start = j + 1 - n0
+        start = j + 1 - n
+        u_win = np.array([u for _, u, _ in pending[start:start + n]])
+        y_win = np.array([meas[t] for t, _, _ in pending[start:start + n]])
+        try:
+            state = self.model.estimate_state(u_win, y_win)
+        except DataError:
+            return False
         self.stats.unestimated += start
         del pending[:start]
-        u0 = [u for _, u, _ in pending[:n0]]
-        y0 = [meas[t] for t, _, _ in pending[:n0]]
-        self._stepper = self.model.stepper(u0[n0 - self.nu:] if self.nu else None,
-                                           y0[n0 - self.ny:] if self.ny else None)
+        self._stepper = self.model.stepper(state=state)
         self.stats.init = 'measurement'
-        self._init_outputs = y0
+        self.stats.state = 'estimated'
+        self.stats.state_rms_m = float(state.info.get('rms_m', 0.0))
         return True
 
     def _flush_init(self, out: list) -> None:
-        """After initialisation from measurement: publish y0 then step the rest of the queue."""
+        """After initialisation from measurement: estimate the queue from the window's start."""
         if self._stepper is None or not self._pending:
             return
         pending, self._pending = self._pending, []
-        y0 = self._init_outputs
-        for i, (t, u, _) in enumerate(pending):
-            self._emit(t, y0[i] if i < self.n0 else self._stepper.step(u), out)
+        for t, u, _ in pending:
+            self._step(t, u, out)
 
     def _init_pending_from_rest(self, out: list) -> None:
-        self._stepper = self.model.stepper()
-        self.stats.init = 'rest (no measurement)'
         pending, self._pending = self._pending, []
+        self._start_from_rest(pending[0][1], 'rest (no measurement)')
         for t, u, _ in pending:
-            self._emit(t, self._stepper.step(u), out)
+            self._step(t, u, out)
 
     def _reanchor(self) -> bool:
         """

@@ -5,7 +5,9 @@ The level reflects every estimate and command since the last tick, not the last 
 that leaves the trained output range for 2,807 samples between two ticks is a WARN tick even if
 the sample at the tick happens to be back in range, and the tick after the trouble is OK again.
 A command stream at another rate than the model's is an ERROR for as long as it lasts (its
-estimates are withheld), and so is a second node publishing on the same estimate topic.
+estimates are withheld), and so is a second node publishing on the same estimate topic. A free
+run started from rest whose state is not yet determined (the actuator's unknown past can still
+move it, estimator.memory) is a WARN with that bound, until it is.
 """
 from __future__ import annotations
 
@@ -85,7 +87,15 @@ class EstimatorHealth:
                     text += f' (up to {u_beyond:.3g} V beyond it)'
                 problems.append(text)
         problems += self.notes
+        if st.state == 'undetermined' and st.state_spread_m > 0:
+            # Started from rest without a sensor: until the input sweeps its range the unknown
+            # past of the actuator (hysteresis memory, creep) is an offset nobody measured.
+            problems.append(f"state undetermined: the actuator's unknown past can still shift "
+                            f'the estimate by up to {st.state_spread_m:.3g} m (until the input '
+                            'sweeps its range, or init from measurement)')
         values = {k: getattr(st, k) for k in _CUMULATIVE}
+        values.update(state=st.state, state_spread_m=st.state_spread_m,
+                      state_rms_m=st.state_rms_m, init_samples=self.est.init_samples)
         values.update({f'{name}_since_last': d[name] for name, _ in _WARN_ON})
         values['holding'] = self.est.holding
         values['fs'] = self.est.fs
@@ -99,4 +109,4 @@ class EstimatorHealth:
         if found:
             more = f' (+{len(found) - 1} more)' if len(found) > 1 else ''
             return (ERROR if errors else WARN), found[0] + more, values
-        return OK, f'ok (init {st.init})', values
+        return OK, f'ok (init {st.init}, state {st.state or "waiting"})', values

@@ -78,6 +78,23 @@ class Tuple:
                 + (', increasing' if self.increasing else ''))
 
 
+@dataclass(frozen=True)
+class Options:
+    """One of a fixed set of strings."""
+
+    values: tuple
+
+    def check(self, name: str, value):
+        """`value` if it is one of `values`; ConfigError naming `name` otherwise."""
+        if not isinstance(value, str) or value not in self.values:
+            raise ConfigError(f'{name} must be {self.describe()}, got {value!r}')
+        return value
+
+    def describe(self) -> str:
+        """Return the rule in words."""
+        return 'one of ' + ', '.join(self.values)
+
+
 def check_parameters(cls, values: dict) -> dict:
     """
     Every constructor value checked against `cls._parameter_constraints`; returns them converted.
@@ -138,11 +155,49 @@ class DynamicModel:
     def predict(self, u, y):   # pragma: no cover - interface
         raise NotImplementedError
 
-    def simulate(self, u, y0=None):   # pragma: no cover - interface
+    def simulate(self, u, y0=None, state=None):   # pragma: no cover - interface
         raise NotImplementedError
 
-    def stepper(self, u_past=None, y_past=None):   # pragma: no cover - interface
+    def stepper(self, u_past=None, y_past=None, state=None):   # pragma: no cover - interface
         raise NotImplementedError
+
+    # Initial state from measurement (ident/state.py): every family implements these three.
+    state_size = 0   # length of the state vector
+
+    def _run_from(self, values, u):   # pragma: no cover - interface
+        """Free run (m, without offset) of u (N,) V from the state vector `values`."""
+        raise NotImplementedError
+
+    def _state_candidates(self, u):   # pragma: no cover - interface
+        """Return the ModelStates the model reaches through input histories ending at u[0]."""
+        raise NotImplementedError
+
+    def _bracket_states(self, u0):   # pragma: no cover - interface
+        """Two ModelStates at input u0 (V) from the most different pasts the model admits."""
+        raise NotImplementedError
+
+    def _adjustable_state(self, n_window):   # pragma: no cover - interface
+        """Return (indices of the state a window of n_window samples may adjust, their size)."""
+        raise NotImplementedError
+
+    def estimate_state(self, u, y, prior=None):
+        """
+        Return the ModelState at u[0] that best explains a window u (N,) V, y (N,) m.
+
+        Hysteresis memory, creep, output dynamics and sensor offset (ident/state.py); prior: a
+        ModelState believed to hold (its memory is kept, the rest refined on the window).
+        """
+        from .state import estimate_state
+        return estimate_state(self, u, y, prior)
+
+    def _check_state(self, state):
+        """Return a ModelState's vector (float64 copy); DataError when it does not fit."""
+        values = np.array(getattr(state, 'values', None), dtype=np.float64).ravel()
+        if values.size != self.state_size or not np.all(np.isfinite(values)) \
+                or not math.isfinite(float(getattr(state, 'offset', math.nan))):
+            raise DataError(f'state does not fit {type(self).__name__}: need {self.state_size} '
+                            f'finite values and a finite offset, got {values.size}')
+        return values
 
     def _is_fitted(self) -> bool:   # pragma: no cover - interface
         raise NotImplementedError

@@ -5,6 +5,8 @@ model_io reads the format envelope (format, version, units, ranges, sha256) with
 family reads its own blocks (structure, normalisation, training, weight arrays) with them, so a
 malformed field gives the same one-line ModelFileError whichever part reads it.
 """
+import math
+
 import numpy as np
 
 from ..errors import ModelFileError
@@ -54,3 +56,16 @@ def weight_array(arrays, key, shape, wpath):
     if not np.all(np.isfinite(a)):
         raise ModelFileError(f'{wpath}: weight array {key!r} contains NaN or infinite values')
     return a
+
+
+def range_of(doc, key, name):
+    """(min, max) at doc[key]: finite numbers, min <= max; None when absent or null."""
+    v = doc.get(key)
+    if v is None:
+        return None
+    if (not isinstance(v, list) or len(v) != 2
+            or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
+            or not all(math.isfinite(x) for x in v) or v[0] > v[1]):
+        raise ModelFileError(f'{name}: key {key!r} must be [min, max] (finite, min <= max) or '
+                             f'null, got {v!r}')
+    return (float(v[0]), float(v[1]))

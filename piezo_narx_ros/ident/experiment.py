@@ -135,6 +135,9 @@ class ExperimentConfig:
     arx_nb: tuple = tuple(range(1, 11))
     narx: bool = True
     split: float = 0.5                  # estimation fraction of each record
+    # Seconds at the start of each recording whose measurement sets a model's initial state
+    # before its free run is scored (recordings that do not start at rest); 0: from rest.
+    init_seconds: float = 0.0
     max_lag: int = 20                   # correlation test lags
     max_outside_fraction: float = 0.05  # chance-rate tolerance (docs/validation.md); 0 = strict
     residuals: str = 'simulation'       # which residuals' tests select: simulation | prediction
@@ -201,6 +204,9 @@ class ExperimentConfig:
             raise ConfigError('nothing to fit: the NARX grid is off and the ARX grid is empty')
         if not 0.1 <= self.split <= 0.9:
             raise ConfigError(f'split must be in [0.1, 0.9], got {self.split}')
+        if not (isinstance(self.init_seconds, (int, float)) and 0.0 <= self.init_seconds <= 600):
+            raise ConfigError(f'init_seconds must be a number of seconds in [0, 600], got '
+                              f'{self.init_seconds!r}')
         if self.residuals not in RESIDUAL_KINDS:
             raise ConfigError('residuals must be prediction or simulation, got '
                               f'{self.residuals!r}')
@@ -245,7 +251,7 @@ PRESETS = {
     # NARX over several network seeds, a small ARX baseline, selection on the worst case.
     'envelope': {'family': 'hysteresis_narx', 'hidden': 10, 'n_seeds': 4, 'hnarx': {},
                  'arx_na': (2, 3, 4), 'arx_nb': (2, 3, 4), 'selection': 'worst_case',
-                 'final_training': {}},
+                 'final_training': {}, 'init_seconds': 0.5},
 }
 
 
@@ -303,6 +309,7 @@ class ExperimentResult:
     n_estimation: int             # samples used to fit
     n_validation: int
     wall_seconds: float
+    validation_sources: list[str] | None = None   # --validate records; None: split halves
 
     @property
     def best(self) -> CandidateResult:
@@ -325,12 +332,21 @@ class ExperimentResult:
         cfg = {k: list(v) if isinstance(v, tuple) else v for k, v in cfg.items()}
         return {'config': cfg, 'data': {'sources': self.sources, 'fs': self.fs,
                                         'n_estimation': self.n_estimation,
-                                        'n_validation': self.n_validation},
+                                        'n_validation': self.n_validation,
+                                        'validation_sources': self.validation_sources},
                 'selection': {'index': self.selected, 'label': self.best.spec.label,
                               'validated': self.validated,
                               'rule': self.rule()},
                 'wall_seconds': self.wall_seconds,
                 'candidates': [c.to_dict() for c in self.candidates]}
+
+
+def with_state_window(records: list[Record], config: ExperimentConfig) -> list[Record]:
+    """Return copies of records whose free runs start from config.init_seconds measured."""
+    if not config.init_seconds:
+        return list(records)
+    return [replace(r, state_window=max(1, int(round(config.init_seconds * r.fs))))
+            for r in records]
 
 
 def split_records(records: list[Record],
@@ -348,26 +364,65 @@ def free_run(model, record: Record) -> tuple[np.ndarray, np.ndarray]:
     whose state is a function of the whole input history (`state_from_input`) is instead run
     from the start of the recording the record was cut from (its u_before / y_before), with the
     recording's first n0 outputs, as it would have run live; the record's samples are returned.
+
+    A record with a `state_window` N > 0 starts every family from a measured state, as a rig's
+    estimator does (`--init-samples`): model.estimate_state on the record's first N samples. When
+    the record continues a recording (a validation half), its input history is known: the state
+    found at the recording's start is run through that history and then refined (offset, creep,
+    output dynamics) on the record's first N samples. A free run of NaN when no state is found.
     """
     u, y, skip = record.u, record.y, 0
-    if getattr(model, 'state_from_input', False) and record.u_before is not None \
-            and record.y_before is not None:
-        skip = record.u_before.size
-        u, y = np.concatenate([record.u_before, u]), np.concatenate([record.y_before, y])
+    window = record.state_window
+    before = record.u_before is not None and record.y_before is not None
     with np.errstate(all='ignore'):   # a diverging network must not spam warnings
+        if window:
+            if before:
+                pred = model.predict(np.r_[record.u_before, u],
+                                     np.r_[record.y_before, y])[record.u_before.size:]
+            else:
+                pred = model.predict(u, y)
+            n = min(int(window), u.size)
+            try:
+                prior = None
+                if before:
+                    m = min(n, record.u_before.size)
+                    start = model.estimate_state(record.u_before[:m], record.y_before[:m])
+                    stepper = model.stepper(state=start)
+                    for value in record.u_before:
+                        stepper.step(value)
+                    prior = stepper.state
+                state = model.estimate_state(u[:n], y[:n], prior=prior)
+                sim = model.simulate(u, state=state)
+            except DataError:
+                sim = np.full(u.size, np.nan)
+            return pred, sim
+        if (window is not None or getattr(model, 'state_from_input', False)) and before:
+            skip = record.u_before.size
+            u, y = np.concatenate([record.u_before, u]), np.concatenate([record.y_before, y])
         pred = model.predict(u, y)
-        sim = model.simulate(u, y[:model.n0])
+        sim = model.simulate(u) if window == 0 else model.simulate(u, y[:model.n0])
     return pred[skip:], sim[skip:]
 
 
+def scored_from(model, record: Record) -> int:
+    """
+    First sample of `record` that is scored.
+
+    n0 (the paper's convention), 0 from rest, or the first after the record's state window.
+    """
+    if record.state_window is None:
+        return int(model.n0)
+    return int(record.state_window)
+
+
 def outputs_by_record(model, records: list[Record]) -> list[dict[str, np.ndarray]]:
-    """Per record, samples k >= n0: 'u' (V), 'y' (m), 'prediction', 'simulation' (m)."""
-    n0 = model.n0
+    """Per record, the scored samples (`scored_from`): u (V), y, prediction, simulation (m)."""
     parts = []
     for r in records:
         pred, sim = free_run(model, r)
-        parts.append({'u': r.u[n0:], 'y': r.y[n0:], 'prediction': pred[n0:],
-                      'simulation': sim[n0:]})
+        k = scored_from(model, r)
+        parts.append({'u': r.u[k:], 'y': r.y[k:], 'prediction': pred[k:],
+                      'simulation': sim[k:]})
     return parts
 
 
@@ -521,22 +576,29 @@ def fit_candidate(spec: CandidateSpec, est: list[Record], val: list[Record],
             us, ys = us[0], ys[0]
         model.fit(us, ys, fs=est[0].fs)
         res.fit_seconds = time.perf_counter() - t0
-        res.n_params = int(model.n_params)
-        res.scores['estimation'] = evaluate_model(model, est, with_tests=False)
-        noise = None
-        if config.noise_model == 'ar':
-            noise = fit_noise_models(model, est, config.noise_order, config.max_lag)
-        val_eval = evaluate_model(model, val, config.max_lag, config.max_outside_fraction,
-                                  noise_models=noise)
-        res.tests = val_eval.pop('tests')
-        res.tests['noise_model'] = config.noise_model
-        res.tests['residuals'] = config.residuals
-        res.scores['validation'] = val_eval
-        res.validated = bool(res.tests[config.residuals]['passed'])
-        res.model = model
+        score_candidate(res, model, est, val, config)
     except PiezoNarxError as exc:
         res.error = str(exc)
         res.fit_seconds = time.perf_counter() - t0
+    return res
+
+
+def score_candidate(res: CandidateResult, model, est: list[Record], val: list[Record],
+                    config: ExperimentConfig) -> CandidateResult:
+    """Fill res with a fitted model's scores on both data sets and its tests; returns res."""
+    res.n_params = int(model.n_params)
+    res.scores['estimation'] = evaluate_model(model, est, with_tests=False)
+    noise = None
+    if config.noise_model == 'ar':
+        noise = fit_noise_models(model, est, config.noise_order, config.max_lag)
+    val_eval = evaluate_model(model, val, config.max_lag, config.max_outside_fraction,
+                              noise_models=noise)
+    res.tests = val_eval.pop('tests')
+    res.tests['noise_model'] = config.noise_model
+    res.tests['residuals'] = config.residuals
+    res.scores['validation'] = val_eval
+    res.validated = bool(res.tests[config.residuals]['passed'])
+    res.model = model
     return res
 
 
@@ -617,21 +679,25 @@ def final_fit(screened: CandidateResult, est: list[Record], val: list[Record],
 
 
 def run_experiment(records: list[Record], config: ExperimentConfig | None = None,
-                   executor: Executor | None = None) -> ExperimentResult:
+                   executor: Executor | None = None,
+                   validation: list[Record] | None = None) -> ExperimentResult:
     """
-    Fit and score the whole grid on records (split per `config.split`) and select one model.
+    Fit and score the whole grid on records and select one model.
 
+    Without `validation`, each record is split per `config.split`; with it, the records estimate
+    whole and only the validation records score and select (no validation sample reaches a fit).
     The fits run on `executor` (default: a LocalExecutor of `config.jobs` processes, closed at
     the end); the result does not depend on the executor.
     """
-    result = run_experiments([records], config, executor)[0]
+    result = run_experiments([records], config, executor, validation)[0]
     if isinstance(result, PiezoNarxError):
         raise result
     return result
 
 
 def run_experiments(groups: list[list[Record]], config: ExperimentConfig | None = None,
-                    executor: Executor | None = None) -> list:
+                    executor: Executor | None = None,
+                    validation: list[Record] | None = None) -> list:
     """
     Run one experiment per group of records (e.g. one per recording of a fleet).
 
@@ -640,9 +706,13 @@ def run_experiments(groups: list[list[Record]], config: ExperimentConfig | None 
 
     Returns, per group, its ExperimentResult or the PiezoNarxError that stopped it (too short,
     nothing fitted); the other groups complete. `wall_seconds` is the time of the whole call.
+    `validation` (one group only): records that score and select instead of split halves.
     """
     config = config or ExperimentConfig()
     config.validate()
+    if validation is not None and len(groups) != 1:
+        raise ConfigError('validation records serve one group of estimation records, got '
+                          f'{len(groups)} groups')
     owned = executor is None
     executor = executor or LocalExecutor(config.jobs)
     t0 = time.perf_counter()
@@ -651,9 +721,15 @@ def run_experiments(groups: list[list[Record]], config: ExperimentConfig | None 
         try:
             if not records:
                 raise DataError('no records to identify from')
-            for r in records:
-                check_length(r, config.max_n0, config.max_lag)
-            data[g] = split_records(records, config.split)
+            if validation is None:
+                for r in records:
+                    check_length(r, config.max_n0, config.max_lag)
+                data[g] = split_records(with_state_window(records, config), config.split)
+            else:
+                for r in validation:
+                    check_length(r, config.max_n0, config.max_lag)
+                data[g] = (with_state_window(records, config),
+                           with_state_window(validation, config))
         except PiezoNarxError as exc:
             outcome[g] = exc
     specs = config.specs()
@@ -689,7 +765,8 @@ def run_experiments(groups: list[list[Record]], config: ExperimentConfig | None 
             config=config, candidates=candidates[g], selected=index, validated=validated,
             sources=[r.source for r in records], fs=records[0].fs,
             n_estimation=sum(len(r) for r in est), n_validation=sum(len(r) for r in val),
-            wall_seconds=wall)
+            wall_seconds=wall,
+            validation_sources=None if validation is None else [r.source for r in validation])
     return [outcome[g] for g in range(len(groups))]
 
 

@@ -7,9 +7,10 @@ output feedback is linear, the exact derivative of the whole free run is cheap
 (hysteresis_kernels.jacobian), so the training needs no segments or truncation: it fits the slow
 states (creep, hysteresis memory) over the full length of each record.
 
-Start: the drive's rate limit at half the largest input step (so that the largest jumps of the
-data are limited and its derivative is informative); a seeded random hidden layer; the output
-layer (w2, c) by least squares on the static map from the operators to the output; the output
+Start: the drive's rate limit at half the largest input step when the input jumps (so that the
+jumps are limited and its derivative is informative), inactive when it moves smoothly; a seeded
+random hidden layer; the output layer (w2, c) by least squares on the static map from the
+operators to the output; the output
 dynamics (a, b) by least squares (ARX) on that static prediction, replaced by a static gain when
 unstable. Then Marquardt's LM (the damping
 scaled by diag(J^T J)) until the error stops falling, `max_iter`, or `max_fail` iterations without
@@ -54,98 +55,225 @@ def _stable(a):
     return a.size == 0 or np.max(np.abs(np.roots(np.r_[1.0, a]))) < _MAX_POLE
 
 
-def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng):
+def monotone_mask(lay, P, H, m, n_lags, q):
     """
-    Return starting parameters for records of inputs uns and outputs yns (normalised).
+    Parameters held >= 0 so that the output rises with every play operator (`monotone`).
 
-    See the module docstring.
+    The hidden layer's weights from the plays, the output weights and the plays' linear
+    weights. Every play rises with the drive, so along any path the plays' part of the output
+    moves with the input, as a Preisach operator with a positive density does (the Duhem
+    states are left free: a Bouc-Wen deflection is the drive minus its Duhem state; so are the
+    drive increments, a rate effect).
     """
-    rho = 0.5 * max(float(np.max(np.abs(np.diff(np.r_[0.0, un])))) for un in uns)
-    rho = max(rho, 1e-6)
+    mask = np.zeros(P, dtype=bool)
+    d = m + n_lags + q
+    plays = np.zeros(d, dtype=bool)
+    plays[:m] = True
+    lo = lay['W1'][0]
+    mask[lo:lo + H * d] = np.tile(plays, H)
+    mask[lay['w2'][0]:lay['w2'][1]] = True
+    mask[lay['c'][0]:lay['c'][1]] = plays
+    return mask
+
+
+#: The input's largest step is a jump when it is this many times the steps beside it.
+JUMP_FACTOR = 10.0
+
+
+def _initial_drive_limit(un):
+    """
+    Return the starting drive limit rho (normalised input per sample) for one record.
+
+    Half the largest step when that step is a jump (far larger than the steps beside it: a step
+    command the amplifier's slew must ramp), so that the limit acts on the jumps and its
+    derivative is informative; when the input moves smoothly there (a sine, a sweep, a
+    multisine) the data say nothing about a slew limit, and the limit starts where no input can
+    reach it (a full-range swing in one sample): a limit just above the record's fastest motion
+    would cap any faster input later (measured: a model fitted on a 1 Hz sweep held a 10 Hz one
+    to 40 % of its amplitude).
+    """
+    steps = np.abs(np.diff(np.r_[0.0, un]))
+    k = int(np.argmax(steps))
+    largest = float(steps[k])
+    beside = max(float(steps[k - 1]) if k > 0 else 0.0,
+                 float(steps[k + 1]) if k + 1 < steps.size else 0.0)
+    jump = largest > JUMP_FACTOR * beside
+    return max(0.5 * largest, 1e-6) if jump else max(2.0 * largest, 2.0)
+
+
+def initial_theta(uns, yns, radii, n_lags, H, q, n_creep, na, nb, rng, monotone=False,
+                  record_offsets=False):
+    """
+    Return (starting parameters, per-record offsets) for inputs uns and outputs yns (normalised).
+
+    See the module docstring. monotone: the start satisfies monotone_mask's signs (a positive
+    hidden layer, the output layer by bounded least squares). record_offsets: the records after
+    the first get their own output offset in the least squares (returned, normalised).
+    """
+    rho = max(_initial_drive_limit(un) for un in uns)
     duhem = np.array([[1.0, 1.0] + [np.sqrt(1.0 + 2.0 * j)] * 4 for j in range(q)]).reshape(q, 6)
     phis = [operator_features(un, radii, n_lags, duhem, rho)[0] for un in uns]
     d = phis[0].shape[1]
     W1 = rng.normal(0.0, 1.0, (H, d)) * (2.0 / np.sqrt(d))
     b1 = rng.uniform(-1.0, 1.0, H)
+    m = radii.size
+    if monotone:
+        W1[:, :m] = np.abs(W1[:, :m])
     phi = np.vstack(phis)
     sig = 1.0 / (1.0 + np.exp(-(phi @ W1.T + b1))) - 1.0 / (1.0 + np.exp(-b1))
     A = np.hstack([sig, phi])
     # A little ridge: the sigmoid columns of a random layer can be nearly collinear.
     lam = 1e-8 * np.trace(A.T @ A) / A.shape[1]
-    sol = np.linalg.solve(A.T @ A + lam * np.eye(A.shape[1]), A.T @ np.concatenate(yns))
+    target = np.concatenate(yns)
+    y_off = 0.0
+    # One column per record after the first: its own offset (sensor zero), never penalised.
+    n_rec = len(yns) - 1 if record_offsets else 0
+    sizes = [yn.size for yn in yns]
+    dummies = np.zeros((A.shape[0], n_rec))
+    for r in range(n_rec):
+        lo = sum(sizes[:r + 1])
+        dummies[lo:lo + sizes[r + 1], r] = 1.0
+    n_col = A.shape[1]
+    if monotone:
+        # Bounded least squares with a free intercept: positive weights alone cannot make the
+        # output's mean (the records need not be centred).
+        from scipy.optimize import lsq_linear
+        lower = np.full(n_col + 1 + n_rec, -np.inf)
+        lower[:H + m] = 0.0
+        ridge = np.sqrt(lam) * np.eye(n_col + 1 + n_rec)[:n_col]
+        aug = np.vstack([np.hstack([A, np.ones((A.shape[0], 1)), dummies]), ridge])
+        sol = lsq_linear(aug, np.r_[target, np.zeros(n_col)], bounds=(lower, np.inf)).x
+        offsets, y_off, sol = sol[n_col + 1:], float(sol[n_col]), sol[:n_col]
+        # Strictly inside the constraint (the training moves the log of these weights), and no
+        # unit left dead: an output weight of 0 would give its hidden weights no gradient.
+        w_top = max(float(np.max(sol[:H])), 1e-3)
+        sol[:H] = np.maximum(sol[:H], 0.05 * w_top)
+        c_top = max(float(np.max(sol[H:H + m])), 1e-3)
+        sol[H:H + m] = np.maximum(sol[H:H + m], 1e-3 * c_top)
+    else:
+        Ad = np.hstack([A, dummies])
+        reg = lam * np.r_[np.ones(n_col), np.zeros(n_rec)]
+        sol = np.linalg.solve(Ad.T @ Ad + np.diag(reg), Ad.T @ target)
+        offsets, sol = sol[n_col:], sol[:n_col]
     w2, c = sol[:H], sol[H:]
     a, b = np.zeros(na), np.zeros(nb + 1)
     b[0] = 1.0
     rows, targets, start = [], [], 0
     n0 = max(na, nb)
-    for phi_r, yn in zip(phis, yns):
+    for r, yn in enumerate(yns):
         w0 = A[start:start + yn.size] @ sol
         start += yn.size
-        cols = ([-np.r_[np.zeros(j), yn[:yn.size - j]] for j in range(1, na + 1)]
+        yl = yn - y_off - (offsets[r - 1] if r and n_rec else 0.0)
+        cols = ([-np.r_[np.zeros(j), yl[:yl.size - j]] for j in range(1, na + 1)]
                 + [np.r_[np.zeros(i), w0[:w0.size - i]] for i in range(nb + 1)])
         rows.append(np.column_stack(cols)[n0:])
-        targets.append(yn[n0:])
+        targets.append(yl[n0:])
     ab = np.linalg.lstsq(np.vstack(rows), np.concatenate(targets), rcond=None)[0]
     if np.all(np.isfinite(ab)) and _stable(ab[:na]):
         a, b = ab[:na], ab[na:]
-    return np.concatenate([W1.ravel(), b1, w2, c, duhem.ravel(), [np.log(rho)], np.zeros(n_creep),
-                           a, b, [0.0]])
+    theta = np.concatenate([W1.ravel(), b1, w2, c, duhem.ravel(), [np.log(rho)],
+                            np.zeros(n_creep), a, b, [y_off]])
+    return theta, offsets
 
 
 def train(uns, yns, radii, n_lags, hidden, n_duhem, lam, na, nb, seed, max_iter=60,
-          val_fraction=0.0, max_fail=8, hessian_stride=2, tol=1e-7):
+          val_fraction=0.0, max_fail=8, hessian_stride=2, tol=1e-7, theta0=None, skip=None,
+          record_offsets=False, monotone=False):
     """
     Fit on normalised records (lists of (N_r,) arrays); returns (theta, info).
 
     radii: play radii (normalised); lam: creep filter poles exp(-1/(tau fs)); the rest as
-    HysteresisNARX. info: iterations, losses (normalised mean squares), seconds, stop reason.
+    HysteresisNARX. theta0: start from these parameters instead of a seeded start. skip: per
+    record, leading samples left out of the loss (an input history prepended to set the state a
+    record starts in). record_offsets: every record after the first gets its own output offset
+    (a sensor zero that moved between sessions), fitted with the model and returned in info.
+    info: iterations, losses (normalised mean squares), seconds, stop reason.
     """
     t0 = time.perf_counter()
     rng = np.random.default_rng(int(seed))
     H, q, n_lags = int(hidden), int(n_duhem), int(n_lags)
     d = radii.size + n_lags + q
     lay, P = hk.layout(H, d, q, lam.size, na, nb)
-    splits = [un.size - int(round(val_fraction * un.size)) if val_fraction > 0 else un.size
-              for un in uns]
-    theta = initial_theta([u[:s] for u, s in zip(uns, splits)],
-                          [y[:s] for y, s in zip(yns, splits)],
-                          radii, n_lags, H, q, lam.size, na, nb, rng)
-    n_train = sum(splits)
-    n_hold = sum(un.size for un in uns) - n_train
+    skip = [0] * len(uns) if skip is None else [int(k) for k in skip]
+    splits = [un.size - int(round(val_fraction * (un.size - k))) if val_fraction > 0 else un.size
+              for un, k in zip(uns, skip)]
+    n_off = len(uns) - 1 if record_offsets else 0
+    if theta0 is None:
+        theta, offsets = initial_theta([u[k:s] for u, k, s in zip(uns, skip, splits)],
+                                       [y[k:s] for y, k, s in zip(yns, skip, splits)],
+                                       radii, n_lags, H, q, lam.size, na, nb, rng, monotone,
+                                       record_offsets)
+    else:
+        theta, offsets = np.array(theta0, dtype=np.float64), np.zeros(n_off)
+    pos = np.zeros(P + n_off, dtype=bool)
+    if monotone:
+        pos[:P] = monotone_mask(lay, P, H, radii.size, n_lags, q)
+    # The iterations move `raw`; the model's parameters are actual(raw) (logs where positive).
+    raw = np.r_[theta[:P], offsets]
+    raw[pos] = np.log(np.maximum(raw[pos], 1e-12))
 
-    def errors(th):
+    def actual(r):
+        th = r.copy()
+        th[pos] = np.exp(r[pos])
+        return th
+    n_train = sum(s - k for s, k in zip(splits, skip))
+    n_hold = sum(un.size for un in uns) - sum(splits)
+
+    def errors(r):
         """(train SSE, holdout MSE) of the free run; inf when not finite or unstable."""
+        with np.errstate(over='ignore'):
+            th = actual(r)
+        if not np.all(np.isfinite(th)):
+            return np.inf, np.inf
         W1, b1, w2, c, dh, rho, g, a, b, y_off = _split_theta(th, lay, H, d, q)
         if not _stable(a) or not np.isfinite(rho):
             return np.inf, np.inf
         sse, hold = 0.0, 0.0
-        for un, yn, s in zip(uns, yns, splits):
+        for r, (un, yn, s, k) in enumerate(zip(uns, yns, splits, skip)):
             _, (F, S, _, _, _) = operator_features(un, radii, n_lags, dh, rho)
-            e = yn - hk.forward(F, S, W1, b1, w2, c, g, lam, a, b, y_off)
-            sse += float(e[:s] @ e[:s])
-            hold += float(e[s:] @ e[s:])
+            with np.errstate(all='ignore'):   # a diverging trial step is refused below
+                e = yn - hk.forward(F, S, W1, b1, w2, c, g, lam, a, b, y_off)
+            if r and n_off:
+                e -= th[P + r - 1]
+            with np.errstate(all='ignore'):
+                sse += float(e[k:s] @ e[k:s])
+                hold += float(e[s:] @ e[s:])
         if not np.isfinite(sse) or not np.isfinite(hold):
             return np.inf, np.inf
         return sse, (hold / n_hold if n_hold else sse / n_train)
 
-    def normal_equations(th):
+    def normal_equations(r):
+        th = actual(r)
         W1, b1, w2, c, dh, rho, g, a, b, y_off = _split_theta(th, lay, H, d, q)
-        JtJ = np.zeros((P, P))
-        Jte = np.zeros(P)
-        for un, yn, s in zip(uns, yns, splits):
+        chain = np.where(pos[:P], th[:P], 1.0)      # d(actual)/d(raw)
+        n = P + n_off
+        JtJ = np.zeros((n, n))
+        Jte = np.zeros(n)
+        for r, (un, yn, s, k) in enumerate(zip(uns, yns, splits, skip)):
             _, parts = operator_features(un, radii, n_lags, dh, rho, with_jac=True)
             J = np.empty((un.size, P))
             y = hk.jacobian(*parts, rho, W1, b1, w2, c, g, lam, a, b, y_off, J)
-            e = yn[:s] - y[:s]
-            Jt = J[:s]
-            Jte += Jt.T @ e
+            if monotone:
+                J *= chain
+            e = yn[k:s] - y[k:s]
+            Jt = J[k:s]
+            if r and n_off:
+                e -= th[P + r - 1]
+                o = P + r - 1
+                col = Jt.sum(axis=0)
+                JtJ[o, :P] += col
+                JtJ[:P, o] += col
+                JtJ[o, o] += Jt.shape[0]
+                Jte[o] += e.sum()
+            Jte[:P] += Jt.T @ e
             # Neighbouring rows of densely sampled data are nearly collinear: estimate the
             # curvature from every stride-th row (the gradient uses all; a step must still lower
             # the exact error to be taken).
             Js = Jt[::hessian_stride]
-            JtJ += (Js.T @ Js) * (Jt.shape[0] / max(Js.shape[0], 1))
+            JtJ[:P, :P] += (Js.T @ Js) * (Jt.shape[0] / max(Js.shape[0], 1))
         return JtJ, Jte
 
+    theta = raw
     sse, hold = errors(theta)
     best_theta, best_hold = theta.copy(), hold
     mu, fails, it, reason = 1e-2, 0, 0, 'max_iter'
@@ -188,5 +316,6 @@ def train(uns, yns, radii, n_lags, hidden, n_duhem, lam, na, nb, seed, max_iter=
     sse, hold = errors(best_theta)
     info = {'iterations': it, 'stop': reason, 'n_train': int(n_train), 'n_holdout': int(n_hold),
             'n_params': int(P), 'train_mse': float(sse / n_train), 'holdout_mse': float(hold),
-            'loss_history': history, 'fit_seconds': time.perf_counter() - t0}
-    return best_theta, info
+            'loss_history': history, 'fit_seconds': time.perf_counter() - t0,
+            'record_offsets': [0.0] + best_theta[P:].tolist() if n_off else []}
+    return actual(best_theta)[:P], info

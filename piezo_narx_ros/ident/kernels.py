@@ -156,6 +156,9 @@ class Stepper:
     in V and shifts both histories. No array is allocated per step.
     """
 
+    #: Added to every output (m): the sensor offset of a ModelState (estimate_state).
+    offset = 0.0
+
     def __init__(self, params, nu, ny, u_past=None, y_past=None):
         self._params = tuple(params)
         self.nu = nu
@@ -166,14 +169,22 @@ class Stepper:
         self.reset(u_past, y_past)
 
     def reset(self, u_past=None, y_past=None):
-        """Restart from the given histories (None = rest)."""
+        """Restart from the given histories (None = rest; y_past as output, offset included)."""
         self._ubuf[1:] = _history(u_past, self.nu, 'u_past')
         self._ybuf[:] = _history(y_past, self.ny, 'y_past')
+        if y_past is not None:
+            self._ybuf -= self.offset
 
     @property
     def y_past(self):
-        """Copy of the output history ``[y(k-ny) ... y(k-1)]``, m."""
-        return self._ybuf.copy()
+        """Copy of the output history ``[y(k-ny) ... y(k-1)]``, m (as output: offset included)."""
+        return self._ybuf + self.offset
+
+    @property
+    def state(self):
+        """Return the current ModelState (past inputs V and outputs m, and the offset)."""
+        from .state import ModelState
+        return ModelState(np.r_[self._ubuf[1:], self._ybuf], self.offset)
 
     @property
     def u_past(self):
@@ -210,13 +221,13 @@ class NARXStepper(Stepper):
         """
         u = _finite_input(u_k)
         Wu, Wy, b1, w2, b2 = self._params
-        return narx_step(u, self._ubuf, self._ybuf, Wu, Wy, b1, w2, b2)
+        return narx_step(u, self._ubuf, self._ybuf, Wu, Wy, b1, w2, b2) + self.offset
 
     def peek(self, u_k):
         """Return the output step(u_k) would return (m), without changing the histories."""
         Wu, Wy, b1, w2, b2 = self._params
         return narx_peek(_finite_input(u_k), self._ubuf, self._ybuf, self._scratch, Wu, Wy,
-                         b1, w2, b2)
+                         b1, w2, b2) + self.offset
 
 
 class ARXStepper(Stepper):
@@ -230,9 +241,10 @@ class ARXStepper(Stepper):
         """
         u = _finite_input(u_k)
         bu, ay, c = self._params
-        return arx_step(u, self._ubuf, self._ybuf, bu, ay, c)
+        return arx_step(u, self._ubuf, self._ybuf, bu, ay, c) + self.offset
 
     def peek(self, u_k):
         """Return the output step(u_k) would return (m), without changing the histories."""
         bu, ay, c = self._params
-        return arx_peek(_finite_input(u_k), self._ubuf, self._ybuf, self._scratch, bu, ay, c)
+        return arx_peek(_finite_input(u_k), self._ubuf, self._ybuf, self._scratch, bu, ay,
+                        c) + self.offset

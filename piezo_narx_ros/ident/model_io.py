@@ -24,6 +24,7 @@ import numpy as np
 from ..errors import DataError, ModelFileError
 from ..npzfile import read_npz
 from . import families
+from . import document
 from .document import get as _get
 
 FORMAT = 'piezo_narx_ros/model'
@@ -118,18 +119,6 @@ def save_model(model, path, data=None, metrics=None, tests=None):
     return path
 
 
-def _range(doc, key, name):
-    v = doc.get(key)
-    if v is None:
-        return None
-    if (not isinstance(v, list) or len(v) != 2
-            or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
-            or not all(math.isfinite(x) for x in v) or v[0] > v[1]):
-        raise ModelFileError(f'{name}: key {key!r} must be [min, max] (finite, min <= max) or '
-                             f'null, got {v!r}')
-    return (float(v[0]), float(v[1]))
-
-
 def _refuse_constant(token):
     # save_model writes finite numbers only (allow_nan=False); NaN or Infinity in a model file
     # would pass every range and rate check silently.
@@ -207,7 +196,8 @@ def load_model(path):
     if units is not None and (not isinstance(units, dict) or units.get('input', 'V') != 'V'
                               or units.get('output', 'm') != 'm'):
         raise ModelFileError(f'{name}: units must be input V and output m, got {units!r}')
-    in_range, out_range = _range(doc, 'input_range', name), _range(doc, 'output_range', name)
+    in_range = document.range_of(doc, 'input_range', name)
+    out_range = document.range_of(doc, 'output_range', name)
     wpath, arrays = _read_weights(path, doc)
     try:
         model = cls.from_file_document(doc, arrays, name, wpath, fs)

@@ -58,6 +58,10 @@ def lagged_regressors(u, y, nu, ny):
     return X, y[n0:].copy()
 
 
+#: Samples of a held input after which a lagged model's output is taken as settled.
+SETTLE_SAMPLES = 2000
+
+
 class LaggedModel(DynamicModel):
     """
     Shared predict/simulate/stepper plumbing of ARXModel and NARXNetwork.
@@ -79,16 +83,21 @@ class LaggedModel(DynamicModel):
         y = as_signal(y, 'y', n=u.size)
         return self._one_step(u, y, self.n0)
 
-    def simulate(self, u, y0=None):
+    def simulate(self, u, y0=None, state=None):
         """
         Free-run simulation from the input alone.
 
         u : (N,) input, V. y0 : None to start from rest (every u, y before k = 0 is 0; all N
         samples simulated), or the first n0 measured outputs (m), copied to the output for k < n0.
-        Returns (N,) simulated output, m.
+        state : a ModelState at u[0] (estimate_state), instead of y0: all N samples simulated
+        from it, its offset added. Returns (N,) simulated output, m.
         """
         self._require_fitted()
         n0 = self.n0
+        if state is not None:
+            if y0 is not None:
+                raise DataError('give y0 or state, not both')
+            return self._run_from(self._check_state(state), as_signal(u, 'u')) + state.offset
         if y0 is None:
             u = as_signal(u, 'u')
             u_pad = np.concatenate([np.zeros(n0), u])
@@ -102,11 +111,56 @@ class LaggedModel(DynamicModel):
         self._simulate_inplace(u, y, n0)
         return y
 
-    def stepper(self, u_past=None, y_past=None):
+    def stepper(self, u_past=None, y_past=None, state=None):
         """
         Return a Stepper (free-run one sample at a time) started from the given histories.
 
-        u_past : [u(k-nu) ... u(k-1)] (V), y_past : [y(k-ny) ... y(k-1)] (m), None = rest.
+        u_past : [u(k-nu) ... u(k-1)] (V), y_past : [y(k-ny) ... y(k-1)] (m), None = rest; or
+        state : a ModelState (estimate_state), whose offset the Stepper adds to every output.
         """
         self._require_fitted()
+        if state is not None:
+            if u_past is not None or y_past is not None:
+                raise DataError('give u_past/y_past or state, not both')
+            values = self._check_state(state)
+            stepper = self._make_stepper(values[:self.nu], values[self.nu:])
+            stepper.offset = float(state.offset)
+            return stepper
         return self._make_stepper(u_past, y_past)
+
+    # ------------------------------------------------------------ state from measurement
+    @property
+    def state_size(self) -> int:
+        """Length of the state vector: nu past inputs and ny past outputs."""
+        return self.nu + self.ny
+
+    def _run_from(self, values, u):
+        """Free run (m, without offset) of u (N,) V from the state vector values."""
+        n0, nu, ny = self.n0, self.nu, self.ny
+        u_pad = np.concatenate([np.zeros(n0 - nu), values[:nu], u])
+        y_pad = np.concatenate([np.zeros(n0 - ny), values[nu:], np.zeros(u.size)])
+        self._simulate_inplace(u_pad, y_pad, n0)
+        return y_pad[n0:]
+
+    def _state_candidates(self, u):
+        """One candidate: the input held at u[0] (V) long enough for the output to settle."""
+        from .state import ModelState
+        u0 = float(u[0])
+        with np.errstate(all='ignore'):
+            held = self.simulate(np.full(SETTLE_SAMPLES, u0))
+        values = np.r_[np.full(self.nu, u0), held[held.size - self.ny:]]
+        if not np.all(np.isfinite(values)):   # a network that runs away on the hold
+            values = np.r_[np.full(self.nu, u0), np.zeros(self.ny)]
+        return [ModelState(values, 0.0, {'history': f'input held at {u0:.6g} V'})]
+
+    def _bracket_states(self, u0):
+        """Rest, and the input held at u0 (V) (estimator.memory)."""
+        from .state import ModelState
+        return [ModelState(np.zeros(self.state_size), 0.0, {'history': 'rest'}),
+                self._state_candidates(np.array([u0]))[0]]
+
+    def _adjustable_state(self, n_window):
+        """Return the output history's indices, on the scale of the trained output span (m)."""
+        lo, hi = self.output_range if self.output_range is not None else (0.0, 1.0)
+        span = hi - lo if hi > lo else max(abs(hi), 1e-6)
+        return np.arange(self.nu, self.nu + self.ny), np.full(self.ny, span)

@@ -22,7 +22,8 @@ import numpy as np
 from piezo_narx_ros.ident.correlation import TEST_LABELS, TEST_NAMES
 from piezo_narx_ros.ident.data import Record
 from piezo_narx_ros.ident.experiment import (ExperimentResult, free_run,
-                                             outputs_by_record, residual_correlations)
+                                             outputs_by_record, residual_correlations,
+                                             scored_from)
 from piezo_narx_ros.ident.noise_model import ARNoiseModel
 
 UM = 1e6  # metres -> micrometres for plots
@@ -112,9 +113,10 @@ def write_report(result: ExperimentResult, validation: list[Record], out_dir) ->
                 continue
             tag = '' if i == 0 else f'_r{i}'
             title = label if len(validation) == 1 else f'{label}, {rec.source}'
-            paths['simulation' + tag] = _save(plot_simulation(rec, sim, title, model.n0),
+            first = scored_from(model, rec)
+            paths['simulation' + tag] = _save(plot_simulation(rec, sim, title, first),
                                               out_dir / f'fig8_simulation{tag}.png')
-            paths['hysteresis' + tag] = _save(plot_hysteresis(rec, sim, title, model.n0),
+            paths['hysteresis' + tag] = _save(plot_hysteresis(rec, sim, title, first),
                                               out_dir / f'fig9_hysteresis{tag}.png')
     finally:
         plt.close('all')

@@ -41,11 +41,14 @@ class EstimatorNode(PiezoNode):
         ParamSpec('rate_tolerance', RATE_TOLERANCE, 'relative difference between the command '
                   "stream's stamp rate and the model's beyond which estimates are withheld "
                   '(ERROR on /diagnostics)', low=1e-6, high=0.5, read_only=True),
-        ParamSpec('init', 'auto', 'initial state: rest, measurement (first n0 measured samples), '
-                  'or auto (measurement when deflection has a publisher)', choices=INIT_MODES,
-                  read_only=True),
-        ParamSpec('init_timeout', 0.5, 'longest wait for the initial measurements, s (then '
-                  'from rest)', low=0.0, high=60.0, read_only=True),
+        ParamSpec('init', 'auto', 'initial state: rest, measurement (the state that explains the '
+                  'first init_window s of measured samples: hysteresis memory, creep, sensor '
+                  'offset), or auto (measurement when deflection has a publisher)',
+                  choices=INIT_MODES, read_only=True),
+        ParamSpec('init_window', 0.5, 'measured samples that set the initial state, s',
+                  low=0.0, high=60.0, read_only=True),
+        ParamSpec('init_timeout', 1.0, 'longest wait for the initial measurements, s (then '
+                  'from rest); at least init_window', low=0.0, high=60.0, read_only=True),
         ParamSpec('u_min', -200.0, 'lowest accepted command, V (lower ones are rejected)',
                   low=-10000.0, high=10000.0, read_only=True),
         ParamSpec('u_max', 200.0, 'highest accepted command, V', low=-10000.0, high=10000.0,
@@ -70,6 +73,7 @@ class EstimatorNode(PiezoNode):
             self.model, fs=p['fs'] or None, init=p['init'], u_min=p['u_min'], u_max=p['u_max'],
             max_fill=p['max_fill'], range_margin=p['range_margin'], window=p['window'],
             reanchor_every=p['reanchor_every'], init_timeout=p['init_timeout'],
+            init_window=p['init_window'],
             rate_tolerance=p['rate_tolerance'])
         self.est.model.stepper().step(0.0)   # compile/load the kernel before the first sample
         self.axis = p['axis']

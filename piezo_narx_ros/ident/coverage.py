@@ -1,0 +1,109 @@
+"""
+What the estimation data cover, compared with the validation data: input range and frequency band.
+
+A model is identified where its estimation input went. When the validation records move the input
+further, or faster or slower, the validation scores measure extrapolation, and selection on them
+favours whatever extrapolates most gently (often a linear ARX). `coverage_warnings` says so in
+words before the fit, so that a user can record what is missing.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+#: Fraction of the validation input's span it may exceed the estimation range by without a warning.
+RANGE_SLACK = 0.05
+#: Factor by which a validation band edge may lie beyond the estimation band without a warning.
+BAND_FACTOR = 2.0
+#: Share of the input's variance below the lower / above the upper band edge.
+BAND_TAIL = 0.05
+
+
+#: A reversal of the input counts when it moves back by this fraction of its range (not noise).
+REVERSAL_DEPTH = 0.05
+#: ... and is "inner" (a minor loop) when this fraction of the range away from both extremes.
+INNER_MARGIN = 0.1
+
+
+def inner_reversals(inputs) -> int:
+    """
+    Reversals of the input strictly inside its range over records: how many minor loops.
+
+    inputs: the records' input arrays (V), or Records.
+
+    A reversal is a turning point the input then leaves by REVERSAL_DEPTH of the records' input
+    range (so sensor or quantisation noise on a measured input is no reversal); it is inner when
+    it lies INNER_MARGIN of the range away from both the smallest and the largest input. A
+    full-range sine has none; a multisine, a fading sine or nested loops have many.
+    """
+    inputs = [np.asarray(getattr(x, 'u', x), dtype=np.float64) for x in inputs]
+    lo = min(float(np.min(u)) for u in inputs)
+    hi = max(float(np.max(u)) for u in inputs)
+    span = hi - lo
+    if not span > 0:
+        return 0
+    depth, margin = REVERSAL_DEPTH * span, INNER_MARGIN * span
+    count = 0
+    for u in inputs:
+        top = bottom = u[0]
+        rising = None
+        for x in u[1:]:
+            top, bottom = max(top, x), min(bottom, x)
+            if rising is not False and x < top - depth:       # turned down at `top`
+                count += rising is not None and lo + margin < top < hi - margin
+                rising, bottom = False, x
+            elif rising is not True and x > bottom + depth:   # turned up at `bottom`
+                count += rising is not None and lo + margin < bottom < hi - margin
+                rising, top = True, x
+    return int(count)
+
+
+def input_band(u: np.ndarray, fs: float) -> tuple[float, float]:
+    """
+    (low, high) Hz: the frequencies that bound the central 90 % of u's variance (V, mean removed).
+
+    From a Welch periodogram; (0, 0) for a constant input.
+    """
+    from scipy.signal import welch
+    u = np.asarray(u, dtype=np.float64)
+    if u.size < 16 or not np.ptp(u) > 0:
+        return 0.0, 0.0
+    f, p = welch(u - u.mean(), fs=fs, nperseg=min(u.size, 8192), detrend=False)
+    c = np.cumsum(p)
+    if not c[-1] > 0:
+        return 0.0, 0.0
+    c /= c[-1]
+    low = float(f[np.searchsorted(c, BAND_TAIL)])
+    high = float(f[min(np.searchsorted(c, 1.0 - BAND_TAIL), f.size - 1)])
+    return low, high
+
+
+def coverage(records) -> dict:
+    """Input range (V) and band (Hz) over several records: the union of theirs."""
+    lows, highs = zip(*(input_band(r.u, r.fs) for r in records))
+    return {'u_min': float(min(r.u.min() for r in records)),
+            'u_max': float(max(r.u.max() for r in records)),
+            'f_low': float(min(lows)), 'f_high': float(max(highs))}
+
+
+def coverage_warnings(estimation, validation) -> list[str]:
+    """One line per way the estimation records cover less than the validation records."""
+    est, val = coverage(estimation), coverage(validation)
+    out = []
+    span = val['u_max'] - val['u_min']
+    if est['u_min'] > val['u_min'] + RANGE_SLACK * span or \
+            est['u_max'] < val['u_max'] - RANGE_SLACK * span:
+        out.append(f'the validation records move the input over [{val["u_min"]:.4g}, '
+                   f'{val["u_max"]:.4g}] V but the estimation records only over '
+                   f'[{est["u_min"]:.4g}, {est["u_max"]:.4g}] V: beyond that the model '
+                   'extrapolates, and its validation scores measure the extrapolation; record '
+                   'an estimation input that covers the whole range')
+    if est['f_high'] > 0 and val['f_high'] > BAND_FACTOR * est['f_high']:
+        out.append(f'the validation input reaches {val["f_high"]:.3g} Hz but the estimation '
+                   f'input only {est["f_high"]:.3g} Hz (90 % of its variance): faster moves than '
+                   'the model was identified on; add faster excitation to the estimation data')
+    if val['f_low'] > 0 and est['f_low'] > BAND_FACTOR * val['f_low']:
+        out.append(f'the validation input moves as slowly as {val["f_low"]:.3g} Hz but the '
+                   f'estimation input only down to {est["f_low"]:.3g} Hz: slower moves (creep, '
+                   'drift) than the model was identified on; add slow moves or holds to the '
+                   'estimation data')
+    return out

@@ -1,0 +1,198 @@
+"""
+A model's free-run state set from a short measured window: a record that does not start at rest.
+
+A real rig's record starts wherever the actuator is: mid-range, after an unknown input history
+(hysteresis memory), with creep in progress and a sensor whose zero moved since the model was
+fitted. `estimate_state(model, u, y)` returns the `ModelState` at the window's first sample that
+best explains the measured window, for every family:
+
+1. **Memory candidates** (the family's `_state_candidates(u)`): states the model reaches through
+   input histories that end at u(0) and settle there. The hysteresis family enumerates histories
+   of up to two turning points on a grid of its trained input range: its operators' memory is a
+   function of the input's past extrema, so a consistent memory is one a real input could have
+   written (a state vector fitted freely would not be). The lagged families (ARX, the paper's
+   network) have one candidate: the input held at u(0).
+2. **What enters linearly** (the family's `_adjustable_state()`: creep states and the output
+   dynamics' history of the hysteresis family, the output history of the lagged families) and the
+   sensor offset are then fitted by Gauss-Newton with a ridge that keeps them near the
+   candidate's settled values: a short window cannot tell a 100 s creep state from an offset, and
+   the ridge makes it take the equilibrium where the data do not decide.
+3. Candidates are ranked with the offset alone (cheap), the best few refined as in 2, and the
+   lowest robust cost wins. Residuals are weighted by Huber's rule (scale from the median absolute
+   deviation), so a sensor's start-up transient or a glitch in the window does not set the state.
+
+`model.simulate(u, state=s)` and `model.stepper(state=s)` then free-run from it; the offset (m) is
+added to every output. docs/real.md has the measurements behind the choices.
+"""
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from piezo_narx_ros.errors import DataError
+from piezo_narx_ros.ident.checks import as_signal
+
+#: Fewest samples a window may have to set a state.
+MIN_WINDOW = 10
+#: Candidates refined with the adjustable states after the offset-only ranking.
+N_REFINE = 6
+#: Ridge of the adjustable states (relative to the basis' mean square: a prior, not a constraint).
+RIDGE = 1e-2
+#: Huber's tuning constant (95 % efficiency for Gaussian residuals).
+HUBER = 1.345
+
+
+@dataclass(frozen=True)
+class ModelState:
+    """
+    A model's free-run state at one sample and the offset of its output.
+
+    values : the family's state vector in its own layout and units (hysteresis family: the kernel
+    state, normalised; lagged families: [u(k-nu) .. u(k-1) V, y(k-ny) .. y(k-1) m], outputs
+    without the offset); offset : m, added to every output (a sensor zero that moved);
+    info : how it was obtained (window samples, cost, the history of the winning candidate).
+    """
+
+    values: np.ndarray
+    offset: float = 0.0
+    info: dict = field(default_factory=dict, compare=False)
+
+
+def robust_weights(r: np.ndarray) -> tuple[np.ndarray, float]:
+    """
+    Huber weights (sqrt form, multiply rows by them) for residuals r; and the scale used (m).
+
+    Scale: 1.4826 x the median absolute deviation, so Gaussian residuals keep weight 1.
+    """
+    s = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    if not s > 0:
+        return np.ones_like(r), 0.0
+    c = HUBER * s
+    a = np.abs(r)
+    return np.sqrt(np.where(a <= c, 1.0, c / np.maximum(a, 1e-300))), s
+
+
+def robust_cost(r: np.ndarray) -> float:
+    """Trimmed mean square of r (the largest 10 % left out): comparable across candidates."""
+    sq = np.sort(r * r)
+    keep = max(1, int(math.ceil(0.9 * sq.size)))
+    return float(np.mean(sq[:keep]))
+
+
+def _offset_only(base: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    d = float(np.median(y - base))
+    return d, robust_cost(y - base - d)
+
+
+def _refine(model, values: np.ndarray, u: np.ndarray, y: np.ndarray, idx: np.ndarray,
+            scale: np.ndarray, iterations: int) -> tuple[np.ndarray, float, float]:
+    """
+    Gauss-Newton with Huber weights on values[idx] and the offset; returns (values, offset, cost).
+
+    Finite differences of the free run give the Jacobian; exact in one step for the families whose
+    adjustable states enter linearly (the hysteresis family, ARX).
+    """
+    prior = values[idx].copy()
+    x = values.copy()
+    eps = 1e-3   # finite-difference step, in units of `scale`
+    base = model._run_from(x, u)
+    offset, _ = _offset_only(base, y)
+    for _ in range(max(1, iterations)):
+        r = y - base - offset
+        cols = []
+        for i, h in zip(idx, scale):
+            xi = x.copy()
+            xi[i] += eps * h
+            cols.append((model._run_from(xi, u) - base) / eps)   # per unit of `scale`
+        A = np.column_stack(cols + [np.ones(u.size)])
+        w, _ = robust_weights(r)
+        Aw, rw = A * w[:, None], r * w
+        n_adj = len(cols)
+        norm2 = float(np.mean(np.sum(Aw[:, :n_adj] ** 2, axis=0))) if n_adj else 0.0
+        lam = np.r_[np.full(n_adj, RIDGE * norm2 + 1e-300), 0.0]
+        # The prior pulls x[idx] back to the candidate's settled values.
+        dev = np.r_[(x[idx] - prior) / scale, 0.0]
+        try:
+            step = np.linalg.solve(Aw.T @ Aw + np.diag(lam), Aw.T @ rw - lam * dev)
+        except np.linalg.LinAlgError:
+            break
+        x_new = x.copy()
+        x_new[idx] += step[:n_adj] * scale
+        base_new = model._run_from(x_new, u)
+        if not np.all(np.isfinite(base_new)):
+            break
+        x, base, offset = x_new, base_new, offset + float(step[-1])
+        if np.max(np.abs(step[:n_adj]), initial=0.0) < 1e-6:
+            break
+    return x, offset, robust_cost(y - base - offset)
+
+
+def estimate_state(model, u, y, prior: ModelState | None = None,
+                   iterations: int = 5) -> ModelState:
+    """
+    Return the ModelState at u[0] that best explains the window u (N,) V, y (N,) m.
+
+    See the module docstring. prior: the state the model is believed to be in (e.g. run through
+    a known input history): the only candidate, refined on the window. N >= MIN_WINDOW;
+    DataError otherwise. The window's own samples are part of the run: simulate(u_window,
+    state=s) reproduces y_window as well as the model can.
+    """
+    model._require_fitted()
+    u = as_signal(u, 'u (state window)', min_len=MIN_WINDOW)
+    y = as_signal(y, 'y (state window)', n=u.size)
+    if prior is not None:
+        candidates = [ModelState(model._check_state(prior), float(prior.offset),
+                                 {'history': 'given'})]
+    else:
+        candidates = model._state_candidates(u)
+    idx, scale = model._adjustable_state(u.size)
+    ranked = []
+    with np.errstate(all='ignore'):   # a candidate that diverges is ranked last, not reported
+        for i, cand in enumerate(candidates):
+            base = model._run_from(cand.values, u)
+            if not np.all(np.isfinite(base)):
+                continue
+            _, cost = _offset_only(base, y)
+            ranked.append((cost, i))
+        if not ranked:
+            raise DataError('no initial state reproduces the window: the model diverges on it')
+        ranked.sort()
+        best = None
+        for _, i in ranked[:N_REFINE]:
+            values, offset, cost = _refine(model, candidates[i].values.astype(np.float64), u, y,
+                                           idx, scale, iterations)
+            if best is None or cost < best[2]:
+                best = (values, offset, cost, i)
+    values, offset, cost, i = best
+    info = {**candidates[i].info, 'window_samples': int(u.size), 'rms_m': math.sqrt(cost),
+            'candidates': len(candidates)}
+    return ModelState(values=values, offset=float(offset), info=info)
+
+
+def turning_point_histories(lo: float, hi: float, u0: float, n_levels: int = 13,
+                            max_turns: int = 2) -> list[tuple[float, ...]]:
+    """
+    Input histories as turning points (V) on n_levels levels of [lo, hi], ending at u0.
+
+    Every sequence of 0..max_turns levels whose consecutive points differ (a turning point equal
+    to its neighbour is no turn).
+    """
+    levels = np.linspace(lo, hi, n_levels)
+    out = [()]
+    for k in range(1, max_turns + 1):
+        for pts in itertools.product(levels, repeat=k):
+            seq = (0.0,) + pts + (u0,)
+            if all(abs(a - b) > 1e-12 * max(1.0, abs(hi - lo)) for a, b in zip(seq, seq[1:])):
+                out.append(tuple(float(p) for p in pts))
+    return out
+
+
+def ramp(points, step: float) -> np.ndarray:
+    """Input (V) moving from 0 through `points` with increments of at most `step` (V)."""
+    seq = [0.0] + list(points)
+    parts = [np.linspace(a, b, max(1, int(math.ceil(abs(b - a) / step))) + 1)[1:]
+             for a, b in zip(seq, seq[1:])]
+    return np.concatenate(parts) if parts else np.zeros(0)

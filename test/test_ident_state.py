@@ -1,0 +1,140 @@
+"""
+A model's free-run state from a short measured window (ident/state.py), for every family.
+
+Records that do not start at rest: the state found in the first samples must make the free run
+after them as good as if the model had seen the whole history, and much better than from rest.
+"""
+import numpy as np
+import pytest
+
+from piezo_narx_ros.errors import DataError
+from piezo_narx_ros.ident.arx import ARXModel
+from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+from piezo_narx_ros.ident.state import ModelState, ramp, turning_point_histories
+from piezo_narx_ros.plant import PiezoCantilever, generate
+
+FS = 2000.0
+
+
+def rms(x):
+    return float(np.sqrt(np.mean(np.square(x))))
+
+
+@pytest.fixture(scope='module')
+def hnarx():
+    """Return a small HysteresisNARX fitted on 8 s of the protocol (default plant)."""
+    u = generate('protocol', FS, 8.0, 100.0, seed=3)
+    y = PiezoCantilever(fs=FS, seed=3).run(u).y
+    return HysteresisNARX(hidden=6, n_plays=8, max_iter=25, seed=0).fit(u, y, fs=FS)
+
+
+def session(history_s=3.0, record_s=4.0, offset=3e-6, seed=5):
+    """
+    Return a plant record that starts after an unknown history, with a sensor offset (m).
+
+    Returns (u_history, u_record, y_record): the history is random steps and sweeps, then a hold
+    at 30 V; the record is a 1 Hz sine of +-70 V about 30 V, its first samples still settling.
+    """
+    rng = np.random.default_rng(seed)
+    levels = rng.uniform(-90.0, 90.0, 6)
+    u_hist = np.concatenate([np.full(int(history_s * FS / 7), lv) for lv in levels]
+                            + [np.full(int(history_s * FS / 7), 30.0)])
+    t = np.arange(int(record_s * FS)) / FS
+    u_rec = 30.0 + 70.0 * np.sin(2 * np.pi * 1.0 * t)
+    y = PiezoCantilever(fs=FS, seed=seed).run(np.r_[u_hist, u_rec]).y
+    return u_hist, u_rec, y[u_hist.size:] + offset
+
+
+def test_state_from_a_window_recovers_a_plant_history_and_offset(hnarx):
+    u_hist, u, y = session()
+    n = 1000                                    # 0.5 s of measurement
+    state = hnarx.estimate_state(u[:n], y[:n])
+    est = hnarx.simulate(u, state=state)[n:]
+    # Reference: the same model given the whole history from rest, and told the offset.
+    known = hnarx.simulate(np.r_[u_hist, u])[u_hist.size:][n:] + 3e-6
+    rest = hnarx.simulate(u)[n:]
+    e_est, e_known, e_rest = (rms(y[n:] - x) for x in (est, known, rest))
+    # Measured: 0.30 um against 0.125 um told the whole history, 3.0 um from rest. What the
+    # window cannot see (the memory of the largest plays, slow creep) costs the difference:
+    # bench/bench_real.py measures it on the scenarios.
+    assert e_est <= 3.0 * e_known, (e_est, e_known)
+    assert e_rest > 5.0 * e_est, (e_rest, e_est)
+    # The offset is found to about a micrometre (measured 1.83 um for 3 um): the memory of the
+    # largest plays, frozen over the window, looks like an offset there too.
+    assert abs(state.offset - 3e-6) < 1.5e-6, state.offset
+    assert state.info['window_samples'] == n
+
+
+def test_state_recovers_a_history_the_model_itself_wrote(hnarx):
+    """
+    On the model's own output (no plant mismatch) the continuation is found to tens of nm.
+
+    Also after a larger sweep than the window saw. The offset alone is not identified: a memory
+    the window cannot tell apart (the largest plays, frozen over it) adds a constant too, and the
+    estimate splits the sum its own way (measured: -1.31 um for -2 um); the output is right.
+    """
+    hist = ramp((80.0, -60.0, 20.0), 0.5)       # turning points inside the trained range
+    t = np.arange(4000) / FS
+    u = np.r_[20.0 + 40.0 * np.sin(2 * np.pi * 2.0 * t), 20.0 + 80.0 * np.sin(np.pi * t)]
+    y = hnarx.simulate(np.r_[hist, np.full(4000, 20.0), u])[hist.size + 4000:] - 2e-6
+    state = hnarx.estimate_state(u[:600], y[:600])
+    err = hnarx.simulate(u, state=state) - y
+    assert rms(err[600:4000]) < 0.01 * np.std(y), (rms(err[600:4000]), np.std(y))
+    assert rms(err[4000:]) < 0.01 * np.std(y), rms(err[4000:])
+    rest = hnarx.simulate(u) - y
+    assert rms(rest[4000:]) > 20 * rms(err[4000:])
+
+
+def test_simulate_and_stepper_from_a_state_agree_bit_for_bit(hnarx):
+    u = generate('multisine', FS, 1.0, 60.0, seed=1)
+    y = hnarx.simulate(u) + 1e-6
+    state = hnarx.estimate_state(u[:200], y[:200])
+    stepper = hnarx.stepper(state=state)
+    stepped = np.array([stepper.step(x) for x in u])
+    np.testing.assert_array_equal(stepped, hnarx.simulate(u, state=state))
+    # The state after the steps continues the run exactly.
+    more = generate('sine', FS, 0.2, 50.0, seed=2)
+    np.testing.assert_array_equal(hnarx.stepper(state=stepper.state).step(more[0]),
+                                  hnarx.simulate(np.r_[u, more], state=state)[u.size])
+
+
+def test_arx_state_and_offset_are_exact_on_its_own_output():
+    u = generate('multisine', FS, 2.0, 50.0, seed=4)
+    arx = ARXModel(3, 3).fit(u, PiezoCantilever(fs=FS, seed=4).run(u).y, fs=FS)
+    # The input held at its first value before the window, as the estimate assumes: then the
+    # output history and the offset are found exactly (they enter linearly).
+    y = arx.simulate(np.r_[np.full(500, u[0]), u])[500:] + 4e-6
+    state = arx.estimate_state(u[:300], y[:300])
+    assert abs(state.offset - 4e-6) < 1e-11
+    np.testing.assert_allclose(arx.simulate(u, state=state), y, atol=1e-11)
+    stepper = arx.stepper(state=state)
+    np.testing.assert_array_equal([stepper.step(x) for x in u], arx.simulate(u, state=state))
+
+
+def test_a_robust_fit_ignores_a_sensor_start_up_transient(hnarx):
+    u_hist, u, y = session(seed=7)
+    y_bad = y.copy()
+    y_bad[:40] -= np.linspace(20e-6, 0.0, 40)   # the sensor settling, as the real records show
+    n = 1000
+    good = hnarx.simulate(u, state=hnarx.estimate_state(u[:n], y[:n]))[n:]
+    bad = hnarx.simulate(u, state=hnarx.estimate_state(u[:n], y_bad[:n]))[n:]
+    assert rms(bad - y[n:]) < 1.5 * rms(good - y[n:]) + 20e-9
+
+
+def test_bad_windows_and_states_are_refused(hnarx):
+    with pytest.raises(DataError, match='state window'):
+        hnarx.estimate_state(np.zeros(5), np.zeros(5))
+    with pytest.raises(DataError, match='samples, expected'):
+        hnarx.estimate_state(np.zeros(50), np.zeros(40))
+    with pytest.raises(DataError, match='does not fit'):
+        hnarx.simulate(np.zeros(10), state=ModelState(np.zeros(3)))
+    with pytest.raises(DataError, match='not both'):
+        hnarx.simulate(np.zeros(10), y0=np.zeros(3), state=ModelState(np.zeros(3)))
+
+
+def test_histories_end_where_the_record_starts():
+    hs = turning_point_histories(-1.0, 1.0, 0.5, n_levels=5, max_turns=2)
+    assert () in hs and (1.0,) in hs and (1.0, -1.0) in hs
+    assert all(h[-1] != 0.5 for h in hs if h) and all(h[0] != 0.0 for h in hs if h)
+    r = ramp((1.0, -1.0, 0.5), 0.1)
+    assert r[-1] == 0.5 and np.max(np.abs(np.diff(np.r_[0.0, r]))) <= 0.1 + 1e-12
