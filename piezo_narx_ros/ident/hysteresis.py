@@ -335,6 +335,10 @@ class HysteresisNARX(DynamicModel):
             float(part['y_off'][0]))
         return self
 
+    def output_poles_mimo(self):
+        """Roots of the several-axes model's common denominator A(q); inside the unit circle."""
+        return self.mimo_.poles()
+
     @property
     def drive_slew_rate(self):
         """Learned slew-rate limit of the drive, V/s (inf when it never limits)."""
@@ -451,6 +455,29 @@ class HysteresisNARX(DynamicModel):
         return stepper
 
     # ------------------------------------------------------------ state from measurement
+    def estimate_state(self, u, y, prior=None):
+        """
+        Return the ModelState at u[0] that best explains a window u, y (see DynamicModel).
+
+        Several axes: the input held at u[0] (or prior's state), then the stage-1 and output
+        histories and the offsets by their posterior mean given the window and the histories'
+        distribution over the estimation records (hysteresis_mimo.estimate_state).
+        """
+        if self.mimo_ is None:
+            return super().estimate_state(u, y, prior)
+        from .state import MIN_WINDOW, ModelState
+        self._require_fitted()
+        u = self._mimo_signal(u, 'u (state window)', self.n_in, min_len=MIN_WINDOW)
+        y = self._mimo_signal(y, 'y (state window)', self.n_out, n=len(u))
+        start = (self._mimo_held_state(u) if prior is None else
+                 ModelState(self._check_state(prior), self._check_offset(prior),
+                            {'history': 'given'}))
+        values, offset, info = hm.estimate_state(self, self.mimo_, u, y, start.values)
+        if not np.all(np.isfinite(values)):
+            raise DataError('no initial state reproduces the window: the model diverges on it')
+        return ModelState(values, np.asarray(offset, dtype=np.float64),
+                          {**start.info, **info, 'window_samples': int(len(u))})
+
     @property
     def state_size(self):
         """Length of the state vector (layout in hysteresis_kernels or hysteresis_mimo)."""
@@ -694,7 +721,8 @@ class HysteresisNARX(DynamicModel):
             raise ModelFileError(f'{name}: a hysteresis_narx model needs a finite fs, got {fs!r}')
         n = values['mimo_order']
         shapes = {'mimo_a': (n,), 'mimo_u_scale': None, 'mimo_y_scale': None,
-                  'mimo_env_w': None, 'mimo_B1': None, 'mimo_B': None}
+                  'mimo_env_w': None, 'mimo_B1': None, 'mimo_B': None, 'mimo_state_mean': None,
+                  'mimo_state_cov': None, 'mimo_resid_rms': None}
         got = {}
         for key, shape in shapes.items():
             if key not in arrays:

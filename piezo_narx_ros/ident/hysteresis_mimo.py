@@ -240,10 +240,14 @@ def frequency_response(us, ys, seg):
     usable when S_uu is well conditioned (every input excited there, independently).
     """
     U, Y = [], []
+    # Segments shorter than 8192 samples cut a record that is not periodic in them: a Hann
+    # window and half overlap keep their leakage down (8192: the periods of a multisine).
+    window = np.hanning(seg)[:, None] if seg < 8192 else np.ones((seg, 1))
+    hop = seg // 2 if seg < 8192 else seg
     for un, yn in zip(us, ys):
-        for k in range(un.shape[0] // seg):
-            U.append(np.fft.rfft(un[k * seg:(k + 1) * seg], axis=0)[1:seg // 2])
-            Y.append(np.fft.rfft(yn[k * seg:(k + 1) * seg], axis=0)[1:seg // 2])
+        for k in range(0, un.shape[0] - seg + 1, hop):
+            U.append(np.fft.rfft(un[k:k + seg] * window, axis=0)[1:seg // 2])
+            Y.append(np.fft.rfft(yn[k:k + seg] * window, axis=0)[1:seg // 2])
     U, Y = np.stack(U, -1), np.stack(Y, -1)           # (bins, channels, segments)
     Suu = np.einsum('kjs,kls->kjl', U, U.conj())
     Syu = np.einsum('kis,kls->kil', Y, U.conj())
@@ -360,6 +364,72 @@ def fit_numerators(a, X_list, ys, weights, ridge=1e-7):
     return np.ascontiguousarray(theta.T.reshape(n_out, nf, n + 1))
 
 
+def state_prior(parts, us, ys, stride=7):
+    """
+    The histories' distribution over the estimation records, for estimate_state's prior.
+
+    Returns (mean, covariance) of [yt(k-1..k-n), y(k-1..k-n)] (normalised, the state layout's
+    order) over the free runs of every record (each past its first quarter: the start from
+    rest left out), and the free run's RMS error per output (m, the window's noise level).
+    """
+    n, n_out = parts.order, parts.n_out
+    rows, err = [], []
+    a = np.r_[1.0, parts.a]
+    for u, y in zip(us, ys):
+        sim = parts.simulate(u, np.zeros(parts.state_size)) / parts.y_scale
+        un = u / parts.u_scale
+        yt = np.column_stack([sum(lfilter(parts.B1[i, j], a, un[:, j])
+                                  for j in range(parts.n_in)) for i in range(n_out)])
+        k0 = max(n + 1, u.shape[0] // 4)
+        for k in range(k0, u.shape[0], stride):
+            rows.append(np.r_[yt[k - n:k][::-1].ravel(), sim[k - n:k][::-1].ravel()])
+        err.append(sim[k0:] * parts.y_scale - y[k0:])
+    rows = np.array(rows)
+    err = np.vstack(err)
+    return rows.mean(axis=0), np.cov(rows.T), np.sqrt(np.mean(err * err, axis=0))
+
+
+#: Relative weight of the sensor-offset prior: std of an output's offset as a fraction of the
+#: output's RMS (a record whose sensor zero moved a little; the FSM's outputs are centred).
+OFFSET_PRIOR = 0.02
+
+
+def estimate_state(model, parts, u, y, candidate):
+    """
+    Return (state vector, offsets m, info) at u[0] explaining the window u (N, n_in), y (N, n_out).
+
+    The histories that enter linearly (stage-1 and output histories) by their posterior mean: the
+    window's residual, weighted by the free run's training error per output, against the prior
+    of the histories over the estimation records (state_prior) and a small offset prior. Exact
+    in one step (the free run is linear in those histories).
+    """
+    lay = parts.layout
+    idx = np.r_[np.arange(*lay['yt_hist']), np.arange(*lay['y_hist'])]
+    base = parts.simulate(u, candidate.copy())
+    sig = np.maximum(parts.resid_rms, 1e-3 * parts.y_scale)
+    cols = []
+    for i in idx:
+        x = candidate.copy()
+        x[i] += 1.0
+        cols.append(((parts.simulate(u, x) - base) / sig).ravel())
+    n_out = parts.n_out
+    off = np.kron(np.ones((u.shape[0], 1)), np.diag(1.0 / sig))
+    J = np.column_stack(cols + [off])
+    r = ((y - base) / sig).ravel()
+    k = idx.size
+    cov = parts.state_cov + 1e-9 * np.trace(parts.state_cov) / k * np.eye(k)
+    P = np.zeros((k + n_out, k + n_out))
+    P[:k, :k] = np.linalg.inv(cov)
+    P[k:, k:] = np.diag(1.0 / (OFFSET_PRIOR * parts.y_scale) ** 2)
+    mu = np.r_[parts.state_mean - candidate[idx], np.zeros(n_out)]
+    delta = np.linalg.solve(J.T @ J + P, J.T @ r + P @ mu)
+    values = candidate.copy()
+    values[idx] += delta[:k]
+    fit = r - J @ delta
+    return values, delta[k:], {'rms_m': float(np.sqrt(np.mean((fit.reshape(-1, n_out) * sig)
+                                                               ** 2)))}
+
+
 class MimoParts:
     """The fitted arrays of the several-axes structure (normalised units; see module docstring)."""
 
@@ -422,14 +492,20 @@ class MimoParts:
         """Named arrays of the model file."""
         return {'mimo_a': self.a, 'mimo_B1': self.B1, 'mimo_B': self.B,
                 'mimo_u_scale': self.u_scale, 'mimo_y_scale': self.y_scale,
-                'mimo_env_w': self.env_w}
+                'mimo_env_w': self.env_w, 'mimo_state_mean': self.state_mean,
+                'mimo_state_cov': self.state_cov, 'mimo_resid_rms': self.resid_rms}
 
     @classmethod
     def from_arrays(cls, arrays, env_lam):
         """Return MimoParts from the model file's arrays (names as `arrays()`)."""
-        return cls(np.r_[1.0, arrays['mimo_a']], arrays['mimo_B1'], arrays['mimo_B'],
-                   arrays['mimo_u_scale'], arrays['mimo_y_scale'], arrays['mimo_env_w'],
-                   env_lam)
+        parts = cls(np.r_[1.0, arrays['mimo_a']], arrays['mimo_B1'], arrays['mimo_B'],
+                    arrays['mimo_u_scale'], arrays['mimo_y_scale'], arrays['mimo_env_w'],
+                    env_lam)
+        k = 2 * parts.order * parts.n_out
+        parts.state_mean = np.asarray(arrays['mimo_state_mean']).reshape(k)
+        parts.state_cov = np.asarray(arrays['mimo_state_cov']).reshape(k, k)
+        parts.resid_rms = np.asarray(arrays['mimo_resid_rms']).reshape(parts.n_out)
+        return parts
 
 
 def fit(us, ys, fs, order):
@@ -463,6 +539,7 @@ def fit(us, ys, fs, order):
         X_list.append(features(un, np.ascontiguousarray(yt), st, ur, yr, env_w, env_lam))
     B = fit_numerators(a, X_list, yns, weights)
     parts = MimoParts(a, B1, B, u_scale, y_scale, env_w, env_lam)
+    parts.state_mean, parts.state_cov, parts.resid_rms = state_prior(parts, us, ys)
     info = {'denominator_seconds': t1 - t0, 'fit_seconds': time.perf_counter() - t0,
             'max_pole': float(np.max(np.abs(parts.poles()))), 'order': int(order),
             'n_features': int(B.shape[1]), 'record_weights': [float(w) for w in weights]}
