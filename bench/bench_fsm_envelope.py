@@ -38,6 +38,7 @@ def step_times(stepper, inputs) -> np.ndarray:
 
 
 def main() -> None:
+    """Fit, score and time (see the module docstring)."""
     p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     p.add_argument('--data', type=Path, default=DEFAULT_DATA)
     p.add_argument('--fit', default='1-4')

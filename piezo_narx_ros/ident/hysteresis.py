@@ -125,7 +125,7 @@ class HysteresisNARX(DynamicModel):
     # ------------------------------------------------------------------ structure
     @property
     def nu(self):
-        """Input history the Stepper takes: the increments' depth (several axes: order), samples."""
+        """Input history the Stepper takes: increments' depth (several axes: order), samples."""
         return self.mimo_order if self.mimo_ is not None else self.n_lags
 
     @property
@@ -578,21 +578,10 @@ class HysteresisNARX(DynamicModel):
         return out
 
     def _mimo_held_state(self, u):
-        """
-        The input held at u[0] until settled, the running amplitude at the window's own (u V).
-
-        The window's first samples tell the amplitude the input moves with (a record that does
-        not start at rest); the histories are then fitted on the window (_adjustable_state).
-        """
+        """Return the ModelState of the input held at u[0] (V), amplitude from the window."""
         from .state import ModelState
         u = self._mimo_signal(u, 'u (state window)', self.n_in)
-        p = self.mimo_
-        poles = np.abs(p.poles())
-        n = int(min(20000, max(50, math.log(1e-9) / math.log(max(float(np.max(poles)), 0.5)))))
-        st = np.zeros(p.state_size)
-        p.simulate(np.tile(u[0], (n, 1)), st)
-        st[p.layout['env'][0]] = hm.initial_env(u / p.u_scale, p.env_w, p.env_lam)
-        return ModelState(st, np.zeros(self.n_out),
+        return ModelState(hm.held_state(self.mimo_, u), np.zeros(self.n_out),
                           {'history': 'input held at (' + ', '.join(f'{v:.6g}' for v in u[0])
                            + ') V'})
 
@@ -705,7 +694,7 @@ class HysteresisNARX(DynamicModel):
 
     @classmethod
     def _mimo_from_document(cls, doc, arrays, name, wpath, fs):
-        """The several-axes HysteresisNARX of a model file (layout MIMO_LAYOUT)."""
+        """Return the several-axes HysteresisNARX of a model file (layout MIMO_LAYOUT)."""
         struct = doc['structure']
         order = struct.get('mimo_order')
         try:
@@ -716,7 +705,7 @@ class HysteresisNARX(DynamicModel):
                 or list(struct.get('y_radii', ())) != list(hm.Y_RADII)
                 or struct.get('env_tau_s') != hm.ENV_TAU_S):
             raise ModelFileError(f'{name}: the several-axes operators (u_radii, y_radii, '
-                                 'env_tau_s) differ from this reader\'s')
+                                 "env_tau_s) differ from this reader's")
         if fs is None or not math.isfinite(fs) or fs <= 0:
             raise ModelFileError(f'{name}: a hysteresis_narx model needs a finite fs, got {fs!r}')
         n = values['mimo_order']

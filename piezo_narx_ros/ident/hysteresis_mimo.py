@@ -118,7 +118,7 @@ def _features_row(un, yt, st, ur, yr, env_w, env_lam, x, i_up, i_yp, i_env):
 
 @njit(cache=True)
 def features(un, yt, st, ur, yr, env_w, env_lam):
-    """Features X (N, n_f) of normalised inputs un (N, n_in) and stage-1 outputs yt (N, n_out)."""
+    """Return features X (N, n_f) of normalised inputs un (N, n_in), stage-1 outputs yt."""
     n_in, n_out = un.shape[1], yt.shape[1]
     nf = n_in * (2 + ur.size) + n_out * (4 + yr.size)
     X = np.empty((un.shape[0], nf))
@@ -188,7 +188,7 @@ def step(u, st, out, x, yt, ur, yr, env_w, env_lam, a, B1, B, u_scale, y_scale):
 
 @njit(cache=True)
 def simulate(u, st, ur, yr, env_w, env_lam, a, B1, B, u_scale, y_scale):
-    """Free run over u (N, n_in) V from state st (advanced in place); returns (N, n_out) m."""
+    """Run u (N, n_in) V freely from state st (advanced in place); returns (N, n_out) m."""
     n_out = B.shape[0]
     nf = B.shape[1]
     y = np.empty((u.shape[0], n_out))
@@ -211,7 +211,7 @@ def _lags(x, n):
 
 
 def _homogeneous(a, n_samples):
-    """Free responses of 1/A(q) (N, n): impulse responses starting at samples 0 .. n-1."""
+    """Return free responses of 1/A(q) (N, n): impulse responses starting at 0 .. n-1."""
     n = a.size - 1
     imp = lfilter([1.0], a, np.r_[1.0, np.zeros(n_samples - 1)])
     H = np.zeros((n_samples, n))
@@ -262,7 +262,7 @@ def frequency_response(us, ys, seg):
 
 def fit_denominator(us, ys, order, iterations=SK_ITER + 2):
     """
-    Common denominator A (order + 1,) and stage-1 numerators B1 (n_out, n_in, order + 1).
+    Return the common denominator A (order + 1,), stage-1 numerators B1 (n_out, n_in, order + 1).
 
     Sanathanan-Koerner iterations on the pooled frequency response (frequency_response): the
     least squares of A(z) G_ij - B_ij(z), weighted by 1 / |A_prev(z)|, one A for every entry;
@@ -319,7 +319,7 @@ def fit_denominator(us, ys, order, iterations=SK_ITER + 2):
 
 
 def stage1(a, B1, un, yn):
-    """Stage-1 output yt (N, n_out) of one record, its free response fitted to yn."""
+    """Return the stage-1 output yt (N, n_out) of one record, its free response fitted to yn."""
     H = _homogeneous(a, un.shape[0])
     yt = np.empty((un.shape[0], B1.shape[0]))
     for i in range(B1.shape[0]):
@@ -329,14 +329,14 @@ def stage1(a, B1, un, yn):
 
 
 def initial_env(un, env_w, env_lam):
-    """Running amplitude state at a record's start: its first 1/(1-lam) samples' mean square."""
+    """Return the amplitude state at a record's start: its first 1/(1-lam) samples' mean square."""
     n = max(1, min(un.shape[0], int(round(1.0 / (1.0 - env_lam)))))
     return float(np.mean(un[:n] ** 2 @ env_w))
 
 
 def fit_numerators(a, X_list, ys, weights, ridge=1e-7):
     """
-    Output numerators B (n_out, n_f, n + 1) by weighted least squares (the free-run error).
+    Return the output numerators B (n_out, n_f, n + 1) by weighted least squares (free-run error).
 
     Regressors: each feature filtered by q^-l / A(q), l = 0..n; each record's free response
     (homogeneous solutions of 1/A) is projected out per record (a nuisance, fitted with it).
@@ -364,29 +364,86 @@ def fit_numerators(a, X_list, ys, weights, ridge=1e-7):
     return np.ascontiguousarray(theta.T.reshape(n_out, nf, n + 1))
 
 
-def state_prior(parts, us, ys, stride=7):
+def held_state(parts, u):
     """
-    The histories' distribution over the estimation records, for estimate_state's prior.
+    Return the state of the input held at u[0] (V) until settled, amplitude from the window u.
 
-    Returns (mean, covariance) of [yt(k-1..k-n), y(k-1..k-n)] (normalised, the state layout's
-    order) over the free runs of every record (each past its first quarter: the start from
-    rest left out), and the free run's RMS error per output (m, the window's noise level).
+    The window's first samples tell the amplitude the input moves with (a record that does not
+    start at rest); its histories are then set from the window (estimate_state).
     """
-    n, n_out = parts.order, parts.n_out
-    rows, err = [], []
-    a = np.r_[1.0, parts.a]
+    poles = np.abs(parts.poles())
+    n = int(min(20000, max(50, math.log(1e-9) / math.log(max(float(np.max(poles)), 0.5)))))
+    st = np.zeros(parts.state_size)
+    parts.simulate(np.tile(u[0], (n, 1)), st)
+    st[parts.layout['env'][0]] = initial_env(u / parts.u_scale, parts.env_w, parts.env_lam)
+    return st
+
+
+#: Window (samples) and horizon (samples) of the learned start prior, starts drawn per fit.
+PRIOR_WINDOW, PRIOR_HORIZON, PRIOR_STARTS = 100, 400, 240
+
+
+def _adjustable(parts):
+    lay = parts.layout
+    return np.r_[np.arange(*lay['yt_hist']), np.arange(*lay['y_hist'])]
+
+
+def _jacobian(parts, u, candidate, idx):
+    """Free-run change (N * n_out, normalised) per unit change of each candidate[idx]."""
+    base = parts.simulate(u, candidate.copy()) / parts.y_scale
+    cols = []
+    for i in idx:
+        x = candidate.copy()
+        x[i] += 1.0
+        cols.append((parts.simulate(u, x) / parts.y_scale - base).ravel())
+    return np.column_stack(cols), base
+
+
+def state_prior(parts, us, ys, seed=0):
+    """
+    Return the learned prior of the start correction and the free run's RMS error per output (m).
+
+    At PRIOR_STARTS random samples of the estimation records, the model's true state (its free
+    run from the record's start) is compared with the candidate estimate_state starts from (the
+    input held there): the correction of the stage-1 and output histories that best turns the
+    candidate's free run over PRIOR_HORIZON samples into the true one is recorded (it also makes
+    up for the unknown input history, which the candidate cannot know). Its mean and covariance
+    are the prior estimate_state weighs a window against.
+    """
+    rng = np.random.default_rng(seed)
+    idx = _adjustable(parts)
+    err, deltas = [], []
+    J = None
+    per = max(1, PRIOR_STARTS // len(us))
     for u, y in zip(us, ys):
-        sim = parts.simulate(u, np.zeros(parts.state_size)) / parts.y_scale
-        un = u / parts.u_scale
-        yt = np.column_stack([sum(lfilter(parts.B1[i, j], a, un[:, j])
-                                  for j in range(parts.n_in)) for i in range(n_out)])
-        k0 = max(n + 1, u.shape[0] // 4)
-        for k in range(k0, u.shape[0], stride):
-            rows.append(np.r_[yt[k - n:k][::-1].ravel(), sim[k - n:k][::-1].ravel()])
-        err.append(sim[k0:] * parts.y_scale - y[k0:])
-    rows = np.array(rows)
+        k_lo = max(4 * parts.order, u.shape[0] // 4)
+        k_hi = u.shape[0] - PRIOR_HORIZON
+        starts = np.sort(rng.integers(k_lo, k_hi, per)) if k_hi > k_lo else []
+        st = np.zeros(parts.state_size)
+        prev = 0
+        for k0 in starts:
+            parts.simulate(u[prev:k0], st)
+            prev = k0
+            seg = u[k0:k0 + PRIOR_HORIZON]
+            cand = held_state(parts, seg[:PRIOR_WINDOW])
+            if J is None:
+                J, _ = _jacobian(parts, seg, cand, idx)
+                pinv = np.linalg.pinv(J, rcond=1e-10)
+            true = parts.simulate(seg, st.copy()) / parts.y_scale
+            base = parts.simulate(seg, cand.copy()) / parts.y_scale
+            deltas.append(pinv @ (true - base).ravel())
+        sim = parts.simulate(u, np.zeros(parts.state_size))
+        err.append(sim[k_lo:] - y[k_lo:])
     err = np.vstack(err)
-    return rows.mean(axis=0), np.cov(rows.T), np.sqrt(np.mean(err * err, axis=0))
+    rms = np.sqrt(np.mean(err * err, axis=0))
+    d = np.array(deltas)
+    if d.shape[0] < 2:
+        return np.zeros(idx.size), np.eye(idx.size), rms
+    cov = np.cov(d.T)
+    # Shrunk toward its diagonal: fewer starts than dimensions would leave it singular.
+    cov = 0.9 * cov + 0.1 * np.diag(np.diag(cov)) + 1e-9 * np.trace(cov) / idx.size * np.eye(
+        idx.size)
+    return d.mean(axis=0), cov, rms
 
 
 #: Relative weight of the sensor-offset prior: std of an output's offset as a fraction of the
@@ -398,36 +455,28 @@ def estimate_state(model, parts, u, y, candidate):
     """
     Return (state vector, offsets m, info) at u[0] explaining the window u (N, n_in), y (N, n_out).
 
-    The histories that enter linearly (stage-1 and output histories) by their posterior mean: the
-    window's residual, weighted by the free run's training error per output, against the prior
-    of the histories over the estimation records (state_prior) and a small offset prior. Exact
-    in one step (the free run is linear in those histories).
+    The correction of the stage-1 and output histories that enter linearly, by its posterior
+    mean: the window's residual, weighted by the free run's training error per output, against
+    the learned prior of the correction (state_prior) and a small offset prior. Exact in one
+    step (the free run is linear in those histories).
     """
-    lay = parts.layout
-    idx = np.r_[np.arange(*lay['yt_hist']), np.arange(*lay['y_hist'])]
-    base = parts.simulate(u, candidate.copy())
-    sig = np.maximum(parts.resid_rms, 1e-3 * parts.y_scale)
-    cols = []
-    for i in idx:
-        x = candidate.copy()
-        x[i] += 1.0
-        cols.append(((parts.simulate(u, x) - base) / sig).ravel())
+    idx = _adjustable(parts)
+    J, base = _jacobian(parts, u, candidate, idx)
+    sig = np.maximum(parts.resid_rms, 1e-3 * parts.y_scale) / parts.y_scale
     n_out = parts.n_out
-    off = np.kron(np.ones((u.shape[0], 1)), np.diag(1.0 / sig))
-    J = np.column_stack(cols + [off])
-    r = ((y - base) / sig).ravel()
     k = idx.size
-    cov = parts.state_cov + 1e-9 * np.trace(parts.state_cov) / k * np.eye(k)
+    w = np.tile(1.0 / sig, u.shape[0])
+    Jw = np.column_stack([J * w[:, None], np.kron(np.ones((u.shape[0], 1)), np.diag(1.0 / sig))])
+    r = ((y / parts.y_scale - base) / sig).ravel()
     P = np.zeros((k + n_out, k + n_out))
-    P[:k, :k] = np.linalg.inv(cov)
-    P[k:, k:] = np.diag(1.0 / (OFFSET_PRIOR * parts.y_scale) ** 2)
-    mu = np.r_[parts.state_mean - candidate[idx], np.zeros(n_out)]
-    delta = np.linalg.solve(J.T @ J + P, J.T @ r + P @ mu)
+    P[:k, :k] = np.linalg.inv(parts.state_cov)
+    P[k:, k:] = np.eye(n_out) / OFFSET_PRIOR ** 2
+    mu = np.r_[parts.state_mean, np.zeros(n_out)]
+    delta = np.linalg.solve(Jw.T @ Jw + P, Jw.T @ r + P @ mu)
     values = candidate.copy()
     values[idx] += delta[:k]
-    fit = r - J @ delta
-    return values, delta[k:], {'rms_m': float(np.sqrt(np.mean((fit.reshape(-1, n_out) * sig)
-                                                               ** 2)))}
+    fit = (r - Jw @ delta).reshape(-1, n_out) * sig * parts.y_scale
+    return values, delta[k:] * parts.y_scale, {'rms_m': float(np.sqrt(np.mean(fit * fit)))}
 
 
 class MimoParts:
@@ -452,20 +501,20 @@ class MimoParts:
 
     @property
     def args(self):
-        """Kernel arguments after (u, st): operators, dynamics, scales."""
+        """Return the kernel arguments after (u, st): operators, dynamics, scales."""
         return (self.ur, self.yr, self.env_w, self.env_lam, np.r_[1.0, self.a][1:], self.B1,
                 self.B, self.u_scale, self.y_scale)
 
     def poles(self):
-        """Roots of A(q) (z-plane)."""
+        """Return the roots of A(q) (z-plane)."""
         return np.roots(np.r_[1.0, self.a])
 
     def simulate(self, u, st):
-        """Free run of u (N, n_in) V from state st (advanced in place): (N, n_out) m."""
+        """Run u (N, n_in) V freely from state st (advanced in place): (N, n_out) m."""
         return simulate(np.ascontiguousarray(u, dtype=np.float64), st, *self.args)
 
     def operator_features(self, u):
-        """Features X (N, n_f) of u (N, n_in) V run from rest (stage 1 included)."""
+        """Return the features X (N, n_f) of u (N, n_in) V run from rest (stage 1 included)."""
         un = u / self.u_scale
         a = np.r_[1.0, self.a]
         yt = np.column_stack([sum(lfilter(self.B1[i, j], a, un[:, j])
@@ -475,7 +524,7 @@ class MimoParts:
                         self.yr, self.env_w, self.env_lam)
 
     def predict(self, u, y):
-        """One step ahead (N, n_out) m: features of u from rest, output lags measured y."""
+        """Return the one-step-ahead output (N, n_out) m: features from rest, measured lags."""
         X = self.operator_features(u)
         yn = y / self.y_scale
         n, N = self.order, u.shape[0]
@@ -489,7 +538,7 @@ class MimoParts:
         return out
 
     def arrays(self):
-        """Named arrays of the model file."""
+        """Return the named arrays of the model file."""
         return {'mimo_a': self.a, 'mimo_B1': self.B1, 'mimo_B': self.B,
                 'mimo_u_scale': self.u_scale, 'mimo_y_scale': self.y_scale,
                 'mimo_env_w': self.env_w, 'mimo_state_mean': self.state_mean,
@@ -586,7 +635,7 @@ class MimoStepper:
         self._u_hist = np.array(rows[::-1]).reshape(self.nu, self.n_in) * self._parts.u_scale
 
     def reset(self, u_past=None, y_past=None):
-        """Restart from rest, then u_past (nu, n_in) V; y_past (ny, n_out) m sets the outputs."""
+        """Restart from rest, feed u_past (nu, n_in) V; y_past (ny, n_out) m sets the outputs."""
         self._st = self._model._mimo_initial_state(u_past, y_past)
         self._u_hist = np.zeros((self.nu, self.n_in)) if u_past is None else \
             np.array(u_past, dtype=np.float64).reshape(self.nu, self.n_in)

@@ -50,7 +50,7 @@ class MimoEmitter(Emitter):
         return np.array(stepper.kernel_state[0][0], dtype=np.float64)
 
     def dc_gain(self) -> float:
-        """The inverse's quasi-static target is one-axis only."""
+        """Refuse: the inverse's quasi-static target is one-axis only."""
         raise ExportError('the several-axes envelope model has no quasi-static target')
 
     # ------------------------------------------------------------------ C text
@@ -81,12 +81,15 @@ class MimoEmitter(Emitter):
              f'        for (j = 0; j < {ni}; ++j) {{',
              f'            acc += HM_B1[i * {ni} + j][0] * (u[j] / HM_U_SCALE[j]);',
              f'            for (lag = 1; lag < {n + 1}; ++lag) {{',
-             f'                acc += HM_B1[i * {ni} + j][lag] * st[{i_x} + (lag - 1) * {nf} + j];',
+             f'                acc += HM_B1[i * {ni} + j][lag]'
+             f' * st[{i_x} + (lag - 1) * {nf} + j];',
              '            }', '        }',
              f'        for (lag = 1; lag < {n + 1}; ++lag) {{',
-             f'            acc -= HM_A[lag - 1] * st[{i_yt} + (lag - 1) * {no} + i];', '        }',
+             f'            acc -= HM_A[lag - 1] * st[{i_yt} + (lag - 1) * {no} + i];',
+             '        }',
              '        yt[i] = acc;', '    }',
-             f'    for (j = 0; j < {ni}; ++j) {{', '        un[j] = u[j] / HM_U_SCALE[j];', '    }',
+             f'    for (j = 0; j < {ni}; ++j) {{', '        un[j] = u[j] / HM_U_SCALE[j];',
+             '    }',
              f'    e2 = HM_ENV_LAM * st[{i_env}];',
              f'    for (j = 0; j < {ni}; ++j) {{',
              '        e2 += (1.0 - HM_ENV_LAM) * HM_ENV_W[j] * un[j] * un[j];', '    }',
@@ -97,7 +100,8 @@ class MimoEmitter(Emitter):
              '            if (p < un[j] - HM_UR[r]) {', '                p = un[j] - HM_UR[r];',
              '            } else if (p > un[j] + HM_UR[r]) {',
              '                p = un[j] + HM_UR[r];', '            }',
-             f'            st[j * {nur} + r] = p;', '            x[f++] = p;', '        }', '    }',
+             f'            st[j * {nur} + r] = p;', '            x[f++] = p;', '        }',
+             '    }',
              f'    for (j = 0; j < {ni}; ++j) {{', '        x[f++] = un[j] * e;', '    }',
              f'    for (i = 0; i < {no}; ++i) {{', '        x[f] = yt[i];',
              '        x[f + 1] = yt[i] * fabs(yt[i]);', '        x[f + 2] = yt[i] * e;',
@@ -114,7 +118,8 @@ class MimoEmitter(Emitter):
              f'            acc += HM_B[i * {nf} + f][0] * x[f];', '        }',
              f'        for (lag = 1; lag < {n + 1}; ++lag) {{',
              f'            for (f = 0; f < {nf}; ++f) {{',
-             f'                acc += HM_B[i * {nf} + f][lag] * st[{i_x} + (lag - 1) * {nf} + f];',
+             f'                acc += HM_B[i * {nf} + f][lag]'
+             f' * st[{i_x} + (lag - 1) * {nf} + f];',
              '            }',
              f'            acc -= HM_A[lag - 1] * st[{i_y} + (lag - 1) * {no} + i];', '        }',
              '        y[i] = acc;', '    }',
