@@ -64,8 +64,10 @@ def main() -> None:
     got = scores(model, {lv: load(args.data, lv, score_r) for lv in LEVELS})
     print('RMSE µm           100 mV   200 mV   300 mV')
     for how, per in got.items():
+        if not per:
+            continue
         print(f'{"envelope, " + how:<17}' + ''.join(
-            f'{per[lv]:8.4f} ' if per[lv] is not None else '  diverged' for lv in LEVELS))
+            f'{per[lv]:8.4f} ' if per.get(lv) is not None else '  diverged' for lv in LEVELS))
     for name, vals in PUBLISHED.items():
         print(f'{name[:17]:<17}' + ''.join(f'{v:8.4f} ' for v in vals))
     # Stepper: 3 x 3 beside a one-axis envelope model fitted on one column, same run.
