@@ -138,3 +138,24 @@ def test_histories_end_where_the_record_starts():
     assert all(h[-1] != 0.5 for h in hs if h) and all(h[0] != 0.0 for h in hs if h)
     r = ramp((1.0, -1.0, 0.5), 0.1)
     assert r[-1] == 0.5 and np.max(np.abs(np.diff(np.r_[0.0, r]))) <= 0.1 + 1e-12
+
+
+def test_a_hold_window_takes_the_median_past_of_those_it_cannot_tell_apart(hnarx):
+    """On a hold every candidate past explains the window; the median offset bounds the error."""
+    from piezo_narx_ros.ident.state import TIE, _offset_only
+    u_hist, _, y = session()
+    n = 1000
+    u_hold = np.full(n, 30.0)
+    y_hold = PiezoCantilever(fs=FS, seed=5).run(np.r_[u_hist, u_hold]).y[u_hist.size:]
+    cands = hnarx._state_candidates(u_hold)
+    rows = sorted((*_offset_only(hnarx._run_from(c.values, u_hold), y_hold)[::-1], i)
+                  for i, c in enumerate(cands))          # (cost, offset, index)
+    tied = sorted((r for r in rows if r[0] <= rows[0][0] * (1 + TIE)), key=lambda r: r[1])
+    assert len(tied) >= 3                    # a hold cannot tell these pasts apart
+    state = hnarx.estimate_state(u_hold, y_hold)
+    assert state.info['indistinguishable'] == len(tied)
+    key = 'history_turning_points_v'
+    assert state.info[key] == cands[tied[len(tied) // 2][2]].info[key]
+    # A sweep tells them apart: far fewer ties, and the state is then the best-explaining one.
+    u_hist, u, y = session()
+    assert hnarx.estimate_state(u[:n], y[:n]).info['indistinguishable'] < len(tied)

@@ -178,7 +178,7 @@ class ExperimentConfig:
         return out
 
     def hnarx_structures(self) -> list[dict]:
-        """Return the HysteresisNARX options of each structure (`hnarx_grid` over `hnarx`)."""
+        """Return the options of each HysteresisNARX structure (`hnarx_grid` over `hnarx`)."""
         return [{**self.hnarx, **g} for g in self.hnarx_grid] or [dict(self.hnarx)]
 
     def validate(self) -> None:
