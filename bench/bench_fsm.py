@@ -15,8 +15,8 @@ realizations --score (never fitted on).
 
 Score (the benchmark's rule for a test record): the model may use the input and the first 100
 measured output samples to set its state; the figure is the RMSE (µm) of the free-run output over
-the remaining samples, averaged over outputs and records, per amplitude level. Three ways to set the
-state, each reported:
+the remaining samples, averaged over outputs and records, per amplitude level. Three ways to set
+the state, each reported:
   * window:   the first 100 measured samples set the state (model.estimate_state, as
               `piezo-narx evaluate --init-samples 100`); the input before sample 0 is unknown
               and taken as held at u(0);

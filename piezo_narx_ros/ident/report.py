@@ -269,7 +269,7 @@ def plot_correlation(corr, label: str, mode: str, noise=None):
 def plot_simulation(rec: Record, sim: np.ndarray, label: str, n0: int):
     """Fig. 8: measured and free-run output (µm) over time, the residual, and a zoom."""
     plt = _pyplot()
-    u, y = rec.u[:, 0], rec.y[:, 0]   # one output (write_report splits several)
+    y = rec.y[:, 0]   # one output (write_report splits several)
     sim = np.reshape(sim, -1)
     t = np.arange(len(rec)) / rec.fs
     fig, axes = plt.subplots(3, 1, figsize=(10, 8), constrained_layout=True)

@@ -189,11 +189,10 @@ def estimate_state(model, u, y, prior: ModelState | None = None,
             ranked.append((cost, i, offset))
         if not ranked:
             raise DataError('no initial state reproduces the window: the model diverges on it')
-        ranked.sort()
-        # The median offset among candidates that explain the window equally well (main);
-        # several outputs: ordered by their mean offset.
+        ranked.sort(key=lambda r: (r[0], r[1]))   # (offsets may be vectors: never compared)
+        # Several outputs: the offsets are a vector; their sum orders the tied pasts.
         tied = sorted((r for r in ranked if r[0] <= ranked[0][0] * (1 + TIE)),
-                      key=lambda r: float(np.mean(r[2])))
+                      key=lambda r: r[2] if np.ndim(r[2]) == 0 else float(np.sum(r[2])))
         median = tied[len(tied) // 2][1]
         refined = {}
         for i in [r[1] for r in ranked[:N_REFINE]] + [median]:
