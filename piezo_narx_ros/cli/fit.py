@@ -397,6 +397,7 @@ def _failed_line(failed) -> str:
 
 
 def _print_fit(result, config, executor, model_path, out, paths) -> None:
+    from piezo_narx_ros.ident.noise_model import describe as describe_noise
     best = result.best
     val = best.scores['validation']
     r2_sim = val['simulation']['r2']
@@ -405,14 +406,17 @@ def _print_fit(result, config, executor, model_path, out, paths) -> None:
           f'({executor.describe()})')
     print(f'validation R²: prediction {val["prediction"]["r2"]:.6f}, simulation '
           f'{"diverged" if r2_sim is None else f"{r2_sim:.6f}"}')
+    per = val['simulation'].get('per_output') or []
+    if per:   # several outputs: each one's free run
+        print('  per output: ' + ', '.join(
+            f'{o["name"]} R² {o["r2"]:.6f} RMSE {1e9 * o["rmse"]:.1f} nm' for o in per))
     for rec in val.get('records', []):
         sim = rec['simulation']
         text = ('diverged' if sim['r2'] is None else
                 f'R² {sim["r2"]:.6f}, RMSE {1e9 * sim["rmse"]:.1f} nm')
         print(f'  {rec["source"]}: simulation {text}')
     chosen = best.tests[config.residuals]
-    noise = chosen.get('noise_model')
-    how = f'AR({noise["order"]}) noise model' if noise else 'raw'
+    how = describe_noise(chosen.get('noise_model'))
     print(f'correlation tests ({config.residuals} residuals, {how}): ' + ', '.join(
         f'{k} {"pass" if v["passed"] else "fail"}'
         for k, v in chosen.get('tests', {}).items()))
