@@ -232,6 +232,9 @@ def run_rate(fs: float, seconds: float, model_path: Path, publish_period: float,
         cpu1 = {k: cpu_seconds(p.pid) for k, p in procs.items()}
         probe.spin_until(lambda: False, 1.2)   # one more /diagnostics round
         result['cpu'] = {k: 100.0 * (cpu1[k] - cpu0[k]) / wall for k in procs}
+        # CPU time per sample streamed: less sensitive to how busy the machine is than % of a
+        # core over the wall-clock interval (a starved node is slower, not cheaper).
+        result['cpu_us_per_sample'] = {k: 1e6 * (cpu1[k] - cpu0[k]) / n for k in procs}
         result['lost'] = {t: n - len(v) for t, v in probe.recv.items()}
         lat = [est[t] - cmd[t] for t in est if t in cmd]
         result['latency_us'] = np.array(lat) / 1e3
@@ -297,6 +300,8 @@ def main(argv=None) -> int:
         print(f'lateness stamp -> estimate   {pct(r["lateness_us"])}')
         print('lost samples: ' + ', '.join(f'{t} {v}' for t, v in r['lost'].items()))
         print('CPU (% of one core): ' + ', '.join(f'{k} {v:.0f}' for k, v in r['cpu'].items()))
+        print('CPU per sample (us): ' + ', '.join(f'{k} {v:.2f}'
+                                                  for k, v in r['cpu_us_per_sample'].items()))
         d = r['diag']
         if 'command_node' in d:
             c = d['command_node']

@@ -17,9 +17,9 @@ from piezo_narx_ros.command.stamps import RATE_TOLERANCE
 from piezo_narx_ros.errors import ConfigError
 from piezo_narx_ros.estimator.free_run import INIT_MODES, FreeRunEstimator
 from piezo_narx_ros.estimator.health import EstimatorHealth
-from piezo_narx_ros.nodes.batching import BATCH_PARAM, batch_topic, batch_values, sample_type
-from piezo_narx_ros.nodes.codec import (decode_joint_state, encode_joint_state,
-                                        encode_joint_trajectory)
+from piezo_narx_ros.nodes.batching import BATCH_PARAM, batch_topic, sample_type
+from piezo_narx_ros.nodes.codec import (decode_joint_state, decode_joint_trajectory,
+                                        encode_joint_state, encode_joint_trajectory)
 from piezo_narx_ros.nodes.diagnostics import Diagnostics
 from piezo_narx_ros.nodes.graph import EpisodeLog, same_name_problem
 from piezo_narx_ros.nodes.params import ParamSpec
@@ -140,9 +140,11 @@ class EstimatorNode(PiezoNode):
                                       throttle_duration_sec=1.0)
             return None
 
-    def _values(self, msg: bytes, field: str) -> list[tuple[int, float]] | None:
+    def _values(self, msg: bytes, field: str):
+        """(stamps (n,) int64 ns, `field` of the axis (n,)) of a batch; None when refused."""
         try:
-            return batch_values(msg, field, self.axis)
+            batch = decode_joint_trajectory(msg)
+            return batch.t_ns, batch.column(field, self.axis)
         except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the node
             self.get_logger().warning(f'{field} batch ignored: {exc}', throttle_duration_sec=1.0)
             return None
@@ -156,17 +158,27 @@ class EstimatorNode(PiezoNode):
 
     def _command(self, t_ns: int, volts: float):
         if self.est.stats.commands == 0:
-            self.est.start(self.sub_meas.get_publisher_count() > 0)
-            self.est.rate.single_writer = self.sub_cmd.get_publisher_count() == 1
+            self._command_start()
         return self.est.on_command(t_ns, volts)
 
+    def _command_start(self) -> None:
+        """Before the first command, tell the estimator whether a sensor and one writer exist."""
+        self.est.start(self.sub_meas.get_publisher_count() > 0)
+        self.est.rate.single_writer = self.sub_cmd.get_publisher_count() == 1
+
     def on_command_batch(self, msg: bytes) -> None:
-        """Feed a batch sample by sample through the one-sample call; answer with one batch."""
+        """Answer a batch with one batch (FreeRunEstimator.on_commands: one-sample numbers)."""
         got = self._values(msg, 'effort')
         if got is None:
             self.est.stats.rejected_nonfinite += 1   # a refused message, as in on_command
             return
-        self.publish([e for t, u in got for e in self._command(t, u)])
+        if self.est.stats.commands == 0:
+            self._command_start()
+        self._publish_batch(*self.est.on_commands(*got))
+
+    def _publish_batch(self, t, y) -> None:
+        if t.shape[0]:
+            self.pub.publish(encode_joint_trajectory(t, self._names, position=y[:, None]))
 
     def on_measurement(self, msg: bytes) -> None:
         got = self._value(msg, 'position')
@@ -176,7 +188,7 @@ class EstimatorNode(PiezoNode):
     def on_measurement_batch(self, msg: bytes) -> None:
         got = self._values(msg, 'position')
         if got is not None:
-            self.publish([e for t, y in got for e in self.est.on_measurement(t, y)])
+            self._publish_batch(*self.est.on_measurements(*got))
 
     def on_idle_check(self) -> None:
         """Commands stopped while one was held back: decide on it now."""
