@@ -35,8 +35,9 @@ class PlantResponder:
     plants: a plant.axes.AxisPlants (or {axis: PiezoCantilever}, independent axes); fs: command
     rate, Hz; max_fill: longest gap (samples) bridged by holding the command. Stamps go through
     a `command.stamps.StampGate`: an isolated outlier stamp is refused (`stamp_outliers`) instead
-    of making every later command look stale, and a new stream (a loop, a new run, a jump beyond max_fill) is followed: the plant just
-    continues from its state, as a real one would (`stream_restarts`). A stream at another rate
+    of making every later command look stale, and a new stream (a loop, a new run, a jump beyond
+    max_fill) is followed: the plant just continues from its state, as a real one would
+    (`stream_restarts`). A stream at another rate
     (`rate`, a command.stamps.RateMonitor) still drives the plants, but gets no answer
     (`rate_withheld`): deflections paired with those stamps would be wrong data.
     """
