@@ -63,14 +63,14 @@ def test_round_trip_exact_bytes_times_and_stamps(tmp_path):
 def test_read_uy_gives_the_written_record(uy_bag):
     path, u, y = uy_bag
     rec = read_uy(path)
-    np.testing.assert_array_equal(rec.u, u)
-    np.testing.assert_array_equal(rec.y, y)
+    np.testing.assert_array_equal(rec.u[:, 0], u)
+    np.testing.assert_array_equal(rec.y[:, 0], y)
     assert rec.fs == FS
     assert rec.t[0] == 0.0 and rec.t[-1] == pytest.approx((u.size - 1) / FS, abs=1e-12)
     assert rec.source == str(path)
     # leading '/' or not, directory or the .mcap file inside it: same record
     rec2 = read_uy(path / f'{path.name}.mcap', '/piezo/voltage_command', 'piezo/deflection/')
-    np.testing.assert_array_equal(rec2.y, y)
+    np.testing.assert_array_equal(rec2.y[:, 0], y)
 
 
 def test_independent_read_with_mcap_and_mcap_ros2(uy_bag):
@@ -135,8 +135,8 @@ def test_sqlite3_bag_like_ros2_bag_record(tmp_path):
             w.write(c_y, t + 20, joint_state_cdr(t, ('x',), position=(y[k],), effort=(u[k],)))
     rec = read_uy(tmp_path / 'sq')
     assert rec.fs == 1000.0
-    np.testing.assert_array_equal(rec.u, u)
-    np.testing.assert_array_equal(rec.y, y)
+    np.testing.assert_array_equal(rec.u[:, 0], u)
+    np.testing.assert_array_equal(rec.y[:, 0], y)
     assert bag_info(tmp_path / 'sq').storage == 'sqlite3'
 
 
@@ -159,8 +159,8 @@ def test_lone_mcap_from_mcap_ros2_writer(tmp_path):
                 'velocity': [], 'effort': [u[k]]}, log_time=t + 1)
         w.finish()
     rec = read_uy(path)
-    np.testing.assert_array_equal(rec.u, u)
-    np.testing.assert_array_equal(rec.y, y)
+    np.testing.assert_array_equal(rec.u[:, 0], u)
+    np.testing.assert_array_equal(rec.y[:, 0], y)
 
 
 def test_writer_refuses_existing_path_and_unknown_type(tmp_path):
@@ -193,5 +193,5 @@ def test_rclpy_serialized_payloads_with_trailing_bytes_are_read(tmp_path):
             bag.write(c, t, raw_u)
             bag.write(d, t, serialize_message(make_joint_state(t, ['x'], position=[1e-6 * k])))
     rec = read_uy(tmp_path / 'b')
-    np.testing.assert_array_equal(rec.u, 0.5 * np.arange(20))
-    np.testing.assert_array_equal(rec.y, 1e-6 * np.arange(20))
+    np.testing.assert_array_equal(rec.u[:, 0], 0.5 * np.arange(20))
+    np.testing.assert_array_equal(rec.y[:, 0], 1e-6 * np.arange(20))

@@ -144,7 +144,7 @@ def test_utf8_bom_csv_reads_its_t_column(tmp_path):
     path = tmp_path / 'bom.csv'
     path.write_bytes(b'\xef\xbb\xbf' + body.encode())
     rec = load_record(path)
-    assert rec.fs == pytest.approx(2000.0) and np.array_equal(rec.u, u)
+    assert rec.fs == pytest.approx(2000.0) and np.array_equal(rec.u[:, 0], u)
 
 
 def test_header_only_csv_says_so(tmp_path, capsys):

@@ -50,7 +50,7 @@ def test_y_in_um_or_nm_is_refused_with_the_option_and_read_with_it(tmp_path, sca
     with pytest.raises(DataError, match=f'y reaches {peak}.*pass --y-unit um'):
         load_record(tmp_path / 'r.npz')
     rec = load_record(tmp_path / 'r.npz', units=Units.from_options(y_unit=unit))
-    assert np.allclose(rec.y, y, rtol=1e-12, atol=0)
+    assert np.allclose(rec.y[:, 0], y, rtol=1e-12, atol=0)
 
 
 def test_raw_counts_need_a_scale_and_mv_needs_its_unit(tmp_path):
@@ -60,11 +60,11 @@ def test_raw_counts_need_a_scale_and_mv_needs_its_unit(tmp_path):
     with pytest.raises(DataError, match='--y-scale METRES_PER_COUNT'):
         load_record(tmp_path / 'c.npz')
     rec = load_record(tmp_path / 'c.npz', units=Units.from_options(y_scale=3.05e-9))
-    assert np.max(np.abs(rec.y - y)) < 3.05e-9
+    assert np.max(np.abs(rec.y[:, 0] - y)) < 3.05e-9
     np.savez(tmp_path / 'mv.npz', u=u * 1e3, y=y, fs=FS)
     with pytest.raises(DataError, match='--u-unit mV'):
         load_record(tmp_path / 'mv.npz')
-    assert np.allclose(load_record(tmp_path / 'mv.npz', units=Units.from_options('mV')).u, u)
+    assert np.allclose(load_record(tmp_path / 'mv.npz', units=Units.from_options('mV')).u[:, 0], u)
     with pytest.raises(ConfigError, match='--y-unit or --y-scale, not both'):
         Units.from_options(y_unit='um', y_scale=1e-9)
 
@@ -123,7 +123,7 @@ def test_columns_option_rules(tmp_path):
     with pytest.raises(DataError, match='--columns u=9: the file has 3 column'):
         load_record(tmp_path / 'w.txt', fs=FS, columns={'u': 9, 'y': 3})
     rec = load_record(tmp_path / 'w.txt', fs=FS, columns={'u': 1, 'y': 3})
-    assert np.array_equal(rec.u, u) and np.array_equal(rec.y, y)
+    assert np.array_equal(rec.u[:, 0], u) and np.array_equal(rec.y[:, 0], y)
 
 
 # ----------------------------------------------------------------------- item 7: time columns
@@ -229,12 +229,14 @@ def test_bag_axes_pair_by_name_never_by_position(tmp_path):
     """Command names [x, y], deflection names [y, x]: before, x's volts with y's position."""
     from piezo_narx_ros.bag.reader import read_uy
     ux, uy = _two_axis_bag(tmp_path / 'b')
-    with pytest.raises(BagError, match='carries the axes x, y: choose one with --axis NAME'):
-        read_uy(tmp_path / 'b')
+    both = read_uy(tmp_path / 'b')     # every axis: inputs x, y and outputs x, y, by name
+    assert both.inputs == ('x', 'y') and both.outputs == ('x', 'y')
+    assert np.array_equal(both.u, np.column_stack([ux, uy]))
+    assert np.allclose(both.y, np.column_stack([4e-7 * ux, -3e-7 * uy]), rtol=1e-12, atol=0)
     rx = read_uy(tmp_path / 'b', axis='x')
-    assert np.array_equal(rx.u, ux) and np.allclose(rx.y, 4e-7 * ux)
+    assert np.array_equal(rx.u[:, 0], ux) and np.allclose(rx.y[:, 0], 4e-7 * ux)
     ry = read_uy(tmp_path / 'b', axis='y')
-    assert np.array_equal(ry.u, uy) and np.allclose(ry.y, -3e-7 * uy)
+    assert np.array_equal(ry.u[:, 0], uy) and np.allclose(ry.y[:, 0], -3e-7 * uy)
     with pytest.raises(BagError, match="has no axis 'z' \\(its axes: x, y\\)"):
         read_uy(tmp_path / 'b', axis='z')
 
@@ -292,7 +294,7 @@ def test_semicolon_tables_with_decimal_commas_are_read(tmp_path):
                         for k, (a, b) in enumerate(zip(u, y))]
     (tmp_path / 'eu.csv').write_text('\n'.join(rows) + '\n')
     rec = load_record(tmp_path / 'eu.csv')
-    assert rec.fs == pytest.approx(FS) and np.allclose(rec.u, u, atol=1e-9)
+    assert rec.fs == pytest.approx(FS) and np.allclose(rec.u[:, 0], u, atol=1e-9)
 
 
 @pytest.mark.parametrize('mutate, message', [

@@ -64,11 +64,11 @@ def test_lagged_regressors_follow_eq1_order():
 
 
 @pytest.mark.parametrize('u, y, nu, ny, match', [
-    (np.zeros((5, 2)), np.zeros(5), 1, 1, '^u must be 1-D'),
+    (np.zeros((5, 2, 1)), np.zeros(5), 1, 1, r'^u must be \(N,\) or \(N, channels\)'),
     (np.zeros(5), np.zeros(4), 1, 1, '^y has 4 samples, expected 5$'),
     (np.array([0, 1, np.nan, 2.0]), np.zeros(4), 1, 1, '^u contains NaN'),
     (np.zeros(4), np.array([0, 1, np.inf, 2.0]), 1, 1, '^y contains NaN or infinite'),
-    (np.zeros(4), np.zeros((4, 1)), 1, 1, r'^y must be 1-D, got shape \(4, 1\)'),
+    (np.zeros(4), np.zeros((3, 2)), 1, 1, '^y has 3 samples, expected 4$'),
     (np.zeros(3), np.zeros(3), 4, 4, '^u has 3 samples, need at least 5$'),
     (np.zeros(9), np.zeros(9), 1, 0, 'ny >= 1'),
     (np.zeros(9), np.zeros(9), 1.5, 1, 'integers'),

@@ -56,8 +56,8 @@ def test_validation_records_never_reach_a_fit():
     assert result.validation_sources == ['v'] and result.n_estimation == 8000
     assert result.n_validation == 4000
     # The validation scores are the validation record's: its free run, not the estimation's.
-    sim = model.simulate(val[0].u, val[0].y[:model.n0])[model.n0:]
-    e = val[0].y[model.n0:] - sim
+    sim = model.simulate(val[0].u[:, 0], val[0].y[:model.n0, 0])[model.n0:]
+    e = val[0].y[model.n0:, 0] - sim
     assert result.best.scores['validation']['simulation']['rmse'] == pytest.approx(
         float(np.sqrt(np.mean(e * e))), rel=1e-12)
 
@@ -115,7 +115,7 @@ def test_evaluate_init_samples_scores_after_the_window_and_saves_the_run(tmp_pat
     assert rest['n'] == 6000 and measured['n'] == 5000 and measured['init_samples'] == 1000
     assert measured['simulation']['rmse'] < 0.2 * rest['simulation']['rmse']
     saved = np.load(tmp_path / 'o.npz')
-    assert saved['y_sim'].shape == rec.y.shape and int(saved['scored_from']) == 1000
+    assert saved['y_sim'].shape == (len(rec),) and int(saved['scored_from']) == 1000
     e = (saved['y'] - saved['y_sim'])[1000:]
     assert float(np.sqrt(np.mean(e * e))) == pytest.approx(measured['simulation']['rmse'],
                                                            rel=1e-9)
@@ -153,15 +153,16 @@ def test_estimator_starts_from_the_measured_state_of_a_plant_not_at_rest(hnarx):
                  before=hist)
     est = FreeRunEstimator(hnarx, init='measurement', init_window=0.5)
     out = []
+    u, y = rec.u[:, 0], rec.y[:, 0]
     for k in range(len(rec)):
-        out += est.on_command(k * P, float(rec.u[k]))
-        out += est.on_measurement(k * P, float(rec.y[k]))
+        out += est.on_command(k * P, float(u[k]))
+        out += est.on_measurement(k * P, float(y[k]))
     y_hat = np.array([y for _, y in out])
     assert len(out) == len(rec) and est.stats.state == 'estimated'
-    ref = hnarx.simulate(rec.u, state=hnarx.estimate_state(rec.u[:1000], rec.y[:1000]))
+    ref = hnarx.simulate(u, state=hnarx.estimate_state(u[:1000], y[:1000]))
     assert np.max(np.abs(y_hat - ref)) <= 1e-12
-    err = np.sqrt(np.mean((y_hat - rec.y)[1000:] ** 2))
-    rest = np.sqrt(np.mean((hnarx.simulate(rec.u) - rec.y)[1000:] ** 2))
+    err = np.sqrt(np.mean((y_hat - y)[1000:] ** 2))
+    rest = np.sqrt(np.mean((hnarx.simulate(u) - y)[1000:] ** 2))
     assert err < 0.2 * rest, (err, rest)
 
 
@@ -176,7 +177,7 @@ def test_resample_is_anti_aliased_and_only_slower():
     t2 = np.arange(4000) / 2000.0
     assert down.fs == 2000.0 and down.u.size == 4000
     # 1700 Hz is above the new Nyquist (1000 Hz): filtered out, not folded to 300 Hz.
-    np.testing.assert_allclose(down.u[50:-50], np.sin(2 * np.pi * 5.0 * t2)[50:-50], atol=5e-3)
+    np.testing.assert_allclose(down.u[50:-50, 0], np.sin(2 * np.pi * 5.0 * t2)[50:-50], atol=5e-3)
     np.testing.assert_allclose(down.t, 100.0 + t2)
     for bad in (10000.0, 20000.0, -1.0):
         with pytest.raises(DataError):

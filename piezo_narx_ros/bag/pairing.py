@@ -99,8 +99,8 @@ def clean_stream(stamps_ns: np.ndarray, values: np.ndarray) -> tuple[np.ndarray,
     """
     Sort one topic's samples by stamp and drop repeated stamps (first received kept).
 
-    stamps_ns: (n,) int64 header stamps in arrival order; values: (n,) float64.
-    Returns (stamps (m,) strictly increasing, values (m,), StreamCheck).
+    stamps_ns: (n,) int64 header stamps in arrival order; values: (n,) or (n, axes) float64.
+    Returns (stamps (m,) strictly increasing, values (m,) or (m, axes), StreamCheck).
     """
     stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
     values = np.asarray(values, dtype=np.float64)
@@ -115,7 +115,10 @@ def clean_stream(stamps_ns: np.ndarray, values: np.ndarray) -> tuple[np.ndarray,
     if check.duplicates:
         # Compare each repeat with the kept sample of its stamp (the first of its run).
         keep_index = np.maximum.accumulate(np.where(~repeat, np.arange(s.size), 0))
-        differs = repeat & ~((v == v[keep_index]) | (np.isnan(v) & np.isnan(v[keep_index])))
+        same = (v == v[keep_index]) | (np.isnan(v) & np.isnan(v[keep_index]))
+        if same.ndim > 1:   # several axes: a repeat conflicts when any axis differs
+            same = np.all(same, axis=1)
+        differs = repeat & ~same
         check.conflicting = int(np.count_nonzero(differs))
     return s[~repeat], v[~repeat], check
 
@@ -148,10 +151,10 @@ def pair_by_stamp(t_u_ns: np.ndarray, u: np.ndarray, t_y_ns: np.ndarray, y: np.n
     """
     Match command samples u (V) and deflection samples y (m) with equal header stamps.
 
-    Inputs are in arrival order (int64 ns stamps, float64 values). Returns (t_ns (N,) int64 sorted,
-    u (N,), y (N,), PairingReport). The rate is the command stream's (the clock every node copies),
-    so a deflection that lost every other sample gives a record at the command rate with gaps,
-    not a record at half the rate. Raises BagError when fewer than 2 samples pair up.
+    Inputs are in arrival order (int64 ns stamps, float64 values (n,) or (n, axes)). Returns
+    (t_ns (N,) int64 sorted, u (N,) or (N, axes), y likewise, PairingReport). The rate is the
+    command stream's (the clock every node copies), so a deflection that lost every other sample
+    gives a record at the command rate with gaps, not a record at half the rate. Raises BagError when fewer than 2 samples pair up.
     """
     tu, uu, cu = clean_stream(t_u_ns, u)
     ty, yy, cy = clean_stream(t_y_ns, y)

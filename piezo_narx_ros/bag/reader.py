@@ -192,10 +192,11 @@ class JointSeries:
     topic: str
     stamps_ns: np.ndarray      # (n,) int64
     log_ns: np.ndarray         # (n,) int64, rosbag2 receive timestamps
-    values: np.ndarray         # (n,) float64, SI (m for position, V for effort)
+    values: np.ndarray         # (n,) float64, SI (m for position, V for effort); (n, k) for k axes
     malformed: int = 0
     names: list = field(default_factory=list)   # joint names seen on the topic
     axis: str | int | None = None                # the axis read: its name, or an index
+    channels: tuple = ()       # several axes read (axis None, messages naming several joints)
 
 
 def _axis_index(names, axis, n_values: int):
@@ -218,6 +219,14 @@ def _axis_index(names, axis, n_values: int):
     return None
 
 
+def _channel_indices(names, channels):
+    """Indices of `channels` in a message's joint names (by name), or None if one is missing."""
+    try:
+        return [names.index(c) for c in channels]
+    except ValueError:
+        return None
+
+
 def read_joint_series(path: str | Path, fields: dict[str, str], axis: str | int | None = None
                       ) -> dict[str, JointSeries]:
     """
@@ -227,6 +236,11 @@ def read_joint_series(path: str | Path, fields: dict[str, str], axis: str | int 
     message), an index for messages without names, or None for a bag with one axis. Returns
     {topic (as given): JointSeries}. Samples lacking the axis are counted in `malformed`. A topic
     recorded batched (`<topic>_batch`, JointTrajectory) gives the same samples and stamps.
+
+    With axis None and messages naming several joints, every joint is read: the topic's channels
+    are the names of its first such message (in that order), each later message's values are
+    found by name (never by position), and a message lacking one of them counts as malformed;
+    values are then (n, channels).
     """
     with open_bag(path) as reader:
         by_conn, kinds = {}, {}
@@ -239,6 +253,7 @@ def read_joint_series(path: str | Path, fields: dict[str, str], axis: str | int 
         acc = {t: ([], [], []) for t in fields}
         bad = dict.fromkeys(fields, 0)
         seen = {t: {} for t in fields}          # names tuple -> index (cached per topic)
+        chans = dict.fromkeys(fields, ())       # several axes: the topic's channel names
         conns = [c for c in reader.connections if c.id in by_conn]
         for conn, log_ns, raw in _messages(reader, conns, path):
             topic = by_conn[conn.id]
@@ -253,22 +268,33 @@ def read_joint_series(path: str | Path, fields: dict[str, str], axis: str | int 
             samples = joint_samples(msg, kind, fields[topic])
             cache = seen[topic]
             if names not in cache:
-                cache[names] = _axis_index(names, axis, len(samples[0][1]) if samples else 0)
+                if axis is None and len(names) > 1 and not chans[topic] and not acc[topic][0]:
+                    chans[topic] = names
+                cache[names] = (_channel_indices(names, chans[topic]) if chans[topic] else
+                                _axis_index(names, axis, len(samples[0][1]) if samples else 0))
             i = cache[names]
             stamps, logs, values = acc[topic]
             for t_ns, arr in samples:
-                if i is None or i >= len(arr):
+                if isinstance(i, list):
+                    if len(arr) != len(names):
+                        bad[topic] += 1
+                        continue
+                    values.append([float(arr[j]) for j in i])
+                elif i is None or i >= len(arr):
                     bad[topic] += 1
                     continue
+                else:
+                    values.append(float(arr[i]))
                 stamps.append(t_ns)
                 logs.append(log_ns)
-                values.append(float(arr[i]))
     out = {}
     for t, (s, lg, v) in acc.items():
         names = list(dict.fromkeys(n for key in seen[t] for n in key))
+        k = len(chans[t])
+        values = np.asarray(v, dtype=np.float64).reshape((-1, k) if k else (-1,))
         out[t] = JointSeries(absolute_topic(t), np.asarray(s, dtype=np.int64),
-                             np.asarray(lg, dtype=np.int64), np.asarray(v, dtype=np.float64),
-                             bad[t], names, axis)
+                             np.asarray(lg, dtype=np.int64), values, bad[t], names, axis,
+                             tuple(chans[t]))
     return out
 
 
@@ -276,10 +302,15 @@ def _check_axes(path, series, axis) -> None:
     """Raise BagError when the topics cannot be paired by joint name (never by position)."""
     named = [s for s in series if s.names]
     if axis is None:
-        for s in named:
-            if len(s.names) > 1:
-                raise BagError(f'bag {path}: {s.topic} carries the axes {", ".join(s.names)}: '
-                               'choose one with --axis NAME')
+        multi = [s for s in series if s.channels]
+        if multi:
+            for s in series:
+                if not s.channels:
+                    raise BagError(f'bag {path}: {multi[0].topic} carries the axes '
+                                   f'{", ".join(multi[0].channels)} but {s.topic} names '
+                                   f'{", ".join(s.names) or "no axis"}: several axes pair by '
+                                   'name on both topics; choose one with --axis NAME')
+            return
         if len(named) == 2 and named[0].names != named[1].names:
             raise BagError(f'bag {path}: {named[0].topic} is axis {named[0].names[0]!r} but '
                            f'{named[1].topic} is axis {named[1].names[0]!r}: they do not pair '
@@ -306,6 +337,10 @@ def read_uy_report(path: str | Path, command_topic: str = COMMAND_TOPIC,
             extra = f' ({s.malformed} message(s) without {fld} of {which})' if s.malformed \
                 else ''
             raise BagError(f'bag {path}: no {kind} samples on {s.topic}{extra}')
+    if su.channels and set(sy.channels) == set(su.channels) and sy.channels != su.channels:
+        # The same axes on both topics: outputs in the command's order (axis k in, axis k out).
+        order = [sy.channels.index(c) for c in su.channels]
+        sy.values, sy.channels = sy.values[:, order], su.channels
     t_ns, u, y, report = pair_by_stamp(su.stamps_ns, su.values, sy.stamps_ns, sy.values)
     report.command.malformed, report.deflection.malformed = su.malformed, sy.malformed
     for name, arr in (('command', u), ('deflection', y)):
@@ -313,7 +348,8 @@ def read_uy_report(path: str | Path, command_topic: str = COMMAND_TOPIC,
             raise BagError(f'bag {path}: {np.count_nonzero(~np.isfinite(arr))} non-finite '
                            f'{name} value(s)')
     record = Record(u=u, y=y, fs=report.fs, source=str(path),
-                    t=(t_ns - t_ns[0]).astype(np.float64) * 1e-9, y_true=None)
+                    t=(t_ns - t_ns[0]).astype(np.float64) * 1e-9, y_true=None,
+                    inputs=su.channels or None, outputs=sy.channels or None)
     return record, report
 
 
@@ -323,8 +359,10 @@ def read_uy(path: str | Path, command_topic: str = COMMAND_TOPIC,
     Identification record (u in V, y in m) from a bag, samples paired by header.stamp.
 
     u is the effort of joint `axis` on the command topic, y its position on the deflection topic,
-    each found by name in every message (None: the bag's one axis; an index only for messages
-    without names); topic names may have a leading '/'. fs (Hz) is inferred from the stamps;
+    each found by name in every message (None: the bag's one axis, or every axis when the
+    messages name several: each command joint an input, each deflection joint an output, named
+    as in the bag; an index only for messages without names); topic names may have a leading
+    '/'. fs (Hz) is inferred from the stamps;
     `Record.t` is seconds since the first paired sample. Non-fatal findings (gaps, duplicates,
     reordering, irregular rate) are issued as `BagWarning`s; a missing/mistyped topic or an
     unreadable bag raises BagError.

@@ -104,10 +104,22 @@ def _export(args) -> int:
     for line in report.issues():
         print(f'piezo-narx: warning: {line}', file=sys.stderr)
     rec = checked(rec, reading['units'])
+    from piezo_narx_ros.record import channels_arg
+    one_axis = rec.n_in == 1 and rec.n_out == 1
+    # Several axes: the channel names go with the data (npz keys inputs/outputs, CSV header).
+    names = {} if one_axis else {'inputs': np.array(rec.inputs), 'outputs': np.array(rec.outputs)}
     if out.suffix.lower() == '.npz':
-        np.savez(out, u=rec.u, y=rec.y, t=rec.t, fs=np.float64(rec.fs))
+        np.savez(out, u=channels_arg(rec.u), y=channels_arg(rec.y), t=rec.t,
+                 fs=np.float64(rec.fs), **names)
     else:   # what `fit` reads back: t,u,y with a header, exact to the last bit (%.17g)
+        # Several axes: the bag's names, unless inputs and outputs share one (x commands, x
+        # deflects): then u1.., y1.. in that order, which `fit` reads without options.
+        cols = rec.inputs + rec.outputs
+        if len(set(cols)) < len(cols) or any(c.lower() in ('t', 'u', 'y') for c in cols):
+            cols = tuple(f'u{i + 1}' for i in range(rec.n_in)) + \
+                tuple(f'y{i + 1}' for i in range(rec.n_out))
+        header = 't,u,y' if one_axis else ','.join(('t',) + cols)
         np.savetxt(out, np.column_stack([rec.t, rec.u, rec.y]), delimiter=',', fmt='%.17g',
-                   header='t,u,y', comments='')
-    print(f'wrote {out}: {len(rec.u)} samples at {rec.fs:.6g} Hz')
+                   header=header, comments='')
+    print(f'wrote {out}: {len(rec)} samples at {rec.fs:.6g} Hz')
     return 0

@@ -213,11 +213,15 @@ def save_output(model, records, init_samples, path) -> None:
     rec = records[0]
     if init_samples is not None:
         rec = replace(rec, state_window=int(init_samples))
+    from piezo_narx_ros.record import channels_arg
     _, sim = free_run(model, rec)
+    # One axis: (N,) arrays as before several axes; several: (N, channels) with their names.
+    names = {} if rec.n_in == 1 and rec.n_out == 1 else {
+        'inputs': np.array(rec.inputs), 'outputs': np.array(rec.outputs)}
     tmp = path.with_name(path.name + '.tmp')
     with open(tmp, 'wb') as fh:
-        np.savez(fh, u=rec.u, y=rec.y, y_sim=sim, fs=rec.fs,
-                 scored_from=scored_from(model, rec))
+        np.savez(fh, u=channels_arg(rec.u), y=channels_arg(rec.y), y_sim=channels_arg(sim),
+                 fs=rec.fs, scored_from=scored_from(model, rec), **names)
     os.replace(tmp, path)
 
 

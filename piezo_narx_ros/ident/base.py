@@ -17,7 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError, DataError
-from .checks import as_signal
+from ..record import default_names
+from .checks import as_channels, as_signal
 
 
 @dataclass(frozen=True)
@@ -117,12 +118,21 @@ class DynamicModel:
       nu, ny : input / output history the Stepper takes (samples); n0 = max(nu, ny);
       n_params : number of estimated parameters;
       fs : sample rate the model was fitted at, Hz (None when unknown);
-      input_range, output_range : (min, max) seen in the estimation data, V and m;
+      input_range, output_range : (min, max) seen in the estimation data, V and m; for several
+        channels ((min per channel...), (max per channel...)) (`channel_ranges` reads both);
+      n_in_, n_out_ : input / output channels (the n_in / n_out properties return them; 1 until
+        fitted); inputs, outputs : their names (default u1.. / y1.., ('u',) / ('y',) for one);
+      output_2d_ : True when predict/simulate return (N, n_out) (fitted on a 2-D y, or loaded
+        from a several-axes model file); False: (N,), the one-axis case;
       state_from_input : True when the model's internal state is a function of the whole input
         history (hysteresis operators, creep) and cannot be set from n0 measured outputs: such a
         model is scored on part of a record by free-running from the record's start.
-    Methods: fit(u, y, fs=None) -> self; predict(u, y) and simulate(u, y0=None) -> (N,) m;
-      stepper(u_past=None, y_past=None) -> a Stepper with step(u_k V) -> y_k m and reset().
+    Methods: fit(u, y, fs=None) -> self with u (N,) or (N, n_in) V, y (N,) or (N, n_out) m, or
+      lists of such for several records; predict(u, y) and simulate(u, y0=None, state=None) ->
+      (N,) m for a model fitted on a 1-D y, else (N, n_out) (y0 then (n0, n_out));
+      stepper(u_past=None, y_past=None) -> a Stepper with step(u_k) -> y_k and reset(): u_k a
+      float (V) returning a float (m) for a one-input one-output model, else an (n_in,) array
+      returning an (n_out,) array. ModelState.offset (m) is a float for one output, else (n_out,).
 
     What a family owns besides its math (a new family implements these and registers itself with
     `register_family`; model_io and the C export find it by `kind`, nothing else changes):
@@ -135,14 +145,51 @@ class DynamicModel:
 
     kind = 'abstract'
     file_format_version = 1
-    #: Input / output channels (axes) of the model: one each for today's families.
-    n_in = 1
-    n_out = 1
     state_from_input = False
+    #: predict/simulate return (N, n_out) arrays (see the class docstring).
+    output_2d_ = False
     fs = None
     input_range = None
     output_range = None
     _parameter_constraints: dict = {}
+
+    @property
+    def n_in(self) -> int:
+        """Return the number of input channels (n_in_, 1 until fitted)."""
+        return int(getattr(self, 'n_in_', 1))
+
+    @n_in.setter
+    def n_in(self, value):
+        self.n_in_ = int(value)
+
+    @property
+    def n_out(self) -> int:
+        """Return the number of output channels (n_out_, 1 until fitted)."""
+        return int(getattr(self, 'n_out_', 1))
+
+    @n_out.setter
+    def n_out(self, value):
+        self.n_out_ = int(value)
+
+    @property
+    def inputs(self) -> tuple:
+        """Input channel names, in column order (default u1.., or ('u',) for one)."""
+        names = getattr(self, '_inputs', None)
+        return tuple(names) if names is not None else default_names('u', self.n_in)
+
+    @inputs.setter
+    def inputs(self, names):
+        self._inputs = None if names is None else _names(names, self.n_in, 'input')
+
+    @property
+    def outputs(self) -> tuple:
+        """Output channel names, in column order (default y1.., or ('y',) for one)."""
+        names = getattr(self, '_outputs', None)
+        return tuple(names) if names is not None else default_names('y', self.n_out)
+
+    @outputs.setter
+    def outputs(self, names):
+        self._outputs = None if names is None else _names(names, self.n_out, 'output')
 
     @property
     def n0(self) -> int:
@@ -193,11 +240,28 @@ class DynamicModel:
     def _check_state(self, state):
         """Return a ModelState's vector (float64 copy); DataError when it does not fit."""
         values = np.array(getattr(state, 'values', None), dtype=np.float64).ravel()
-        if values.size != self.state_size or not np.all(np.isfinite(values)) \
-                or not math.isfinite(float(getattr(state, 'offset', math.nan))):
+        try:
+            offset = np.array(getattr(state, 'offset', math.nan), dtype=np.float64)
+        except (TypeError, ValueError):
+            offset = np.array(math.nan)
+        offset_ok = np.all(np.isfinite(offset)) and (
+            offset.size == self.n_out if self.n_out > 1 else offset.size == 1)
+        if values.size != self.state_size or not np.all(np.isfinite(values)) or not offset_ok:
+            what = 'a finite offset' if self.n_out == 1 else \
+                f'a finite offset per output ({self.n_out})'
             raise DataError(f'state does not fit {type(self).__name__}: need {self.state_size} '
-                            f'finite values and a finite offset, got {values.size}')
+                            f'finite values and {what}, got {values.size}')
         return values
+
+    def _check_offset(self, state):
+        """Return a checked ModelState's offset: a float for one output, else (n_out,) m."""
+        if self.n_out == 1:
+            return float(np.asarray(state.offset, dtype=np.float64).reshape(-1)[0])
+        return np.array(state.offset, dtype=np.float64).reshape(self.n_out)
+
+    def _as_output(self, y2d):
+        """Return an (N, n_out) output as the model hands it out: (N,) unless output_2d_."""
+        return y2d if self.output_2d_ else y2d[:, 0]
 
     def _is_fitted(self) -> bool:   # pragma: no cover - interface
         raise NotImplementedError
@@ -237,14 +301,55 @@ class DynamicModel:
                             f'call fit() or load a model file')
 
     def _record_ranges(self, u, y, fs):
-        """Store input/output ranges (V, m) of the estimation data and the sample rate (Hz)."""
-        self.input_range = (float(np.min(u)), float(np.max(u)))
-        self.output_range = (float(np.min(y)), float(np.max(y)))
+        """
+        Store input/output ranges (V, m) of the estimation data and the sample rate (Hz).
+
+        u, y: (N,) or (N, channels); one channel gives today's (min, max) pair, several give
+        ((min...), (max...)) per channel.
+        """
+        self.input_range = _ranges(u)
+        self.output_range = _ranges(y)
         if fs is not None:
             fs = float(fs)
             if not np.isfinite(fs) or fs <= 0:
                 raise DataError(f'sample rate fs must be a positive number of Hz, got {fs!r}')
             self.fs = fs
+
+
+def _ranges(x):
+    """(min, max) of one channel (floats) or ((min...), (max...)) of several."""
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim == 1 or x.shape[1] == 1:
+        return (float(np.min(x)), float(np.max(x)))
+    return (tuple(float(v) for v in np.min(x, axis=0)),
+            tuple(float(v) for v in np.max(x, axis=0)))
+
+
+def _names(names, n, what):
+    names = tuple(str(s) for s in names)
+    if len(names) != n or len(set(names)) != n or not all(s.strip() for s in names):
+        raise DataError(f'{n} distinct {what} name(s) needed, got {list(names)}')
+    return names
+
+
+def channel_ranges(model):
+    """
+    Return the model's trained ranges per channel: (inputs (n_in, 2), outputs (n_out, 2)).
+
+    Rows [min, max] in V and m; None for a range the model does not know. Serves both the
+    one-axis (min, max) pair and the per-channel form of several axes.
+    """
+    def rows(rng, n):
+        if rng is None:
+            return None
+        lo, hi = rng
+        lo = np.atleast_1d(np.asarray(lo, dtype=np.float64))
+        hi = np.atleast_1d(np.asarray(hi, dtype=np.float64))
+        if lo.shape != hi.shape or lo.size not in (1, n):
+            raise DataError(f'range {rng!r} does not fit {n} channel(s)')
+        return np.column_stack([np.broadcast_to(lo, (n,)), np.broadcast_to(hi, (n,))])
+    return (rows(getattr(model, 'input_range', None), model.n_in),
+            rows(getattr(model, 'output_range', None), model.n_out))
 
 
 #: Model families by their model-file kind, in registration order (see register_family).
@@ -297,3 +402,30 @@ def as_record_list(u, y, min_len=1):
         out_u.append(ui)
         out_y.append(as_signal(yi, 'y' + tag, n=ui.size))
     return out_u, out_y
+
+
+def as_channel_lists(u, y, min_len=1):
+    """
+    Return (list of (N_i, n_in) u V, list of (N_i, n_out) y m, y_is_1d) from one record or more.
+
+    One record: arrays (N,) or (N, channels); several: a list or tuple of them. Every record must
+    have the same channel counts; y_is_1d is True when every y was given 1-D (the one-axis case:
+    the model then returns (N,) outputs). DataError (one line) on mismatched or bad arrays.
+    """
+    several = isinstance(u, (list, tuple))
+    if several != isinstance(y, (list, tuple)):
+        raise DataError('give u and y both as arrays (one record) or both as lists (several)')
+    us, ys = (list(u), list(y)) if several else ([u], [y])
+    if not us or len(us) != len(ys):
+        raise DataError(f'u and y must hold the same number of records, got {len(us)} and '
+                        f'{len(ys)}')
+    out_u, out_y, flat = [], [], True
+    for i, (ui, yi) in enumerate(zip(us, ys)):
+        tag = f' (record {i})' if several else ''
+        flat = flat and np.ndim(yi) == 1
+        ui = as_channels(ui, 'u' + tag, min_len=min_len,
+                         width=out_u[0].shape[1] if out_u else None)
+        out_u.append(ui)
+        out_y.append(as_channels(yi, 'y' + tag, n=ui.shape[0],
+                                 width=out_y[0].shape[1] if out_y else None))
+    return out_u, out_y, flat

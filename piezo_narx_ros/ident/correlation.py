@@ -78,6 +78,8 @@ class CorrelationResult:
     max_lag: int
     max_outside_fraction: float
     tests: dict[str, CorrelationTest] = field(default_factory=dict)
+    # Several channels: the (output, input) indices whose residual and input these tests judged.
+    pair: dict | None = None
 
     @property
     def passed(self) -> bool:
@@ -100,7 +102,7 @@ class CorrelationResult:
         return {'n': self.n, 'band': self.band, 'hard_band': self.hard_band,
                 'max_lag': self.max_lag,
                 'max_outside_fraction': self.max_outside_fraction, 'passed': self.passed,
-                'tests': tests}
+                'tests': tests, **({'pair': self.pair} if self.pair is not None else {})}
 
 
 def _spectrum(x: np.ndarray, n_fft: int) -> tuple[np.ndarray, float]:

@@ -79,7 +79,8 @@ def input_band(u: np.ndarray, fs: float) -> tuple[float, float]:
 
 def coverage(records) -> dict:
     """Input range (V) and band (Hz) over several records: the union of theirs."""
-    lows, highs = zip(*(input_band(r.u, r.fs) for r in records))
+    # Every input channel of every record (one axis: the record's one input).
+    lows, highs = zip(*(input_band(r.u[:, i], r.fs) for r in records for i in range(r.n_in)))
     return {'u_min': float(min(r.u.min() for r in records)),
             'u_max': float(max(r.u.max() for r in records)),
             'f_low': float(min(lows)), 'f_high': float(max(highs))}

@@ -20,7 +20,7 @@ import numpy as np
 from piezo_narx_ros.errors import BagError, ConfigError, DataError
 from piezo_narx_ros.ident.units import SI, Units, check_consistent, check_magnitudes
 from piezo_narx_ros.npzfile import read_npz
-from piezo_narx_ros.record import Record
+from piezo_narx_ros.record import Record, check_names, check_same_channels
 
 __all__ = ['Record', 'MIN_SAMPLES', 'load_npz', 'load_csv', 'load_bag', 'load_record',
            'load_records', 'check_length', 'read_table', 'parse_columns', 'pick_columns',
@@ -46,6 +46,39 @@ def _vector(name: str, value, source: str) -> np.ndarray:
     return arr
 
 
+def _channels(name: str, value, source: str) -> np.ndarray:
+    """
+    A signal of one or more channels as a C-contiguous (N, k) float64 array.
+
+    1-D (and a row vector saved as 2-D) is one channel; (N, k) is k channels.
+    """
+    arr = np.asarray(value)
+    if arr.dtype.kind not in 'fiu':
+        raise DataError(f'{source}: {name} is not numeric (dtype {arr.dtype})')
+    arr = arr.astype(np.float64)
+    if arr.ndim == 2 and arr.shape[0] == 1 and arr.shape[1] > 1:   # a row vector
+        arr = arr.reshape(-1)
+    if arr.ndim == 1:
+        arr = arr.reshape(-1, 1)
+    if arr.ndim != 2 or arr.shape[1] < 1:
+        raise DataError(f'{source}: {name} must be (N,) or (N, channels), got shape {arr.shape}')
+    if not np.all(np.isfinite(arr)):
+        bad = int(np.flatnonzero(~np.all(np.isfinite(arr), axis=1))[0])
+        raise DataError(f'{source}: {name} contains NaN or inf (first at sample {bad})')
+    return np.ascontiguousarray(arr)
+
+
+def _names_key(data: dict, key: str, source: str):
+    """Channel names stored under `key` in an .npz (array of str), or None when absent."""
+    if key not in data:
+        return None
+    arr = np.asarray(data[key])
+    if arr.dtype.kind not in 'US' or arr.ndim > 1:
+        raise DataError(f'{source}: {key} must be an array of channel names (str), got dtype '
+                        f'{arr.dtype} shape {arr.shape}')
+    return tuple(str(v) for v in arr.reshape(-1))
+
+
 def _fs_value(fs, source: str) -> float:
     try:
         fs = float(np.asarray(fs).reshape(-1)[0]) if np.ndim(fs) else float(fs)
@@ -56,28 +89,38 @@ def _fs_value(fs, source: str) -> float:
     return fs
 
 
-def _make(u, y, fs, source, t=None, y_true=None, units: Units = SI) -> Record:
-    u = _vector('u', u, source) * units.u_factor
-    y = _vector('y', y, source) * units.y_factor
-    if u.size != y.size:
-        raise DataError(f'{source}: u has {u.size} samples but y has {y.size}')
+def _make(u, y, fs, source, t=None, y_true=None, units: Units = SI, inputs=None,
+          outputs=None) -> Record:
+    u = _channels('u', u, source) * units.u_factor
+    y = _channels('y', y, source) * units.y_factor
+    n = u.shape[0]
+    if y.shape[0] != n:
+        raise DataError(f'{source}: u has {n} samples but y has {y.shape[0]}')
     if t is not None:
         t = _vector('t', t, source)
-        if t.size != u.size:
-            raise DataError(f'{source}: t has {t.size} samples but u has {u.size}')
+        if t.size != n:
+            raise DataError(f'{source}: t has {t.size} samples but u has {n}')
     if y_true is not None:
-        y_true = _vector('y_true', y_true, source) * units.y_factor
-        if y_true.size != u.size:
-            raise DataError(f'{source}: y_true has {y_true.size} samples but u has {u.size}')
-    if u.size < MIN_SAMPLES:
-        raise DataError(f'{source}: only {u.size} samples, need at least {MIN_SAMPLES}')
+        y_true = _channels('y_true', y_true, source) * units.y_factor
+        if y_true.shape != y.shape:
+            raise DataError(f'{source}: y_true has shape {y_true.shape} but y {y.shape}')
+    if n < MIN_SAMPLES:
+        raise DataError(f'{source}: only {n} samples, need at least {MIN_SAMPLES}')
+    if inputs is not None:
+        inputs = check_names(inputs, u.shape[1], 'input', source)
+    if outputs is not None:
+        outputs = check_names(outputs, y.shape[1], 'output', source)
     check_magnitudes(u, y, source, units)
-    return Record(u=u, y=y, fs=_fs_value(fs, source), source=source, t=t, y_true=y_true)
+    return Record(u=u, y=y, fs=_fs_value(fs, source), source=source, t=t, y_true=y_true,
+                  inputs=inputs, outputs=outputs)
 
 
 def load_npz(path, fs: float | None = None, units: Units = SI) -> Record:
     """
-    Record from an .npz with keys u, y and fs or t (optional y_true).
+    Record from an .npz with keys u, y and fs or t (optional y_true, inputs, outputs).
+
+    u (N,) or (N, n_in) V, y (N,) or (N, n_out) m; inputs / outputs: arrays of channel names
+    (default ('u',), ('y',) for one channel, u1.. / y1.. for several).
 
     `fs` fills a missing rate; a file whose t column and fs disagree is refused, and one with t
     but no fs takes its rate from t (`time_clock`, whose gap and jitter warnings apply).
@@ -105,11 +148,12 @@ def load_npz(path, fs: float | None = None, units: Units = SI) -> Record:
     if file_fs is None and fs is None:
         raise DataError(f'{source}: no fs key and no t; pass the sample rate with --fs')
     return _make(data['u'], data['y'], file_fs if file_fs is not None else fs, source, t,
-                 data.get('y_true'), units)
+                 data.get('y_true'), units, _names_key(data, 'inputs', source),
+                 _names_key(data, 'outputs', source))
 
 
 def load_csv(path, fs: float | None = None, columns: dict | None = None,
-             units: Units = SI) -> Record:
+             units: Units = SI, inputs=None, outputs=None) -> Record:
     """
     Record from a delimited text table: .csv, or .tsv/.txt/.dat (tabs or spaces).
 
@@ -117,10 +161,23 @@ def load_csv(path, fs: float | None = None, columns: dict | None = None,
     columns are t,u,y (3 columns) or u,y (2 columns), or chosen with `columns` ({'u': 1, 'y': 5,
     't': ...}: 1-based numbers or header names, as `--columns u=1,y=5`). fs comes from the t
     column (`time_clock`) or `fs`; both given must agree.
+
+    Several axes: a header `t, u1, u2, ..., y1, y2, ...` (inputs named u<k>, outputs y<k>), or
+    any header names with `inputs` / `outputs` (lists of column names, `--inputs a,b --outputs
+    c,d`); the channels keep the header's names, in the order given.
     """
     path = Path(path)
     source = str(path)
     names, table = read_table(path)
+    several = _channel_columns(names, inputs, outputs, source)
+    if several is not None:
+        iu, iy = several
+        t = None
+        if names is not None and 't' in names:
+            t = _vector('t', table[:, names.index('t')], source) * units.t_factor
+        fs = _csv_rate(t, fs, source, units)
+        return _make(table[:, iu], table[:, iy], fs, source, t, None, units,
+                     [names[i] for i in iu], [names[i] for i in iy])
     cols = pick_columns(names, table.shape[1], columns, source)
     if 'u' not in cols or 'y' not in cols:
         missing = [k for k in ('u', 'y') if k not in cols]
@@ -130,6 +187,14 @@ def load_csv(path, fs: float | None = None, columns: dict | None = None,
     t = table[:, cols['t']] if 't' in cols else None
     if t is not None:
         t = _vector('t', t, source) * units.t_factor
+    fs = _csv_rate(t, fs, source, units)
+    return _make(table[:, cols['u']], table[:, cols['y']], fs, source, t,
+                 table[:, cols['y_true']] if 'y_true' in cols else None, units)
+
+
+def _csv_rate(t, fs, source: str, units: Units) -> float:
+    """The rate (Hz) of a table: from its t column (s) and/or --fs, which must agree."""
+    if t is not None:
         csv_fs = time_clock(t, source, 't', stated='t' in units.stated).fs
         if fs is not None and not np.isclose(csv_fs, fs, rtol=TIME_RATE_RTOL):
             raise DataError(f'{source}: time stamps give fs = {csv_fs:.6g} Hz but --fs = {fs} '
@@ -138,8 +203,54 @@ def load_csv(path, fs: float | None = None, columns: dict | None = None,
         fs = fs if fs is not None else csv_fs
     if fs is None:
         raise DataError(f'{source}: no t column; pass the sample rate with --fs')
-    return _make(table[:, cols['u']], table[:, cols['y']], fs, source, t,
-                 table[:, cols['y_true']] if 'y_true' in cols else None, units)
+    return fs
+
+
+def _numbered(names, prefix: str) -> list[int]:
+    """Indices of the header names prefix1, prefix2, ... (in the order of their numbers)."""
+    found = [(int(n[len(prefix):]), i) for i, n in enumerate(names)
+             if n.startswith(prefix) and n[len(prefix):].isdigit()]
+    return [i for _, i in sorted(found)]
+
+
+def _channel_columns(names, inputs, outputs, source: str):
+    """
+    (input column indices, output column indices) of a several-axes table, or None.
+
+    Given names (`inputs` / `outputs`) pick header columns; else a header of u1.. and y1..
+    columns (and no plain u / y column) is a several-axes table.
+    """
+    if inputs is not None or outputs is not None:
+        if inputs is None or outputs is None:
+            raise DataError(f'{source}: give both --inputs and --outputs (column names)')
+        if names is None:
+            raise DataError(f'{source}: --inputs/--outputs name header columns, but the file '
+                            'has no header row')
+        picked = []
+        for what, wanted in (('--inputs', inputs), ('--outputs', outputs)):
+            idx = []
+            for col in wanted:
+                key = str(col).strip().lower()
+                if key not in names:
+                    raise DataError(f'{source}: {what}: no column named {key!r} (header: '
+                                    f'{", ".join(names)})')
+                idx.append(names.index(key))
+            picked.append(idx)
+        if set(picked[0]) & set(picked[1]) or len(set(picked[0])) != len(picked[0]) \
+                or len(set(picked[1])) != len(picked[1]):
+            raise DataError(f'{source}: a column is named twice in --inputs/--outputs')
+        return picked[0], picked[1]
+    if names is None or 'u' in names or 'y' in names:
+        return None
+    iu, iy = _numbered(names, 'u'), _numbered(names, 'y')
+    if not iu and not iy:
+        return None
+    if not iu or not iy:
+        raise DataError(f'{source}: the header names {"inputs u1.." if iu else "outputs y1.."} '
+                        f'but no {"outputs y1.." if iu else "inputs u1.."} (header: '
+                        f'{", ".join(names)}); name the columns u1.., y1.. or pass --inputs and '
+                        '--outputs')
+    return iu, iy
 
 
 # ------------------------------------------------------------------------------ text tables
@@ -385,7 +496,8 @@ def load_bag(path, command_topic: str, deflection_topic: str, axis: str | int | 
 
 def checked(record: Record, units: Units = SI) -> Record:
     """Return `record` converted by `units` and checked like every loaded record."""
-    return _make(record.u, record.y, record.fs, record.source, record.t, record.y_true, units)
+    return _make(record.u, record.y, record.fs, record.source, record.t, record.y_true, units,
+                 record.inputs, record.outputs)
 
 
 def _is_bag(path: Path) -> bool:
@@ -395,7 +507,8 @@ def _is_bag(path: Path) -> bool:
 
 def load_record(path, fs: float | None = None, command_topic: str = 'piezo/voltage_command',
                 deflection_topic: str = 'piezo/deflection', columns: dict | None = None,
-                units: Units = SI, axis: str | int | None = None) -> Record:
+                units: Units = SI, axis: str | int | None = None, inputs=None,
+                outputs=None) -> Record:
     """
     Load one Record from an .npz, a text table, an .mcap file or a rosbag2 directory.
 
@@ -414,7 +527,7 @@ def load_record(path, fs: float | None = None, command_topic: str = 'piezo/volta
     if suffix == '.npz':
         return load_npz(path, fs, units)
     if suffix in TABLE_SUFFIXES:
-        return load_csv(path, fs, columns, units)
+        return load_csv(path, fs, columns, units, inputs, outputs)
     raise DataError(f'{path}: unknown input type {suffix or "(no suffix)"}; '
                     f'use .npz, {", ".join(TABLE_SUFFIXES)}, .mcap or a rosbag2 directory')
 
@@ -451,15 +564,18 @@ def expand_inputs(paths) -> list[Path]:
 
 def load_records(paths, fs: float | None = None, command_topic: str = 'piezo/voltage_command',
                  deflection_topic: str = 'piezo/deflection', columns: dict | None = None,
-                 units: Units = SI, axis: str | int | None = None) -> list[Record]:
+                 units: Units = SI, axis: str | int | None = None, inputs=None,
+                 outputs=None) -> list[Record]:
     """
     Load the records from every path (options as `load_record`, the same for each).
 
     A folder of recordings gives each one in it (`expand_inputs`). All must share one sample
-    rate (Hz), hold different samples (a bag and its own export fitted together count twice)
-    and be in the same units (`units.check_consistent`), else DataError.
+    rate (Hz), hold different samples (a bag and its own export fitted together count twice),
+    have the same channel names in the same order, and be in the same units
+    (`units.check_consistent`), else DataError.
     """
-    records = [load_record(p, fs, command_topic, deflection_topic, columns, units, axis)
+    records = [load_record(p, fs, command_topic, deflection_topic, columns, units, axis, inputs,
+                           outputs)
                for p in expand_inputs(paths)]
     if not records:
         raise DataError('no input files given')
@@ -468,6 +584,7 @@ def load_records(paths, fs: float | None = None, command_topic: str = 'piezo/vol
         if not np.isclose(r.fs, first.fs, rtol=1e-6):
             raise DataError(f'sample rates differ: {first.source} has {first.fs:g} Hz, '
                             f'{r.source} has {r.fs:g} Hz')
+    check_same_channels(records)
     seen = {}
     for r in records:
         key = (len(r), hashlib.sha256(r.u.tobytes() + r.y.tobytes()).hexdigest())
@@ -590,13 +707,13 @@ def check_identifiable(record: Record, split: float = 0.5) -> list[str]:
            f'{split:g})')
     if _constant(est.u):
         raise DataError(f'{record.source}: the input is constant over the estimation part '
-                        f'(first {len(est)} samples, u = {est.u[0]:.6g} V): it excites nothing, '
-                        f'so no model can be identified from it; {fix}')
+                        f'(first {len(est)} samples, u = {est.u.flat[0]:.6g} V): it excites '
+                        f'nothing, so no model can be identified from it; {fix}')
     for part, name in ((est, 'estimation'), (val, 'validation')):
         if len(part) and _constant(part.y):
             raise DataError(f'{record.source}: the output is constant in the {name} part '
-                            f'(y = {part.y[0]:.6g} m, spread {np.ptp(part.y):.3g} m): nothing to '
-                            'identify; check that y is the measured deflection')
+                            f'(y = {part.y.flat[0]:.6g} m, spread {np.ptp(part.y):.3g} m): '
+                            'nothing to identify; check that y is the measured deflection')
     warnings = []
     s_est, s_val = float(np.std(est.u)), float(np.std(val.u))
     if s_est < 0.1 * s_val:

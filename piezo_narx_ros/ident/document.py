@@ -69,3 +69,11 @@ def range_of(doc, key, name):
         raise ModelFileError(f'{name}: key {key!r} must be [min, max] (finite, min <= max) or '
                              f'null, got {v!r}')
     return (float(v[0]), float(v[1]))
+
+
+def channel_counts(doc, name):
+    """(n_in, n_out) of a model file: structure.n_in / n_out, 1 each when absent (one axis)."""
+    structure = doc.get('structure') if isinstance(doc.get('structure'), dict) else {}
+    n_in = get_int(doc, 'structure.n_in', name, 1) if 'n_in' in structure else 1
+    n_out = get_int(doc, 'structure.n_out', name, 1) if 'n_out' in structure else 1
+    return n_in, n_out

@@ -55,6 +55,7 @@ from piezo_narx_ros.ident.correlation import correlation_tests
 from piezo_narx_ros.ident.data import Record, check_length
 from piezo_narx_ros.ident.executor import Executor, LocalExecutor, TaskFailure, in_worker
 from piezo_narx_ros.ident.noise_model import NOISE_MODELS, ARNoiseModel, fit_ar_noise_model
+from piezo_narx_ros.record import as_columns, channels_arg, check_same_channels
 
 RESIDUAL_KINDS = ('prediction', 'simulation')
 # Final training of the selected network (over the grid's `training`): a longer simulation-error
@@ -284,9 +285,13 @@ class CandidateResult:
         estimation data with 0.99993 on validation) must not win on the validation half alone; nor
         may a model that is good on most records and fails one (a kind of move the user makes).
         """
-        per_record = [-np.inf if r['simulation']['r2'] is None else r['simulation']['r2']
-                      for r in self.scores.get('validation', {}).get('records', [])]
-        return min([self.r2('estimation'), self.r2('validation')] + per_record)
+        val = self.scores.get('validation', {})
+        blocks = [self.scores.get('estimation', {}).get('simulation', {}),
+                  val.get('simulation', {})]
+        blocks += [r['simulation'] for r in val.get('records', [])]
+        # Several outputs: every output of every block counts (the worst axis decides).
+        blocks += [o for b in list(blocks) for o in b.get('per_output', [])]
+        return min(-np.inf if b.get('r2') is None else b['r2'] for b in blocks)
 
     def to_dict(self) -> dict:
         """JSON-ready form, without the model."""
@@ -358,7 +363,10 @@ def split_records(records: list[Record],
 
 def free_run(model, record: Record) -> tuple[np.ndarray, np.ndarray]:
     """
-    (one-step prediction, free run), (N,) m each, of a model on a record.
+    (one-step prediction, free run), (N, n_out) m each, of a model on a record.
+
+    The model gets the record's channels in its own form (`channels_arg`: 1-D for one channel,
+    as before several axes); its outputs come back as (N, n_out) columns.
 
     The free run starts from the record's first n0 measured outputs, as the paper does. A model
     whose state is a function of the whole input history (`state_from_input`) is instead run
@@ -371,34 +379,41 @@ def free_run(model, record: Record) -> tuple[np.ndarray, np.ndarray]:
     found at the recording's start is run through that history and then refined (offset, creep,
     output dynamics) on the record's first N samples. A free run of NaN when no state is found.
     """
-    u, y, skip = record.u, record.y, 0
+    pred, sim = _free_run(model, record)
+    return as_columns(pred), as_columns(sim)
+
+
+def _free_run(model, record: Record):
+    """free_run in the model's own shapes ((N,) for one output)."""
+    u, y, skip = channels_arg(record.u), channels_arg(record.y), 0
+    u_before, y_before = channels_arg(record.u_before), channels_arg(record.y_before)
     window = record.state_window
-    before = record.u_before is not None and record.y_before is not None
+    before = u_before is not None and y_before is not None
     with np.errstate(all='ignore'):   # a diverging network must not spam warnings
         if window:
             if before:
-                pred = model.predict(np.r_[record.u_before, u],
-                                     np.r_[record.y_before, y])[record.u_before.size:]
+                pred = model.predict(np.r_[u_before, u],
+                                     np.r_[y_before, y])[len(u_before):]
             else:
                 pred = model.predict(u, y)
-            n = min(int(window), u.size)
+            n = min(int(window), len(u))
             try:
                 prior = None
                 if before:
-                    m = min(n, record.u_before.size)
-                    start = model.estimate_state(record.u_before[:m], record.y_before[:m])
+                    m = min(n, len(u_before))
+                    start = model.estimate_state(u_before[:m], y_before[:m])
                     stepper = model.stepper(state=start)
-                    for value in record.u_before:
+                    for value in u_before:
                         stepper.step(value)
                     prior = stepper.state
                 state = model.estimate_state(u[:n], y[:n], prior=prior)
                 sim = model.simulate(u, state=state)
             except DataError:
-                sim = np.full(u.size, np.nan)
+                sim = np.full(np.shape(pred), np.nan)
             return pred, sim
         if (window is not None or getattr(model, 'state_from_input', False)) and before:
-            skip = record.u_before.size
-            u, y = np.concatenate([record.u_before, u]), np.concatenate([record.y_before, y])
+            skip = len(u_before)
+            u, y = np.concatenate([u_before, u]), np.concatenate([y_before, y])
         pred = model.predict(u, y)
         sim = model.simulate(u) if window == 0 else model.simulate(u, y[:model.n0])
     return pred[skip:], sim[skip:]
@@ -416,7 +431,11 @@ def scored_from(model, record: Record) -> int:
 
 
 def outputs_by_record(model, records: list[Record]) -> list[dict[str, np.ndarray]]:
-    """Per record, the scored samples (`scored_from`): u (V), y, prediction, simulation (m)."""
+    """
+    Per record, the scored samples (`scored_from`): u (V), y, prediction, simulation (m).
+
+    Each (n, channels): u (n, n_in), the others (n, n_out).
+    """
     parts = []
     for r in records:
         pred, sim = free_run(model, r)
@@ -430,6 +449,8 @@ def model_outputs(model, records: list[Record]) -> dict[str, np.ndarray]:
     """
     Pooled samples k >= n0 of every record: 'u' (V), 'y' (m), 'prediction', 'simulation' (m).
 
+    (n, channels) each, as outputs_by_record.
+
     Each record is predicted from its measured past and simulated from its first n0 outputs.
     """
     parts = outputs_by_record(model, records)
@@ -441,11 +462,11 @@ def _residual(part: dict, mode: str) -> np.ndarray:
     Return the residual y - ŷ of one record (m).
 
     A free run without its start-up transient (SIMULATION_BURN_IN), kept whole when the record is
-    too short to spare it.
+    too short to spare it. (n, n_out).
     """
     e = part['y'] - part[mode]
     skip = SIMULATION_BURN_IN if mode == 'simulation' else 0
-    return e[skip:] if e.size > 10 * skip else e
+    return e[skip:] if len(e) > 10 * skip else e
 
 
 def fit_noise_models(model, records: list[Record], max_order: int = 20,
@@ -455,44 +476,47 @@ def fit_noise_models(model, records: list[Record], max_order: int = 20,
 
     The order is capped by `max_order` and by what the data allow (10 samples per coefficient,
     and 4 * max_lag samples left per record after whitening). None for a kind whose output is not
-    finite (a diverged free run).
+    finite (a diverged free run). Several outputs: a list of noise models, one per output (each
+    output's residual is whitened on its own).
     """
     parts = outputs_by_record(model, records)
-    shortest = min(p['y'].size for p in parts)
+    shortest = min(len(p['y']) for p in parts)
     result = {}
     for mode in RESIDUAL_KINDS:
         resid = np.concatenate([_residual(p, mode) for p in parts])
         if not np.all(np.isfinite(resid)):
             result[mode] = None
             continue
-        cap = max(0, min(int(max_order), resid.size // 10 - 1, shortest - 4 * int(max_lag)))
-        result[mode] = fit_ar_noise_model(resid, cap)
+        cap = max(0, min(int(max_order), len(resid) // 10 - 1, shortest - 4 * int(max_lag)))
+        fitted = [fit_ar_noise_model(resid[:, j], cap) for j in range(resid.shape[1])]
+        result[mode] = fitted[0] if len(fitted) == 1 else fitted
     return result
 
 
-def _mode_scores(out: dict) -> dict:
+def _mode_scores(out: dict, names=None) -> dict:
     result = {}
     for mode in RESIDUAL_KINDS:
         y_hat = out[mode]
         if np.all(np.isfinite(y_hat)):
-            result[mode] = metrics.scores(out['y'], y_hat)
+            result[mode] = metrics.channel_scores(out['y'], y_hat, names)
         else:
             result[mode] = {'r2': None, 'rmse': None, 'nrmse': None, 'fit_percent': None,
                             'diverged': True}
     return result
 
 
-def _scores(parts: list[dict], sources: list[str] | None = None) -> dict:
+def _scores(parts: list[dict], sources: list[str] | None = None, names=None) -> dict:
     """
-    Scores pooled over the records.
+    Scores pooled over the records (and over outputs: metrics.channel_scores).
 
     With several records also 'records': one entry each (source, samples, prediction and simulation
-    scores).
+    scores). names: the output names (several outputs also get 'per_output' scores).
     """
     out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-    result = _mode_scores(out)
+    result = _mode_scores(out, names)
     if sources is not None and len(parts) > 1:
-        result['records'] = [{'source': src, 'samples': int(p['y'].size), **_mode_scores(p)}
+        result['records'] = [{'source': src, 'samples': int(len(p['y'])),
+                              **_mode_scores(p, names)}
                              for src, p in zip(sources, parts)]
     return result
 
@@ -507,18 +531,34 @@ def residual_correlations(parts: list[dict], mode: str, max_lag: int,
     Test the residuals of `mode` pooled over records: a CorrelationResult, None when not finite.
 
     Each record is whitened on its own by `noise_model`, its first `order` samples dropped.
+    Several channels: the tests run on each output's residual (whitened by its own noise model,
+    `noise_model` a list) against each input; the result is the pair that fails most (fewest
+    tests passed, then most lags outside), with 'output' and 'input' indices in its `pair`.
     """
-    resid, u = [], []
-    for p in parts:
-        e = _residual(p, mode)
-        if not np.all(np.isfinite(e)):
-            return None
-        if noise_model is not None and noise_model.order:
-            e = noise_model.whiten(e)
-        resid.append(e)
-        u.append(p['u'][p['u'].size - e.size:])
-    return correlation_tests(np.concatenate(resid), np.concatenate(u), max_lag,
-                             max_outside_fraction)
+    n_out, n_in = parts[0]['y'].shape[1], parts[0]['u'].shape[1]
+    models = noise_model if isinstance(noise_model, (list, tuple)) else [noise_model] * n_out
+    worst = None
+    for j in range(n_out):
+        resid, u = [], []
+        for p in parts:
+            e = _residual(p, mode)[:, j]
+            if not np.all(np.isfinite(e)):
+                return None
+            if models[j] is not None and models[j].order:
+                e = models[j].whiten(e)
+            resid.append(e)
+            u.append(p['u'][len(p['u']) - e.size:])
+        e_all, u_all = np.concatenate(resid), np.concatenate(u)
+        for i in range(n_in):
+            corr = correlation_tests(e_all, u_all[:, i], max_lag, max_outside_fraction)
+            if n_out == 1 and n_in == 1:
+                return corr
+            corr.pair = {'output': j, 'input': i}
+            key = (sum(corr.verdicts().values()),
+                   -sum(t.n_outside for t in corr.tests.values()))
+            if worst is None or key < worst[0]:
+                worst = (key, corr)
+    return worst[1]
 
 
 def evaluate_model(model, records: list[Record], max_lag: int = 20,
@@ -537,7 +577,7 @@ def evaluate_model(model, records: list[Record], max_lag: int = 20,
     A non-finite simulation (diverged network) gets scores of None and failing tests.
     """
     parts = outputs_by_record(model, records)
-    result = _scores(parts, [r.source for r in records])
+    result = _scores(parts, [r.source for r in records], records[0].outputs)
     if not with_tests:
         return result
     tests = {'raw': {}}
@@ -555,7 +595,9 @@ def evaluate_model(model, records: list[Record], max_lag: int = 20,
             tests[mode] = _failed_tests('no_noise_model')
         else:
             corr = residual_correlations(parts, mode, max_lag, max_outside_fraction, nm)
-            tests[mode] = {**corr.to_dict(with_values=False), 'noise_model': nm.to_dict()}
+            tests[mode] = {**corr.to_dict(with_values=False),
+                           'noise_model': ([m.to_dict() for m in nm]
+                                           if isinstance(nm, (list, tuple)) else nm.to_dict())}
     result['tests'] = tests
     return result
 
@@ -571,10 +613,13 @@ def fit_candidate(spec: CandidateSpec, est: list[Record], val: list[Record],
     t0 = time.perf_counter()
     try:
         model = spec.build(config.training)
-        us, ys = [r.u for r in est], [r.y for r in est]
+        check_same_channels(est + val)
+        us, ys = [channels_arg(r.u) for r in est], [channels_arg(r.y) for r in est]
         if len(est) == 1:
             us, ys = us[0], ys[0]
         model.fit(us, ys, fs=est[0].fs)
+        if model.n_in == est[0].n_in and model.n_out == est[0].n_out:
+            model.inputs, model.outputs = est[0].inputs, est[0].outputs
         res.fit_seconds = time.perf_counter() - t0
         score_candidate(res, model, est, val, config)
     except PiezoNarxError as exc:

@@ -248,3 +248,257 @@ class ARXStepper(Stepper):
         bu, ay, c = self._params
         return arx_peek(_finite_input(u_k), self._ubuf, self._ybuf, self._scratch, bu, ay,
                         c) + self.offset
+
+
+# ------------------------------------------------------------------ several inputs and outputs
+# The same models with channels: u (N, n_in) V, y (N, n_out) m, windows of rows in time order.
+#   NARX: y(k) = b2 + W2 sigmoid(b1 + sum_l Wu[:, l, :] u(k-nu+l) + sum_l Wy[:, l, :] y(k-ny+l))
+#   ARX:  y_j(k) = c_j + sum_l Bu[j, l, :] . u(k-nu+l) + sum_l Ay[j, l, :] . y(k-ny+l)
+# with Wu (H, nu+1, n_in), Wy (H, ny, n_out), W2 (n_out, H), b2 (n_out,); Bu (n_out, nu+1, n_in),
+# Ay (n_out, ny, n_out), c (n_out,). One-axis models keep the kernels above (bit for bit).
+
+@njit(cache=True)
+def _narx_eval_mimo(u, iu, y, iy, Wu, Wy, b1, W2, b2, out):
+    """Write y(k) (n_out,) into out from rows u[iu : iu+nu+1] and y[iy : iy+ny]."""
+    H, nu1, n_in = Wu.shape
+    ny, n_out = Wy.shape[1], Wy.shape[2]
+    for j in range(n_out):
+        out[j] = b2[j]
+    for h in range(H):
+        z = b1[h]
+        for lag in range(nu1):
+            for i in range(n_in):
+                z += Wu[h, lag, i] * u[iu + lag, i]
+        for lag in range(ny):
+            for i in range(n_out):
+                z += Wy[h, lag, i] * y[iy + lag, i]
+        s = 1.0 / (1.0 + np.exp(-z))
+        for j in range(n_out):
+            out[j] += W2[j, h] * s
+
+
+@njit(cache=True)
+def narx_simulate_mimo(u, y, start, Wu, Wy, b1, W2, b2):
+    """Free-run in place: fill y[start:] (N, n_out) from u (N, n_in) and y's own past."""
+    nu1, ny = Wu.shape[1], Wy.shape[1]
+    for k in range(start, u.shape[0]):
+        _narx_eval_mimo(u, k - nu1 + 1, y, k - ny, Wu, Wy, b1, W2, b2, y[k])
+
+
+@njit(cache=True)
+def narx_predict_mimo(u, y, start, Wu, Wy, b1, W2, b2):
+    """One-step-ahead outputs (N, n_out) for k >= start from measured u, y; [:start] = y."""
+    nu1, ny = Wu.shape[1], Wy.shape[1]
+    out = y.copy()
+    for k in range(start, u.shape[0]):
+        _narx_eval_mimo(u, k - nu1 + 1, y, k - ny, Wu, Wy, b1, W2, b2, out[k])
+    return out
+
+
+@njit(cache=True)
+def _arx_eval_mimo(u, iu, y, iy, Bu, Ay, c, out):
+    """Write y(k) (n_out,) into out from rows u[iu : iu+nu+1] and y[iy : iy+ny]."""
+    n_out, nu1, n_in = Bu.shape
+    ny = Ay.shape[1]
+    for j in range(n_out):
+        acc = c[j]
+        for lag in range(nu1):
+            for i in range(n_in):
+                acc += Bu[j, lag, i] * u[iu + lag, i]
+        for lag in range(ny):
+            for i in range(n_out):
+                acc += Ay[j, lag, i] * y[iy + lag, i]
+        out[j] = acc
+
+
+@njit(cache=True)
+def arx_simulate_mimo(u, y, start, Bu, Ay, c):
+    """Free-run in place: fill y[start:] (N, n_out) from u (N, n_in) and y's own past."""
+    nu1, ny = Bu.shape[1], Ay.shape[1]
+    for k in range(start, u.shape[0]):
+        _arx_eval_mimo(u, k - nu1 + 1, y, k - ny, Bu, Ay, c, y[k])
+
+
+@njit(cache=True)
+def arx_predict_mimo(u, y, start, Bu, Ay, c):
+    """One-step-ahead outputs (N, n_out) for k >= start from measured u, y; [:start] = y."""
+    nu1, ny = Bu.shape[1], Ay.shape[1]
+    out = y.copy()
+    for k in range(start, u.shape[0]):
+        _arx_eval_mimo(u, k - nu1 + 1, y, k - ny, Bu, Ay, c, out[k])
+    return out
+
+
+@njit(cache=True)
+def _shift_in(buf, row):
+    """Shift the rows of buf up by one and put `row` last."""
+    for r in range(buf.shape[0] - 1):
+        for i in range(buf.shape[1]):
+            buf[r, i] = buf[r + 1, i]
+    for i in range(buf.shape[1]):
+        buf[buf.shape[0] - 1, i] = row[i]
+
+
+@njit(cache=True)
+def _finite(x):
+    for v in x:
+        if not np.isfinite(v):
+            return False
+    return True
+
+
+@njit(cache=True)
+def narx_step_mimo(u_k, ubuf, ybuf, out, Wu, Wy, b1, W2, b2):
+    """
+    Step with u_k (n_in,) V: y(k) into out (n_out,) m, both histories shifted; True.
+
+    False (nothing changed) when u_k is not finite.
+    """
+    if not _finite(u_k):
+        return False
+    _shift_in(ubuf, u_k)
+    _narx_eval_mimo(ubuf, 0, ybuf, 0, Wu, Wy, b1, W2, b2, out)
+    if ybuf.shape[0] > 0:
+        _shift_in(ybuf, out)
+    return True
+
+
+@njit(cache=True)
+def narx_peek_mimo(u_k, ubuf, ybuf, scratch, out, Wu, Wy, b1, W2, b2):
+    """y(k) for u_k into out without changing the histories (scratch: (nu+1, n_in)); finite?"""
+    if not _finite(u_k):
+        return False
+    scratch[:] = ubuf
+    _shift_in(scratch, u_k)
+    _narx_eval_mimo(scratch, 0, ybuf, 0, Wu, Wy, b1, W2, b2, out)
+    return True
+
+
+@njit(cache=True)
+def arx_step_mimo(u_k, ubuf, ybuf, out, Bu, Ay, c):
+    """As narx_step_mimo for an ARX model."""
+    if not _finite(u_k):
+        return False
+    _shift_in(ubuf, u_k)
+    _arx_eval_mimo(ubuf, 0, ybuf, 0, Bu, Ay, c, out)
+    if ybuf.shape[0] > 0:
+        _shift_in(ybuf, out)
+    return True
+
+
+@njit(cache=True)
+def arx_peek_mimo(u_k, ubuf, ybuf, scratch, out, Bu, Ay, c):
+    """As narx_peek_mimo for an ARX model."""
+    if not _finite(u_k):
+        return False
+    scratch[:] = ubuf
+    _shift_in(scratch, u_k)
+    _arx_eval_mimo(scratch, 0, ybuf, 0, Bu, Ay, c, out)
+    return True
+
+
+def _block(x, rows, cols, name):
+    """Validate a (rows, cols) float64 history (a flat array of rows*cols too); None: zeros."""
+    if x is None:
+        return np.zeros((rows, cols))
+    try:
+        a = np.array(x, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DataError(f'{name} must be an array of numbers') from None
+    if a.size != rows * cols:
+        raise DataError(f'{name} must hold {rows} samples of {cols} channel(s), got shape '
+                        f'{a.shape}')
+    if not np.all(np.isfinite(a)):
+        raise DataError(f'{name} contains NaN or infinite values')
+    return a.reshape(rows, cols)
+
+
+class VectorStepper:
+    """
+    Free-run a model of several inputs or outputs one sample at a time.
+
+    ``u_past`` holds rows ``[u(k-nu) ... u(k-1)]`` (nu, n_in) V and ``y_past`` ``[y(k-ny) ...
+    y(k-1)]`` (ny, n_out) m (None = rest). ``step(u_k)`` takes an (n_in,) array (V) and returns
+    a NEW (n_out,) array (m, offset added): the one allocation per step. ``offset``: float or
+    (n_out,) m, added to every output.
+    """
+
+    offset = 0.0
+    _step = None    # the compiled step and peek of the family (set by subclasses)
+    _peek = None
+
+    def __init__(self, params, nu, ny, n_in, n_out, u_past=None, y_past=None):
+        self._params = tuple(params)
+        self.nu, self.ny, self.n_in, self.n_out = nu, ny, n_in, n_out
+        self._ubuf = np.zeros((nu + 1, n_in))
+        self._ybuf = np.zeros((ny, n_out))
+        self._scratch = np.zeros((nu + 1, n_in))
+        self._out = np.zeros(n_out)
+        self.reset(u_past, y_past)
+
+    def reset(self, u_past=None, y_past=None):
+        """Restart from the given histories (None = rest; y_past as output, offset included)."""
+        self._ubuf[1:] = _block(u_past, self.nu, self.n_in, 'u_past')
+        self._ybuf[:] = _block(y_past, self.ny, self.n_out, 'y_past')
+        if y_past is not None:
+            self._ybuf -= self.offset
+
+    def _input(self, u_k):
+        u = np.asarray(u_k, dtype=np.float64)
+        if u.shape != (self.n_in,):
+            raise DataError(f'stepper input must be {self.n_in} voltages (one per input), got '
+                            f'shape {u.shape}')
+        return u
+
+    def step(self, u_k):
+        """
+        Feed one input sample u_k (n_in,) V; returns the free-run output y(k) (n_out,) m.
+
+        A non-finite u_k raises DataError and leaves the histories untouched.
+        """
+        if not type(self)._step(self._input(u_k), self._ubuf, self._ybuf, self._out,
+                                *self._params):
+            raise DataError(f'stepper input must be finite voltages, got {u_k!r}')
+        return self._out + self.offset
+
+    def peek(self, u_k):
+        """Return the output step(u_k) would return (n_out,) m, without changing the histories."""
+        if not type(self)._peek(self._input(u_k), self._ubuf, self._ybuf, self._scratch,
+                                self._out, *self._params):
+            raise DataError(f'stepper input must be finite voltages, got {u_k!r}')
+        return self._out + self.offset
+
+    @property
+    def y_past(self):
+        """Copy of the output history (ny, n_out), m (as output: offset included)."""
+        return self._ybuf + self.offset
+
+    @property
+    def u_past(self):
+        """Copy of the input history (nu, n_in), V."""
+        return self._ubuf[1:].copy()
+
+    @property
+    def state(self):
+        """Return the current ModelState (past input rows V and output rows m, the offset)."""
+        from .state import ModelState
+        return ModelState(np.r_[self._ubuf[1:].ravel(), self._ybuf.ravel()], self.offset)
+
+    @property
+    def kernel_state(self):
+        """Return ((ubuf (nu+1, n_in), ybuf (ny, n_out)), kernel parameters); read only."""
+        return (self._ubuf, self._ybuf), self._params
+
+
+class NARXVectorStepper(VectorStepper):
+    """VectorStepper of a NARXNetwork with several inputs or outputs."""
+
+    _step = staticmethod(narx_step_mimo)
+    _peek = staticmethod(narx_peek_mimo)
+
+
+class ARXVectorStepper(VectorStepper):
+    """VectorStepper of an ARXModel with several inputs or outputs."""
+
+    _step = staticmethod(arx_step_mimo)
+    _peek = staticmethod(arx_peek_mimo)

@@ -66,3 +66,39 @@ def scores(y, y_hat, start: int = 0) -> dict[str, float]:
     """All four figures at once: {'r2', 'rmse' (m), 'nrmse', 'fit_percent'}."""
     return {'r2': r2(y, y_hat, start), 'rmse': rmse(y, y_hat, start),
             'nrmse': nrmse(y, y_hat, start), 'fit_percent': fit_percent(y, y_hat, start)}
+
+
+def channel_scores(y, y_hat, names=None, per_output: bool | None = None) -> dict:
+    """
+    Scores of several outputs: y and y_hat (N, n_out) (or (N,) for one), names per output.
+
+    One output: `scores` of that output (the one-axis figures, bit for bit). Several: pooled over
+    outputs, R² = 1 - sum SSE / sum SST (each output's SST about its own mean), RMSE over every
+    sample of every output (m), NRMSE = sqrt(sum SSE / sum SST), fit % = 100 (1 - NRMSE); and
+    'per_output': [{'name', 'r2', 'rmse', 'nrmse', 'fit_percent'}] in output order.
+    per_output: force the list on (True) or off (False); None: only for several outputs.
+    """
+    y = np.asarray(y, dtype=np.float64)
+    y_hat = np.asarray(y_hat, dtype=np.float64)
+    if y.ndim == 1:
+        y, y_hat = y.reshape(-1, 1), y_hat.reshape(-1, 1)
+    if y.ndim != 2 or y.shape != y_hat.shape:
+        raise DataError(f'metrics need y and y_hat of equal shape (N, outputs), got {y.shape} '
+                        f'and {y_hat.shape}')
+    n_out = y.shape[1]
+    names = list(names) if names is not None else [f'y{j + 1}' for j in range(n_out)]
+    rows = [{'name': names[j], **scores(y[:, j], y_hat[:, j])} for j in range(n_out)]
+    if n_out == 1:
+        out = {k: v for k, v in rows[0].items() if k != 'name'}
+    else:
+        _pair(y[:, 0], y_hat[:, 0], 0)
+        sse = np.sum((y - y_hat) ** 2, axis=0)
+        sst = np.sum((y - y.mean(axis=0)) ** 2, axis=0)
+        if float(sst.sum()) == 0.0:
+            raise DataError('R² undefined: every measured output is constant')
+        ratio = float(sse.sum() / sst.sum())
+        out = {'r2': 1.0 - ratio, 'rmse': float(np.sqrt(sse.sum() / y.size)),
+               'nrmse': float(np.sqrt(ratio)), 'fit_percent': 100.0 * (1.0 - np.sqrt(ratio))}
+    if per_output or (per_output is None and n_out > 1):
+        out['per_output'] = rows
+    return out

@@ -28,10 +28,13 @@ from . import document
 from .document import get as _get
 
 FORMAT = 'piezo_narx_ros/model'
-#: Newest format this reader understands. Version 2 added the hysteresis_narx kind; a file is
-#: written with its family's `file_format_version` (NARX and ARX: 1) so that older readers keep
-#: loading what they know.
-FORMAT_VERSION = 2
+#: Newest format this reader understands. Version 2 added the hysteresis_narx kind, version 3
+#: several axes (top-level `inputs` / `outputs` names, structure.n_in / n_out); a file is written
+#: with its family's `file_format_version` (NARX and ARX: 1), raised to 3 only for a model with
+#: several inputs or outputs, so that older readers keep loading what they know.
+FORMAT_VERSION = 3
+#: The first format version with several axes.
+MULTI_AXIS_VERSION = 3
 UNITS = {'input': 'V', 'output': 'm', 'time': 's', 'fs': 'Hz'}
 
 
@@ -96,10 +99,16 @@ def save_model(model, path, data=None, metrics=None, tests=None):
         np.savez(fh, **weights)
     digest = hashlib.sha256(tmp_w.read_bytes()).hexdigest()
     blocks = model.file_document()
+    multi = is_multi_axis(model)
+    structure = dict(blocks['structure'])
+    if multi:
+        structure.update(n_in=int(model.n_in), n_out=int(model.n_out))
     doc = {
         'format': FORMAT,
-        'format_version': model.file_format_version,
-        'structure': blocks['structure'],
+        'format_version': (max(model.file_format_version, MULTI_AXIS_VERSION) if multi
+                           else model.file_format_version),
+        **({'inputs': list(model.inputs), 'outputs': list(model.outputs)} if multi else {}),
+        'structure': structure,
         'normalisation': blocks['normalisation'],
         'fs': model.fs,
         'units': UNITS,
@@ -117,6 +126,42 @@ def save_model(model, path, data=None, metrics=None, tests=None):
     os.replace(tmp_w, wpath)
     os.replace(tmp_j, path)
     return path
+
+
+def is_multi_axis(model) -> bool:
+    """Return True when the model has several inputs or outputs (a format-3 model file)."""
+    return int(getattr(model, 'n_in', 1)) > 1 or int(getattr(model, 'n_out', 1)) > 1
+
+
+def _channel_names(doc, name):
+    """(inputs, outputs) names of a model file; ('u',), ('y',) for a one-axis file."""
+    if 'inputs' not in doc and 'outputs' not in doc:
+        return ('u',), ('y',)
+    out = []
+    for key in ('inputs', 'outputs'):
+        v = doc.get(key)
+        if (not isinstance(v, list) or not v or not all(isinstance(x, str) and x for x in v)
+                or len(set(v)) != len(v)):
+            raise ModelFileError(f'{name}: {key!r} must be a list of distinct channel names, '
+                                 f'got {v!r}')
+        out.append(tuple(v))
+    return out[0], out[1]
+
+
+def _channel_range(doc, key, name, n):
+    """A model file's range: [min, max] for one channel, [[min...], [max...]] for n."""
+    v = doc.get(key)
+    if n == 1 or v is None:
+        return document.range_of(doc, key, name)
+    ok = (isinstance(v, list) and len(v) == 2
+          and all(isinstance(side, list) and len(side) == n for side in v)
+          and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+                  for side in v for x in side)
+          and all(lo <= hi for lo, hi in zip(*v)))
+    if not ok:
+        raise ModelFileError(f'{name}: key {key!r} must be [[min per channel], [max per '
+                             f'channel]] for {n} channels (finite, min <= max), got {v!r}')
+    return (tuple(float(x) for x in v[0]), tuple(float(x) for x in v[1]))
 
 
 def _refuse_constant(token):
@@ -175,7 +220,9 @@ def load_model(path):
     Load a model saved by save_model.
 
     Returns a model of the family registered for the file's structure.kind (NARXNetwork, ARXModel,
-    HysteresisNARX, ...) ready to simulate.
+    HysteresisNARX, ...) ready to simulate, with its channel names (inputs, outputs: ('u',),
+    ('y',) for a one-axis file). A several-axes file gives a model whose predict/simulate return
+    (N, n_out) arrays; a one-axis file one returning (N,).
 
     Raises ModelFileError (one line naming the file and the problem) on anything malformed.
     """
@@ -196,13 +243,29 @@ def load_model(path):
     if units is not None and (not isinstance(units, dict) or units.get('input', 'V') != 'V'
                               or units.get('output', 'm') != 'm'):
         raise ModelFileError(f'{name}: units must be input V and output m, got {units!r}')
-    in_range = document.range_of(doc, 'input_range', name)
-    out_range = document.range_of(doc, 'output_range', name)
+    inputs, outputs = _channel_names(doc, name)
+    n_in, n_out = len(inputs), len(outputs)
+    if 'inputs' in doc:
+        if doc['format_version'] < MULTI_AXIS_VERSION:
+            raise ModelFileError(f'{name}: inputs/outputs names need format_version >= '
+                                 f'{MULTI_AXIS_VERSION}, got {doc["format_version"]}')
+        for key, n in (('structure.n_in', n_in), ('structure.n_out', n_out)):
+            if document.get_int(doc, key, name, 1) != n:
+                raise ModelFileError(f'{name}: {key} is {document.get(doc, key, name, (int,))} '
+                                     f'but the file names {n} channel(s)')
+    in_range = _channel_range(doc, 'input_range', name, n_in)
+    out_range = _channel_range(doc, 'output_range', name, n_out)
     wpath, arrays = _read_weights(path, doc)
     try:
         model = cls.from_file_document(doc, arrays, name, wpath, fs)
     except DataError as exc:  # e.g. a non-positive std in the normalisation
         raise ModelFileError(f'{wpath}: {exc}') from None
+    if (model.n_in, model.n_out) != (n_in, n_out):
+        raise ModelFileError(f'{wpath}: the weights are for {model.n_in} input(s) and '
+                             f'{model.n_out} output(s) but {name} names {n_in} and {n_out}')
+    if 'inputs' in doc:
+        model.inputs, model.outputs = inputs, outputs
+        model.output_2d_ = True
     model.fs = float(fs) if fs is not None else None
     model.input_range, model.output_range = in_range, out_range
     model.metadata = {k: doc.get(k) for k in ('data', 'metrics', 'tests')}

@@ -245,7 +245,7 @@ def plot_correlation(corr, label: str, mode: str, noise=None):
 def plot_simulation(rec: Record, sim: np.ndarray, label: str, n0: int):
     """Fig. 8: measured and free-run output (µm) over time, the residual, and a zoom."""
     plt = _pyplot()
-    t = np.arange(rec.u.size) / rec.fs
+    t = np.arange(len(rec)) / rec.fs
     fig, axes = plt.subplots(3, 1, figsize=(10, 8), constrained_layout=True)
     axes[0].plot(t, rec.y * UM, color='tab:blue', linewidth=0.8, label='measured')
     axes[0].plot(t, sim * UM, color='tab:orange', linewidth=0.8, linestyle='--',
@@ -258,7 +258,7 @@ def plot_simulation(rec: Record, sim: np.ndarray, label: str, n0: int):
     axes[1].set_ylabel('residual (µm)')
     rms = float(np.sqrt(np.mean(resid ** 2)))
     axes[1].set_title(f'residual y - ŷ (RMS {rms:.4g} µm)')
-    cut = _zoom_window(rec.u.size, n0)
+    cut = _zoom_window(len(rec), n0)
     axes[2].plot(t[cut], rec.y[cut] * UM, color='tab:blue', linewidth=1.2, label='measured')
     axes[2].plot(t[cut], sim[cut] * UM, color='tab:orange', linewidth=1.2, linestyle='--',
                  label='simulated')
@@ -287,7 +287,7 @@ def plot_hysteresis(rec: Record, sim: np.ndarray, label: str, n0: int):
     plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 5), constrained_layout=True)
     for ax, cut, title in ((axes[0], slice(n0, None), 'whole validation record'),
-                           (axes[1], _zoom_window(rec.u.size, n0), 'zoom (as Fig. 8)')):
+                           (axes[1], _zoom_window(len(rec), n0), 'zoom (as Fig. 8)')):
         ax.plot(rec.u[cut], rec.y[cut] * UM, color='tab:blue', linewidth=0.8, label='measured')
         ax.plot(rec.u[cut], sim[cut] * UM, color='tab:orange', linewidth=0.8, linestyle='--',
                 alpha=0.8, label='simulated (free run)')

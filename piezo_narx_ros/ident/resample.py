@@ -49,9 +49,9 @@ def resample_record(record: Record, fs: float) -> Record:
         # padtype='line': the record's ends are continued, not taken as zeros (no edge ringing).
         return resample_poly(x, ratio.numerator, ratio.denominator, padtype='line')
     u, y = down(record.u), down(record.y)
-    if u.size < 100:
-        raise DataError(f'{record.source}: only {u.size} samples at {fs:g} Hz (need 100)')
+    if len(u) < 100:
+        raise DataError(f'{record.source}: only {len(u)} samples at {fs:g} Hz (need 100)')
     new_fs = record.fs * ratio.numerator / ratio.denominator
-    t = None if record.t is None else record.t[0] + np.arange(u.size) / new_fs
+    t = None if record.t is None else record.t[0] + np.arange(len(u)) / new_fs
     return replace(record, u=u, y=y, y_true=down(record.y_true), fs=new_fs, t=t,
                    source=f'{record.source}@{new_fs:g}Hz', u_before=None, y_before=None)

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from piezo_narx_ros.errors import DataError
-from piezo_narx_ros.ident.checks import as_signal
+from piezo_narx_ros.ident.checks import as_channels, as_signal
 
 #: Fewest samples a window may have to set a state.
 MIN_WINDOW = 10
@@ -52,12 +52,14 @@ class ModelState:
 
     values : the family's state vector in its own layout and units (hysteresis family: the kernel
     state, normalised; lagged families: [u(k-nu) .. u(k-1) V, y(k-ny) .. y(k-1) m], outputs
-    without the offset); offset : m, added to every output (a sensor zero that moved);
+    without the offset; several channels: those blocks time-major, each sample's channels in
+    order); offset : m, added to every output (a sensor zero that moved): a float for one
+    output, an (n_out,) array for several (one zero per output);
     info : how it was obtained (window samples, cost, the history of the winning candidate).
     """
 
     values: np.ndarray
-    offset: float = 0.0
+    offset: float | np.ndarray = 0.0
     info: dict = field(default_factory=dict, compare=False)
 
 
@@ -82,7 +84,11 @@ def robust_cost(r: np.ndarray) -> float:
     return float(np.mean(sq[:keep]))
 
 
-def _offset_only(base: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+def _offset_only(base: np.ndarray, y: np.ndarray):
+    """Offset (float m, or (n_out,) per output) as the median residual, and the robust cost."""
+    if y.ndim == 2:
+        d = np.median(y - base, axis=0)
+        return d, robust_cost((y - base - d).ravel())
     d = float(np.median(y - base))
     return d, robust_cost(y - base - d)
 
@@ -100,21 +106,25 @@ def _refine(model, values: np.ndarray, u: np.ndarray, y: np.ndarray, idx: np.nda
     eps = 1e-3   # finite-difference step, in units of `scale`
     base = model._run_from(x, u)
     offset, _ = _offset_only(base, y)
+    # Several outputs: residuals flattened sample-major, one offset column per output.
+    n_off = 1 if y.ndim == 1 else y.shape[1]
+    ones = [np.ones(len(u))] if y.ndim == 1 else list(np.kron(np.ones((len(u), 1)),
+                                                              np.eye(n_off)).T)
     for _ in range(max(1, iterations)):
-        r = y - base - offset
+        r = (y - base - offset).ravel()
         cols = []
         for i, h in zip(idx, scale):
             xi = x.copy()
             xi[i] += eps * h
-            cols.append((model._run_from(xi, u) - base) / eps)   # per unit of `scale`
-        A = np.column_stack(cols + [np.ones(u.size)])
+            cols.append(((model._run_from(xi, u) - base) / eps).ravel())   # per unit of scale
+        A = np.column_stack(cols + ones)
         w, _ = robust_weights(r)
         Aw, rw = A * w[:, None], r * w
         n_adj = len(cols)
         norm2 = float(np.mean(np.sum(Aw[:, :n_adj] ** 2, axis=0))) if n_adj else 0.0
-        lam = np.r_[np.full(n_adj, RIDGE * norm2 + 1e-300), 0.0]
+        lam = np.r_[np.full(n_adj, RIDGE * norm2 + 1e-300), np.zeros(n_off)]
         # The prior pulls x[idx] back to the candidate's settled values.
-        dev = np.r_[(x[idx] - prior) / scale, 0.0]
+        dev = np.r_[(x[idx] - prior) / scale, np.zeros(n_off)]
         try:
             step = np.linalg.solve(Aw.T @ Aw + np.diag(lam), Aw.T @ rw - lam * dev)
         except np.linalg.LinAlgError:
@@ -124,10 +134,11 @@ def _refine(model, values: np.ndarray, u: np.ndarray, y: np.ndarray, idx: np.nda
         base_new = model._run_from(x_new, u)
         if not np.all(np.isfinite(base_new)):
             break
-        x, base, offset = x_new, base_new, offset + float(step[-1])
+        x, base = x_new, base_new
+        offset = offset + (float(step[-1]) if y.ndim == 1 else step[n_adj:])
         if np.max(np.abs(step[:n_adj]), initial=0.0) < 1e-6:
             break
-    return x, offset, robust_cost(y - base - offset)
+    return x, offset, robust_cost((y - base - offset).ravel())
 
 
 def estimate_state(model, u, y, prior: ModelState | None = None,
@@ -135,20 +146,25 @@ def estimate_state(model, u, y, prior: ModelState | None = None,
     """
     Return the ModelState at u[0] that best explains the window u (N,) V, y (N,) m.
 
+    Several channels: u (N, n_in), y (N, n_out); the offset is then one per output (n_out,) m.
     See the module docstring. prior: the state the model is believed to be in (e.g. run through
     a known input history): the only candidate, refined on the window. N >= MIN_WINDOW;
     DataError otherwise. The window's own samples are part of the run: simulate(u_window,
     state=s) reproduces y_window as well as the model can.
     """
     model._require_fitted()
-    u = as_signal(u, 'u (state window)', min_len=MIN_WINDOW)
-    y = as_signal(y, 'y (state window)', n=u.size)
+    if model.n_in == 1 and model.n_out == 1:
+        u = as_signal(u, 'u (state window)', min_len=MIN_WINDOW)
+        y = as_signal(y, 'y (state window)', n=u.size)
+    else:
+        u = model._signal(u, 'u (state window)', model.n_in, min_len=MIN_WINDOW)
+        y = as_channels(y, 'y (state window)', n=len(u), width=model.n_out)
     if prior is not None:
-        candidates = [ModelState(model._check_state(prior), float(prior.offset),
+        candidates = [ModelState(model._check_state(prior), model._check_offset(prior),
                                  {'history': 'given'})]
     else:
         candidates = model._state_candidates(u)
-    idx, scale = model._adjustable_state(u.size)
+    idx, scale = model._adjustable_state(len(u))
     ranked = []
     with np.errstate(all='ignore'):   # a candidate that diverges is ranked last, not reported
         for i, cand in enumerate(candidates):
@@ -167,9 +183,10 @@ def estimate_state(model, u, y, prior: ModelState | None = None,
             if best is None or cost < best[2]:
                 best = (values, offset, cost, i)
     values, offset, cost, i = best
-    info = {**candidates[i].info, 'window_samples': int(u.size), 'rms_m': math.sqrt(cost),
+    info = {**candidates[i].info, 'window_samples': int(len(u)), 'rms_m': math.sqrt(cost),
             'candidates': len(candidates)}
-    return ModelState(values=values, offset=float(offset), info=info)
+    offset = float(offset) if np.ndim(offset) == 0 else np.asarray(offset, dtype=np.float64)
+    return ModelState(values=values, offset=offset, info=info)
 
 
 def turning_point_histories(lo: float, hi: float, u0: float, n_levels: int = 13,
