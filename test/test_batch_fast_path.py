@@ -88,8 +88,9 @@ def test_estimator_batch_path_equals_one_sample_path(init):
     n = 6000
     t, u = _command_stream(rng, n)
     y_meas = rng.normal(0.0, 1e-7, n)
-    one = FreeRunEstimator(model, init=init, window=300, init_window=0.02)
-    many = FreeRunEstimator(model, init=init, window=300, init_window=0.02)
+    # A narrowed range (negative margin): estimates and commands outside it, counted.
+    one, many = (FreeRunEstimator(model, init=init, window=300, init_window=0.02,
+                                  range_margin=-0.3) for _ in range(2))
     got_one, got_many = [], []
     for sl in _batches(rng, n):
         tl, ul = t[sl].tolist(), u[sl].tolist()
@@ -108,7 +109,7 @@ def test_estimator_batch_path_equals_one_sample_path(init):
     assert vars(many.stats) == vars(one.stats)
     st = one.stats
     assert st.stream_restarts and st.gaps and st.rejected_range and st.rejected_nonfinite
-    assert st.stamp_outliers and st.input_out_of_range
+    assert st.stamp_outliers and st.input_out_of_range and st.out_of_range
     rms1, r21, n1 = one.running_error()
     rms2, r22, n2 = many.running_error()
     assert (rms1, r21, n1) == (rms2, r22, n2) and n1 == 300

@@ -64,6 +64,10 @@ class Sample:
             raise DataError(f'message has no {field} for axis {axis!r}')
         return float(seq[i])
 
+    def values(self, field: str, axes: Sequence[str]) -> list[float]:
+        """Return the `field` of each of `axes`, in that order (mapped by name); DataError."""
+        return [self.value(field, a) for a in axes]
+
 
 def parse_joint_state(msg: JointState) -> Sample:
     """Convert a JointState to a Sample (no validation of values; see Sample.value)."""
@@ -207,6 +211,20 @@ class SampleBatch:
         if i >= values.shape[1]:
             raise DataError(f'batch has no {field} for axis {axis!r}')
         return values[:, i]
+
+    def columns(self, field: str, axes: Sequence[str]) -> np.ndarray:
+        """Return the `field` of `axes` as (n, len(axes)), mapped by name; DataError if absent."""
+        if len(axes) == 1:
+            return self.column(field, axes[0])[:, None]
+        values = self.position if field == 'position' else self.effort
+        try:
+            idx = [self.names.index(a) for a in axes]
+        except ValueError:
+            missing = [a for a in axes if a not in self.names]
+            raise DataError(f'axis {missing[0]!r} not in message (names: {self.names})') from None
+        if max(idx) >= values.shape[1]:
+            raise DataError(f'batch has no {field} for every axis of {list(axes)}')
+        return values[:, idx]
 
 
 def _check_width(rows: list, names: list[str], field: str) -> int:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from std_srvs.srv import Trigger
 
 from piezo_narx_ros.command.stamps import RATE_TOLERANCE
@@ -34,7 +35,8 @@ class EstimatorNode(PiezoNode):
     PARAMS = (
         ParamSpec('model', '', 'model file (.json with its .npz beside it)', read_only=True,
                   check=(lambda v: bool(v.strip()), 'must name a model file (.json)')),
-        ParamSpec('axis', 'x', 'axis read from voltage_command/deflection and published',
+        ParamSpec('axis', 'x', 'axis read from voltage_command/deflection and published (a '
+                  'model of several axes maps its own input and output names instead)',
                   read_only=True, check=(lambda v: bool(v.strip()), 'must not be empty')),
         ParamSpec('fs', 0.0, "command sample rate, Hz (0: the model file's fs; any other value "
                   'must equal it)', low=0.0, high=100000.0, read_only=True),
@@ -75,8 +77,16 @@ class EstimatorNode(PiezoNode):
             reanchor_every=p['reanchor_every'], init_timeout=p['init_timeout'],
             init_window=p['init_window'],
             rate_tolerance=p['rate_tolerance'])
-        self.est.model.stepper().step(0.0)   # compile/load the kernel before the first sample
+        # Compile/load the kernel before the first sample.
+        self.est.model.stepper().step(np.zeros(self.est.n_in) if self.est.vector else 0.0)
         self.axis = p['axis']
+        # Axis names on the topics: a model of several axes is mapped by its own names (the
+        # command's for its inputs, the deflection's for its outputs); one axis by `axis`.
+        if self.est.vector:
+            self._in_names = list(self.model.inputs)
+            self._out_names = list(self.model.outputs)
+        else:
+            self._in_names = self._out_names = [self.axis]
         b = self.batch = p['batch']
         self.pub = self.sample_publisher(batch_topic(TOPIC_ESTIMATE, b), sample_type(b))
         # The callbacks get CDR bytes (see nodes.codec.decode_joint_state: 8x cheaper).
@@ -86,7 +96,6 @@ class EstimatorNode(PiezoNode):
         self.sub_meas = self.sample_subscription(
             batch_topic(TOPIC_DEFLECTION, b),
             self.on_measurement_batch if b > 1 else self.on_measurement, sample_type(b))
-        self._names = [self.axis]
         self.health = EstimatorHealth(self.est)
         self._error_log = EpisodeLog(self.get_logger())
         # A command held back for its ambiguous stamp is decided when commands stop (the stream
@@ -132,8 +141,11 @@ class EstimatorNode(PiezoNode):
         return response
 
     def _value(self, msg: bytes, field: str) -> tuple[int, float] | None:
+        names = self._in_names if field == 'effort' else self._out_names
         try:
             sample = decode_joint_state(msg)
+            if self.est.vector:
+                return sample.t_ns, sample.values(field, names)
             return sample.t_ns, sample.value(field, self.axis)
         except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the node
             self.get_logger().warning(f'{field} message ignored: {exc}',
@@ -144,6 +156,9 @@ class EstimatorNode(PiezoNode):
         """(stamps (n,) int64 ns, `field` of the axis (n,)) of a batch; None when refused."""
         try:
             batch = decode_joint_trajectory(msg)
+            if self.est.vector:
+                names = self._in_names if field == 'effort' else self._out_names
+                return batch.t_ns, batch.columns(field, names)
             return batch.t_ns, batch.column(field, self.axis)
         except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the node
             self.get_logger().warning(f'{field} batch ignored: {exc}', throttle_duration_sec=1.0)
@@ -178,7 +193,8 @@ class EstimatorNode(PiezoNode):
 
     def _publish_batch(self, t, y) -> None:
         if t.shape[0]:
-            self.pub.publish(encode_joint_trajectory(t, self._names, position=y[:, None]))
+            self.pub.publish(encode_joint_trajectory(t, self._out_names,
+                                                     position=y.reshape(t.shape[0], -1)))
 
     def on_measurement(self, msg: bytes) -> None:
         got = self._value(msg, 'position')
@@ -198,14 +214,13 @@ class EstimatorNode(PiezoNode):
         self._commands_at_last_check = n
 
     def publish(self, estimates) -> None:
-        names, pub = self._names, self.pub
+        names, pub = self._out_names, self.pub
         if self.batch > 1:
-            if estimates:
-                pub.publish(encode_joint_trajectory([t for t, _ in estimates], names,
-                                                    position=[[y] for _, y in estimates]))
+            self._publish_batch(*self.est.as_arrays(estimates))
             return
+        vector = self.est.vector
         for t, y in estimates:
-            pub.publish(encode_joint_state(t, names, position=(y,)))
+            pub.publish(encode_joint_state(t, names, position=y.tolist() if vector else (y,)))
 
     def status(self):
         """Everything since the previous tick (EstimatorHealth), plus the running error."""
