@@ -278,7 +278,7 @@ class FreeRunEstimator:
             raise DataError(f'{len(tl)} stamps for {len(yl)} measurements')
         if self._stepper is None:
             return self.as_arrays([e for ti, yi in zip(tl, yl)
-                                    for e in self.on_measurement(ti, yi)])
+                                   for e in self.on_measurement(ti, yi)])
         if not _finite(sum(yl)):
             keep = [_finite(yi) for yi in yl]
             tl = [ti for ti, k in zip(tl, keep) if k]
