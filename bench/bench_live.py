@@ -54,7 +54,7 @@ def estimator_compute(model, n: int = 20000) -> tuple[float, float]:
     from piezo_narx_ros.estimator.free_run import FreeRunEstimator
     est = FreeRunEstimator(model, init='rest')
     rng = np.random.default_rng(0)
-    u = list(rng.uniform(-100, 100, (n, est.n_in))) if est.vector else \
+    u = list(rng.uniform(-100, 100, (n, est.n_in))) if getattr(est, 'vector', False) else \
         rng.uniform(-100, 100, n).tolist()
     period = int(1e9 / est.fs)
     dt = np.empty(n)
