@@ -146,7 +146,7 @@ class Record:
 
 
 def check_same_channels(records) -> None:
-    """DataError naming the first difference when records' channel names or order differ."""
+    """Raise DataError naming the first difference when records' channel names or order differ."""
     if not records:
         return
     first = records[0]

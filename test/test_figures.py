@@ -72,29 +72,31 @@ def test_report_figures_plot_the_selected_models_data(report):
     assert set(saved_figures) == {p.name for k, p in paths.items() if k != 'metrics'}
     model, n0 = result.best.model, result.best.model.n0
     _, sim = free_run(model, val)
-    t = np.arange(val.u.size) / val.fs
+    sim = sim[:, 0]   # free_run gives (N, n_out) columns; the figure plots the one output
+    val_u, val_y = val.u[:, 0], val.y[:, 0]
+    t = np.arange(val_u.size) / val.fs
 
     # Fig. 8: measured and free-run output in µm over the record, the residual after n0.
     top, resid, zoom = _data_axes(saved_figures['fig8_simulation.png'])
     x, y = _line(top, 'measured')
     np.testing.assert_array_equal(x, t)
-    np.testing.assert_allclose(y, val.y * 1e6, rtol=1e-12)
+    np.testing.assert_allclose(y, val_y * 1e6, rtol=1e-12)
     np.testing.assert_allclose(_line(top, 'simulated (free run)')[1], sim * 1e6, rtol=1e-12)
     assert top.get_xlim() == pytest.approx((t[0], t[-1]))
     [line] = resid.get_lines()
     np.testing.assert_array_equal(line.get_xdata(), t[n0:])
-    np.testing.assert_allclose(line.get_ydata(), (val.y - sim)[n0:] * 1e6, rtol=1e-9)
-    rms = np.sqrt(np.mean(((val.y - sim)[n0:] * 1e6) ** 2))
+    np.testing.assert_allclose(line.get_ydata(), (val_y - sim)[n0:] * 1e6, rtol=1e-9)
+    rms = np.sqrt(np.mean(((val_y - sim)[n0:] * 1e6) ** 2))
     assert f'RMS {rms:.4g} µm' in resid.get_title()
     zx, zy = _line(zoom, 'measured')
     assert n0 <= zx[0] * val.fs and zx.size >= 200 and zx[-1] < t[-1]
-    np.testing.assert_allclose(zy, val.y[np.round(zx * val.fs).astype(int)] * 1e6, rtol=1e-12)
+    np.testing.assert_allclose(zy, val_y[np.round(zx * val.fs).astype(int)] * 1e6, rtol=1e-12)
 
     # Fig. 9: y(u) loops, whole record after n0, measured and simulated.
     whole, _ = _data_axes(saved_figures['fig9_hysteresis.png'])
     x, y = _line(whole, 'measured')
-    np.testing.assert_array_equal(x, val.u[n0:])
-    np.testing.assert_allclose(y, val.y[n0:] * 1e6, rtol=1e-12)
+    np.testing.assert_array_equal(x, val_u[n0:])
+    np.testing.assert_allclose(y, val_y[n0:] * 1e6, rtol=1e-12)
     np.testing.assert_allclose(_line(whole, 'simulated (free run)')[1], sim[n0:] * 1e6,
                                rtol=1e-12)
     assert whole.get_xlabel() == 'input u (V)'

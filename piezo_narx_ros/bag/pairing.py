@@ -154,7 +154,8 @@ def pair_by_stamp(t_u_ns: np.ndarray, u: np.ndarray, t_y_ns: np.ndarray, y: np.n
     Inputs are in arrival order (int64 ns stamps, float64 values (n,) or (n, axes)). Returns
     (t_ns (N,) int64 sorted, u (N,) or (N, axes), y likewise, PairingReport). The rate is the
     command stream's (the clock every node copies), so a deflection that lost every other sample
-    gives a record at the command rate with gaps, not a record at half the rate. Raises BagError when fewer than 2 samples pair up.
+    gives a record at the command rate with gaps, not a record at half the rate. Raises BagError
+    when fewer than 2 samples pair up.
     """
     tu, uu, cu = clean_stream(t_u_ns, u)
     ty, yy, cy = clean_stream(t_y_ns, y)

@@ -67,7 +67,7 @@ def stored_noise_models(model) -> dict:
     Only numbers are read (coefficients as a float list); anything malformed is a ModelFileError.
     """
     from piezo_narx_ros.errors import DataError, ModelFileError
-    from piezo_narx_ros.ident.noise_model import ARNoiseModel
+    from piezo_narx_ros.ident.noise_model import noise_models_from_doc
 
     tests = (getattr(model, 'metadata', None) or {}).get('tests') or {}
     if not isinstance(tests, dict):
@@ -78,7 +78,7 @@ def stored_noise_models(model) -> dict:
         if doc is None:
             continue
         try:
-            out[mode] = ARNoiseModel.from_dict(doc)
+            out[mode] = noise_models_from_doc(doc)
         except DataError:
             raise ModelFileError(f'{getattr(model, "source", "model")}: tests.{mode}.noise_model '
                                  f'is malformed') from None
@@ -90,20 +90,26 @@ def range_warnings(model, records, margin: float = 0.1) -> list[str]:
     Warn, one line per record, when the input leaves the model's trained input range.
 
     When it leaves the range (V) by more than `margin` times its span: the scores then measure
-    extrapolation, not the model.
+    extrapolation, not the model. Several inputs: each channel against its own range.
     """
-    rng = getattr(model, 'input_range', None)
-    if rng is None:
+    from piezo_narx_ros.ident.base import channel_ranges
+    if getattr(model, 'input_range', None) is None:
         return []
-    lo, hi = rng
-    pad = margin * (hi - lo)
+    ranges, _ = channel_ranges(model)
     out = []
     for r in records:
-        u_lo, u_hi = float(r.u.min()), float(r.u.max())
-        if u_lo < lo - pad or u_hi > hi + pad:
-            out.append(f'{r.source}: input spans [{u_lo:.4g}, {u_hi:.4g}] V, outside the '
-                       f'[{lo:.4g}, {hi:.4g}] V the model was trained on: its scores measure '
-                       'extrapolation')
+        u = r.u.reshape(len(r), -1)
+        for i, (lo, hi) in enumerate(ranges):
+            if i >= u.shape[1]:
+                break
+            pad = margin * (hi - lo)
+            u_lo, u_hi = float(u[:, i].min()), float(u[:, i].max())
+            if u_lo < lo - pad or u_hi > hi + pad:
+                what = 'input' if len(ranges) == 1 else f'input {model.inputs[i]}'
+                out.append(f'{r.source}: {what} spans [{u_lo:.4g}, {u_hi:.4g}] V, outside the '
+                           f'[{lo:.4g}, {hi:.4g}] V the model was trained on: its scores measure '
+                           'extrapolation')
+                break
     return out
 
 
@@ -129,6 +135,15 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
         if init_samples < 0:
             raise ConfigError(f'--init-samples must be >= 0, got {init_samples}')
         records = [replace(r, state_window=int(init_samples)) for r in records]
+    for r in records:
+        if (r.n_in, r.n_out) != (model.n_in, model.n_out):
+            raise DataError(f'{r.source}: {r.n_in} input(s) and {r.n_out} output(s), but the '
+                            f'model has {model.n_in} and {model.n_out}')
+        if model.n_in > 1 or model.n_out > 1:
+            for what in ('inputs', 'outputs'):
+                if getattr(r, what) != tuple(getattr(model, what)):
+                    raise DataError(f'{r.source}: {what} {", ".join(getattr(r, what))} differ '
+                                    f'from the model\'s {", ".join(getattr(model, what))}')
 
     if max_lag < 1:
         raise ConfigError(f'--max-lag must be >= 1, got {max_lag}')
@@ -177,16 +192,27 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
         'inputs': [r.source for r in records],
         'n': int(sum(len(r) - scored_from(model, r) for r in records)),
         'init_samples': init_samples,
-        'prediction': scores['prediction'],
-        'simulation': scores['simulation'],
+        'prediction': _with_per_output(scores['prediction'], model),
+        'simulation': _with_per_output(scores['simulation'], model),
         'tests': {k: v['passed'] for k, v in chosen.get('tests', {}).items()},
         'tests_passed': bool(chosen['passed']),
         'tests_residuals': residuals,
-        'tests_noise_model': None if nm is None else {**nm, 'source': source},
+        'tests_noise_model': (None if nm is None else
+                              {'per_output': nm, 'source': source} if isinstance(nm, list)
+                              else {**nm, 'source': source}),
         'tests_raw': {k: v['passed'] for k, v in tests['raw'][residuals].get('tests', {}).items()},
         'tests_detail': tests,
         'warnings': notes,
     }
+
+
+def _with_per_output(block: dict, model) -> dict:
+    """Return the scores with per_output ({name, r2, rmse, ...} per output) always present."""
+    if block.get('per_output') is not None or block.get('r2') is None:
+        return block
+    return {**block, 'per_output': [{'name': model.outputs[0], 'r2': block['r2'],
+                                     'rmse': block['rmse'], 'nrmse': block['nrmse'],
+                                     'fit_percent': block['fit_percent']}]}
 
 
 def save_output(model, records, init_samples, path) -> None:
@@ -235,6 +261,7 @@ def run(args) -> int:
 def _run(args) -> int:
     import json
 
+    from piezo_narx_ros.ident.noise_model import describe as describe_noise
     from piezo_narx_ros.cli.reading import reading_options
     from piezo_narx_ros.ident.data import load_records
     from piezo_narx_ros.ident.model_io import load_model
@@ -262,8 +289,11 @@ def _run(args) -> int:
         s = result[mode]
         print(f'{mode:>10}: R² {fmt(s["r2"], ".6f")}  RMSE {fmt(s["rmse"], ".4g")} m  '
               f'NRMSE {fmt(s["nrmse"], ".4g")}  fit {fmt(s["fit_percent"], ".2f")} %')
+        per = s.get('per_output') or []
+        for o in per if len(per) > 1 else []:
+            print(f'{o["name"]:>12}: R² {fmt(o["r2"], ".6f")}  RMSE {fmt(o["rmse"], ".4g")} m')
     nm = result['tests_noise_model']
-    how = 'raw' if nm is None else f'AR({nm["order"]}) noise model'
+    how = describe_noise(nm.get('per_output', nm) if nm else None)
     print(f'correlation tests ({result["tests_residuals"]} residuals, {how}): '
           + ', '.join(f'{k} {"pass" if v else "fail"}' for k, v in result['tests'].items())
           + f' -> {"PASS" if result["tests_passed"] else "FAIL"}')

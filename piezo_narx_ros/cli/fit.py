@@ -393,6 +393,7 @@ def _failed_line(failed) -> str:
 
 
 def _print_fit(result, config, executor, model_path, out, paths) -> None:
+    from piezo_narx_ros.ident.noise_model import describe as describe_noise
     best = result.best
     val = best.scores['validation']
     r2_sim = val['simulation']['r2']
@@ -407,8 +408,7 @@ def _print_fit(result, config, executor, model_path, out, paths) -> None:
                 f'R² {sim["r2"]:.6f}, RMSE {1e9 * sim["rmse"]:.1f} nm')
         print(f'  {rec["source"]}: simulation {text}')
     chosen = best.tests[config.residuals]
-    noise = chosen.get('noise_model')
-    how = f'AR({noise["order"]}) noise model' if noise else 'raw'
+    how = describe_noise(chosen.get('noise_model'))
     print(f'correlation tests ({config.residuals} residuals, {how}): ' + ', '.join(
         f'{k} {"pass" if v["passed"] else "fail"}'
         for k, v in chosen.get('tests', {}).items()))

@@ -217,3 +217,72 @@ class HistoryEmitter(Emitter):
         """Return the C lines that shift u[0] and the new output `out` into the histories."""
         return shift_left('x', '0', self.nu, 'u[0]') + shift_left('x', str(self.nu), self.ny,
                                                                   'out')
+
+
+class ChannelHistoryEmitter(HistoryEmitter):
+    """
+    HistoryEmitter of a lagged model with several inputs or outputs (VectorStepper's state).
+
+    State x = [u(k-nu) .. u(k-1) (rows of PNR_N_INPUTS), y(k-ny) .. y(k-1) (rows of
+    PNR_N_OUTPUTS)], oldest first, each sample's channels in order: Stepper.u_past and y_past
+    flattened row by row. pnr_step_ writes the outputs to `out[PNR_N_OUTPUTS]` and calls
+    `shift_lines()`.
+    """
+
+    max_inputs = 64
+    max_outputs = 64
+
+    @property
+    def state_size(self) -> int:
+        """Return nu n_in + ny n_out."""
+        return self.nu * self.n_in + self.ny * self.n_out
+
+    @property
+    def state_layout(self) -> list:
+        """Return the layout lines for the header."""
+        ku = self.nu * self.n_in
+        return [f'x[0 .. {ku - 1}]: u(k-{self.nu}) .. u(k-1), V, {self.n_in} per sample '
+                '(oldest first)' if self.nu else '(no input history: nu = 0)',
+                f'x[{ku} .. {self.state_size - 1}]: y(k-{self.ny}) .. y(k-1), m, {self.n_out} '
+                'per sample (oldest first)',
+                'as Stepper.u_past and Stepper.y_past row by row; rest is all zeros']
+
+    def state_vector(self, stepper) -> np.ndarray:
+        """Return [u_past rows, y_past rows] of a Python VectorStepper."""
+        return np.concatenate([stepper.u_past.ravel(), stepper.y_past.ravel()])
+
+    def history_definitions(self) -> str:
+        """Return `pnr_init_history_`: the histories copied into the state (NULL: rest)."""
+        ku, ky = self.nu * self.n_in, self.ny * self.n_out
+        lines = ['static void pnr_init_history_(pnr_state_t *s, const double *u_past,',
+                 '                              const double *y_past)', '{', '    int i;']
+        if ku:
+            lines += [f'    for (i = 0; i < {ku}; ++i) {{',
+                      '        s->x[i] = u_past ? u_past[i] : 0.0;', '    }']
+        else:
+            lines.append('    (void)u_past;')
+        lines += [f'    for (i = 0; i < {ky}; ++i) {{',
+                  f'        s->x[{ku} + i] = y_past ? y_past[i] : 0.0;', '    }', '}']
+        return '\n'.join(lines)
+
+    def shift_lines(self) -> list:
+        """Return the C lines shifting the rows u[] and out[] into the histories."""
+        lines = []
+        for start, rows, width, new in ((0, self.nu, self.n_in, 'u'),
+                                        (self.nu * self.n_in, self.ny, self.n_out, 'out')):
+            if not rows:
+                continue
+            if rows > 1:
+                lines += [f'    for (i = 0; i < {(rows - 1) * width}; ++i) {{',
+                          f'        x[{start} + i] = x[{start} + i + {width}];', '    }']
+            lines += [f'    for (i = 0; i < {width}; ++i) {{',
+                      f'        x[{start + (rows - 1) * width} + i] = {new}[i];', '    }']
+        return lines
+
+    def step_lines(self, body: list) -> str:
+        """Return pnr_step_ around `body` (which fills out[PNR_N_OUTPUTS] from x and u)."""
+        return '\n'.join(['static void pnr_step_(pnr_state_t *s, const double *u, double *y)',
+                          '{', '    double *x = s->x;', f'    double out[{self.n_out}];',
+                          '    int i, j, lag;'] + body + self.shift_lines()
+                         + [f'    for (j = 0; j < {self.n_out}; ++j) {{',
+                            '        y[j] = out[j];', '    }', '}'])

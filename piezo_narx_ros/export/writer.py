@@ -14,6 +14,8 @@ import math
 import os
 from pathlib import Path
 
+import numpy as np
+
 from piezo_narx_ros.export import ExportError, c_inverse
 from piezo_narx_ros.export.c_code import c_macro_number, comment_block
 
@@ -105,10 +107,15 @@ def render(model, fs: float | None = None, source: str | None = None) -> tuple[s
               ('PNR_NY', str(em.ny), 'output history of pnr_init_history, samples per output'),
               ('PNR_STATE_SIZE', str(em.state_size), 'doubles in the state vector')]
     for name, rng, unit in (('INPUT', rng_in, 'V'), ('OUTPUT', rng_out, 'm')):
-        if rng is not None:
+        if rng is not None and np.ndim(rng[0]) == 0:
             macros += [(f'PNR_{name}_MIN', c_macro_number(rng[0]),
                         f'trained {name.lower()} range, {unit}'),
                        (f'PNR_{name}_MAX', c_macro_number(rng[1]), '')]
+        elif rng is not None:   # several channels: one pair per channel, numbered from 0
+            for k, (lo, hi) in enumerate(zip(*rng)):
+                macros += [(f'PNR_{name}_MIN_{k}', c_macro_number(lo),
+                            f'trained range of {name.lower()} {k}, {unit}'),
+                           (f'PNR_{name}_MAX_{k}', c_macro_number(hi), '')]
     h = [comment_block(about), '#ifndef PNR_MODEL_H', '#define PNR_MODEL_H', '',
          '#ifdef __cplusplus', 'extern "C" {', '#endif', '']
     h += [f'#define {n} {v}' + (f'   /* {c} */' if c else '') for n, v, c in macros]

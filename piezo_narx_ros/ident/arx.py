@@ -17,7 +17,7 @@ import numpy as np
 from ..errors import DataError
 from . import document
 from .kernels import (ARXStepper, ARXVectorStepper, arx_predict, arx_predict_mimo,
-                      arx_simulate, arx_simulate_mimo)
+                      arx_simulate, arx_simulate_mimo, channel_lag_weights)
 from .base import register_family
 from .regressors import LaggedModel, check_orders, lagged_regressors
 
@@ -127,8 +127,9 @@ class ARXModel(LaggedModel):
         self.n_in_, self.n_out_ = n_in, n_out
         self.a, self.b, self.c = a, b, c
         # Kernel layout: rows in time order, Bu (n_out, nu+1, n_in), Ay (n_out, ny, n_out).
-        self._bu = np.ascontiguousarray(b[:, :, ::-1].transpose(0, 2, 1))
-        self._ay = np.ascontiguousarray(-a[:, :, ::-1].transpose(0, 2, 1))
+        self._bu, self._ay = channel_lag_weights(
+            np.concatenate([b.reshape(n_out, -1), -a.reshape(n_out, -1)], axis=1),
+            self.nu, self.ny, n_in, n_out)
         return self
 
     def _one_step(self, u, y, start):
@@ -184,8 +185,8 @@ class ARXModel(LaggedModel):
 
     def c_emitter(self):
         """Return the C emitter of this model (piezo_narx_ros.ident.arx_export)."""
-        from .arx_export import ARXEmitter
-        return ARXEmitter(self)
+        from .arx_export import ARXChannelEmitter, ARXEmitter
+        return ARXEmitter(self) if self._scalar_io else ARXChannelEmitter(self)
 
     def __repr__(self):
         if self.n_in == 1 and self.n_out == 1:

@@ -6,7 +6,7 @@ pnr_step copies arx_step (ident/kernels.py) operation for operation, on the stat
 
     y(k) = c + bu . [u(k-nu) .. u(k)] + ay . [y(k-ny) .. y(k-1)]     (time order)
 """
-from ..export.c_code import HistoryEmitter, c_array, c_scalar
+from ..export.c_code import ChannelHistoryEmitter, HistoryEmitter, c_array, c_scalar
 
 
 class ARXEmitter(HistoryEmitter):
@@ -30,3 +30,38 @@ class ARXEmitter(HistoryEmitter):
                  f'        out += ARX_AY[i] * x[{nu} + i];', '    }']
         body += self.shift_lines() + ['    y[0] = out;', '}']
         return '\n\n'.join(parts + ['\n'.join(body), self.history_definitions()])
+
+
+class ARXChannelEmitter(ChannelHistoryEmitter):
+    """
+    The C of an ARXModel with several inputs or outputs: arx_step_mimo on the channel state.
+
+    ARX_BU[j * (nu+1) + lag][i] and ARX_AY[j * ny + lag][m] are the kernel's Bu and Ay (rows in
+    time order), summed in the kernel's order.
+    """
+
+    def definitions(self) -> str:
+        """Return the weights, pnr_step_ and pnr_init_history_ (see Emitter)."""
+        nu, ny, n_in, n_out = self.nu, self.ny, self.n_in, self.n_out
+        bu, ay, c = self.model.stepper().kernel_state[1]
+        parts = [c_array('ARX_BU', bu.reshape(n_out * (nu + 1), n_in),
+                         'input coefficients [output * (nu+1) + lag][input], lag 0 = u(k-nu), '
+                         'm/V'),
+                 c_array('ARX_AY', ay.reshape(n_out * ny, n_out),
+                         'output coefficients [output * ny + lag][output], lag 0 = y(k-ny), m/m'),
+                 c_array('ARX_C', c, 'intercepts, m')]
+        body = [f'    for (j = 0; j < {n_out}; ++j) {{', '        double acc = ARX_C[j];']
+        if nu:
+            body += [f'        for (lag = 0; lag < {nu}; ++lag) {{',
+                     f'            for (i = 0; i < {n_in}; ++i) {{',
+                     f'                acc += ARX_BU[j * {nu + 1} + lag][i] * '
+                     f'x[lag * {n_in} + i];',
+                     '            }', '        }']
+        body += [f'        for (i = 0; i < {n_in}; ++i) {{',
+                 f'            acc += ARX_BU[j * {nu + 1} + {nu}][i] * u[i];', '        }',
+                 f'        for (lag = 0; lag < {ny}; ++lag) {{',
+                 f'            for (i = 0; i < {n_out}; ++i) {{',
+                 f'                acc += ARX_AY[j * {ny} + lag][i] * '
+                 f'x[{nu * n_in} + lag * {n_out} + i];',
+                 '            }', '        }', '        out[j] = acc;', '    }']
+        return '\n\n'.join(parts + [self.step_lines(body), self.history_definitions()])

@@ -33,9 +33,17 @@ def inner_reversals(inputs) -> int:
     A reversal is a turning point the input then leaves by REVERSAL_DEPTH of the records' input
     range (so sensor or quantisation noise on a measured input is no reversal); it is inner when
     it lies INNER_MARGIN of the range away from both the smallest and the largest input. A
-    full-range sine has none; a multisine, a fading sine or nested loops have many.
+    full-range sine has none; a multisine, a fading sine or nested loops have many. Several
+    input channels ((N, n_in) arrays): the fewest of any channel.
     """
     inputs = [np.asarray(getattr(x, 'u', x), dtype=np.float64) for x in inputs]
+    if any(u.ndim == 2 for u in inputs):
+        cols = [u.reshape(len(u), -1) for u in inputs]
+        return min(_inner_reversals([c[:, i] for c in cols]) for i in range(cols[0].shape[1]))
+    return _inner_reversals(inputs)
+
+
+def _inner_reversals(inputs) -> int:
     lo = min(float(np.min(u)) for u in inputs)
     hi = max(float(np.max(u)) for u in inputs)
     span = hi - lo

@@ -48,7 +48,7 @@ def _vector(name: str, value, source: str) -> np.ndarray:
 
 def _channels(name: str, value, source: str) -> np.ndarray:
     """
-    A signal of one or more channels as a C-contiguous (N, k) float64 array.
+    Return a signal of one or more channels as a C-contiguous (N, k) float64 array.
 
     1-D (and a row vector saved as 2-D) is one channel; (N, k) is k channels.
     """
@@ -193,7 +193,7 @@ def load_csv(path, fs: float | None = None, columns: dict | None = None,
 
 
 def _csv_rate(t, fs, source: str, units: Units) -> float:
-    """The rate (Hz) of a table: from its t column (s) and/or --fs, which must agree."""
+    """Return the rate (Hz) of a table: from its t column (s) and/or --fs, which must agree."""
     if t is not None:
         csv_fs = time_clock(t, source, 't', stated='t' in units.stated).fs
         if fs is not None and not np.isclose(csv_fs, fs, rtol=TIME_RATE_RTOL):
@@ -207,7 +207,7 @@ def _csv_rate(t, fs, source: str, units: Units) -> float:
 
 
 def _numbered(names, prefix: str) -> list[int]:
-    """Indices of the header names prefix1, prefix2, ... (in the order of their numbers)."""
+    """Return the indices of the header names prefix1, prefix2, ... (in the order of their numbers)."""
     found = [(int(n[len(prefix):]), i) for i, n in enumerate(names)
              if n.startswith(prefix) and n[len(prefix):].isdigit()]
     return [i for _, i in sorted(found)]

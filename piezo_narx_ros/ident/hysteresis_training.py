@@ -82,7 +82,7 @@ JUMP_FACTOR = 10.0
 
 def _initial_drive_limit(un):
     """
-    Starting drive limit rho (normalised input per sample) for one record.
+    Return the starting drive limit rho (normalised input per sample) for one record.
 
     Half the largest step when that step is a jump (far larger than the steps beside it: a step
     command the amplifier's slew must ramp), so that the limit acts on the jumps and its

@@ -365,7 +365,7 @@ def narx_step_mimo(u_k, ubuf, ybuf, out, Wu, Wy, b1, W2, b2):
 
 @njit(cache=True)
 def narx_peek_mimo(u_k, ubuf, ybuf, scratch, out, Wu, Wy, b1, W2, b2):
-    """y(k) for u_k into out without changing the histories (scratch: (nu+1, n_in)); finite?"""
+    """Write y(k) for u_k into out, histories untouched (scratch (nu+1, n_in)); finite u_k."""
     if not _finite(u_k):
         return False
     scratch[:] = ubuf
@@ -502,3 +502,17 @@ class ARXVectorStepper(VectorStepper):
 
     _step = staticmethod(arx_step_mimo)
     _peek = staticmethod(arx_peek_mimo)
+
+
+def channel_lag_weights(W, nu, ny, n_in, n_out):
+    """
+    Split weights over a channel regressor row (regressors.py order) into kernel layout.
+
+    W (H, n_in (nu+1) + n_out ny) -> (Wu (H, nu+1, n_in), Wy (H, ny, n_out)), rows in time order
+    (oldest first), C-contiguous: the layout of the channel kernels above.
+    """
+    H = W.shape[0]
+    k = n_in * (nu + 1)
+    Wu = W[:, :k].reshape(H, n_in, nu + 1)[:, :, ::-1].transpose(0, 2, 1)
+    Wy = W[:, k:].reshape(H, n_out, ny)[:, :, ::-1].transpose(0, 2, 1)
+    return np.ascontiguousarray(Wu), np.ascontiguousarray(Wy)

@@ -14,14 +14,19 @@ from piezo_narx_ros.errors import DataError
 
 
 def _pair(y, y_hat, start: int) -> tuple[np.ndarray, np.ndarray]:
-    y = np.asarray(y, dtype=np.float64)
-    y_hat = np.asarray(y_hat, dtype=np.float64)
+    # One channel of a Record ((N, 1)) is its N samples; several go through channel_scores.
+    y = _one_column(np.asarray(y, dtype=np.float64))
+    y_hat = _one_column(np.asarray(y_hat, dtype=np.float64))
     if y.ndim != 1 or y.shape != y_hat.shape:
         raise DataError(f'metrics need two 1-D arrays of equal length, got shapes {y.shape} '
                         f'and {y_hat.shape}')
     if start < 0 or y.size - start < 2:
         raise DataError(f'metrics need at least 2 samples after start={start}, have {y.size}')
     return y[start:], y_hat[start:]
+
+
+def _one_column(a: np.ndarray) -> np.ndarray:
+    return a[:, 0] if a.ndim == 2 and a.shape[1] == 1 else a
 
 
 def r2(y, y_hat, start: int = 0) -> float:

@@ -134,7 +134,7 @@ def is_multi_axis(model) -> bool:
 
 
 def _channel_names(doc, name):
-    """(inputs, outputs) names of a model file; ('u',), ('y',) for a one-axis file."""
+    """Return the (inputs, outputs) names of a model file; ('u',), ('y',) for a one-axis file."""
     if 'inputs' not in doc and 'outputs' not in doc:
         return ('u',), ('y',)
     out = []
@@ -149,7 +149,7 @@ def _channel_names(doc, name):
 
 
 def _channel_range(doc, key, name, n):
-    """A model file's range: [min, max] for one channel, [[min...], [max...]] for n."""
+    """Return a model file's range: [min, max] for one channel, [[min...], [max...]] for n."""
     v = doc.get(key)
     if n == 1 or v is None:
         return document.range_of(doc, key, name)

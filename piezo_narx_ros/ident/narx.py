@@ -6,6 +6,10 @@ NARX network: one hidden layer of logistic (sigmoid) units and a linear output.
 
 The normalisation (u_mean, u_std, y_mean, y_std) is fitted on the estimation data only. Training
 (torch, imported only inside fit) lives in training.py; inference uses the numba kernels.
+
+Several inputs and outputs: one network with n_out linear outputs over the lags of every channel
+(regressors.py), y(k) = ym + ys * (W2 sigmoid(W1 xn + b1) + b2), each channel normalised by its
+own mean and std; weights W1 (H, n_in (nu+1) + n_out ny), W2 (n_out, H), b2 (n_out,).
 """
 import time
 
@@ -13,9 +17,10 @@ import numpy as np
 
 from ..errors import ConfigError, DataError, ModelFileError
 from . import document
-from .base import as_record_list, register_family
-from .kernels import NARXStepper, narx_predict, narx_simulate
-from .regressors import LaggedModel, as_signal, check_orders
+from .base import register_family
+from .kernels import (NARXStepper, NARXVectorStepper, channel_lag_weights, narx_predict,
+                      narx_predict_mimo, narx_simulate, narx_simulate_mimo)
+from .regressors import LaggedModel, check_orders
 
 #: Training options and their defaults (fast enough for a 16-network grid on 50k samples).
 TRAINING_DEFAULTS = {
@@ -88,13 +93,13 @@ class NARXNetwork(LaggedModel):
 
     @property
     def n_inputs(self):
-        """Regressor size nu + 1 + ny."""
-        return self.nu + 1 + self.ny
+        """Regressor size nu + 1 + ny (n_in (nu + 1) + n_out ny with channels)."""
+        return self.n_in * (self.nu + 1) + self.n_out * self.ny
 
     @property
     def n_params(self):
-        """Return the number of trainable weights H (d + 1) + H + 1."""
-        return self.hidden * (self.n_inputs + 2) + 1
+        """Return the number of trainable weights H (d + 1) + n_out (H + 1)."""
+        return self.hidden * (self.n_inputs + 1) + self.n_out * (self.hidden + 1)
 
     def _is_fitted(self):
         return self.W1 is not None
@@ -107,7 +112,12 @@ class NARXNetwork(LaggedModel):
         W1 : (H, nu+1+ny) input weights, columns in regressor order
              [u(k)..u(k-nu), y(k-1)..y(k-ny)];
         b1 : (H,); w2 : (H,); b2 : scalar; normalisation : (u_mean V, u_std V, y_mean m, y_std m).
+        Several channels: w2 (n_out, H), b2 (n_out,), normalisation (u_mean (n_in,), u_std
+        (n_in,), y_mean (n_out,), y_std (n_out,)); n_in / n_out follow from their shapes.
         """
+        if np.ndim(w2) == 2:
+            return self._set_channel_weights(W1, b1, w2, b2, normalisation)
+        self.n_in_ = self.n_out_ = 1
         H, d = self.hidden, self.n_inputs
         W1 = np.array(W1, dtype=np.float64)
         b1 = np.array(b1, dtype=np.float64).ravel()
@@ -128,8 +138,50 @@ class NARXNetwork(LaggedModel):
         self._fold()
         return self
 
+    def _set_channel_weights(self, W1, b1, W2, b2, normalisation):
+        try:
+            um, us, ym, ys = (np.array(a, dtype=np.float64).ravel() for a in normalisation)
+        except (TypeError, ValueError):
+            raise DataError('normalisation must be (u_mean, u_std, y_mean, y_std) arrays '
+                            'per channel') from None
+        W2 = np.array(W2, dtype=np.float64)
+        n_out, n_in = W2.shape[0], um.size
+        H = self.hidden
+        d = n_in * (self.nu + 1) + n_out * self.ny
+        W1 = np.array(W1, dtype=np.float64)
+        b1 = np.array(b1, dtype=np.float64).ravel()
+        b2 = np.array(b2, dtype=np.float64).ravel()
+        if W1.shape != (H, d) or b1.shape != (H,) or W2.shape != (n_out, H) \
+                or b2.shape != (n_out,) or us.size != n_in or ys.size != n_out \
+                or ym.size != n_out:
+            raise DataError(f'NARX weights for {n_in} input(s) and {n_out} output(s) must be W1 '
+                            f'{(H, d)}, b1 ({H},), W2 ({n_out}, {H}), b2 ({n_out},); got W1 '
+                            f'{W1.shape}, b1 {b1.shape}, W2 {W2.shape}, b2 {b2.shape}')
+        if np.any(us <= 0) or np.any(ys <= 0):
+            raise DataError('normalisation stds must be > 0')
+        for name, a in (('W1', W1), ('b1', b1), ('W2', W2), ('b2', b2),
+                        ('normalisation', np.r_[um, us, ym, ys])):
+            if not np.all(np.isfinite(a)):
+                raise DataError(f'NARX weight {name} contains NaN or infinite values')
+        self.n_in_, self.n_out_ = n_in, n_out
+        self.W1, self.b1, self.w2, self.b2 = W1, b1, W2, b2
+        self.normalisation = (um, us, ym, ys)
+        self._fold()
+        return self
+
     def _fold(self):
         """Fold the normalisation into raw-unit, time-ordered kernel weights."""
+        if not self._scalar_io:
+            um, us, ym, ys = self.normalisation
+            mean = np.r_[np.repeat(um, self.nu + 1), np.repeat(ym, self.ny)]
+            std = np.r_[np.repeat(us, self.nu + 1), np.repeat(ys, self.ny)]
+            Wr = self.W1 / std
+            self._b1r = self.b1 - Wr @ mean
+            self._Wu, self._Wy = channel_lag_weights(Wr, self.nu, self.ny, self.n_in,
+                                                     self.n_out)
+            self._w2r = np.ascontiguousarray(self.w2 * ys[:, None])
+            self._b2r = ym + ys * self.b2
+            return
         um, us, ym, ys = self.normalisation
         n_u = self.nu + 1
         mean = np.r_[np.full(n_u, um), np.full(self.ny, ym)]
@@ -146,8 +198,8 @@ class NARXNetwork(LaggedModel):
         """
         Train on estimation data u (V), y (m).
 
-        1-D arrays, or lists of arrays for several records (no regressor row or free-run segment
-        spans two records); returns self.
+        u (N,) or (N, n_in) V, y (N,) or (N, n_out) m, or lists of such for several records (no
+        regressor row or free-run segment spans two records); returns self.
 
         Stage 1: Levenberg-Marquardt on the one-step error (seeded restarts, early stopping on a
         held-out tail). Stage 2: simulation-error LM on free-run segments, kept only if the
@@ -159,15 +211,26 @@ class NARXNetwork(LaggedModel):
         opts = self.training_options
         if (u_val is None) != (y_val is None):
             raise DataError('give both u_val and y_val, or neither')
-        u_list, y_list = as_record_list(u, y, min_len=self.n0 + 20)
+        u_list, y_list = self._records(u, y, min_len=self.n0 + 20)
         u, y = np.concatenate(u_list), np.concatenate(y_list)
-        us, ys = float(u.std()), float(y.std())
-        if us == 0 or ys == 0:
-            raise DataError('estimation data is constant (zero variance in u or y); cannot fit')
-        norm = np.array([u.mean(), us, y.mean(), ys])
+        if self._scalar_io:
+            us, ys = float(u.std()), float(y.std())
+            if us == 0 or ys == 0:
+                raise DataError('estimation data is constant (zero variance in u or y); '
+                                'cannot fit')
+            norm = np.array([u.mean(), us, y.mean(), ys])
+            mu_u, sd_u, mu_y, sd_y = norm
+        else:
+            mu_u, sd_u, mu_y, sd_y = u.mean(axis=0), u.std(axis=0), y.mean(axis=0), y.std(axis=0)
+            if np.any(sd_u == 0) or np.any(sd_y == 0):
+                flat = [f'u{i + 1}' for i in np.flatnonzero(sd_u == 0)] + \
+                    [f'y{i + 1}' for i in np.flatnonzero(sd_y == 0)]
+                raise DataError(f'estimation data is constant in {", ".join(flat)} (zero '
+                                'variance); cannot fit')
+            norm = (mu_u, sd_u, mu_y, sd_y)
         t0 = time.perf_counter()
-        un = [(x - norm[0]) / norm[1] for x in u_list]
-        yn = [(x - norm[2]) / norm[3] for x in y_list]
+        un = [(x - mu_u) / sd_u for x in u_list]
+        yn = [(x - mu_y) / sd_y for x in y_list]
         W1, b1, w2, b2, info = training.train_narx(
             un if len(un) > 1 else un[0], yn if len(yn) > 1 else yn[0], self.nu, self.ny,
             self.hidden, self.seed, **opts)
@@ -175,38 +238,56 @@ class NARXNetwork(LaggedModel):
         self._record_ranges(u, y, fs)
         info['fit_seconds'] = time.perf_counter() - t0
         if u_val is not None and y_val is not None:
-            u_val = as_signal(u_val, 'u_val', min_len=self.n0 + 1)
-            y_val = as_signal(y_val, 'y_val', n=u_val.size)
-            info['val_r2_predict'] = _r2(y_val[self.n0:], self.predict(u_val, y_val)[self.n0:])
-            info['val_r2_simulate'] = _r2(y_val[self.n0:],
-                                          self.simulate(u_val, y_val[:self.n0])[self.n0:])
+            u_val = self._signal(u_val, 'u_val', self.n_in, min_len=self.n0 + 1)
+            y_val = self._signal(y_val, 'y_val', self.n_out, n=len(u_val))
+            n0 = self.n0
+            info['val_r2_predict'] = _r2(y_val[n0:], self._one_step(u_val, y_val, n0)[n0:])
+            info['val_r2_simulate'] = _r2(y_val[n0:], np.reshape(
+                self.simulate(u_val, y_val[:n0]), y_val.shape)[n0:])
         self.training_info_ = info
         return self
 
     # ---------------------------------------------------------------- inference
+    def _kernel_params(self):
+        return (self._Wu, self._Wy, self._b1r, self._w2r, self._b2r)
+
     def _one_step(self, u, y, start):
-        return narx_predict(u, y, start, self._Wu, self._Wy, self._b1r, self._w2r, self._b2r)
+        run = narx_predict if self._scalar_io else narx_predict_mimo
+        return run(u, y, start, *self._kernel_params())
 
     def _simulate_inplace(self, u, y, start):
-        narx_simulate(u, y, start, self._Wu, self._Wy, self._b1r, self._w2r, self._b2r)
+        run = narx_simulate if self._scalar_io else narx_simulate_mimo
+        run(u, y, start, *self._kernel_params())
 
     def _make_stepper(self, u_past, y_past):
-        return NARXStepper((self._Wu, self._Wy, self._b1r, self._w2r, self._b2r),
-                           self.nu, self.ny, u_past, y_past)
+        if self._scalar_io:
+            return NARXStepper(self._kernel_params(), self.nu, self.ny, u_past, y_past)
+        return NARXVectorStepper(self._kernel_params(), self.nu, self.ny, self.n_in, self.n_out,
+                                 u_past, y_past)
 
     # ------------------------------------------------------------------ model file and export
     def file_document(self):
         """Return the NARX blocks of the model file (structure, normalisation, training)."""
+        norm = (self.normalisation.tolist() if self._scalar_io
+                else [a.tolist() for a in self.normalisation])
         return {'structure': {'kind': 'narx', 'nu': self.nu, 'ny': self.ny,
                               'hidden': self.hidden, 'activation': self.activation,
                               'output': 'linear', 'n_params': self.n_params},
-                'normalisation': dict(zip(('u_mean', 'u_std', 'y_mean', 'y_std'),
-                                          self.normalisation.tolist())),
+                'normalisation': dict(zip(('u_mean', 'u_std', 'y_mean', 'y_std'), norm)),
                 'training': {'seed': self.seed, 'options': self.training_options,
                              'info': self.training_info_}}
 
     def file_weights(self):
-        """Return W1, b1, w2, b2 (1,) and the normalisation (4,) as written to the .npz."""
+        """
+        Return W1, b1, w2, b2 (1,) and the normalisation (4,) as written to the .npz.
+
+        Several channels: W1, b1, W2 (n_out, H), b2 (n_out,), u_norm (2, n_in) and y_norm
+        (2, n_out) (rows mean, std).
+        """
+        if not self._scalar_io:
+            um, us, ym, ys = self.normalisation
+            return {'W1': self.W1, 'b1': self.b1, 'W2': self.w2, 'b2': self.b2,
+                    'u_norm': np.vstack([um, us]), 'y_norm': np.vstack([ym, ys])}
         return {'W1': self.W1, 'b1': self.b1, 'w2': self.w2, 'b2': np.array([self.b2]),
                 'normalisation': self.normalisation}
 
@@ -222,6 +303,18 @@ class NARXNetwork(LaggedModel):
         training = document.training_block(doc)
         seed = training.get('seed', 0)
         model = cls(nu, ny, hidden, seed=seed if isinstance(seed, int) else 0)
+        n_in, n_out = document.channel_counts(doc, name)
+        if n_in > 1 or n_out > 1:
+            d = n_in * (nu + 1) + n_out * ny
+            un = document.weight_array(arrays, 'u_norm', (2, n_in), wpath)
+            yn = document.weight_array(arrays, 'y_norm', (2, n_out), wpath)
+            model.set_weights(document.weight_array(arrays, 'W1', (hidden, d), wpath),
+                              document.weight_array(arrays, 'b1', (hidden,), wpath),
+                              document.weight_array(arrays, 'W2', (n_out, hidden), wpath),
+                              document.weight_array(arrays, 'b2', (n_out,), wpath),
+                              (un[0], un[1], yn[0], yn[1]))
+            model.training_info_ = training.get('info') or {}
+            return model
         d = nu + 1 + ny
         model.set_weights(document.weight_array(arrays, 'W1', (hidden, d), wpath),
                           document.weight_array(arrays, 'b1', (hidden,), wpath),
@@ -233,14 +326,16 @@ class NARXNetwork(LaggedModel):
 
     def c_emitter(self):
         """Return the C emitter of this model (piezo_narx_ros.ident.narx_export)."""
-        from .narx_export import NARXEmitter
-        return NARXEmitter(self)
+        from .narx_export import NARXChannelEmitter, NARXEmitter
+        return NARXEmitter(self) if self._scalar_io else NARXChannelEmitter(self)
 
     def __repr__(self):
-        return f'NARXNetwork(nu={self.nu}, ny={self.ny}, hidden={self.hidden}, seed={self.seed})'
+        axes = '' if self._scalar_io else f', {self.n_in}x{self.n_out}'
+        return (f'NARXNetwork(nu={self.nu}, ny={self.ny}, hidden={self.hidden}, '
+                f'seed={self.seed}{axes})')
 
 
 def _r2(y, yhat):
     """Coefficient of determination 1 - SSE/SST (for training_info_ only)."""
-    d = y - y.mean()
+    d = y - y.mean(axis=0)
     return float(1.0 - np.sum((y - yhat) ** 2) / np.sum(d * d))

@@ -137,3 +137,24 @@ def fit_ar_noise_model(residuals, max_order: int = 20, criterion: str = 'bic') -
     resid = t - np.einsum('ki,i->k', X[:, :p], coef) if p else t
     return ARNoiseModel(coef=np.asarray(coef, dtype=np.float64),
                         residual_std=float(np.std(resid)), input_std=float(np.std(e)))
+
+
+def noise_models_from_doc(doc):
+    """
+    Return an ARNoiseModel from its description, or a list of them (one per output) from a list.
+
+    Several outputs store one noise model per output (experiment.fit_noise_models); DataError
+    when malformed.
+    """
+    if isinstance(doc, list):
+        return [ARNoiseModel.from_dict(d) for d in doc]
+    return ARNoiseModel.from_dict(doc)
+
+
+def describe(doc) -> str:
+    """Return 'AR(p) noise model' ('AR(p, q, ...)' per output for several), or 'raw'."""
+    if not doc:
+        return 'raw'
+    if isinstance(doc, list):
+        return 'AR(' + ', '.join(str(d.get('order')) for d in doc) + ') noise models'
+    return f'AR({doc["order"]}) noise model'

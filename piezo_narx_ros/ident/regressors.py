@@ -114,11 +114,11 @@ class LaggedModel(DynamicModel):
 
     @property
     def _scalar_io(self) -> bool:
-        """True for one input and one output: (N,) arrays inside, float Stepper."""
+        """Tell whether the model has one input and one output: (N,) arrays inside, floats."""
         return self.n_in == 1 and self.n_out == 1
 
     def _signal(self, x, name, width, n=None, min_len=1):
-        """A user array as the model works on it: (N,) for a one-axis model, else (N, width)."""
+        """Return a user array as the model works on it: (N,) for a one-axis model, else (N, width)."""
         a = as_channels(x, name, n=n, width=width, min_len=min_len)
         return a[:, 0] if self._scalar_io else a
 

@@ -24,7 +24,7 @@ from piezo_narx_ros.ident.data import Record
 from piezo_narx_ros.ident.experiment import (ExperimentResult, free_run,
                                              outputs_by_record, residual_correlations,
                                              scored_from)
-from piezo_narx_ros.ident.noise_model import ARNoiseModel
+from piezo_narx_ros.ident.noise_model import noise_models_from_doc
 
 UM = 1e6  # metres -> micrometres for plots
 
@@ -68,7 +68,7 @@ def selected_correlations(result: ExperimentResult, validation: list[Record]) ->
     corr = {}
     for mode in ('prediction', 'simulation'):
         doc = result.best.tests.get(mode, {}).get('noise_model')
-        noise = ARNoiseModel.from_dict(doc) if doc else None
+        noise = noise_models_from_doc(doc) if doc else None
         c = residual_correlations(parts, mode, cfg.max_lag, cfg.max_outside_fraction, noise)
         if c is not None:
             corr[mode] = (c, noise)
@@ -91,7 +91,9 @@ def write_report(result: ExperimentResult, validation: list[Record], out_dir) ->
     corr = selected_correlations(result, validation)
     summary = result.to_dict()
     summary['selected_correlation'] = {
-        mode: {**c.to_dict(), 'noise_model': noise.to_dict() if noise else None}
+        mode: {**c.to_dict(), 'noise_model': (None if not noise else
+                                              [n.to_dict() for n in noise]
+                                              if isinstance(noise, list) else noise.to_dict())}
         for mode, (c, noise) in corr.items()}
     paths = {'metrics': write_json(summary, out_dir / 'metrics.json')}
     plt = _pyplot()
@@ -231,6 +233,8 @@ def plot_correlation(corr, label: str, mode: str, noise=None):
                      color='black' if test.passed else 'tab:red')
         ax.set_xlabel('lag τ (samples)')
     flat[-1].axis('off')
+    if isinstance(noise, list):   # several outputs: the pair the tests judged
+        noise = noise[(corr.pair or {}).get('output', 0)]
     whitening = (f'after the AR({noise.order}) noise model' if noise is not None and noise.order
                  else 'raw (no noise model)')
     flat[-1].text(0.02, 0.5,

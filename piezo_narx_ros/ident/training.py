@@ -21,6 +21,13 @@ Both stages are Levenberg-Marquardt as MATLAB's trainlm does it: exact Jacobian,
 The Jacobian rows are sequential recursions, so they are numba kernels (like the free-run kernel);
 the (N, P) x (N, P) normal equations and the Cholesky solves are torch (float64, single thread by
 default, deterministic).
+
+Several inputs and outputs (signals (N, n_in) and (N, n_out)): one network with n_out linear
+outputs over the channel regressor row (regressors.py), theta = [W1 (H*d), b1 (H), W2 (n_out*H,
+row-major), b2 (n_out)]; errors and Jacobian rows are sample-major (n_out rows per sample), and
+the free-run sensitivities run through every output's lags. The stages are the same code with
+the channel kernels (`_CHANNEL_OPS`); one input and one output keep the kernels above, bit for
+bit.
 """
 import time
 
@@ -28,7 +35,7 @@ import numpy as np
 import torch
 from numba import njit
 
-from .kernels import narx_simulate
+from .kernels import channel_lag_weights, narx_simulate, narx_simulate_mimo
 from .regressors import lagged_regressors
 
 _MU_MAX = 1e10
@@ -126,6 +133,160 @@ def _segments(u, y, starts, L, nu, ny, theta, H, J, e, with_jac):
                     for p in range(row.size):
                         row[p] += gj * prev[p]
     return sse
+
+
+@njit(cache=True)
+def _hidden_ch(x, theta, H, d, n_out, s, out):
+    """Hidden activations s (H,) and the n_out outputs (into out) for one regressor x (d,)."""
+    base = H * d + H
+    for h in range(H):
+        z = theta[H * d + h]
+        for i in range(d):
+            z += theta[h * d + i] * x[i]
+        s[h] = 1.0 / (1.0 + np.exp(-z))
+    for j in range(n_out):
+        o = theta[base + n_out * H + j]
+        for h in range(H):
+            o += theta[base + j * H + h] * s[h]
+        out[j] = o
+
+
+@njit(cache=True)
+def _jac_rows_ch(x, s, theta, H, d, n_out, J, r0):
+    """Direct derivatives of the n_out outputs into rows J[r0 : r0+n_out] (P,) each."""
+    base = H * d + H
+    for j in range(n_out):
+        row = J[r0 + j]
+        row[:] = 0.0
+        for h in range(H):
+            a = theta[base + j * H + h] * s[h] * (1.0 - s[h])
+            for i in range(d):
+                row[h * d + i] = a * x[i]
+            row[H * d + h] = a
+            row[base + j * H + h] = s[h]
+        row[base + n_out * H + j] = 1.0
+
+
+@njit(cache=True)
+def _onestep_sse_ch(X, T, theta, H):
+    """Sum of squared one-step errors for rows X (N, d) and targets T (N, n_out)."""
+    d, n_out = X.shape[1], T.shape[1]
+    s, out = np.empty(H), np.empty(n_out)
+    sse = 0.0
+    for n in range(X.shape[0]):
+        _hidden_ch(X[n], theta, H, d, n_out, s, out)
+        for j in range(n_out):
+            e = T[n, j] - out[j]
+            sse += e * e
+    return sse
+
+
+@njit(cache=True)
+def _onestep_jac_ch(X, T, theta, H, J, e):
+    """One-step Jacobian J (N n_out, P) and errors e (N n_out,), sample-major; returns SSE."""
+    d, n_out = X.shape[1], T.shape[1]
+    s, out = np.empty(H), np.empty(n_out)
+    sse = 0.0
+    for n in range(X.shape[0]):
+        _hidden_ch(X[n], theta, H, d, n_out, s, out)
+        for j in range(n_out):
+            r = n * n_out + j
+            e[r] = T[n, j] - out[j]
+            sse += e[r] * e[r]
+        _jac_rows_ch(X[n], s, theta, H, d, n_out, J, n * n_out)
+    return sse
+
+
+@njit(cache=True)
+def _segments_ch(u, y, starts, L, nu, ny, theta, H, J, e, with_jac):
+    """
+    _segments for channels: u (N, n_in), y (N, n_out); rows sample-major (n_out per sample).
+
+    dy_j(k)/dtheta = df_j/dtheta + sum_l sum_m df_j/dy_m(k-l) dy_m(k-l)/dtheta.
+    """
+    n_in, n_out = u.shape[1], y.shape[1]
+    ku = n_in * (nu + 1)
+    d = ku + n_out * ny
+    base = H * d + H
+    x = np.empty(d)
+    s = np.empty(H)
+    out = np.empty(n_out)
+    yhat = np.empty((L, n_out))
+    g = np.empty((n_out, n_out, ny))
+    sse = 0.0
+    for b in range(starts.size):
+        k0 = starts[b]
+        for t in range(L):
+            k = k0 + t
+            for c in range(n_in):
+                for i in range(nu + 1):
+                    x[c * (nu + 1) + i] = u[k - i, c]
+            for m in range(n_out):
+                for j in range(1, ny + 1):
+                    x[ku + m * ny + j - 1] = yhat[t - j, m] if t - j >= 0 else y[k - j, m]
+            _hidden_ch(x, theta, H, d, n_out, s, out)
+            r0 = (b * L + t) * n_out
+            for j in range(n_out):
+                yhat[t, j] = out[j]
+                e[r0 + j] = y[k, j] - out[j]
+                sse += e[r0 + j] * e[r0 + j]
+            if with_jac:
+                _jac_rows_ch(x, s, theta, H, d, n_out, J, r0)
+                for j in range(n_out):
+                    for m in range(n_out):
+                        for lag in range(1, ny + 1):
+                            acc = 0.0
+                            for h in range(H):
+                                acc += (theta[base + j * H + h] * s[h] * (1.0 - s[h])
+                                        * theta[h * d + ku + m * ny + lag - 1])
+                            g[j, m, lag - 1] = acc
+                for j in range(n_out):
+                    row = J[r0 + j]
+                    for lag in range(1, min(ny, t) + 1):
+                        for m in range(n_out):
+                            gj = g[j, m, lag - 1]
+                            prev = J[r0 - lag * n_out + m]
+                            for p in range(row.size):
+                                row[p] += gj * prev[p]
+    return sse
+
+
+def _unpack_ch(theta, H, d, n_out):
+    """(W1 (H, d), b1 (H,), W2 (n_out, H), b2 (n_out,)) of a channel theta."""
+    base = H * d + H
+    return (theta[:H * d].reshape(H, d), theta[H * d:base],
+            theta[base:base + n_out * H].reshape(n_out, H), theta[base + n_out * H:])
+
+
+def _init_theta_ch(H, X, T, rng):
+    """_init_theta for n_out outputs: random hidden layer, output layer by least squares."""
+    d = X.shape[1]
+    beta = 0.7 * H ** (1.0 / d)
+    W1 = rng.uniform(-1.0, 1.0, (H, d))
+    W1 *= beta / np.linalg.norm(W1, axis=1, keepdims=True)
+    b1 = rng.uniform(-beta, beta, H)
+    Xt = torch.from_numpy(X)
+    S = torch.sigmoid(Xt @ torch.from_numpy(W1).T + torch.from_numpy(b1))
+    S = torch.cat([S, torch.ones(X.shape[0], 1, dtype=S.dtype)], dim=1)
+    w = torch.linalg.lstsq(S, torch.from_numpy(np.ascontiguousarray(T)),
+                           driver='gelsd').solution.numpy()          # (H + 1, n_out)
+    return np.concatenate([W1.ravel(), b1, w[:H].T.ravel(), w[H]])
+
+
+def _freerun_mse_ch(theta, H, un, yn, nu, ny, k_start):
+    """_freerun_mse for channels: un (N, n_in), yn (N, n_out)."""
+    n_in, n_out = un.shape[1], yn.shape[1]
+    d = n_in * (nu + 1) + n_out * ny
+    W1, b1, W2, b2 = _unpack_ch(theta, H, d, n_out)
+    Wu, Wy = channel_lag_weights(W1, nu, ny, n_in, n_out)
+    n0 = max(nu, ny)
+    u = un[k_start - n0:]
+    y = np.empty((len(u), n_out))
+    y[:n0] = yn[k_start - n0:k_start]
+    narx_simulate_mimo(u, y, n0, Wu, Wy, b1.copy(), np.ascontiguousarray(W2), b2.copy())
+    err = y[n0:] - yn[k_start:]
+    mse = float(np.mean(err * err))
+    return mse if np.isfinite(mse) else np.inf
 
 
 def _n_params(H, d):
@@ -241,12 +402,12 @@ def _segment_starts(k_lo, k_hi, length, n_segments):
     return np.round(np.linspace(k_lo, k_hi - length, n_segments)).astype(np.int64)
 
 
-def _pooled_freerun_mse(theta, H, uns, yns, nu, ny, k_starts):
+def _pooled_freerun_mse(theta, H, uns, yns, nu, ny, k_starts, mse_of=_freerun_mse):
     """Free-run MSE pooled over records, each run from its own k_start (no state crosses)."""
     total, count = 0.0, 0
     for un, yn, k in zip(uns, yns, k_starts):
-        n = un.size - k
-        total += _freerun_mse(theta, H, un, yn, nu, ny, k) * n
+        n = len(un) - k
+        total += mse_of(theta, H, un, yn, nu, ny, k) * n
         count += n
     return total / count if np.isfinite(total) else np.inf
 
@@ -260,7 +421,7 @@ def train_narx(un, yn, nu, ny, hidden, seed, restarts=3, restart_iter=8, restart
     (N,) arrays, or lists of them for several records (no regressor row, free-run segment or score
     crosses from one record to the next; each record keeps its own held-out tail). See the module
     docstring and narx.TRAINING_DEFAULTS for the options. Returns (W1 (H, d), b1 (H,), w2 (H,), b2,
-    info).
+    info); for channel signals ((N, n_in), (N, n_out)) w2 is W2 (n_out, H) and b2 (n_out,).
     """
     t_start = time.perf_counter()
     n_threads = torch.get_num_threads()
@@ -269,12 +430,23 @@ def train_narx(un, yn, nu, ny, hidden, seed, restarts=3, restart_iter=8, restart
         uns = list(un) if isinstance(un, (list, tuple)) else [un]
         yns = list(yn) if isinstance(yn, (list, tuple)) else [yn]
         rng = np.random.default_rng(int(seed))
-        H, d = int(hidden), nu + 1 + ny
-        P = _n_params(H, d)
+        channels = np.ndim(uns[0]) == 2
+        n_out = yns[0].shape[1] if channels else 1
+        H = int(hidden)
+        if channels:
+            d = uns[0].shape[1] * (nu + 1) + n_out * ny
+            P = H * (d + 1) + n_out * (H + 1)
+            sse_k, jac_k, seg_k, init_k, mse_k = (_onestep_sse_ch, _onestep_jac_ch, _segments_ch,
+                                                  _init_theta_ch, _freerun_mse_ch)
+        else:
+            d = nu + 1 + ny
+            P = _n_params(H, d)
+            sse_k, jac_k, seg_k, init_k, mse_k = (_onestep_sse, _onestep_jac, _segments,
+                                                  _init_theta, _freerun_mse)
         n0 = max(nu, ny)
         X_tr, t_tr, X_ho, t_ho, k_splits, n_vals = [], [], [], [], [], []
         for u_r, y_r in zip(uns, yns):
-            N = u_r.size
+            N = len(u_r)
             n_val = min(max(int(round(val_fraction * N)), 0), N - n0 - 10)
             k_split = N - n_val                       # samples k >= k_split are held out
             X_all, t_all = lagged_regressors(u_r, y_r, nu, ny)
@@ -303,21 +475,21 @@ def train_narx(un, yn, nu, ny, hidden, seed, restarts=3, restart_iter=8, restart
             return X, t
 
         def onestep_problem(Xs, ts):
-            J, e = np.empty((Xs.shape[0], P)), np.empty(Xs.shape[0])
+            J, e = np.empty((Xs.shape[0] * n_out, P)), np.empty(Xs.shape[0] * n_out)
 
             def jacobian(th):
-                return J, e, _onestep_jac(Xs, ts, th, H, J, e)
-            return jacobian, (lambda th: _onestep_sse(Xs, ts, th, H))
+                return J, e, jac_k(Xs, ts, th, H, J, e)
+            return jacobian, (lambda th: sse_k(Xs, ts, th, H))
 
         def score_onestep(th):
-            return _onestep_sse(Xv, tv, th, H) / tv.size
+            return sse_k(Xv, tv, th, H) / tv.size
 
         # Stage 1: screen seeded restarts on a row subsample, continue the best on more rows.
         Xs, ts = subsample(restart_samples)
         jac, sse_of = onestep_problem(Xs, ts)
         best = None
         for _ in range(max(1, int(restarts))):
-            th, sc, _ = _levenberg_marquardt(_init_theta(H, Xs, ts, rng), jac, sse_of,
+            th, sc, _ = _levenberg_marquardt(init_k(H, Xs, ts, rng), jac, sse_of,
                                              score_onestep, int(restart_iter), int(max_fail), 1e-3)
             if best is None or sc < best[1]:
                 best = (th, sc)
@@ -336,8 +508,8 @@ def train_narx(un, yn, nu, ny, hidden, seed, restarts=3, restart_iter=8, restart
             # first samples guards stability: the record starts with the excitation switching on,
             # which the held-out tail never shows, and long refinement once produced a network
             # accurate on the tail that fell into a limit cycle there (R² -119).
-            return max(_pooled_freerun_mse(th, H, uns, yns, nu, ny, k_vals),
-                       _pooled_freerun_mse(th, H, uns, yns, nu, ny, starts_at_n0))
+            return max(_pooled_freerun_mse(th, H, uns, yns, nu, ny, k_vals, mse_k),
+                       _pooled_freerun_mse(th, H, uns, yns, nu, ny, starts_at_n0, mse_k))
 
         stage1_score = score_freerun(theta)
         info['holdout_mse_freerun_stage1'] = stage1_score
@@ -353,19 +525,20 @@ def train_narx(un, yn, nu, ny, hidden, seed, restarts=3, restart_iter=8, restart
                 n_seg = (n_segments if one or not n_segments
                          else max(1, int(round(n_segments * (k_split - n0) / total))))
                 starts.append(offset + _segment_starts(n0, k_split, length, n_seg))
-                offset += u_r.size
+                offset += len(u_r)
             starts = np.concatenate(starts).astype(np.int64)
         if len(starts):
             t2 = time.perf_counter()
-            J, e = np.empty((starts.size * length, P)), np.empty(starts.size * length)
+            rows = starts.size * length * n_out
+            J, e = np.empty((rows, P)), np.empty(rows)
             e_trial = np.empty_like(e)
 
             def jac_sim(th):
-                return J, e, _segments(u_cat, y_cat, starts, length, nu, ny, th, H, J, e, True)
+                return J, e, seg_k(u_cat, y_cat, starts, length, nu, ny, th, H, J, e, True)
 
             def sse_sim(th):
-                return _segments(u_cat, y_cat, starts, length, nu, ny, th, H, J[:1], e_trial,
-                                 False)
+                return seg_k(u_cat, y_cat, starts, length, nu, ny, th, H, J[:1], e_trial,
+                             False)
 
             th2, sc2, n_it2 = _levenberg_marquardt(theta, jac_sim, sse_sim, score_freerun,
                                                    int(refine_iter), int(refine_max_fail), 1e-2,
@@ -376,6 +549,9 @@ def train_narx(un, yn, nu, ny, hidden, seed, restarts=3, restart_iter=8, restart
                 theta, stage = th2, 'simulation'
         info['holdout_mse_freerun'] = score_freerun(theta)
         info['selected_stage'] = stage
+        if channels:
+            W1, b1, W2, b2 = _unpack_ch(theta, H, d, n_out)
+            return W1.copy(), b1.copy(), W2.copy(), b2.copy(), info
         W1, b1, w2, b2 = _unpack(theta, H, d)
         return W1.copy(), b1.copy(), w2.copy(), b2, info
     finally:
