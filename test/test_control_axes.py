@@ -11,21 +11,9 @@ import pytest
 
 from piezo_narx_ros.control.axes import AxesController, VectorInverse, static_gains
 from piezo_narx_ros.errors import ConfigError
-from piezo_narx_ros.ident.arx import ARXModel
-from piezo_narx_ros.plant.axes import make_axis_plants
-from piezo_narx_ros.plant.signals import generate
-from piezo_narx_ros.share import config_path
 
 FS = 2000.0
 T0 = 10**15
-
-
-@pytest.fixture(scope='module')
-def arx2():
-    plant = make_axis_plants([], config_path('plant_2axis.yaml'), fs=FS, seed=1)
-    u = np.column_stack([generate('multisine', FS, 3.0, 100.0, seed=s) for s in (1, 2)])
-    y, _ = plant.run(u)
-    return ARXModel(na=2, nb=2).fit(u, y, fs=FS)
 
 
 def test_static_gains_show_the_coupling_of_the_stage(arx2):

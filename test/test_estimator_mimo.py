@@ -1,7 +1,7 @@
 """
 The free-run estimator on a model of several axes (issue 20), without DDS.
 
-A 2 x 2 ARX identified on the two-axis coupled cantilever (config/plant_2axis.yaml): the live
+A 2 x 2 ARX identified on the two-axis coupled cantilever (conftest.py `arx2`): the live
 estimate equals the model's offline free run, the batch path equals the one-sample path, and every
 check (NaN, range, gaps, init from measurement) holds per channel.
 """
@@ -9,28 +9,10 @@ import numpy as np
 import pytest
 
 from piezo_narx_ros.estimator.free_run import FreeRunEstimator
-from piezo_narx_ros.ident.arx import ARXModel
-from piezo_narx_ros.plant.axes import make_axis_plants
-from piezo_narx_ros.plant.signals import generate
-from piezo_narx_ros.share import config_path
 
 FS = 2000.0
 PERIOD = 500_000
 T0 = 10**18
-
-
-@pytest.fixture(scope='module')
-def stage_data():
-    plant = make_axis_plants([], config_path('plant_2axis.yaml'), fs=FS, seed=1)
-    u = np.column_stack([generate('multisine', FS, 3.0, 100.0, seed=s) for s in (1, 2)])
-    y, _ = plant.run(u)
-    return u, y
-
-
-@pytest.fixture(scope='module')
-def arx2(stage_data):
-    u, y = stage_data
-    return ARXModel(na=2, nb=2).fit(u, y, fs=FS)
 
 
 def test_vector_estimates_equal_the_offline_free_run(arx2, stage_data):

@@ -24,6 +24,7 @@ import numpy as np
 
 from piezo_narx_ros.command.stamps import (RATE_TOLERANCE, SAMPLE, RateMonitor, StampGate,
                                            model_rate)
+from piezo_narx_ros.control.controller import bridge_gap
 from piezo_narx_ros.errors import ConfigError, DataError
 
 AXES_MODES = ('inverse', 'linear')
@@ -300,16 +301,7 @@ class AxesController:
         elif ((r < self.y_min) | (r > self.y_max)).any():
             st.out_of_range += 1
             r = np.clip(r, self.y_min, self.y_max)
-        dt = None
-        if self._last_t is not None:
-            dt = (t_ns - self._last_t) * 1e-9
-            missing = int(round((t_ns - self._last_t) / self.period_ns)) - 1
-            if missing > 0:
-                st.gaps += 1
-                st.filled += missing
-                for _ in range(missing):
-                    inv.commit(inv.u_prev)
-        self._last_t = t_ns
+        dt = bridge_gap(self, t_ns)
         if r is None:
             u = inv.u_prev
         else:
