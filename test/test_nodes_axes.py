@@ -87,3 +87,36 @@ def test_two_axis_pipeline_publishes_every_axis_as_offline(tmp_path):
                         deflection_topic=f'{ns[1:]}/deflection')
     assert rec.inputs == ('x', 'y') and rec.outputs == ('x', 'y')
     assert np.array_equal(rec.u, u) and np.array_equal(rec.y, y)
+
+
+def test_controller_node_inverts_a_model_of_two_axes(tmp_path):
+    from piezo_narx_ros.control.axes import AxesController
+    model, path = _model_file(tmp_path)
+    ns, batch, n = '/axes2c', 10, 200
+    period = 500_000
+    probe = BatchProbe(ns, ('voltage_command_batch',), 'position_reference_batch')
+    ctl = start_node('controller_node', '-p', f'model:={path}', '-p', 'mode:=inverse', '-p',
+                     f'batch:={batch}', '-p', 'use_deflection:=false', '-p', 'u_min:=-150.0',
+                     '-p', 'u_max:=150.0', ns=ns)
+    k = np.arange(n)
+    ref = np.column_stack([8e-6 * np.sin(k / 12.0), -5e-6 * np.cos(k / 7.0)])
+    t = 10**18 + k * period
+    try:
+        assert probe.wait_for(lambda: probe.pub.get_subscription_count() >= 1
+                              and probe.subs[0].get_publisher_count() >= 1, 30.0)
+        for i in range(0, n, batch):
+            probe.pub.publish(encode_joint_trajectory(t[i:i + batch], ['x', 'y'],
+                                                      position=ref[i:i + batch]))
+        assert probe.wait_for(
+            lambda: sum(map(len, probe.decoded('voltage_command_batch'))) >= n, 20.0)
+    finally:
+        codes = stop([ctl])
+        probe.close()
+    assert codes == [0]
+    got = probe.decoded('voltage_command_batch')
+    assert all(b.names == ['x', 'y'] for b in got)
+    u = np.concatenate([b.effort for b in got])
+    offline = AxesController(model, mode='inverse', u_min=-150.0, u_max=150.0, slew_rate=1e5)
+    want = np.array([offline.on_reference(int(s), r)[0][1] for s, r in zip(t, ref)])
+    assert np.array_equal(u, want)
+    assert np.max(np.abs(model.simulate(u) - ref)) < 1e-12      # both axes reached
