@@ -1,10 +1,11 @@
 """
-Several axes over DDS (issue 20): command_node, the two-axis simulator and the estimator.
+Several axes over DDS (issue 20): command, two-axis simulator, estimator, recorder, controller.
 
 command_node drives x and y (independent signals) in batches, simulator_node answers with the
 coupled two-axis cantilever of config/plant_2axis.yaml (the offline plant's numbers), and
 estimator_node runs a 2 x 2 model named x, y: every output axis is published, equal to the
-model's offline free run on the commands; a command missing an axis is refused and counted.
+model's offline free run on the commands; a command missing an axis is refused and counted; the
+recorded bag reads back as a 2 x 2 record. controller_node inverts the 2 x 2 model.
 """
 import numpy as np
 from test_estimator_node import start_node, stop
