@@ -284,7 +284,7 @@ class FreeRunEstimator:
             tl = [ti for ti, k in zip(tl, keep) if k]
             yl = [yi for yi, k in zip(yl, keep) if k]
         paired = list(map(self._est.pop, tl, repeat(None)))
-        if any(e is not None for e in paired):
+        if _any_value(paired):
             self._record_errors([(m, e) for m, e in zip(yl, paired) if e is not None])
         self._meas.update(zip(tl, yl))
         self._meas = self._trimmed(self._meas)
@@ -319,7 +319,7 @@ class FreeRunEstimator:
                 st.out_of_range += beyond.size
                 self.excursion = _running_largest(self.excursion, beyond)
         measured = list(map(self._meas.get, tl))
-        if any(m is not None for m in measured):
+        if _any_value(measured):
             self._record_errors([(m, e) for m, e in zip(measured, yl) if m is not None])
             self._est.update((s, e) for s, m, e in zip(tl, measured, yl) if m is None)
         else:
@@ -603,6 +603,14 @@ class FreeRunEstimator:
             self.stats.reanchors += 1
             return True
         return False
+
+
+def _any_value(items: list) -> bool:
+    """Whether a list of looked-up values (float, array or None) holds any that is not None."""
+    try:
+        return items.count(None) != len(items)   # floats: compared in C
+    except ValueError:                           # arrays: no truth value of ==
+        return any(v is not None for v in items)
 
 
 def _finite(x) -> bool:

@@ -256,13 +256,14 @@ class _PointLayout:
 
 
 @lru_cache(maxsize=64)
-def _point_layout(phase: int, n_pos: int, n_eff: int) -> _PointLayout | None:
+def _point_layout(phase: int, n_pos: int, n_eff: int,
+                  repeat: bool = True) -> _PointLayout | None:
     """
     Return the layout of a point starting at `phase` (its offset mod 8 after the encapsulation).
 
     Points with `n_pos` positions, empty velocities and accelerations, `n_eff` efforts. None
-    unless the next point starts at the same phase: then every later point has this same layout
-    (its size a multiple of 8), so a run of them is a strided array per field.
+    unless the next point starts at the same phase (or `repeat` is False): then every later point
+    has this same layout (its size a multiple of 8), so a run of them is a strided array per field.
     """
     off, where = phase, {}
 
@@ -280,7 +281,7 @@ def _point_layout(phase: int, n_pos: int, n_eff: int) -> _PointLayout | None:
     put('eff', 8, n_eff)
     put('sec', 4)
     put('nsec', 4)
-    if off % 8 != phase:
+    if repeat and off % 8 != phase:
         return None
     return _PointLayout(size=off - phase, **where)
 
@@ -355,6 +356,9 @@ class _BatchShape:
 
 # Last batch shape seen per buffer length: a stream's batches share one (same names, same size).
 _SHAPES: dict = {}
+# Encoded batches per (names, points, positions, efforts): the template bytes of that shape, the
+# offset of its first point and the point dtype.
+_ENCODED: dict = {}
 
 
 def _decode_known_shape(buf: bytes) -> SampleBatch | None:
@@ -460,10 +464,27 @@ def encode_joint_trajectory(t_ns: Sequence[int], names: Sequence[str], position=
     eff = np.empty((n, 0)) if effort is None else \
         np.asarray(effort, dtype=np.float64).reshape(n, -1)
     t0 = int(stamps[0]) if n else 0
+    sec, nsec = np.divmod(stamps - t0, 1_000_000_000)
+    key = (tuple(names), n, pos.shape[1], eff.shape[1])
+    template = _ENCODED.get(key)
+    if template is not None:      # a stream's usual batch: its bytes but the values and stamps
+        out = bytearray(template[0])
+        _STAMP.pack_into(out, 4, *divmod(t0, 1_000_000_000))
+        k = 0
+        for start, dtype, count in template[1:]:   # point 0 alone (other phase), then the run
+            points = np.frombuffer(out, dtype, count, start)
+            if pos.shape[1]:
+                points['pos'] = pos[k:k + count]
+            if eff.shape[1]:
+                points['eff'] = eff[k:k + count]
+            points['sec'] = sec[k:k + count]
+            points['nsec'] = nsec[k:k + count]
+            k += count
+        return bytes(out)
     out = _header_names(t0, names)
     out += b'\x00' * (-(len(out) - 4) % 4)
     out += _U32.pack(n)
-    sec, nsec = np.divmod(stamps - t0, 1_000_000_000)
+    first = len(out)       # where point 0 starts
     for k in range(n):
         layout = _point_layout((len(out) - 4) % 8, pos.shape[1], eff.shape[1])
         if layout is not None:     # every remaining point has this layout: strided arrays
@@ -480,6 +501,15 @@ def encode_joint_trajectory(t_ns: Sequence[int], names: Sequence[str], position=
                 view('eff', '<f8', eff.shape[1])[:] = eff[k:]
             view('sec', '<i4')[:] = sec[k:]
             view('nsec', '<u4')[:] = nsec[k:]
+            if k <= 1:     # the batch is one strided run (after point 0): keep its bytes
+                if len(_ENCODED) > 64:
+                    _ENCODED.clear()
+                parts = [(start, _point_dtype('<', layout, pos.shape[1], eff.shape[1]), rest)]
+                if k:
+                    own = _point_layout((first - 4) % 8, pos.shape[1], eff.shape[1], False)
+                    parts.insert(0, (first, _point_dtype('<', own, pos.shape[1], eff.shape[1]),
+                                     1))
+                _ENCODED[key] = (bytes(out), *parts)
             break
         _put_doubles(out, pos[k].tolist())
         out += b'\x00' * 8                            # velocities, accelerations: empty
