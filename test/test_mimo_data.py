@@ -112,3 +112,19 @@ def test_bag_with_several_command_axes_but_one_deflection_axis_is_refused(tmp_pa
     _bag(tmp_path / 'b', ('x', 'y'), ('x',))
     with pytest.raises(BagError, match='carries the axes x, y but .*deflection names x'):
         load_record(tmp_path / 'b')
+
+
+def test_fit_reads_a_named_table_with_inputs_and_outputs_options(tmp_path):
+    """--inputs/--outputs pick the channels of a table whose header does not say u1/y1."""
+    from piezo_narx_ros.cli.main import build_parser
+    from piezo_narx_ros.cli.reading import reading_options
+    args = build_parser().parse_args(['evaluate', 'm.json', 'a.csv', '--inputs', 'vx, vy',
+                                      '--outputs', 'dx,dy'])
+    assert args.inputs == ['a.csv']           # the positional INPUTs are not overwritten
+    opts = reading_options(args)
+    assert opts['inputs'] == ['vx', 'vy'] and opts['outputs'] == ['dx', 'dy']
+    u, y = _signals(n_in=2, n_out=2)
+    np.savetxt(tmp_path / 'a.csv', np.column_stack([u, y]), delimiter=',', fmt='%.17g',
+               header='vx,vy,dx,dy', comments='')
+    rec = load_records([tmp_path / 'a.csv'], fs=FS, **{k: opts[k] for k in ('inputs', 'outputs')})
+    assert rec[0].outputs == ('dx', 'dy') and np.array_equal(rec[0].y, y)

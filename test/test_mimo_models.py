@@ -209,3 +209,20 @@ def test_fsm_record_fits_and_evaluates_per_output_after_100_samples(tmp_path, ca
     rmse = [o['rmse'] for o in per]
     assert out['simulation']['rmse'] == pytest.approx(np.sqrt(np.mean(np.square(rmse))))
     assert all(0 < r < 2e-6 for r in rmse)          # a model, not a flat line (std ~1.3 µm)
+
+
+def test_a_committed_one_axis_model_file_is_rewritten_as_it_was(tmp_path):
+    """The one-axis file format does not change: bags/model.json saved again is the same file."""
+    from pathlib import Path
+    repo = Path(__file__).resolve().parents[1]
+    original = json.loads((repo / 'bags' / 'model.json').read_text())
+    model = load_model(repo / 'bags' / 'model.json')
+    assert (model.n_in, model.n_out, model.inputs, model.outputs) == (1, 1, ('u',), ('y',))
+    again = json.loads(save_model(model, tmp_path / 'model.json').read_text())
+    for key in ('weights',):           # the .npz bytes hold the zip's time stamps
+        original.pop(key), again.pop(key)
+    assert again == original
+    old = np.load(repo / 'bags' / 'model.npz')
+    new = np.load(tmp_path / 'model.npz')
+    assert sorted(old.files) == sorted(new.files)
+    assert all(np.array_equal(old[k], new[k]) and old[k].dtype == new[k].dtype for k in old.files)

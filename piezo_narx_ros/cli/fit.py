@@ -402,6 +402,10 @@ def _print_fit(result, config, executor, model_path, out, paths) -> None:
           f'({executor.describe()})')
     print(f'validation R²: prediction {val["prediction"]["r2"]:.6f}, simulation '
           f'{"diverged" if r2_sim is None else f"{r2_sim:.6f}"}')
+    per = val['simulation'].get('per_output') or []
+    if per:   # several outputs: each one's free run
+        print('  per output: ' + ', '.join(
+            f'{o["name"]} R² {o["r2"]:.6f} RMSE {1e9 * o["rmse"]:.1f} nm' for o in per))
     for rec in val.get('records', []):
         sim = rec['simulation']
         text = ('diverged' if sim['r2'] is None else

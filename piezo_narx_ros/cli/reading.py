@@ -7,6 +7,7 @@ The options that say how to read a recording, shared by `fit`, `evaluate` and `b
     --y-scale M               metres per recorded unit of y (sensor counts), instead of --y-unit
     --t-unit s|ms|us|ns       the unit of a time column (default s)
     --axis NAME               the joint of a bag whose command and deflection are paired
+    --inputs A,B --outputs C,D  the input and output columns of a several-axes text table
 
 Everything is converted to volts, metres and seconds on reading; an implausible magnitude with no
 unit stated is refused with the option that fixes it (ident.units).
@@ -28,6 +29,11 @@ def add_reading_options(parser, table: bool = True, bag: bool = True) -> None:
                             'e.g. u=1,y=5 (default: the header, or t,u,y / u,y by count)')
         g.add_argument('--t-unit', choices=T_UNIT_CHOICES,
                        help='unit of the time column (default s)')
+        g.add_argument('--inputs', metavar='NAMES', dest='input_names',
+                       help='several axes: the input columns of a text table by header name, '
+                            'in order, e.g. vx,vy (default: header names u1, u2, ...)')
+        g.add_argument('--outputs', metavar='NAMES', dest='output_names',
+                       help='several axes: the output columns by header name (default y1, ...)')
     g.add_argument('--u-unit', choices=U_UNIT_CHOICES, help='unit u is recorded in (default V)')
     g.add_argument('--y-unit', choices=Y_UNIT_CHOICES,
                    help='unit y is recorded in (default m); stating it also accepts magnitudes '
@@ -47,5 +53,8 @@ def reading_options(args) -> dict:
     from piezo_narx_ros.ident.units import Units
     units = Units.from_options(getattr(args, 'u_unit', None), getattr(args, 'y_unit', None),
                                getattr(args, 't_unit', None), getattr(args, 'y_scale', None))
+    names = {key: [n.strip() for n in value.split(',') if n.strip()]
+             for key, dest in (('inputs', 'input_names'), ('outputs', 'output_names'))
+             if (value := getattr(args, dest, None)) is not None}
     return {'columns': parse_columns(getattr(args, 'columns', None)), 'units': units,
-            'axis': getattr(args, 'axis', None)}
+            'axis': getattr(args, 'axis', None), **names}

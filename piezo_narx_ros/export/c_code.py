@@ -201,16 +201,16 @@ class HistoryEmitter(Emitter):
 
     def history_definitions(self) -> str:
         """Return `pnr_init_history_`: the histories copied into the state (NULL: rest)."""
-        nu, ny = self.nu, self.ny
+        ku, ky = self.nu * self.n_in, self.ny * self.n_out   # values in each history
         lines = ['static void pnr_init_history_(pnr_state_t *s, const double *u_past,',
                  '                              const double *y_past)', '{', '    int i;']
-        if nu:
-            lines += [f'    for (i = 0; i < {nu}; ++i) {{',
+        if ku:
+            lines += [f'    for (i = 0; i < {ku}; ++i) {{',
                       '        s->x[i] = u_past ? u_past[i] : 0.0;', '    }']
         else:
             lines.append('    (void)u_past;')
-        lines += [f'    for (i = 0; i < {ny}; ++i) {{',
-                  f'        s->x[{nu} + i] = y_past ? y_past[i] : 0.0;', '    }', '}']
+        lines += [f'    for (i = 0; i < {ky}; ++i) {{',
+                  f'        s->x[{ku} + i] = y_past ? y_past[i] : 0.0;', '    }', '}']
         return '\n'.join(lines)
 
     def shift_lines(self) -> list:
@@ -250,20 +250,6 @@ class ChannelHistoryEmitter(HistoryEmitter):
     def state_vector(self, stepper) -> np.ndarray:
         """Return [u_past rows, y_past rows] of a Python VectorStepper."""
         return np.concatenate([stepper.u_past.ravel(), stepper.y_past.ravel()])
-
-    def history_definitions(self) -> str:
-        """Return `pnr_init_history_`: the histories copied into the state (NULL: rest)."""
-        ku, ky = self.nu * self.n_in, self.ny * self.n_out
-        lines = ['static void pnr_init_history_(pnr_state_t *s, const double *u_past,',
-                 '                              const double *y_past)', '{', '    int i;']
-        if ku:
-            lines += [f'    for (i = 0; i < {ku}; ++i) {{',
-                      '        s->x[i] = u_past ? u_past[i] : 0.0;', '    }']
-        else:
-            lines.append('    (void)u_past;')
-        lines += [f'    for (i = 0; i < {ky}; ++i) {{',
-                  f'        s->x[{ku} + i] = y_past ? y_past[i] : 0.0;', '    }', '}']
-        return '\n'.join(lines)
 
     def shift_lines(self) -> list:
         """Return the C lines shifting the rows u[] and out[] into the histories."""

@@ -153,43 +153,28 @@ class DynamicModel:
     output_range = None
     _parameter_constraints: dict = {}
 
-    @property
-    def n_in(self) -> int:
-        """Return the number of input channels (n_in_, 1 until fitted)."""
-        return int(getattr(self, 'n_in_', 1))
+    n_in = property(lambda self: int(getattr(self, 'n_in_', 1)),
+                    lambda self, value: setattr(self, 'n_in_', int(value)),
+                    doc='Number of input channels (n_in_, 1 until fitted).')
+    n_out = property(lambda self: int(getattr(self, 'n_out_', 1)),
+                     lambda self, value: setattr(self, 'n_out_', int(value)),
+                     doc='Number of output channels (n_out_, 1 until fitted).')
+    inputs = property(lambda self: self._channel_names('input'),
+                      lambda self, names: self._name_channels('input', names),
+                      doc="Input names in column order (default u1.., or ('u',) for one).")
+    outputs = property(lambda self: self._channel_names('output'),
+                       lambda self, names: self._name_channels('output', names),
+                       doc="Output names in column order (default y1.., or ('y',) for one).")
 
-    @n_in.setter
-    def n_in(self, value):
-        self.n_in_ = int(value)
+    def _channel_names(self, what: str) -> tuple:
+        names = getattr(self, f'_{what}s', None)
+        n = self.n_in if what == 'input' else self.n_out
+        return tuple(names) if names is not None else default_names(
+            'u' if what == 'input' else 'y', n)
 
-    @property
-    def n_out(self) -> int:
-        """Return the number of output channels (n_out_, 1 until fitted)."""
-        return int(getattr(self, 'n_out_', 1))
-
-    @n_out.setter
-    def n_out(self, value):
-        self.n_out_ = int(value)
-
-    @property
-    def inputs(self) -> tuple:
-        """Input channel names, in column order (default u1.., or ('u',) for one)."""
-        names = getattr(self, '_inputs', None)
-        return tuple(names) if names is not None else default_names('u', self.n_in)
-
-    @inputs.setter
-    def inputs(self, names):
-        self._inputs = None if names is None else _names(names, self.n_in, 'input')
-
-    @property
-    def outputs(self) -> tuple:
-        """Output channel names, in column order (default y1.., or ('y',) for one)."""
-        names = getattr(self, '_outputs', None)
-        return tuple(names) if names is not None else default_names('y', self.n_out)
-
-    @outputs.setter
-    def outputs(self, names):
-        self._outputs = None if names is None else _names(names, self.n_out, 'output')
+    def _name_channels(self, what: str, names) -> None:
+        n = self.n_in if what == 'input' else self.n_out
+        setattr(self, f'_{what}s', None if names is None else _names(names, n, what))
 
     @property
     def n0(self) -> int:
@@ -381,13 +366,8 @@ def registered_families() -> dict:
     return dict(_FAMILIES)
 
 
-def as_record_list(u, y, min_len=1):
-    """
-    Return (list of u arrays V, list of y arrays m) from one record or several.
-
-    One record: 1-D arrays; several: a list or tuple of 1-D arrays each. DataError on mismatched or
-    bad arrays.
-    """
+def _record_pairs(u, y):
+    """Return (u list, y list, several) of one record (arrays) or several (lists); DataError."""
     several = isinstance(u, (list, tuple))
     if several != isinstance(y, (list, tuple)):
         raise DataError('give u and y both as arrays (one record) or both as lists (several)')
@@ -395,6 +375,17 @@ def as_record_list(u, y, min_len=1):
     if not us or len(us) != len(ys):
         raise DataError(f'u and y must hold the same number of records, got {len(us)} and '
                         f'{len(ys)}')
+    return us, ys, several
+
+
+def as_record_list(u, y, min_len=1):
+    """
+    Return (list of u arrays V, list of y arrays m) from one record or several.
+
+    One record: 1-D arrays; several: a list or tuple of 1-D arrays each. DataError on mismatched or
+    bad arrays.
+    """
+    us, ys, several = _record_pairs(u, y)
     out_u, out_y = [], []
     for i, (ui, yi) in enumerate(zip(us, ys)):
         tag = f' (record {i})' if several else ''
@@ -412,13 +403,7 @@ def as_channel_lists(u, y, min_len=1):
     have the same channel counts; y_is_1d is True when every y was given 1-D (the one-axis case:
     the model then returns (N,) outputs). DataError (one line) on mismatched or bad arrays.
     """
-    several = isinstance(u, (list, tuple))
-    if several != isinstance(y, (list, tuple)):
-        raise DataError('give u and y both as arrays (one record) or both as lists (several)')
-    us, ys = (list(u), list(y)) if several else ([u], [y])
-    if not us or len(us) != len(ys):
-        raise DataError(f'u and y must hold the same number of records, got {len(us)} and '
-                        f'{len(ys)}')
+    us, ys, several = _record_pairs(u, y)
     out_u, out_y, flat = [], [], True
     for i, (ui, yi) in enumerate(zip(us, ys)):
         tag = f' (record {i})' if several else ''

@@ -710,10 +710,13 @@ def check_identifiable(record: Record, split: float = 0.5) -> list[str]:
                         f'(first {len(est)} samples, u = {est.u.flat[0]:.6g} V): it excites '
                         f'nothing, so no model can be identified from it; {fix}')
     for part, name in ((est, 'estimation'), (val, 'validation')):
-        if len(part) and _constant(part.y):
-            raise DataError(f'{record.source}: the output is constant in the {name} part '
-                            f'(y = {part.y.flat[0]:.6g} m, spread {np.ptp(part.y):.3g} m): '
-                            'nothing to identify; check that y is the measured deflection')
+        for j in range(part.n_out if len(part) else 0):   # a flat output channel: no model
+            y = part.y[:, j]
+            if _constant(y):
+                which = 'the output' if part.n_out == 1 else f'output {part.outputs[j]}'
+                raise DataError(f'{record.source}: {which} is constant in the {name} part '
+                                f'(y = {y[0]:.6g} m, spread {np.ptp(y):.3g} m): '
+                                'nothing to identify; check that y is the measured deflection')
     warnings = []
     s_est, s_val = float(np.std(est.u)), float(np.std(val.u))
     if s_est < 0.1 * s_val:

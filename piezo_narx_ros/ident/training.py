@@ -167,22 +167,14 @@ def _jac_rows_ch(x, s, theta, H, d, n_out, J, r0):
         row[base + n_out * H + j] = 1.0
 
 
-@njit(cache=True)
 def _onestep_sse_ch(X, T, theta, H):
     """Sum of squared one-step errors for rows X (N, d) and targets T (N, n_out)."""
-    d, n_out = X.shape[1], T.shape[1]
-    s, out = np.empty(H), np.empty(n_out)
-    sse = 0.0
-    for n in range(X.shape[0]):
-        _hidden_ch(X[n], theta, H, d, n_out, s, out)
-        for j in range(n_out):
-            e = T[n, j] - out[j]
-            sse += e * e
-    return sse
+    e = np.empty(X.shape[0] * T.shape[1])
+    return _onestep_jac_ch(X, T, theta, H, np.empty((1, 1)), e, False)
 
 
 @njit(cache=True)
-def _onestep_jac_ch(X, T, theta, H, J, e):
+def _onestep_jac_ch(X, T, theta, H, J, e, with_jac=True):
     """One-step Jacobian J (N n_out, P) and errors e (N n_out,), sample-major; returns SSE."""
     d, n_out = X.shape[1], T.shape[1]
     s, out = np.empty(H), np.empty(n_out)
@@ -193,7 +185,8 @@ def _onestep_jac_ch(X, T, theta, H, J, e):
             r = n * n_out + j
             e[r] = T[n, j] - out[j]
             sse += e[r] * e[r]
-        _jac_rows_ch(X[n], s, theta, H, d, n_out, J, n * n_out)
+        if with_jac:
+            _jac_rows_ch(X[n], s, theta, H, d, n_out, J, n * n_out)
     return sse
 
 
@@ -258,21 +251,6 @@ def _unpack_ch(theta, H, d, n_out):
             theta[base:base + n_out * H].reshape(n_out, H), theta[base + n_out * H:])
 
 
-def _init_theta_ch(H, X, T, rng):
-    """_init_theta for n_out outputs: random hidden layer, output layer by least squares."""
-    d = X.shape[1]
-    beta = 0.7 * H ** (1.0 / d)
-    W1 = rng.uniform(-1.0, 1.0, (H, d))
-    W1 *= beta / np.linalg.norm(W1, axis=1, keepdims=True)
-    b1 = rng.uniform(-beta, beta, H)
-    Xt = torch.from_numpy(X)
-    S = torch.sigmoid(Xt @ torch.from_numpy(W1).T + torch.from_numpy(b1))
-    S = torch.cat([S, torch.ones(X.shape[0], 1, dtype=S.dtype)], dim=1)
-    w = torch.linalg.lstsq(S, torch.from_numpy(np.ascontiguousarray(T)),
-                           driver='gelsd').solution.numpy()          # (H + 1, n_out)
-    return np.concatenate([W1.ravel(), b1, w[:H].T.ravel(), w[H]])
-
-
 def _freerun_mse_ch(theta, H, un, yn, nu, ny, k_start):
     """_freerun_mse for channels: un (N, n_in), yn (N, n_out)."""
     n_in, n_out = un.shape[1], yn.shape[1]
@@ -299,7 +277,11 @@ def _unpack(theta, H, d):
 
 
 def _init_theta(H, X, t, rng):
-    """Nguyen-Widrow-like random hidden layer; output layer (w2, b2) by linear least squares."""
+    """
+    Nguyen-Widrow-like random hidden layer; output layer (w2, b2) by linear least squares.
+
+    t (N,), or (N, n_out) for channels (theta then holds W2 (n_out, H) row-major and b2).
+    """
     d = X.shape[1]
     beta = 0.7 * H ** (1.0 / d)
     W1 = rng.uniform(-1.0, 1.0, (H, d))
@@ -309,7 +291,12 @@ def _init_theta(H, X, t, rng):
     Xt = torch.from_numpy(X)
     S = torch.sigmoid(Xt @ torch.from_numpy(W1).T + torch.from_numpy(b1))
     S = torch.cat([S, torch.ones(X.shape[0], 1, dtype=S.dtype)], dim=1)
-    w = torch.linalg.lstsq(S, torch.from_numpy(t)[:, None], driver='gelsd').solution[:, 0].numpy()
+    T = torch.from_numpy(np.ascontiguousarray(t))
+    w = torch.linalg.lstsq(S, T[:, None] if t.ndim == 1 else T, driver='gelsd').solution
+    if t.ndim == 2:
+        w = w.numpy()                                   # (H + 1, n_out)
+        return np.concatenate([W1.ravel(), b1, w[:H].T.ravel(), w[H]])
+    w = w[:, 0].numpy()
     return np.concatenate([W1.ravel(), b1, w[:H], w[H:]])
 
 
@@ -436,13 +423,12 @@ def train_narx(un, yn, nu, ny, hidden, seed, restarts=3, restart_iter=8, restart
         if channels:
             d = uns[0].shape[1] * (nu + 1) + n_out * ny
             P = H * (d + 1) + n_out * (H + 1)
-            sse_k, jac_k, seg_k, init_k, mse_k = (_onestep_sse_ch, _onestep_jac_ch, _segments_ch,
-                                                  _init_theta_ch, _freerun_mse_ch)
+            sse_k, jac_k, seg_k, mse_k = (_onestep_sse_ch, _onestep_jac_ch, _segments_ch,
+                                          _freerun_mse_ch)
         else:
             d = nu + 1 + ny
             P = _n_params(H, d)
-            sse_k, jac_k, seg_k, init_k, mse_k = (_onestep_sse, _onestep_jac, _segments,
-                                                  _init_theta, _freerun_mse)
+            sse_k, jac_k, seg_k, mse_k = (_onestep_sse, _onestep_jac, _segments, _freerun_mse)
         n0 = max(nu, ny)
         X_tr, t_tr, X_ho, t_ho, k_splits, n_vals = [], [], [], [], [], []
         for u_r, y_r in zip(uns, yns):
@@ -489,7 +475,7 @@ def train_narx(un, yn, nu, ny, hidden, seed, restarts=3, restart_iter=8, restart
         jac, sse_of = onestep_problem(Xs, ts)
         best = None
         for _ in range(max(1, int(restarts))):
-            th, sc, _ = _levenberg_marquardt(init_k(H, Xs, ts, rng), jac, sse_of,
+            th, sc, _ = _levenberg_marquardt(_init_theta(H, Xs, ts, rng), jac, sse_of,
                                              score_onestep, int(restart_iter), int(max_fail), 1e-3)
             if best is None or sc < best[1]:
                 best = (th, sc)
