@@ -39,7 +39,7 @@ STAGE = config_path('plant_2axis.yaml')
 
 
 def stage(seed: int):
-    """The coupled two-axis cantilever at rest, sensor noise seed `seed`."""
+    """Return the coupled two-axis cantilever at rest, sensor noise seed `seed`."""
     return make_axis_plants([], STAGE, fs=FS, seed=seed)
 
 

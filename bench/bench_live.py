@@ -201,7 +201,7 @@ def realtime(priority: int) -> tuple:
 
 def axes_model(axes: list, fs: float, seconds: float = 4.0):
     """
-    An ARX 4/4 of len(axes) inputs and outputs, named `axes`, identified at fs on the simulator.
+    Identify an ARX 4/4 of len(axes) inputs and outputs, named `axes`, at fs on the simulator.
 
     One cantilever per axis (independent), each driven by its own multisine: a model of the right
     shape and size for the live bench, not a model to judge.

@@ -56,7 +56,7 @@ def boucwen_dir():
 
 @pytest.fixture(scope='session')
 def stage_data():
-    """3 s at 2 kHz of independent multisines on both axes of config/plant_2axis.yaml: (u, y)."""
+    """Simulate 3 s at 2 kHz of independent multisines on both axes of plant_2axis: (u, y)."""
     import numpy as np
 
     from piezo_narx_ros.plant.axes import make_axis_plants
@@ -70,7 +70,7 @@ def stage_data():
 
 @pytest.fixture(scope='session')
 def arx2(stage_data):
-    """A 2 x 2 ARX (na = nb = 2) identified on `stage_data`: a small model of several axes."""
+    """Identify a 2 x 2 ARX (na = nb = 2) on `stage_data`: a small model of several axes."""
     from piezo_narx_ros.ident.arx import ARXModel
     u, y = stage_data
     return ARXModel(na=2, nb=2).fit(u, y, fs=2000.0)

@@ -141,8 +141,8 @@ def test_records_everything_and_closes_on_sigterm(tmp_path):
     durability = {t['topic_metadata']['name']: t['topic_metadata']['offered_qos_profiles'][0]
                   ['durability'] for t in info['topics_with_message_count']}
     assert durability[f'{ns}/deflection_estimate'] == 'transient_local'
-    np.testing.assert_allclose(rec.u, 0.01 * np.arange(n))
-    np.testing.assert_allclose(rec.y, 1e-9 * np.arange(n))
+    np.testing.assert_allclose(rec.u[:, 0], 0.01 * np.arange(n))     # one axis: (n, 1)
+    np.testing.assert_allclose(rec.y[:, 0], 1e-9 * np.arange(n))
 
 
 def test_sigkill_leaves_a_repairable_bag(tmp_path):
@@ -169,7 +169,7 @@ def test_sigkill_leaves_a_repairable_bag(tmp_path):
     assert all(600 <= counts[t] <= 800 for t in TOPICS), counts
     rec = read_uy(bag, f'{ns}/voltage_command', f'{ns}/deflection')
     assert len(rec.u) >= 600
-    np.testing.assert_allclose(rec.u, 0.01 * np.arange(len(rec.u)))
+    np.testing.assert_allclose(rec.u[:, 0], 0.01 * np.arange(len(rec.u)))
 
 
 def test_bad_parameter_refuses_to_start(tmp_path):

@@ -144,6 +144,26 @@ RATE_TOLERANCE = 0.01
 RATE_MIN_STEPS = 3
 
 
+_KERNELS_LOADED = False
+
+
+def _load_kernels() -> None:
+    """
+    Compile or load the stamp kernels once per process, when the first monitor is made.
+
+    Not on the first command: loading them took long enough there for a rig reply to time out.
+    """
+    global _KERNELS_LOADED
+    if not _KERNELS_LOADED:
+        t = np.zeros(1, dtype=np.int64)
+        sk.observe_run(t, t.copy(), 1.0, 0.01, RATE_MIN_STEPS, False,
+                       np.zeros((RATE_MIN_STEPS + 1, 3), dtype=np.int64),
+                       np.zeros(sk.N_INT_STATE, dtype=np.int64), np.zeros(2),
+                       np.zeros(1, dtype=np.bool_))
+        sk.on_grid_run(t, 0, 1.0, GRID_TOLERANCE)
+        _KERNELS_LOADED = True
+
+
 class RateMonitor:
     """
     Tell whether a stream's stamp rate matches the rate `period_ns` (ns) a node runs at.
@@ -181,6 +201,7 @@ class RateMonitor:
         self._one_got = np.zeros(1, dtype=np.int64)
         self._one_off = np.zeros(1, dtype=np.bool_)
         self.reset()
+        _load_kernels()
 
     @property
     def off(self) -> bool:

@@ -31,7 +31,7 @@ AXES_MODES = ('inverse', 'linear')
 
 
 def _per_axis(value, n: int, name: str) -> np.ndarray:
-    """A float or n floats -> (n,) float64; ConfigError otherwise."""
+    """Return a float or n floats as (n,) float64; ConfigError otherwise."""
     a = np.broadcast_to(np.asarray(value, dtype=np.float64), (n,)).copy() \
         if np.ndim(value) == 0 or np.size(value) == n else None
     if a is None or not np.isfinite(a).all():
@@ -107,7 +107,7 @@ class VectorInverse:
         self.reset()
 
     def reset(self) -> None:
-        """The actuator at rest: the model's free run from rest, every input at 0 V."""
+        """Restart at rest: the model's free run from rest, every input at 0 V."""
         self._stepper = self.model.stepper()
         self.u_prev = np.clip(np.zeros(self.n_in), self.u_min, self.u_max)
 
@@ -156,7 +156,7 @@ class VectorInverse:
         return VectorSolution(u, y, miss, limit)
 
     def clamp(self, u, dt: float | None = None) -> np.ndarray:
-        """u (n_in,) V limited to the window of this sample."""
+        """Return u (n_in,) V limited to the window of this sample."""
         lo, hi = self.window(dt)
         return np.clip(np.asarray(u, dtype=np.float64), lo, hi)
 
@@ -232,11 +232,11 @@ class AxesController:
 
     @property
     def holding(self) -> int:
-        """References held back while their stamps are ambiguous."""
+        """Count the references held back while their stamps are ambiguous."""
         return self.gate.holding
 
     def request_reset(self) -> None:
-        """The actuator is at rest now: the model restarts from rest, the stream is forgotten."""
+        """Restart from rest (the actuator is at 0 V now) and forget the stream."""
         self.inverse.reset()
         self.gate.reset()
         self._last_t = None

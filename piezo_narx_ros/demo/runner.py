@@ -119,7 +119,7 @@ def load_settings(path=None, quick: bool = False, **overrides) -> dict:
 
 
 def plant_file(name: str) -> str:
-    """A plant file setting as a path: a bare name is the package's config/NAME ('' stays)."""
+    """Return a plant file setting as a path: a bare name is config/NAME ('' stays '')."""
     if not name or Path(name).exists() or '/' in name:
         return name
     from piezo_narx_ros.share import config_path

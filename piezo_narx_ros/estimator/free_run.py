@@ -649,7 +649,7 @@ def _rows_beyond(x: np.ndarray, lo, hi) -> np.ndarray:
 
 def _running_largest(current: float, values: np.ndarray) -> float:
     """
-    `current` after `if not b <= current: current = b` for each b of values, in order.
+    Return `current` after `if not b <= current: current = b` for each b of values, in order.
 
     A NaN (a diverged estimate) replaces the running value and is replaced by the next one.
     """

@@ -158,7 +158,7 @@ class ControllerNode(PiezoNode):
             f"({p['model']}) at {self.ctl.fs:g} Hz, commands on {self._names}")
 
     def _wire(self, p) -> None:
-        """Publisher, subscriptions, timers, services and diagnostics of either controller."""
+        """Create the publisher, subscriptions, timers, services and diagnostics."""
         b = self.batch = p['batch']
         self.pub = self.sample_publisher(batch_topic(TOPIC_COMMAND, b), sample_type(b))
         # The callbacks get CDR bytes (see nodes.codec.decode_joint_state: 8x cheaper).
