@@ -346,8 +346,9 @@ def test_envelope_preset_fits_hysteresis_networks_over_seeds(tmp_path):
                                          'hnarx': {'n_plays': 4, 'max_iter': 4}},
                   jobs=1, progress=False)
     specs = cfg.specs()
-    assert [s.kind for s in specs[:2]] == ['hysteresis_narx'] * 2
-    assert [s.seed for s in specs[:2]] == [0, 1] and len(specs) == 2 + 9
+    n_net = 2 * len(cfg.hnarx_structures())
+    assert [s.kind for s in specs[:n_net]] == ['hysteresis_narx'] * n_net
+    assert [s.seed for s in specs[:2]] == [0, 1] and len(specs) == n_net + 9
     res = run_experiment([rec], cfg)
     assert isinstance(res.best.model, HysteresisNARX) or res.best.spec.kind == 'arx'
     assert res.best.free_run_r2() == max(c.free_run_r2() for c in res.candidates)
@@ -357,3 +358,22 @@ def test_envelope_preset_fits_hysteresis_networks_over_seeds(tmp_path):
         replace(cfg, hnarx={'hidden': 4}).validate()
     with pytest.raises(ConfigError, match='n_plays'):
         replace(cfg, hnarx={'n_plays': 0}).validate()
+
+
+def test_hnarx_grid_fits_every_structure_with_every_seed():
+    """Each structure of hnarx_grid is its options over hnarx, fitted with every seed."""
+    cfg = ExperimentConfig(family='hysteresis_narx', n_seeds=2, hidden=3, arx_na=(), arx_nb=(),
+                           hnarx={'n_plays': 4}, hnarx_grid=({}, {'n_lags': 6, 'na': 4}))
+    cfg.validate()
+    specs = cfg.specs()
+    assert [(dict(s.options).get('n_lags', 3), s.seed) for s in specs] == \
+        [(3, 0), (3, 1), (6, 0), (6, 1)]
+    assert all(dict(s.options)['n_plays'] == 4 for s in specs)
+    assert [s.nu for s in specs] == [3, 3, 6, 6] and [s.ny for s in specs] == [3, 3, 4, 4]
+    assert 'lags=6' in specs[2].label and 'lags' not in specs[0].label
+    with pytest.raises(ConfigError, match='n_lags'):
+        ExperimentConfig(family='hysteresis_narx', hnarx_grid=({'n_lags': -1},)).validate()
+    with pytest.raises(ConfigError, match='hnarx_grid'):
+        ExperimentConfig(family='hysteresis_narx', hnarx_grid=({'seed': 1},)).validate()
+    with pytest.raises(ConfigError, match='hnarx_grid'):
+        ExperimentConfig(family='hysteresis_narx', hnarx_grid=(6,)).validate()

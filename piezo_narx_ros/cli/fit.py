@@ -24,8 +24,8 @@ then the command-line options.
 import contextlib
 
 # Keys a --config YAML file may hold (config/fit.yaml lists them all with their defaults).
-CONFIG_KEYS = ('preset', 'family', 'ny', 'nu', 'hidden', 'seed', 'n_seeds', 'hnarx', 'arx_na',
-               'arx_nb', 'arx', 'split', 'max_lag', 'max_outside_fraction', 'residuals',
+CONFIG_KEYS = ('preset', 'family', 'ny', 'nu', 'hidden', 'seed', 'n_seeds', 'hnarx', 'hnarx_grid',
+               'arx_na', 'arx_nb', 'arx', 'split', 'max_lag', 'max_outside_fraction', 'residuals',
                'noise_model', 'noise_order', 'selection', 'jobs', 'training', 'final_training',
                'init_seconds', 'command_topic', 'deflection_topic')
 # Settings that belong to the command line, not to ExperimentConfig, with their defaults.
@@ -182,6 +182,9 @@ def load_settings(args) -> dict:
     for key in ('training', 'final_training', 'hnarx'):
         if not isinstance(settings[key], dict):
             raise ConfigError(f'{key}: must be a mapping of training options')
+    grid = settings['hnarx_grid']
+    if not isinstance(grid, (list, tuple)) or not all(isinstance(g, dict) for g in grid):
+        raise ConfigError('hnarx_grid: must be a list of mappings of HysteresisNARX options')
     return settings
 
 
@@ -194,7 +197,8 @@ def experiment_config(settings: dict, progress: bool):
             ny=parse_range(settings['ny'], 'ny'), nu=parse_range(settings['nu'], 'nu'),
             hidden=int(settings['hidden']), seed=int(settings['seed']),
             n_seeds=int(settings['n_seeds']), family=str(settings['family']),
-            hnarx=dict(settings['hnarx']), selection=str(settings['selection']),
+            hnarx=dict(settings['hnarx']), hnarx_grid=tuple(settings['hnarx_grid']),
+            selection=str(settings['selection']),
             arx_na=parse_range(settings['arx_na'], 'arx_na') if settings['arx'] else (),
             arx_nb=parse_range(settings['arx_nb'], 'arx_nb') if settings['arx'] else (),
             split=float(settings['split']), max_lag=int(settings['max_lag']),

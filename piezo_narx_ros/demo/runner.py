@@ -42,9 +42,9 @@ DEFAULTS = {
                 'plant_params': ''},
     'quick': {'seconds': 4.0, 'validation_seconds': 3.0, 'slow_seconds': 3.0,
               'fit': {'n_seeds': 1, 'hidden': 6, 'hnarx': {'n_plays': 8, 'max_iter': 15},
-                      'arx_na': 2, 'arx_nb': 2, 'jobs': 1},
+                      'hnarx_grid': [], 'arx_na': 2, 'arx_nb': 2, 'jobs': 1},
               'control': {'seconds': 3.0, 'record_seconds': 8.0,
-                          'fit': {'n_seeds': 1, 'jobs': 1}}},
+                          'fit': {'n_seeds': 1, 'hnarx_grid': [], 'jobs': 1}}},
 }
 _POSITIVE = ('fs', 'seconds', 'validation_seconds', 'slow_seconds', 'slow_freq', 'amplitude',
              'startup_timeout_s', 'settle_s', 'sigint_timeout_s', 'sigterm_timeout_s')
