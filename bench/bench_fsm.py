@@ -15,14 +15,16 @@ realizations --score (never fitted on).
 
 Score (the benchmark's rule for a test record): the model may use the input and the first 100
 measured output samples to set its state; the figure is the RMSE (µm) of the free-run output over
-the remaining samples, averaged over outputs and records, per amplitude level. Two ways to set the
-state, both reported:
+the remaining samples, averaged over outputs and records, per amplitude level. Three ways to set the
+state, each reported:
   * window:   the first 100 measured samples set the state (model.estimate_state, as
               `piezo-narx evaluate --init-samples 100`); the input before sample 0 is unknown
               and taken as held at u(0);
   * periodic: the input is periodic (steady state), so the model free-runs from rest through one
               extra copy of the record's input first and is scored on the second copy after
-              sample 100 (no measured output used).
+              sample 100 (no measured output used);
+  * history:  lagged models (ARX, the network) only: the free run starts from the first n0
+              measured outputs (n0 <= 100, the paper's convention), scored after sample 100.
 Published baselines on the test sets (data README): BLA per level 0.114 / 0.216 / 0.228, BLA all
 levels 0.252 / 0.179 / 0.658, nonlinear LFR 0.0866 / 0.131 / 0.169 µm.
 
@@ -74,27 +76,36 @@ def load(data: Path, level: int, realizations) -> list:
     return [load_record(data / f'train_{level}mV_r{i}.npz') for i in realizations]
 
 
+HOWS = ('periodic', 'window', 'history')
+
+
 def free_runs(model, record) -> dict:
-    """{'window': (N, 3), 'periodic': (N, 3)} free runs of a model on one record (m)."""
+    """{how: (N, 3)} free runs of a model on one record (m), for each way in HOWS."""
     windowed = replace(record, state_window=INIT)
     _, sim_window = free_run(model, windowed)
     u = channels_arg(record.u)
     with np.errstate(all='ignore'):
         twice = as_columns(model.simulate(np.concatenate([u, u])))
-    return {'window': sim_window, 'periodic': twice[len(record):]}
+        out = {'periodic': twice[len(record):], 'window': sim_window}
+        if not getattr(model, 'state_from_input', False) and model.n0 <= INIT:
+            # Lagged models: the first n0 measured outputs are their whole state.
+            out['history'] = as_columns(model.simulate(u, channels_arg(record.y)[:model.n0]))
+    return out
 
 
 def scores(model, by_level: dict) -> dict:
     """{how: {level: µm}}: RMSE after INIT per output and record, averaged over both."""
-    out = {'window': {}, 'periodic': {}}
+    out = {how: {} for how in HOWS}
     for level, records in by_level.items():
-        per = {'window': [], 'periodic': []}
+        per = {how: [] for how in HOWS}
         for rec in records:
             for how, sim in free_runs(model, rec).items():
                 e = (sim - rec.y)[INIT:]
                 with np.errstate(all='ignore'):
                     per[how] += list(np.sqrt(np.mean(e * e, axis=0)) * UM)
         for how, values in per.items():
+            if not values:
+                continue
             with np.errstate(all='ignore'):
                 v = float(np.mean(values))
             # An unstable free run (grows past a millimetre) is reported as diverged.
@@ -219,19 +230,20 @@ def main(argv=None) -> int:
         print(f'{label}, all levels: fitted in {seconds:.1f} s ({model.n_params} parameters)',
               flush=True)
         if args.per_level:
-            own = {'window': {}, 'periodic': {}}
+            own = {how: {} for how in HOWS}
             for lv in LEVELS:
                 m = fit(fit_sets[lv])
                 s = scores(m, {lv: score_sets[lv]})
                 for how in own:
-                    own[how][lv] = s[how][lv]
+                    own[how][lv] = s[how].get(lv)
             results.append({'label': label + ', per level', **own})
     print(f'\nfree-run RMSE after the first {INIT} samples, µm, mean over 3 outputs and the '
           'scored records')
     print(f'{"model [how the state is set]":<52}' + ''.join(f'{f"{lv} mV":>10}' for lv in LEVELS))
     for res in results:
-        print(row(res['label'] + ' [periodic]', res['periodic']))
-        print(row(res['label'] + ' [window]', res['window']))
+        for how in HOWS:
+            if res[how]:
+                print(row(f'{res["label"]} [{how}]', res[how]))
     print('published, on the test sets:')
     for label, values in PUBLISHED.items():
         print(row('  ' + label, values))

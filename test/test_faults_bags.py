@@ -152,7 +152,7 @@ def test_export_writes_the_file_it_names(tmp_path, capsys):
     from piezo_narx_ros.ident.data import load_record
     rec = load_record(tmp_path / 'e.csv')
     assert rec.fs == pytest.approx(2000.0)
-    assert np.array_equal(rec.u[:, 0], np.sin(np.arange(400.0)))     # one axis: (n, 1)
+    assert np.array_equal(rec.u[:, 0], np.sin(np.arange(400.0)))
     code, _, err = cli(['bag', 'export', str(bag), '--out', str(tmp_path / 'e.txt')], capsys)
     assert code == 2 and '--out must end in .npz or .csv' in err
     assert not list(tmp_path.glob('e.txt*'))

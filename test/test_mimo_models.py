@@ -226,3 +226,29 @@ def test_a_committed_one_axis_model_file_is_rewritten_as_it_was(tmp_path):
     new = np.load(tmp_path / 'model.npz')
     assert sorted(old.files) == sorted(new.files)
     assert all(np.array_equal(old[k], new[k]) and old[k].dtype == new[k].dtype for k in old.files)
+
+
+def test_experiment_selects_on_the_worst_output_and_reports_each_axis(tmp_path):
+    from piezo_narx_ros.ident.experiment import ExperimentConfig, run_experiment
+    from piezo_narx_ros.ident.report import write_report
+    from piezo_narx_ros.record import Record
+    recs = []
+    for seed in (1, 2):
+        u, y = mimo_plant(1600, seed=seed, noise=1e-10)
+        recs.append(Record(u=u, y=y, fs=FS, source=f'r{seed}', inputs=('a', 'b'),
+                           outputs=('p', 'q', 'r')))
+    cfg = ExperimentConfig(narx=False, arx_na=(1, 2), arx_nb=(1,), jobs=1, max_lag=10)
+    result = run_experiment(recs, cfg)
+    best = result.best
+    assert best.spec.ny == 2 and best.model.outputs == ('p', 'q', 'r')
+    per = best.scores['validation']['simulation']['per_output']
+    assert [o['name'] for o in per] == ['p', 'q', 'r']
+    # The worst case is the lowest R² of any output in any block (pooled halves, each record).
+    worse = next(c for c in result.candidates if c.spec.ny == 1)
+    blocks = [worse.scores[b]['simulation'] for b in ('estimation', 'validation')]
+    blocks += [r['simulation'] for r in worse.scores['validation']['records']]
+    lows = [o['r2'] for b in blocks for o in b['per_output']]
+    assert worse.free_run_r2() == pytest.approx(min(lows)) and min(lows) < best.free_run_r2()
+    assert best.tests['simulation']['pair'].keys() == {'output', 'input'}
+    paths = write_report(result, [r.split(0.5)[1] for r in recs], tmp_path)
+    assert {'simulation_p', 'simulation_q', 'simulation_r', 'hysteresis_r'} <= set(paths)

@@ -141,7 +141,7 @@ def test_records_everything_and_closes_on_sigterm(tmp_path):
     durability = {t['topic_metadata']['name']: t['topic_metadata']['offered_qos_profiles'][0]
                   ['durability'] for t in info['topics_with_message_count']}
     assert durability[f'{ns}/deflection_estimate'] == 'transient_local'
-    np.testing.assert_allclose(rec.u[:, 0], 0.01 * np.arange(n))     # one axis: (n, 1)
+    np.testing.assert_allclose(rec.u[:, 0], 0.01 * np.arange(n))
     np.testing.assert_allclose(rec.y[:, 0], 1e-9 * np.arange(n))
 
 

@@ -220,7 +220,7 @@ def _axis_index(names, axis, n_values: int):
 
 
 def _channel_indices(names, channels):
-    """Return the indices of `channels` in a message's joint names (by name), or None if one is missing."""
+    """Return the indices of `channels` in a message's joint names, or None if one is missing."""
     try:
         return [names.index(c) for c in channels]
     except ValueError:

@@ -207,7 +207,7 @@ def _csv_rate(t, fs, source: str, units: Units) -> float:
 
 
 def _numbered(names, prefix: str) -> list[int]:
-    """Return the indices of the header names prefix1, prefix2, ... (in the order of their numbers)."""
+    """Return the indices of the header names prefix1, prefix2, ... in the order of the numbers."""
     found = [(int(n[len(prefix):]), i) for i, n in enumerate(names)
              if n.startswith(prefix) and n[len(prefix):].isdigit()]
     return [i for _, i in sorted(found)]

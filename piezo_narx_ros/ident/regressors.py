@@ -118,7 +118,7 @@ class LaggedModel(DynamicModel):
         return self.n_in == 1 and self.n_out == 1
 
     def _signal(self, x, name, width, n=None, min_len=1):
-        """Return a user array as the model works on it: (N,) for a one-axis model, else (N, width)."""
+        """Return a user array as the model works on it: (N,) for one axis, else (N, width)."""
         a = as_channels(x, name, n=n, width=width, min_len=min_len)
         return a[:, 0] if self._scalar_io else a
 

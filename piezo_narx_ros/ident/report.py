@@ -113,16 +113,36 @@ def write_report(result: ExperimentResult, validation: list[Record], out_dir) ->
             _, sim = free_run(model, rec)
             if not np.all(np.isfinite(sim)):
                 continue
-            tag = '' if i == 0 else f'_r{i}'
-            title = label if len(validation) == 1 else f'{label}, {rec.source}'
             first = scored_from(model, rec)
-            paths['simulation' + tag] = _save(plot_simulation(rec, sim, title, first),
-                                              out_dir / f'fig8_simulation{tag}.png')
-            paths['hysteresis' + tag] = _save(plot_hysteresis(rec, sim, title, first),
-                                              out_dir / f'fig9_hysteresis{tag}.png')
+            for one, sim_j, axis in _per_output(rec, sim):
+                tag = ('' if i == 0 else f'_r{i}') + axis
+                title = label if len(validation) == 1 else f'{label}, {rec.source}'
+                title += f' (output {one.outputs[0]})' if axis else ''
+                paths['simulation' + tag] = _save(plot_simulation(one, sim_j, title, first),
+                                                  out_dir / f'fig8_simulation{tag}.png')
+                paths['hysteresis' + tag] = _save(plot_hysteresis(one, sim_j, title, first),
+                                                  out_dir / f'fig9_hysteresis{tag}.png')
     finally:
         plt.close('all')
     return paths
+
+
+def _per_output(rec: Record, sim: np.ndarray):
+    """
+    Yield (one-output record, its free run (N,), file tag) for each output of a record.
+
+    One output: the record itself and tag ''. Several: output j beside input j (the last input
+    when there are fewer), tag '_<name>', so each figure shows one axis.
+    """
+    sim = sim.reshape(len(rec), -1)
+    if rec.n_out == 1:
+        yield rec, sim[:, 0], ''
+        return
+    for j, name in enumerate(rec.outputs):
+        i = min(j, rec.n_in - 1)
+        one = Record(u=rec.u[:, i], y=rec.y[:, j], fs=rec.fs, source=rec.source,
+                     inputs=(rec.inputs[i],), outputs=(name,))
+        yield one, sim[:, j], f'_{name}'
 
 
 def _save(fig, path: Path) -> Path:
@@ -249,21 +269,23 @@ def plot_correlation(corr, label: str, mode: str, noise=None):
 def plot_simulation(rec: Record, sim: np.ndarray, label: str, n0: int):
     """Fig. 8: measured and free-run output (µm) over time, the residual, and a zoom."""
     plt = _pyplot()
+    u, y = rec.u[:, 0], rec.y[:, 0]   # one output (write_report splits several)
+    sim = np.reshape(sim, -1)
     t = np.arange(len(rec)) / rec.fs
     fig, axes = plt.subplots(3, 1, figsize=(10, 8), constrained_layout=True)
-    axes[0].plot(t, rec.y * UM, color='tab:blue', linewidth=0.8, label='measured')
+    axes[0].plot(t, y * UM, color='tab:blue', linewidth=0.8, label='measured')
     axes[0].plot(t, sim * UM, color='tab:orange', linewidth=0.8, linestyle='--',
                  label='simulated (free run)')
     axes[0].set_ylabel('deflection (µm)')
     axes[0].legend(loc='upper right')
     axes[0].set_title(f'{label}: validation data, free-run simulation from u alone')
-    resid = (rec.y - sim)[n0:] * UM
+    resid = (y - sim)[n0:] * UM
     axes[1].plot(t[n0:], resid, color='tab:red', linewidth=0.6)
     axes[1].set_ylabel('residual (µm)')
     rms = float(np.sqrt(np.mean(resid ** 2)))
     axes[1].set_title(f'residual y - ŷ (RMS {rms:.4g} µm)')
     cut = _zoom_window(len(rec), n0)
-    axes[2].plot(t[cut], rec.y[cut] * UM, color='tab:blue', linewidth=1.2, label='measured')
+    axes[2].plot(t[cut], y[cut] * UM, color='tab:blue', linewidth=1.2, label='measured')
     axes[2].plot(t[cut], sim[cut] * UM, color='tab:orange', linewidth=1.2, linestyle='--',
                  label='simulated')
     axes[2].set_ylabel('deflection (µm)')
@@ -289,11 +311,13 @@ def plot_hysteresis(rec: Record, sim: np.ndarray, label: str, n0: int):
     The whole validation record and, to see single loops, the zoom window of Fig. 8.
     """
     plt = _pyplot()
+    u, y = rec.u[:, 0], rec.y[:, 0]   # one output (write_report splits several)
+    sim = np.reshape(sim, -1)
     fig, axes = plt.subplots(1, 2, figsize=(11, 5), constrained_layout=True)
     for ax, cut, title in ((axes[0], slice(n0, None), 'whole validation record'),
                            (axes[1], _zoom_window(len(rec), n0), 'zoom (as Fig. 8)')):
-        ax.plot(rec.u[cut], rec.y[cut] * UM, color='tab:blue', linewidth=0.8, label='measured')
-        ax.plot(rec.u[cut], sim[cut] * UM, color='tab:orange', linewidth=0.8, linestyle='--',
+        ax.plot(u[cut], y[cut] * UM, color='tab:blue', linewidth=0.8, label='measured')
+        ax.plot(u[cut], sim[cut] * UM, color='tab:orange', linewidth=0.8, linestyle='--',
                 alpha=0.8, label='simulated (free run)')
         ax.set_xlabel('input u (V)')
         ax.set_ylabel('deflection y (µm)')

@@ -134,8 +134,14 @@ def _refine(model, values: np.ndarray, u: np.ndarray, y: np.ndarray, idx: np.nda
         base_new = model._run_from(x_new, u)
         if not np.all(np.isfinite(base_new)):
             break
-        x, base = x_new, base_new
-        offset = offset + (float(step[-1]) if y.ndim == 1 else step[n_adj:])
+        offset_new = offset + (float(step[-1]) if y.ndim == 1 else step[n_adj:])
+        # Several channels: tens of output lags of a network make the Gauss-Newton step
+        # overshoot (measured on the FSM: window RMS 1e-6 m -> 2e-5 m); keep only steps that
+        # lower the robust cost. (One axis: unchanged, bit for bit.)
+        if y.ndim == 2 and robust_cost((y - base_new - offset_new).ravel()) > \
+                robust_cost((y - base - offset).ravel()):
+            break
+        x, base, offset = x_new, base_new, offset_new
         if np.max(np.abs(step[:n_adj]), initial=0.0) < 1e-6:
             break
     return x, offset, robust_cost((y - base - offset).ravel())
