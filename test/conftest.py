@@ -52,3 +52,25 @@ def boucwen_dir():
     if not (BOUCWEN / 'train.npz').is_file():
         pytest.skip(f'Bouc-Wen benchmark data not found at {BOUCWEN}')
     return BOUCWEN
+
+
+@pytest.fixture(scope='session')
+def stage_data():
+    """Simulate 3 s at 2 kHz of independent multisines on both axes of plant_2axis: (u, y)."""
+    import numpy as np
+
+    from piezo_narx_ros.plant.axes import make_axis_plants
+    from piezo_narx_ros.plant.signals import generate
+    from piezo_narx_ros.share import config_path
+    plant = make_axis_plants([], config_path('plant_2axis.yaml'), fs=2000.0, seed=1)
+    u = np.column_stack([generate('multisine', 2000.0, 3.0, 100.0, seed=s) for s in (1, 2)])
+    y, _ = plant.run(u)
+    return u, y
+
+
+@pytest.fixture(scope='session')
+def arx2(stage_data):
+    """Identify a 2 x 2 ARX (na = nb = 2) on `stage_data`: a small model of several axes."""
+    from piezo_narx_ros.ident.arx import ARXModel
+    u, y = stage_data
+    return ARXModel(na=2, nb=2).fit(u, y, fs=2000.0)

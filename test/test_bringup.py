@@ -62,7 +62,8 @@ def test_launch_file_becomes_the_command_lines_launch_ros_builds(tmp_path):
     assert a[3] == 'piezo_narx_ros.nodes.simulator_node'
     assert a[4:] == ['--ros-args', '-r', '__ns:=/rig2',
                      '--params-file', str(tmp_path / 'sim.yaml'),
-                     '-p', 'axes:=[x, y]', '-p', 'fs:=2000.0', '-p', "plant_params:=''",
+                     # y quoted: rcl reads a bare y as a boolean and refuses the list
+                     '-p', "axes:=[x, 'y']", '-p', 'fs:=2000.0', '-p', "plant_params:=''",
                      '-r', 'deflection:=/rig2_d']
     b = specs[1].argv
     assert b[4:] == ['--ros-args', '-r', '__node:=cmd', '-p', 'kind:=sine']

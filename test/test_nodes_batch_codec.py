@@ -144,3 +144,45 @@ def test_column_names_the_missing_axis_or_field():
         b.column('effort', 'z')
     with pytest.raises(DataError, match='no position'):
         b.column('position', 'x')
+
+
+def test_remembered_shapes_give_the_bytes_and_values_of_the_general_path():
+    """The encoder's templates and the decoder's remembered shapes change no byte or value."""
+    from piezo_narx_ros.nodes import codec
+    rng = np.random.default_rng(5)
+    for names in (['x'], ['x', 'y'], ['x', 'y', 'z'], []):
+        for n_pos, n_eff in ((1, 0), (0, 1), (1, 1), (len(names), len(names))):
+            if names and {n_pos, n_eff} - {0, len(names)}:
+                continue
+            for n in (1, 2, 20):
+                codec._ENCODED.clear()
+                for _ in range(3):
+                    t = 10**15 + rng.integers(1, 10**9, n).cumsum()
+                    pos = rng.normal(size=(n, n_pos)) if n_pos else None
+                    eff = rng.normal(size=(n, n_eff)) if n_eff else None
+                    fast = encode_joint_trajectory(t, names, pos, eff)   # template after once
+                    kept = dict(codec._ENCODED)
+                    codec._ENCODED.clear()
+                    assert fast == encode_joint_trajectory(t, names, pos, eff)
+                    codec._ENCODED.update(kept)
+                    b = decode_joint_trajectory(fast)       # remembered after the first
+                    assert b.t_ns.tolist() == t.tolist()
+                    assert np.array_equal(b.position, pos if n_pos else np.empty((n, 0)))
+                    assert np.array_equal(b.effort, eff if n_eff else np.empty((n, 0)))
+    # Same length and names, other counts inside: the remembered shape must not read it.
+    from trajectory_msgs.msg import JointTrajectoryPoint
+
+    def batch(rows):
+        msg = JointTrajectory()
+        msg.joint_names = ['x']
+        for i, r in enumerate(rows):
+            point = JointTrajectoryPoint()
+            point.positions = r
+            point.time_from_start.nanosec = i
+            msg.points.append(point)
+        return serialize_message(msg)
+    good, bad = batch([[1.0], [2.0], [3.0]]), batch([[1.0, 2.0], [], [3.0]])
+    assert len(good) == len(bad)
+    assert decode_joint_trajectory(good).position[:, 0].tolist() == [1.0, 2.0, 3.0]
+    with pytest.raises(DataError, match='point 1 has 0 positions'):
+        decode_joint_trajectory(bad)

@@ -24,6 +24,9 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import numpy as np
+
+from piezo_narx_ros.command import stamp_kernels as sk
 from piezo_narx_ros.errors import ConfigError
 
 SAMPLE = 'sample'     # (SAMPLE, t_ns, item): the next command of the stream (maybe after a gap)
@@ -86,6 +89,20 @@ class StampGate:
         self._held.append((t_ns, item))            # a new candidate: gap, new stream, outlier
         return []
 
+    def pass_run(self, t_ns: np.ndarray) -> bool:
+        """
+        Let a batch of stamps (n,) int64 ns through at once when each is the next on the grid.
+
+        The batch fast path: True (and the gate is where n push() calls would leave it, every one
+        a SAMPLE) when nothing is held and every stamp is one period after the previous one (the
+        first after `last`); otherwise False and nothing changed (push them one by one).
+        """
+        if self._held or self.last is None or t_ns.shape[0] == 0 or \
+                not sk.on_grid_run(t_ns, self.last, self.period_ns, GRID_TOLERANCE):
+            return False
+        self.last = int(t_ns[-1])
+        return True
+
     def flush(self) -> list[tuple]:
         """
         Decide now (no more commands are coming).
@@ -127,6 +144,26 @@ RATE_TOLERANCE = 0.01
 RATE_MIN_STEPS = 3
 
 
+_KERNELS_LOADED = False
+
+
+def _load_kernels() -> None:
+    """
+    Compile or load the stamp kernels once per process, when the first monitor is made.
+
+    Not on the first command: loading them took long enough there for a rig reply to time out.
+    """
+    global _KERNELS_LOADED
+    if not _KERNELS_LOADED:
+        t = np.zeros(1, dtype=np.int64)
+        sk.observe_run(t, t.copy(), 1.0, 0.01, RATE_MIN_STEPS, False,
+                       np.zeros((RATE_MIN_STEPS + 1, 3), dtype=np.int64),
+                       np.zeros(sk.N_INT_STATE, dtype=np.int64), np.zeros(2),
+                       np.zeros(1, dtype=np.bool_))
+        sk.on_grid_run(t, 0, 1.0, GRID_TOLERANCE)
+        _KERNELS_LOADED = True
+
+
 class RateMonitor:
     """
     Tell whether a stream's stamp rate matches the rate `period_ns` (ns) a node runs at.
@@ -142,8 +179,8 @@ class RateMonitor:
     samples. It clears once the window agrees again.
     """
 
-    __slots__ = ('period_ns', 'tolerance', 'window', 'off', 'ratio', 'arrival_ratio', 'episodes',
-                 'single_writer', '_t', '_steps', '_got', '_last', '_n', '_count', '_head')
+    __slots__ = ('period_ns', 'tolerance', 'window', 'single_writer', '_ring', '_st', '_fst',
+                 '_one_t', '_one_got', '_one_off', '_received')
 
     def __init__(self, period_ns: float, tolerance: float = RATE_TOLERANCE, window: int = 2000):
         if not (period_ns > 0 and tolerance > 0 and window >= RATE_MIN_STEPS + 1):
@@ -152,14 +189,39 @@ class RateMonitor:
         self.period_ns = float(period_ns)
         self.tolerance = float(tolerance)
         self.window = int(window)
-        self.episodes = 0          # times the stream went off rate
-        self.off = False
-        self.ratio = float('nan')           # stream period / node period over the window
-        self.arrival_ratio = float('nan')   # commands received per node period of stamp time
+        # The state lives in arrays that one compiled kernel (stamp_kernels.observe_run) updates
+        # for a sample or a batch alike.
+        self._st = np.zeros(sk.N_INT_STATE, dtype=np.int64)
+        # stream period / node period over the window; commands received per node period
+        self._fst = np.full(2, np.nan)
         # Set by a node that knows one publisher feeds the stream: more commands than grid points
         # are then a faster stream, not a second writer.
         self.single_writer = False
+        self._one_t = np.zeros(1, dtype=np.int64)
+        self._one_got = np.zeros(1, dtype=np.int64)
+        self._one_off = np.zeros(1, dtype=np.bool_)
         self.reset()
+        _load_kernels()
+
+    @property
+    def off(self) -> bool:
+        """Return whether the stream's rate is not the node's (over the window)."""
+        return bool(self._st[sk.I_OFF])
+
+    @property
+    def episodes(self) -> int:
+        """Count the times the stream went off rate."""
+        return int(self._st[sk.I_EPISODES])
+
+    @property
+    def ratio(self) -> float:
+        """Stream period / node period over the window (NaN before the first verdict)."""
+        return float(self._fst[sk.F_RATIO])
+
+    @property
+    def arrival_ratio(self) -> float:
+        """Commands received per node period of stamp time (NaN before the first verdict)."""
+        return float(self._fst[sk.F_ARRIVAL])
 
     def reset(self) -> None:
         """
@@ -168,44 +230,40 @@ class RateMonitor:
         The verdict stands until the new stream has given its own (RATE_MIN_STEPS periods), so a
         player looping a file at the wrong rate is not trusted again for its first samples.
         """
-        self._t = [0] * self.window         # ring of (stamp, cumulative steps, received)
-        self._steps = [0] * self.window
-        self._got = [0] * self.window
-        self._last: int | None = None
-        self._n = 0                         # cumulative steps
-        self._count = 0                     # cumulative received
-        self._head = 0                      # accepted samples seen (ring index = head % window)
+        # ring of (stamp, cumulative steps, received) per accepted sample
+        self._ring = np.zeros((self.window, 3), dtype=np.int64)
+        st = self._st
+        st[sk.I_N] = st[sk.I_COUNT] = st[sk.I_HEAD] = st[sk.I_LAST] = st[sk.I_HAS_LAST] = 0
+        self._received = 0                  # received() calls not yet passed to the kernel
 
     def received(self) -> None:
         """Count one incoming command (accepted or refused by the gate)."""
-        self._count += 1
+        self._received += 1
 
     def observe(self, t_ns: int) -> bool:
         """One sample the gate accepted (stamp ns); returns `off`."""
-        if self._last is not None:
-            k = round((t_ns - self._last) / self.period_ns)
-            self._n += k if k > 1 else 1
-        self._last = t_ns
-        w, h = self.window, self._head
-        i = h % w
-        self._t[i], self._steps[i], self._got[i] = t_ns, self._n, self._count
-        self._head = h + 1
-        j = 0 if h < w else (h + 1) % w          # the oldest sample in the ring
-        n = self._n - self._steps[j]
-        if n >= RATE_MIN_STEPS:
-            span = t_ns - self._t[j]
-            self.ratio = span / (n * self.period_ns)
-            arrived = self._count - self._got[j]
-            if span > 0:
-                self.arrival_ratio = arrived * self.period_ns / span
-            off = abs(self.ratio - 1.0) > self.tolerance + 0.5 / n or (
-                # One writer sending more commands than grid points: a faster stream whose
-                # in-between stamps the gate refuses (two writers interleave the same way).
-                self.single_writer and arrived - 2 > n * (1.0 + self.tolerance))
-            if off:
-                self.episodes += not self.off
-            self.off = off
-        return self.off
+        self._one_t[0] = t_ns
+        self._one_got[0], self._received = self._received, 0
+        return sk.observe_run(self._one_t, self._one_got, self.period_ns, self.tolerance,
+                              RATE_MIN_STEPS, self.single_writer, self._ring, self._st,
+                              self._fst, self._one_off)
+
+    def observe_run(self, t_ns: np.ndarray) -> np.ndarray:
+        """
+        Receive and accept a batch of samples at once (stamps (n,) int64 ns, in order).
+
+        The same as received() then observe(t) for each stamp in turn (one compiled call):
+        returns the `off` verdict after each sample, (n,) bool.
+        """
+        t = np.ascontiguousarray(t_ns, dtype=np.int64)
+        offs = np.empty(t.shape[0], dtype=np.bool_)
+        got = np.ones(t.shape[0], dtype=np.int64)
+        if got.shape[0]:
+            got[0] += self._received
+            self._received = 0
+        sk.observe_run(t, got, self.period_ns, self.tolerance,
+                       RATE_MIN_STEPS, self.single_writer, self._ring, self._st, self._fst, offs)
+        return offs
 
     def describe(self, what: str = 'stream') -> str:
         """One phrase: the stream's rate against the node's, e.g. for /diagnostics."""

@@ -311,16 +311,7 @@ class PositionController:
             st.out_of_range += 1
             r = min(max(r, self.y_min), self.y_max)
         inv = self.inverse
-        dt = None
-        if self._last_t is not None:
-            dt = (t_ns - self._last_t) * 1e-9
-            missing = int(round((t_ns - self._last_t) / self.period_ns)) - 1
-            if missing > 0:
-                st.gaps += 1
-                st.filled += missing
-                for _ in range(missing):
-                    inv.commit(inv.u_prev)
-        self._last_t = t_ns
+        dt = bridge_gap(self, t_ns)
         if r is None:               # nothing valid received yet: hold the actuator
             u = inv.u_prev
             self._limited = 0
@@ -379,6 +370,27 @@ class PositionController:
             st.not_invertible += 1
         if miss > self.peak_miss:
             self.peak_miss = miss
+
+
+def bridge_gap(ctl, t_ns: int) -> float | None:
+    """
+    Advance a controller to the reference stamped t_ns (ns): returns dt (s) since the last one.
+
+    A gap (missing references) advances the model with the command held, as the amplifier holds
+    it (counted in `gaps`, `filled`). ctl: PositionController or AxesController (its _last_t,
+    period_ns, stats and inverse).
+    """
+    dt = None
+    if ctl._last_t is not None:
+        dt = (t_ns - ctl._last_t) * 1e-9
+        missing = int(round((t_ns - ctl._last_t) / ctl.period_ns)) - 1
+        if missing > 0:
+            ctl.stats.gaps += 1
+            ctl.stats.filled += missing
+            for _ in range(missing):
+                ctl.inverse.commit(ctl.inverse.u_prev)
+    ctl._last_t = t_ns
+    return dt
 
 
 def input_limits(model, margin: float = 0.05, fallback: float = 200.0) -> dict:

@@ -42,6 +42,7 @@ class LiveRun:
     first_estimate: int
     lost: dict          # {stream: samples missing on it}, see load_live_run
     fs: float
+    axes: tuple = ()    # several axes: the deflection's names (then y, y_hat are (n, axes))
 
 
 def _unique(stamps: np.ndarray, *arrays: np.ndarray):
@@ -98,7 +99,8 @@ def load_live_run(bag, expected: int | None = None, fs: float | None = None) -> 
                    y_hat=ey[ie], log_command_ns=clog[ic], log_deflection_ns=dlog[idf],
                    log_estimate_ns=elog[ie],
                    first_estimate=int(np.count_nonzero(cs < first_est)),
-                   lost={k: int(v) for k, v in lost.items()}, fs=float(fs))
+                   lost={k: int(v) for k, v in lost.items()}, fs=float(fs),
+                   axes=tuple(series[DEFLECTION].names) if dy.ndim == 2 else ())
 
 
 def percentiles_us(delays_ns: np.ndarray) -> dict:
@@ -127,14 +129,16 @@ def live_figures(run: LiveRun, skip: int = 0, input_range: tuple | None = None) 
         raise DataError(f'too few paired samples to score ({run.y.size}, skipping {skip})')
     y, y_hat = run.y[skip:], run.y_hat[skip:]
     err = y_hat - y
+    # Several axes: pooled over them (docs/mimo.md), and each axis in `per_axis`.
+    sc = metrics.channel_scores(y, y_hat, names=run.axes or None)
     out = {
-        'n_paired': int(run.y.size),
-        'n_scored': int(y.size),
+        'n_paired': int(y.shape[0] + skip),
+        'n_scored': int(y.shape[0]),
         'skipped_at_start': int(skip),
         'not_estimated_at_start': int(run.first_estimate),
-        'r2': metrics.r2(y, y_hat),
-        'rmse_m': metrics.rmse(y, y_hat),
-        'rmse_nm': metrics.rmse(y, y_hat) * 1e9,
+        'r2': sc['r2'],
+        'rmse_m': sc['rmse'],
+        'rmse_nm': sc['rmse'] * 1e9,
         'max_abs_error_nm': float(np.max(np.abs(err)) * 1e9),
         'y_span_um': float(np.ptp(y) * 1e6),
         'latency_us': percentiles_us(run.log_estimate_ns - run.log_command_ns),
@@ -142,14 +146,20 @@ def live_figures(run: LiveRun, skip: int = 0, input_range: tuple | None = None) 
         'lost': dict(run.lost),
         'fs': run.fs,
     }
+    if 'per_output' in sc:
+        out['per_axis'] = [{'axis': r['name'], 'r2': r['r2'], 'rmse_nm': r['rmse'] * 1e9}
+                           for r in sc['per_output']]
     if input_range is not None:
-        lo, hi = input_range
+        lo, hi = (np.asarray(v, dtype=np.float64) for v in input_range)
         inside = (run.u[skip:] >= lo) & (run.u[skip:] <= hi)
-        out['input_range_V'] = [float(lo), float(hi)]
+        if inside.ndim == 2:       # a sample is inside when every axis is
+            inside = inside.all(axis=1)
+        out['input_range_V'] = [lo.tolist(), hi.tolist()]
         out['outside_input_range'] = int(np.count_nonzero(~inside))
         if np.count_nonzero(inside) >= 2:
-            out['r2_inside_input_range'] = metrics.r2(y[inside], y_hat[inside])
-            out['rmse_nm_inside_input_range'] = metrics.rmse(y[inside], y_hat[inside]) * 1e9
+            sc_in = metrics.channel_scores(y[inside], y_hat[inside])
+            out['r2_inside_input_range'] = sc_in['r2']
+            out['rmse_nm_inside_input_range'] = sc_in['rmse'] * 1e9
     return out
 
 
@@ -221,7 +231,7 @@ def plot_hysteresis(run: LiveRun, skip: int, input_range: tuple | None = None):
     ax[0].set_title('hysteresis: deflection vs voltage')
     ax[0].legend(loc='upper left')
     ax[1].plot(u, (run.y_hat[skip:] - run.y[skip:]) * 1e9, '.', ms=1.5, color='C3')
-    if input_range is not None:
+    if input_range is not None and not np.ndim(input_range[0]):   # one axis: its range
         ax[1].axvspan(*input_range, color='0.9', zorder=0, label='training input range')
         ax[1].legend(loc='upper left')
     ax[1].set_xlabel('voltage command [V]')

@@ -303,8 +303,19 @@ def _scalar_text(value) -> str:
     return str(value)
 
 
+# Words rcl's YAML parser reads as booleans (YAML 1.1) that PyYAML writes bare: an axis named y.
+_BOOLISH = {'y', 'n', 'yes', 'no', 'on', 'off', 'true', 'false'}
+
+
 def _yaml_flow(value) -> str:
     """Return a value in ROS 2 `-p name:=value` syntax (YAML flow)."""
     import yaml
-    text = yaml.safe_dump(value, default_flow_style=True).strip()
+
+    class Dumper(yaml.SafeDumper):
+
+        def represent_str(self, data):
+            style = "'" if data.lower() in _BOOLISH else None
+            return self.represent_scalar('tag:yaml.org,2002:str', data, style=style)
+    Dumper.add_representer(str, Dumper.represent_str)
+    text = yaml.dump(value, Dumper=Dumper, default_flow_style=True).strip()
     return text[:-4].strip() if text.endswith('\n...') or text.endswith(' ...') else text

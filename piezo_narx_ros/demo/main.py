@@ -5,6 +5,8 @@ import json
 import time
 from pathlib import Path
 
+import numpy as np
+
 from piezo_narx_ros.demo.runner import (Demo, PhaseFailed, install_signal_handlers,
                                         restore_signal_handlers, stream_counts)
 from piezo_narx_ros.errors import ConfigError
@@ -127,7 +129,9 @@ def analyse(out: Path, live: dict, model_doc: dict, est_diag, phase: str = 'live
     measured = diag.get('init') == 'measurement'
     skip = int(diag.get('init_samples', model.n0)) if measured else 0
     in_range = getattr(model, 'input_range', None)
-    in_range = None if in_range is None else tuple(float(v) for v in in_range)
+    if in_range is not None:       # (lo, hi) V, or ((lo...), (hi...)) for several inputs
+        in_range = tuple(np.asarray(v, dtype=np.float64) if np.ndim(v) else float(v)
+                         for v in in_range)
     figures = live_figures(run, skip, in_range)
     diff = offline_difference(run, model, skip if measured else 0)
     paths = write_figures(run, skip, fig_dir or out / 'figures', in_range)
@@ -148,7 +152,11 @@ def _fmt(v, spec: str) -> str:
 
 
 def _range(r) -> str:
-    return 'n/a' if r is None else f'[{r[0]:.1f}, {r[1]:.1f}] V'
+    if r is None:
+        return 'n/a'
+    if np.ndim(r[0]):      # several axes: per axis
+        return ', '.join(f'[{lo:.1f}, {hi:.1f}]' for lo, hi in zip(*r)) + ' V'
+    return f'[{r[0]:.1f}, {r[1]:.1f}] V'
 
 
 def print_table(summary: dict) -> None:

@@ -29,6 +29,9 @@ DEFAULTS = {
     'fit': {'preset': 'envelope', 'split': 0.5, 'jobs': 2},
     'validation_kind': 'multisine', 'validation_seconds': 10.0, 'validation_seed': None,
     'slow_kind': 'sine', 'slow_freq': 0.5, 'slow_seconds': 10.0,
+    # Axes of the stage (one signal each, seed + i) and its plant file ('' = config/plant.yaml;
+    # a file name alone is looked up in the package's config folder, e.g. plant_2axis.yaml).
+    'axes': ['x'], 'plant_params': '',
     'startup_timeout_s': 60.0, 'settle_s': 3.0, 'sigint_timeout_s': 10.0,
     'sigterm_timeout_s': 3.0,
     # piezo-narx demo --control (demo/control.py): identification record and fit, then each
@@ -104,8 +107,23 @@ def load_settings(path=None, quick: bool = False, **overrides) -> dict:
     if settings['fs'] * min(settings['seconds'], settings['validation_seconds'],
                             settings['slow_seconds']) < 500:
         raise ConfigError('seconds x fs must give at least 500 samples per phase')
+    axes = settings['axes']
+    if (not isinstance(axes, list) or not axes or len(set(axes)) != len(axes)
+            or not all(isinstance(a, str) and a.strip() for a in axes)):
+        raise ConfigError(f'axes must be a list of distinct non-empty names, got {axes!r}')
+    if not isinstance(settings['plant_params'], str):
+        raise ConfigError('plant_params must be a path or a file name of the config folder '
+                          '(or empty)')
     check_control_settings(settings['control'])
     return settings
+
+
+def plant_file(name: str) -> str:
+    """Return a plant file setting as a path: a bare name is config/NAME ('' stays '')."""
+    if not name or Path(name).exists() or '/' in name:
+        return name
+    from piezo_narx_ros.share import config_path
+    return str(config_path(name))
 
 
 def check_control_settings(c) -> None:
@@ -256,8 +274,11 @@ class Demo:
         """
         s = self.s
         topics = ['voltage_command', 'deflection'] + (['deflection_estimate'] if model else [])
+        stage = {'axes': list(s['axes'])}
+        plant = plant_file(s['plant_params'])
         listeners = [{'executable': 'simulator_node',
-                      'parameters': {'fs': float(s['fs']), 'seed': int(seed),
+                      'parameters': {'fs': float(s['fs']), 'seed': int(seed), **stage,
+                                     **({'plant_params': plant} if plant else {}),
                                      **(extra_simulator or {})}}]
         if model is not None:
             listeners.append({'executable': 'estimator_node',
@@ -266,7 +287,7 @@ class Demo:
                           'parameters': {'output': str(bag), 'topics': topics}})
         command = {'executable': 'command_node', 'parameters': {
             'fs': float(s['fs']), 'kind': kind or s['kind'], 'amplitude': float(s['amplitude']),
-            'seconds': float(seconds), 'seed': int(seed), 'loop': False,
+            'seconds': float(seconds), 'seed': int(seed), 'loop': False, **stage,
             'wait_for_subscribers': len(listeners), **(extra_command or {})}}
         specs = load_launch(self._launch_yaml(phase, listeners + [command]))
         names = [n['executable'] for n in listeners]

@@ -146,13 +146,16 @@ def model_unit_problem(model) -> str | None:
     its ranges.
     """
     problems = []
+    # Ranges are (min, max) for one channel, ((min...), (max...)) for several: the widest counts.
     out = getattr(model, 'output_range', None)
-    if out is not None and max(abs(out[0]), abs(out[1])) > Y_PLAUSIBLE_M:
-        problems.append(f'trained output range [{out[0]:.4g}, {out[1]:.4g}] m is not a piezo '
+    if out is not None and np.max(np.abs(np.asarray(out, dtype=float))) > Y_PLAUSIBLE_M:
+        lo, hi = np.min(out[0]), np.max(out[1])
+        problems.append(f'trained output range [{lo:.4g}, {hi:.4g}] m is not a piezo '
                         'deflection in metres (data in um, nm or counts?)')
     inp = getattr(model, 'input_range', None)
-    if inp is not None and max(abs(inp[0]), abs(inp[1])) > U_PLAUSIBLE_V:
-        problems.append(f'trained input range [{inp[0]:.4g}, {inp[1]:.4g}] V is not volts '
+    if inp is not None and np.max(np.abs(np.asarray(inp, dtype=float))) > U_PLAUSIBLE_V:
+        lo, hi = np.min(inp[0]), np.max(inp[1])
+        problems.append(f'trained input range [{lo:.4g}, {hi:.4g}] V is not volts '
                         '(data in mV?)')
     if not problems:
         return None

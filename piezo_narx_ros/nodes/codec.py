@@ -64,6 +64,10 @@ class Sample:
             raise DataError(f'message has no {field} for axis {axis!r}')
         return float(seq[i])
 
+    def values(self, field: str, axes: Sequence[str]) -> list[float]:
+        """Return the `field` of each of `axes`, in that order (mapped by name); DataError."""
+        return [self.value(field, a) for a in axes]
+
 
 def parse_joint_state(msg: JointState) -> Sample:
     """Convert a JointState to a Sample (no validation of values; see Sample.value)."""
@@ -208,6 +212,20 @@ class SampleBatch:
             raise DataError(f'batch has no {field} for axis {axis!r}')
         return values[:, i]
 
+    def columns(self, field: str, axes: Sequence[str]) -> np.ndarray:
+        """Return the `field` of `axes` as (n, len(axes)), mapped by name; DataError if absent."""
+        if len(axes) == 1:
+            return self.column(field, axes[0])[:, None]
+        values = self.position if field == 'position' else self.effort
+        try:
+            idx = [self.names.index(a) for a in axes]
+        except ValueError:
+            missing = [a for a in axes if a not in self.names]
+            raise DataError(f'axis {missing[0]!r} not in message (names: {self.names})') from None
+        if max(idx) >= values.shape[1]:
+            raise DataError(f'batch has no {field} for every axis of {list(axes)}')
+        return values[:, idx]
+
 
 def _check_width(rows: list, names: list[str], field: str) -> int:
     """Columns of one field over every point: all equal, and 0 or len(names) when named."""
@@ -238,13 +256,14 @@ class _PointLayout:
 
 
 @lru_cache(maxsize=64)
-def _point_layout(phase: int, n_pos: int, n_eff: int) -> _PointLayout | None:
+def _point_layout(phase: int, n_pos: int, n_eff: int,
+                  repeat: bool = True) -> _PointLayout | None:
     """
     Return the layout of a point starting at `phase` (its offset mod 8 after the encapsulation).
 
     Points with `n_pos` positions, empty velocities and accelerations, `n_eff` efforts. None
-    unless the next point starts at the same phase: then every later point has this same layout
-    (its size a multiple of 8), so a run of them is a strided array per field.
+    unless the next point starts at the same phase (or `repeat` is False): then every later point
+    has this same layout (its size a multiple of 8), so a run of them is a strided array per field.
     """
     off, where = phase, {}
 
@@ -262,7 +281,7 @@ def _point_layout(phase: int, n_pos: int, n_eff: int) -> _PointLayout | None:
     put('eff', 8, n_eff)
     put('sec', 4)
     put('nsec', 4)
-    if off % 8 != phase:
+    if repeat and off % 8 != phase:
         return None
     return _PointLayout(size=off - phase, **where)
 
@@ -308,14 +327,71 @@ def _read_point(e: str, data, off: int):
     return pos, eff, struct.unpack_from(e + 'iI', data, off), off + 8
 
 
+@lru_cache(maxsize=64)
+def _point_dtype(e: str, layout: _PointLayout, n_pos: int, n_eff: int) -> np.dtype:
+    """Structured dtype of one point of `layout` (byte order e): one view reads every point."""
+    fields = {'n_pos': (e + 'u4', layout.n_pos), 'n_vae': ((e + 'u4', 3), layout.n_vel),
+              'sec': (e + 'i4', layout.sec), 'nsec': (e + 'u4', layout.nsec)}
+    if n_pos:
+        fields['pos'] = ((e + 'f8', n_pos), layout.pos)
+    if n_eff:
+        fields['eff'] = ((e + 'f8', n_eff), layout.eff)
+    return np.dtype({'names': list(fields), 'formats': [f for f, _ in fields.values()],
+                     'offsets': [o for _, o in fields.values()], 'itemsize': layout.size})
+
+
+@dataclass(frozen=True)
+class _BatchShape:
+    """What a stream's batches repeat: everything before the points but the stamp, and layout."""
+
+    encapsulation: bytes   # the 4 bytes before the header (byte order)
+    prefix: bytes       # header after the stamp (frame_id), names, point count
+    start: int          # byte offset of the first point in the buffer
+    names: tuple
+    count: int
+    dtype: np.dtype
+    n_pos: int
+    n_eff: int
+
+
+# Last batch shape seen per buffer length: a stream's batches share one (same names, same size).
+_SHAPES: dict = {}
+# Encoded batches per (names, points, positions, efforts): the template bytes of that shape, the
+# offset of its first point and the point dtype.
+_ENCODED: dict = {}
+
+
+def _decode_known_shape(buf: bytes) -> SampleBatch | None:
+    """Decode a batch of a shape seen before with one structured view; None if not known."""
+    shape = _SHAPES.get(len(buf))
+    if shape is None or buf[12:shape.start] != shape.prefix or buf[:4] != shape.encapsulation:
+        return None
+    points = np.frombuffer(buf, shape.dtype, shape.count, shape.start)
+    if not ((points['n_pos'] == shape.n_pos).all()
+            and (points['n_vae'] == (0, 0, shape.n_eff)).all()):
+        return None       # same length, other shapes inside: the general path decides
+    e = '<' if buf[1] == 1 else '>'
+    sec, nsec = struct.unpack_from(e + 'iI', buf, 4)
+    stamps = points['sec'].astype(np.int64) * 1_000_000_000 + points['nsec']
+    stamps += sec * 1_000_000_000 + nsec
+    empty = np.empty((shape.count, 0))
+    return SampleBatch(stamps, list(shape.names),
+                       points['pos'] if shape.n_pos else empty,
+                       points['eff'] if shape.n_eff else empty)
+
+
 def decode_joint_trajectory(buf: bytes) -> SampleBatch:
     """
     Decode a serialized JointTrajectory (CDR) to a SampleBatch of every point's stamp and values.
 
     Stamp of point k: header.stamp + time_from_start, in exact integer ns. Raises DataError on a
     truncated or malformed buffer, or on points whose positions/effort sizes differ from each
-    other or from joint_names (a bad batch is refused whole, as a bad JointState is).
+    other or from joint_names (a bad batch is refused whole, as a bad JointState is). A batch of
+    the shape of the one before it (a stream's usual case) is read with one structured view.
     """
+    known = _decode_known_shape(buf) if isinstance(buf, bytes) else None
+    if known is not None:
+        return known
     try:
         e, data, t0, names, off = _read_header_names(buf)
         off = (off + 3) & ~3
@@ -335,6 +411,11 @@ def decode_joint_trajectory(buf: bytes) -> SampleBatch:
                 if layout is not None and off + (count - k) * layout.size <= len(data):
                     run = _read_run(buf, off + 4, count - k, layout, e, len(pos), len(eff))
                     if run is not None:
+                        if not k and isinstance(buf, bytes) and len(names) in (
+                                0, len(pos), len(eff)) and len(names) >= len(pos) \
+                                and len(names) >= len(eff):
+                            _remember_shape(buf, off + 4, names, count, layout, e, len(pos),
+                                            len(eff))
                         if k:
                             stamps = np.concatenate((stamps, run[0]))
                             positions = np.concatenate((np.reshape(positions, (1, -1)), run[1]))
@@ -359,6 +440,15 @@ def decode_joint_trajectory(buf: bytes) -> SampleBatch:
     return SampleBatch(np.asarray(stamps, dtype=np.int64) + t0, names, positions, efforts)
 
 
+def _remember_shape(buf: bytes, start: int, names, count: int, layout: _PointLayout, e: str,
+                    n_pos: int, n_eff: int) -> None:
+    """Keep the shape of a well-formed batch whose points are one strided run from point 0."""
+    if len(_SHAPES) > 64:
+        _SHAPES.clear()
+    _SHAPES[len(buf)] = _BatchShape(bytes(buf[:4]), bytes(buf[12:start]), start, tuple(names),
+                                    count, _point_dtype(e, layout, n_pos, n_eff), n_pos, n_eff)
+
+
 def encode_joint_trajectory(t_ns: Sequence[int], names: Sequence[str], position=None,
                             effort=None) -> bytes:
     """
@@ -374,10 +464,27 @@ def encode_joint_trajectory(t_ns: Sequence[int], names: Sequence[str], position=
     eff = np.empty((n, 0)) if effort is None else \
         np.asarray(effort, dtype=np.float64).reshape(n, -1)
     t0 = int(stamps[0]) if n else 0
+    sec, nsec = np.divmod(stamps - t0, 1_000_000_000)
+    key = (tuple(names), n, pos.shape[1], eff.shape[1])
+    template = _ENCODED.get(key)
+    if template is not None:      # a stream's usual batch: its bytes but the values and stamps
+        out = bytearray(template[0])
+        _STAMP.pack_into(out, 4, *divmod(t0, 1_000_000_000))
+        k = 0
+        for start, dtype, count in template[1:]:   # point 0 alone (other phase), then the run
+            points = np.frombuffer(out, dtype, count, start)
+            if pos.shape[1]:
+                points['pos'] = pos[k:k + count]
+            if eff.shape[1]:
+                points['eff'] = eff[k:k + count]
+            points['sec'] = sec[k:k + count]
+            points['nsec'] = nsec[k:k + count]
+            k += count
+        return bytes(out)
     out = _header_names(t0, names)
     out += b'\x00' * (-(len(out) - 4) % 4)
     out += _U32.pack(n)
-    sec, nsec = np.divmod(stamps - t0, 1_000_000_000)
+    first = len(out)       # where point 0 starts
     for k in range(n):
         layout = _point_layout((len(out) - 4) % 8, pos.shape[1], eff.shape[1])
         if layout is not None:     # every remaining point has this layout: strided arrays
@@ -394,6 +501,15 @@ def encode_joint_trajectory(t_ns: Sequence[int], names: Sequence[str], position=
                 view('eff', '<f8', eff.shape[1])[:] = eff[k:]
             view('sec', '<i4')[:] = sec[k:]
             view('nsec', '<u4')[:] = nsec[k:]
+            if k <= 1:     # the batch is one strided run (after point 0): keep its bytes
+                if len(_ENCODED) > 64:
+                    _ENCODED.clear()
+                parts = [(start, _point_dtype('<', layout, pos.shape[1], eff.shape[1]), rest)]
+                if k:
+                    own = _point_layout((first - 4) % 8, pos.shape[1], eff.shape[1], False)
+                    parts.insert(0, (first, _point_dtype('<', own, pos.shape[1], eff.shape[1]),
+                                     1))
+                _ENCODED[key] = (bytes(out), *parts)
             break
         _put_doubles(out, pos[k].tolist())
         out += b'\x00' * 8                            # velocities, accelerations: empty

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from std_srvs.srv import Trigger
 
 from piezo_narx_ros.command.stamps import RATE_TOLERANCE
@@ -19,8 +20,8 @@ from piezo_narx_ros.control.controller import MODES, PositionController, input_l
 from piezo_narx_ros.control.health import ControllerHealth
 from piezo_narx_ros.control.inverse import TARGETS
 from piezo_narx_ros.nodes.batching import BATCH_PARAM, batch_topic, batch_values, sample_type
-from piezo_narx_ros.nodes.codec import (decode_joint_state, encode_joint_state,
-                                        encode_joint_trajectory)
+from piezo_narx_ros.nodes.codec import (decode_joint_state, decode_joint_trajectory,
+                                        encode_joint_state, encode_joint_trajectory)
 from piezo_narx_ros.nodes.diagnostics import DIAG_WARN, Diagnostics
 from piezo_narx_ros.nodes.graph import EpisodeLog, same_name_problem
 from piezo_narx_ros.nodes.params import ParamSpec
@@ -102,6 +103,13 @@ class ControllerNode(PiezoNode):
         limits = ({} if p['y_min'] == p['y_max'] == 0.0
                   else {'y_min': p['y_min'], 'y_max': p['y_max']})
         self.model = load_model(p['model'])
+        # A model of several axes (issue 20): AxesController, references and commands are
+        # vectors mapped by the model's output and input names.
+        self.vector = int(getattr(self.model, 'n_in', 1)) > 1 or \
+            int(getattr(self.model, 'n_out', 1)) > 1
+        if self.vector:
+            self._init_axes(p, trained_u, limits)
+            return
         u_limits = ({'u_min': p['u_min'], 'u_max': p['u_max']} if not trained_u
                     else input_limits(self.model, p['range_margin']))
         self.ctl = PositionController(
@@ -114,7 +122,43 @@ class ControllerNode(PiezoNode):
         self.ctl.inverse.solve(0.0)   # compile/load the solver kernel before the first sample
         self.ctl.inverse.reset()      # ...and forget that solve (its remembered slope)
         self.axis = p['axis']
-        self._names = [self.axis]
+        self._names = self._ref_names = [self.axis]
+        self._wire(p)
+        self.health = ControllerHealth(self.ctl)
+        c = self.ctl
+        self.get_logger().info(
+            f'{p["mode"]} with {type(self.model).__name__} ({p["model"]}) at {c.fs:g} Hz, '
+            f'target {c.inverse.target}, advance {c.advance:.3f} samples, static gain '
+            f'{c.gain * 1e6:.4g} um/V, references [{c.y_min * 1e6:.1f}, {c.y_max * 1e6:.1f}] '
+            f'um, commands [{u_limits["u_min"]:g}, {u_limits["u_max"]:g}] V')
+        for note in c.notes:
+            self.get_logger().warning(note)
+
+    def _init_axes(self, p, trained_u: bool, limits: dict) -> None:
+        """Several axes: AxesController (modes inverse and linear; limits on every axis)."""
+        from piezo_narx_ros.control.axes import AxesController
+        from piezo_narx_ros.ident.base import channel_ranges
+        if trained_u:
+            u_rng, _ = channel_ranges(self.model)
+            pad = p['range_margin'] * (u_rng[:, 1] - u_rng[:, 0])
+            u_limits = {'u_min': u_rng[:, 0] - pad, 'u_max': u_rng[:, 1] + pad}
+        else:
+            u_limits = {'u_min': p['u_min'], 'u_max': p['u_max']}
+        self.ctl = AxesController(
+            self.model, mode=p['mode'], fs=p['fs'] or None, **u_limits,
+            slew_rate=p['slew_rate'] or math.inf, range_margin=p['range_margin'],
+            max_fill=p['max_fill'], rate_tolerance=p['rate_tolerance'], **limits)
+        self.axis = p['axis']
+        self._names = list(self.model.inputs)        # commands: the model's inputs
+        self._ref_names = list(self.model.outputs)   # references, deflections: its outputs
+        self._wire(p)
+        self.health = None
+        self.get_logger().info(
+            f"{p['mode']} of {self._ref_names} with {type(self.model).__name__} "
+            f"({p['model']}) at {self.ctl.fs:g} Hz, commands on {self._names}")
+
+    def _wire(self, p) -> None:
+        """Create the publisher, subscriptions, timers, services and diagnostics."""
         b = self.batch = p['batch']
         self.pub = self.sample_publisher(batch_topic(TOPIC_COMMAND, b), sample_type(b))
         # The callbacks get CDR bytes (see nodes.codec.decode_joint_state: 8x cheaper).
@@ -125,7 +169,6 @@ class ControllerNode(PiezoNode):
             batch_topic(TOPIC_DEFLECTION, b),
             self.on_measurement_batch if b > 1 else self.on_measurement, sample_type(b))
             if p['use_deflection'] else None)
-        self.health = ControllerHealth(self.ctl)
         self._error_log = EpisodeLog(self.get_logger())
         # A reference held back for its ambiguous stamp is decided when references stop.
         self._references_at_last_check = 0
@@ -133,14 +176,6 @@ class ControllerNode(PiezoNode):
         self.srv_reset = self.create_service(Trigger, '~/reset', self.on_reset)
         self.diagnostics = Diagnostics(self, self.status, task='position control',
                                        hardware_id=f"model {p['model']}")
-        c = self.ctl
-        self.get_logger().info(
-            f'{p["mode"]} with {type(self.model).__name__} ({p["model"]}) at {c.fs:g} Hz, '
-            f'target {c.inverse.target}, advance {c.advance:.3f} samples, static gain '
-            f'{c.gain * 1e6:.4g} um/V, references [{c.y_min * 1e6:.1f}, {c.y_max * 1e6:.1f}] '
-            f'um, commands [{u_limits["u_min"]:g}, {u_limits["u_max"]:g}] V')
-        for note in c.notes:
-            self.get_logger().warning(note)
 
     def on_wait_check(self) -> None:
         """Subscribe to the references once the commands have their listeners."""
@@ -173,6 +208,8 @@ class ControllerNode(PiezoNode):
     def _value(self, msg: bytes, what: str) -> tuple[int, float] | None:
         try:
             sample = decode_joint_state(msg)
+            if self.vector:
+                return sample.t_ns, sample.values('position', self._ref_names)
             return sample.t_ns, sample.value('position', self.axis)
         except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the node
             self.get_logger().warning(f'{what} message ignored: {exc}',
@@ -187,6 +224,8 @@ class ControllerNode(PiezoNode):
         self.publish(self.ctl.on_reference(*got))
 
     def on_measurement(self, msg: bytes) -> None:
+        if self.vector:       # the modes of several axes are sensorless
+            return
         got = self._value(msg, 'deflection')
         if got is None:
             self.ctl.stats.measurements_rejected += 1
@@ -195,6 +234,9 @@ class ControllerNode(PiezoNode):
 
     def _values(self, msg: bytes, what: str) -> list[tuple[int, float]] | None:
         try:
+            if self.vector:
+                b = decode_joint_trajectory(msg)
+                return list(zip(b.t_ns.tolist(), b.columns('position', self._ref_names)))
             return batch_values(msg, 'position', self.axis)
         except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the node
             self.get_logger().warning(f'{what} batch ignored: {exc}', throttle_duration_sec=1.0)
@@ -209,6 +251,8 @@ class ControllerNode(PiezoNode):
         self.publish([c for t, r in got for c in self.ctl.on_reference(t, r)])
 
     def on_measurement_batch(self, msg: bytes) -> None:
+        if self.vector:
+            return
         got = self._values(msg, 'deflection')
         if got is None:
             self.ctl.stats.measurements_rejected += 1
@@ -227,11 +271,13 @@ class ControllerNode(PiezoNode):
         names, pub = self._names, self.pub
         if self.batch > 1:
             if commands:
-                pub.publish(encode_joint_trajectory([t for t, _ in commands], names,
-                                                    effort=[[u] for _, u in commands]))
+                pub.publish(encode_joint_trajectory(
+                    [t for t, _ in commands], names,
+                    effort=np.array([u for _, u in commands]).reshape(len(commands), -1)))
             return
         for t, u in commands:
-            pub.publish(encode_joint_state(t, names, effort=(u,)))
+            pub.publish(encode_joint_state(t, names,
+                                           effort=u.tolist() if self.vector else (u,)))
 
     def status(self):
         """Everything since the previous tick (ControllerHealth)."""
@@ -239,7 +285,12 @@ class ControllerNode(PiezoNode):
         writers = None if waiting else self.sub_ref.get_publisher_count()
         self.ctl.rate.single_writer = writers == 1
         clash = same_name_problem(self, TOPIC_COMMAND)
-        level, msg, values = self.health.tick(writers, [clash] if clash else [])
+        if self.vector:
+            level, msg, values = self.ctl.status()
+            if clash:
+                level, msg = 2, clash
+        else:
+            level, msg, values = self.health.tick(writers, [clash] if clash else [])
         self._error_log.status(level, msg)
         if self.sub_meas is not None:
             values['measurement_publishers'] = self.sub_meas.get_publisher_count()

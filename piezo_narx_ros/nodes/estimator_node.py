@@ -11,15 +11,16 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from std_srvs.srv import Trigger
 
 from piezo_narx_ros.command.stamps import RATE_TOLERANCE
 from piezo_narx_ros.errors import ConfigError
 from piezo_narx_ros.estimator.free_run import INIT_MODES, FreeRunEstimator
 from piezo_narx_ros.estimator.health import EstimatorHealth
-from piezo_narx_ros.nodes.batching import BATCH_PARAM, batch_topic, batch_values, sample_type
-from piezo_narx_ros.nodes.codec import (decode_joint_state, encode_joint_state,
-                                        encode_joint_trajectory)
+from piezo_narx_ros.nodes.batching import BATCH_PARAM, batch_topic, sample_type
+from piezo_narx_ros.nodes.codec import (decode_joint_state, decode_joint_trajectory,
+                                        encode_joint_state, encode_joint_trajectory)
 from piezo_narx_ros.nodes.diagnostics import Diagnostics
 from piezo_narx_ros.nodes.graph import EpisodeLog, same_name_problem
 from piezo_narx_ros.nodes.params import ParamSpec
@@ -34,7 +35,8 @@ class EstimatorNode(PiezoNode):
     PARAMS = (
         ParamSpec('model', '', 'model file (.json with its .npz beside it)', read_only=True,
                   check=(lambda v: bool(v.strip()), 'must name a model file (.json)')),
-        ParamSpec('axis', 'x', 'axis read from voltage_command/deflection and published',
+        ParamSpec('axis', 'x', 'axis read from voltage_command/deflection and published (a '
+                  'model of several axes maps its own input and output names instead)',
                   read_only=True, check=(lambda v: bool(v.strip()), 'must not be empty')),
         ParamSpec('fs', 0.0, "command sample rate, Hz (0: the model file's fs; any other value "
                   'must equal it)', low=0.0, high=100000.0, read_only=True),
@@ -75,8 +77,16 @@ class EstimatorNode(PiezoNode):
             reanchor_every=p['reanchor_every'], init_timeout=p['init_timeout'],
             init_window=p['init_window'],
             rate_tolerance=p['rate_tolerance'])
-        self.est.model.stepper().step(0.0)   # compile/load the kernel before the first sample
+        # Compile/load the kernel before the first sample.
+        self.est.model.stepper().step(np.zeros(self.est.n_in) if self.est.vector else 0.0)
         self.axis = p['axis']
+        # Axis names on the topics: a model of several axes is mapped by its own names (the
+        # command's for its inputs, the deflection's for its outputs); one axis by `axis`.
+        if self.est.vector:
+            self._in_names = list(self.model.inputs)
+            self._out_names = list(self.model.outputs)
+        else:
+            self._in_names = self._out_names = [self.axis]
         b = self.batch = p['batch']
         self.pub = self.sample_publisher(batch_topic(TOPIC_ESTIMATE, b), sample_type(b))
         # The callbacks get CDR bytes (see nodes.codec.decode_joint_state: 8x cheaper).
@@ -86,7 +96,6 @@ class EstimatorNode(PiezoNode):
         self.sub_meas = self.sample_subscription(
             batch_topic(TOPIC_DEFLECTION, b),
             self.on_measurement_batch if b > 1 else self.on_measurement, sample_type(b))
-        self._names = [self.axis]
         self.health = EstimatorHealth(self.est)
         self._error_log = EpisodeLog(self.get_logger())
         # A command held back for its ambiguous stamp is decided when commands stop (the stream
@@ -132,17 +141,25 @@ class EstimatorNode(PiezoNode):
         return response
 
     def _value(self, msg: bytes, field: str) -> tuple[int, float] | None:
+        names = self._in_names if field == 'effort' else self._out_names
         try:
             sample = decode_joint_state(msg)
+            if self.est.vector:
+                return sample.t_ns, sample.values(field, names)
             return sample.t_ns, sample.value(field, self.axis)
         except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the node
             self.get_logger().warning(f'{field} message ignored: {exc}',
                                       throttle_duration_sec=1.0)
             return None
 
-    def _values(self, msg: bytes, field: str) -> list[tuple[int, float]] | None:
+    def _values(self, msg: bytes, field: str):
+        """(stamps (n,) int64 ns, `field` of the axis (n,)) of a batch; None when refused."""
         try:
-            return batch_values(msg, field, self.axis)
+            batch = decode_joint_trajectory(msg)
+            if self.est.vector:
+                names = self._in_names if field == 'effort' else self._out_names
+                return batch.t_ns, batch.columns(field, names)
+            return batch.t_ns, batch.column(field, self.axis)
         except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the node
             self.get_logger().warning(f'{field} batch ignored: {exc}', throttle_duration_sec=1.0)
             return None
@@ -156,17 +173,28 @@ class EstimatorNode(PiezoNode):
 
     def _command(self, t_ns: int, volts: float):
         if self.est.stats.commands == 0:
-            self.est.start(self.sub_meas.get_publisher_count() > 0)
-            self.est.rate.single_writer = self.sub_cmd.get_publisher_count() == 1
+            self._command_start()
         return self.est.on_command(t_ns, volts)
 
+    def _command_start(self) -> None:
+        """Before the first command, tell the estimator whether a sensor and one writer exist."""
+        self.est.start(self.sub_meas.get_publisher_count() > 0)
+        self.est.rate.single_writer = self.sub_cmd.get_publisher_count() == 1
+
     def on_command_batch(self, msg: bytes) -> None:
-        """Feed a batch sample by sample through the one-sample call; answer with one batch."""
+        """Answer a batch with one batch (FreeRunEstimator.on_commands: one-sample numbers)."""
         got = self._values(msg, 'effort')
         if got is None:
             self.est.stats.rejected_nonfinite += 1   # a refused message, as in on_command
             return
-        self.publish([e for t, u in got for e in self._command(t, u)])
+        if self.est.stats.commands == 0:
+            self._command_start()
+        self._publish_batch(*self.est.on_commands(*got))
+
+    def _publish_batch(self, t, y) -> None:
+        if t.shape[0]:
+            self.pub.publish(encode_joint_trajectory(t, self._out_names,
+                                                     position=y.reshape(t.shape[0], -1)))
 
     def on_measurement(self, msg: bytes) -> None:
         got = self._value(msg, 'position')
@@ -176,7 +204,7 @@ class EstimatorNode(PiezoNode):
     def on_measurement_batch(self, msg: bytes) -> None:
         got = self._values(msg, 'position')
         if got is not None:
-            self.publish([e for t, y in got for e in self.est.on_measurement(t, y)])
+            self._publish_batch(*self.est.on_measurements(*got))
 
     def on_idle_check(self) -> None:
         """Commands stopped while one was held back: decide on it now."""
@@ -186,14 +214,13 @@ class EstimatorNode(PiezoNode):
         self._commands_at_last_check = n
 
     def publish(self, estimates) -> None:
-        names, pub = self._names, self.pub
+        names, pub = self._out_names, self.pub
         if self.batch > 1:
-            if estimates:
-                pub.publish(encode_joint_trajectory([t for t, _ in estimates], names,
-                                                    position=[[y] for _, y in estimates]))
+            self._publish_batch(*self.est.as_arrays(estimates))
             return
+        vector = self.est.vector
         for t, y in estimates:
-            pub.publish(encode_joint_state(t, names, position=(y,)))
+            pub.publish(encode_joint_state(t, names, position=y.tolist() if vector else (y,)))
 
     def status(self):
         """Everything since the previous tick (EstimatorHealth), plus the running error."""

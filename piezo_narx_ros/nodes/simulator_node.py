@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from piezo_narx_ros.command.stamps import RATE_TOLERANCE, RESTART, RateMonitor, StampGate
 from piezo_narx_ros.counters import Since
 from piezo_narx_ros.errors import DataError
@@ -30,19 +32,21 @@ class PlantResponder:
     """
     Plants (one per axis) driven by stamped commands; ROS-free.
 
-    plants: {axis: PiezoCantilever}; fs: command rate, Hz; max_fill: longest gap (samples)
-    bridged by holding the command. Stamps go through a `command.stamps.StampGate`: an isolated
-    outlier stamp is refused (`stamp_outliers`) instead of making every later command look stale,
-    and a new stream (a loop, a new run, a jump beyond max_fill) is followed: the plant just
-    continues from its state, as a real one would (`stream_restarts`). A stream at another rate
+    plants: a plant.axes.AxisPlants (or {axis: PiezoCantilever}, independent axes); fs: command
+    rate, Hz; max_fill: longest gap (samples) bridged by holding the command. Stamps go through
+    a `command.stamps.StampGate`: an isolated outlier stamp is refused (`stamp_outliers`) instead
+    of making every later command look stale, and a new stream (a loop, a new run, a jump beyond
+    max_fill) is followed: the plant just continues from its state, as a real one would
+    (`stream_restarts`). A stream at another rate
     (`rate`, a command.stamps.RateMonitor) still drives the plants, but gets no answer
     (`rate_withheld`): deflections paired with those stamps would be wrong data.
     """
 
     def __init__(self, plants: dict, fs: float, max_fill: int = 20000,
                  rate_tolerance: float = RATE_TOLERANCE):
-        self.plants = plants
-        self.axes = list(plants)
+        from piezo_narx_ros.plant.axes import AxisPlants
+        self.plants = plants if isinstance(plants, AxisPlants) else AxisPlants(plants)
+        self.axes = list(self.plants.axes)
         self.fs = float(fs)
         self.period_ns = 1e9 / fs
         self.max_fill = max_fill
@@ -50,7 +54,7 @@ class PlantResponder:
         self.rate = RateMonitor(self.period_ns, rate_tolerance)
         self.rate_withheld = 0
         self.last_t: int | None = None
-        self.last_u = dict.fromkeys(self.axes, 0.0)
+        self.last_u = [0.0] * len(self.axes)
         self.received = 0
         self.answered = 0
         self.rejected = 0
@@ -86,6 +90,39 @@ class PlantResponder:
             raise DataError(f'command is not finite: {u}')
         return self.answer(self.gate.push(t_ns, u))
 
+    def on_commands(self, t_ns, u) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """
+        Answer a batch: stamps (n,) int64 ns, commands (n, n_axes) V in self.axes order.
+
+        Returns the answers now due as arrays (stamps (m,), y_meas (m, n_axes) m, u_applied
+        (m, n_axes) V): the same numbers, counters and plant state as n on_command() calls. A
+        batch whose stamps each follow on the grid with every command finite takes the fast
+        path (one plant run over the batch, the checks on arrays); anything else goes command by
+        command.
+        """
+        t = np.asarray(t_ns, dtype=np.int64).ravel()
+        v = np.asarray(u, dtype=np.float64).reshape(t.shape[0], -1)
+        if v.shape[1] == len(self.axes) and bool(np.isfinite(v).all()) \
+                and self.gate.pass_run(t):
+            self.received += t.shape[0]
+            off = self.rate.observe_run(t)
+            y, ua = self.plants.run(v)
+            self.last_u = v[-1].tolist()
+            self.last_t = int(t[-1])
+            withheld = int(np.count_nonzero(off))
+            self.rate_withheld += withheld
+            self.answered += t.shape[0] - withheld
+            if withheld:
+                return t[~off], y[~off], ua[~off]
+            return t, y, ua
+        answers = []
+        for ti, ui in zip(t.tolist(), v.tolist()):
+            try:
+                answers += self.on_command(ti, dict(zip(self.axes, ui)))
+            except DataError:
+                pass           # counted in rejected; the node logs it
+        return answers_as_arrays(answers, len(self.axes))
+
     def flush(self) -> list[tuple[int, list[float], list[float]]]:
         """Answers of held commands once commands have stopped (StampGate.flush)."""
         return self.answer(self.gate.flush())
@@ -104,16 +141,9 @@ class PlantResponder:
                 if missing > 0:
                     self.gaps += 1
                     self.filled += missing
-                    for a in self.axes:
-                        plant, held = self.plants[a], self.last_u[a]
-                        for _ in range(missing):
-                            plant.step(held)
-            y_out, u_out = [], []
-            for a, x in zip(self.axes, u):
-                y_meas, _, u_app = self.plants[a].step(x)
-                y_out.append(y_meas)
-                u_out.append(u_app)
-                self.last_u[a] = x
+                    self.plants.hold(self.last_u, missing)
+            y_out, u_out = self.plants.step(u)
+            self.last_u = list(u)
             self.last_t = t_ns
             if self.rate.off:
                 self.rate_withheld += 1
@@ -126,6 +156,24 @@ class PlantResponder:
         """Return the one line that says why deflections are withheld (the stream's rate)."""
         return (f'{self.rate.describe("command")}: deflections withheld, the plant is simulated '
                 f'at {self.fs:g} Hz (start simulator_node with -p fs:= the stream rate)')
+
+
+def _columns(names: list, axes: list, width: int) -> list[int] | None:
+    """Columns of `axes` in a message of joint `names` (unnamed: one axis), None if one lacks."""
+    if not names:
+        return [0] if len(axes) == 1 and width >= 1 else None
+    try:
+        return [names.index(a) for a in axes]
+    except ValueError:
+        return None
+
+
+def answers_as_arrays(answers: list, n_axes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """[(t_ns, y per axis, u per axis), ...] -> (stamps (m,), y (m, n_axes), u (m, n_axes))."""
+    if not answers:
+        return np.empty(0, dtype=np.int64), np.empty((0, n_axes)), np.empty((0, n_axes))
+    t, y, u = zip(*answers)
+    return np.array(t, dtype=np.int64), np.array(y, dtype=np.float64), np.array(u, np.float64)
 
 
 class SimulatorNode(PiezoNode):
@@ -152,14 +200,11 @@ class SimulatorNode(PiezoNode):
 
     def __init__(self, **kwargs):
         super().__init__(**kwargs)
-        from piezo_narx_ros.plant import PiezoCantilever, load_plant_params
+        from piezo_narx_ros.plant.axes import make_axis_plants
         p = self.params
-        params = load_plant_params(p['plant_params'] or None)
-        plants = {a: PiezoCantilever(params, fs=p['fs'], seed=p['seed'] + i)
-                  for i, a in enumerate(p['axes'])}
-        for plant in plants.values():
-            plant.step(0.0)   # compile/load the numba kernel now, not on the first command
-            plant.reset()
+        plants = make_axis_plants(p['axes'], p['plant_params'] or None, fs=p['fs'],
+                                  seed=p['seed'])
+        plants.warm_up()   # compile/load the numba kernels now, not on the first command
         self.responder = PlantResponder(plants, p['fs'], p['max_fill'], p['rate_tolerance'])
         self._error_log = EpisodeLog(self.get_logger())
         b = self.batch = p['batch']
@@ -168,7 +213,7 @@ class SimulatorNode(PiezoNode):
         self.sub = self.sample_subscription(
             batch_topic(TOPIC_COMMAND, b), self.on_command_batch if b > 1 else self.on_command,
             sample_type(b))
-        self._names = list(p['axes'])
+        self._names = list(self.responder.axes)
         self._seen = 0
         self.flush_timer = self.create_timer(0.2, self.on_idle_check)
         r = self.responder
@@ -179,7 +224,7 @@ class SimulatorNode(PiezoNode):
         self.diagnostics = Diagnostics(
             self, self.status, task='plant simulation',
             hardware_id=f"simulated cantilever (seed {p['seed']})")
-        self.get_logger().info(f"simulating {p['axes']} at {p['fs']:g} Hz")
+        self.get_logger().info(f"simulating {self._names} at {p['fs']:g} Hz")
 
     def on_command(self, msg: bytes) -> None:
         try:
@@ -209,9 +254,19 @@ class SimulatorNode(PiezoNode):
             self.responder.rejected += 1
             self.get_logger().warning(f'command batch refused: {exc}', throttle_duration_sec=1.0)
             return
-        names = batch.names
-        self.publish([a for t, u in zip(batch.t_ns.tolist(), batch.effort.tolist())
-                      for a in self._command(t, names, u)])
+        names, axes, r = batch.names, self.responder.axes, self.responder
+        columns = _columns(names, axes, batch.effort.shape[1])
+        if columns is None:     # an axis is missing: every command refused, as one by one
+            self.publish([a for t, u in zip(batch.t_ns.tolist(), batch.effort.tolist())
+                          for a in self._command(t, names, u)])
+            return
+        rejected = r.rejected
+        t, y, ua = r.on_commands(batch.t_ns, batch.effort[:, columns])
+        if r.rejected > rejected:
+            self.get_logger().warning(f'command batch: {r.rejected - rejected} command(s) '
+                                      'refused (not finite)', throttle_duration_sec=1.0)
+        if t.shape[0]:
+            self.pub.publish(encode_joint_trajectory(t, self._names, y, ua))
 
     def publish(self, answers) -> None:
         if self.batch > 1:

@@ -150,6 +150,28 @@ def validate(p: PlantParams) -> None:
         _finite(f'creep_time_constants[{i}]', tau, 0.0, lo_open=True)
 
 
+def read_yaml_mapping(path, what: str = 'plant config') -> dict:
+    """Read a YAML file holding a mapping; ConfigError naming the file and the problem."""
+    import yaml
+
+    path = Path(path)
+    try:
+        text = path.read_text(encoding='utf-8')
+    except OSError as exc:
+        raise ConfigError(f'cannot read {what} {path}: {exc.strerror or exc}') from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f'{what} {path} must be UTF-8 text (byte {exc.start} is '
+                          'not)') from None
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f'{what} {path} is not valid YAML: '
+                          f'{str(exc).splitlines()[0]}') from None
+    if not isinstance(doc, dict):
+        raise ConfigError(f'{what} {path} must hold a mapping')
+    return doc
+
+
 def load_plant_params(path=None) -> PlantParams:
     """
     Read plant parameters from a YAML file (config/plant.yaml by default).
@@ -158,38 +180,39 @@ def load_plant_params(path=None) -> PlantParams:
     their defaults. Unknown keys, wrong types and out-of-range values raise ConfigError naming the
     key.
     """
-    import yaml
-
     if path is None:
         # config/plant.yaml of this copy: share/piezo_narx_ros when installed, else the source tree
         from piezo_narx_ros.share import config_path
         path = config_path('plant.yaml')
-    path = Path(path)
     try:
-        text = path.read_text(encoding='utf-8')
-    except OSError as exc:
-        raise ConfigError(f'cannot read plant config {path}: {exc.strerror or exc}') from None
-    except UnicodeDecodeError as exc:
-        raise ConfigError(f'plant config {path} must be UTF-8 text (byte {exc.start} is '
-                          'not)') from None
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f'plant config {path} is not valid YAML: '
-                          f'{str(exc).splitlines()[0]}') from None
+        doc = read_yaml_mapping(path)
+    except ConfigError as exc:
+        if 'must hold a mapping' not in str(exc):
+            raise
+        doc = None
     if isinstance(doc, dict) and 'plant' in doc:
         doc = doc['plant']
     if not isinstance(doc, dict):
         raise ConfigError(f'plant config {path} must hold a mapping of parameters under "plant:"')
+    return plant_params_from(doc, f'plant config {path}')
+
+
+def plant_params_from(doc: dict, where: str, base: PlantParams | None = None) -> PlantParams:
+    """
+    Build PlantParams from a mapping of fields (SI units), the others from `base` (or defaults).
+
+    where: names the source in errors ('plant config FILE'). Unknown keys, wrong types and
+    out-of-range values raise ConfigError naming the key.
+    """
     known = {f.name for f in dataclasses.fields(PlantParams)}
     unknown = sorted(set(doc) - known)
     if unknown:
-        raise ConfigError(f'plant config {path}: unknown parameter {unknown[0]!r}')
+        raise ConfigError(f'{where}: unknown parameter {unknown[0]!r}')
     values = dict(doc)
     for key in ('creep_gains', 'creep_time_constants'):
         if key in values:
             if not isinstance(values[key], (list, tuple)):
-                raise ConfigError(f'plant config {path}: {key} must be a list, got '
+                raise ConfigError(f'{where}: {key} must be a list, got '
                                   f'{values[key]!r}')
             values[key] = tuple(values[key])
     for key, value in values.items():
@@ -198,9 +221,11 @@ def load_plant_params(path=None) -> PlantParams:
             try:
                 values[key] = float(value)
             except ValueError:
-                raise ConfigError(f'plant config {path}: {key} must be a number, got '
+                raise ConfigError(f'{where}: {key} must be a number, got '
                                   f'{value!r}') from None
     try:
+        if base is not None:
+            return dataclasses.replace(base, **values)
         return PlantParams(**values)
     except ConfigError as exc:
-        raise ConfigError(f'plant config {path}: {exc}') from None
+        raise ConfigError(f'{where}: {exc}') from None

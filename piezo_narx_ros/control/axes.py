@@ -1,0 +1,332 @@
+"""
+Position control of several axes through a model of several inputs and outputs, ROS-free.
+
+`VectorInverse` inverts the model one sample at a time: it keeps the model's free run (its
+Stepper, fed with the commands actually sent) and finds the command vector u(k) (V, within the
+voltage limits and the slew window of each axis) whose next model output equals the reference
+vector (m), by Newton steps on the model's one-step map u(k) -> y(k) with a finite-difference
+Jacobian, projected on the limits. The Jacobian's off-diagonal terms are the coupling: driving
+axis j to move axis i is compensated, not ignored. A linear model (ARX) is inverted exactly in
+one step.
+
+`AxesController` is the controller of several axes: references in, commands out, with the same
+stamp handling as PositionController (StampGate, RateMonitor, gaps held), per-axis reference
+ranges and limits, and two modes: 'inverse' (sensorless) and 'linear', the per-axis baseline
+(each axis's own static line u_i = (r_i - offset_i) / gain_i, coupling ignored: what a user does
+axis by axis without a model of the stage).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from piezo_narx_ros.command.stamps import (RATE_TOLERANCE, SAMPLE, RateMonitor, StampGate,
+                                           model_rate)
+from piezo_narx_ros.control.controller import bridge_gap
+from piezo_narx_ros.errors import ConfigError, DataError
+
+AXES_MODES = ('inverse', 'linear')
+
+
+def _per_axis(value, n: int, name: str) -> np.ndarray:
+    """Return a float or n floats as (n,) float64; ConfigError otherwise."""
+    a = np.broadcast_to(np.asarray(value, dtype=np.float64), (n,)).copy() \
+        if np.ndim(value) == 0 or np.size(value) == n else None
+    if a is None or not np.isfinite(a).all():
+        raise ConfigError(f'{name} must be a number or {n} finite numbers, got {value!r}')
+    return a
+
+
+def static_gains(model, fs: float | None = None, freq: float = 0.5, periods: int = 2):
+    """
+    Fit each output's line on each input alone: (gain (n_out, n_in) m/V, offset (n_out,) m).
+
+    Input j swept by a slow full-range sine (`freq` Hz over its trained range), the others held
+    at the middle of theirs; the last period's least-squares line per output. The diagonal is
+    the per-axis baseline's scale; the off-diagonal terms are the static coupling.
+    """
+    from piezo_narx_ros.ident.base import channel_ranges
+    fs = fs or model.fs
+    u_rng, _ = channel_ranges(model)
+    if u_rng is None:
+        raise ConfigError('the model has no trained input range')
+    mid, amp = u_rng.mean(axis=1), 0.5 * (u_rng[:, 1] - u_rng[:, 0])
+    n = int(round(fs / freq))
+    s = np.sin(2 * np.pi * freq * np.arange(periods * n) / fs)
+    gains = np.empty((model.n_out, model.n_in))
+    offsets = np.zeros(model.n_out)
+    for j in range(model.n_in):
+        u = np.tile(mid, (s.size, 1))
+        u[:, j] += amp[j] * s
+        y = np.asarray(model.simulate(u)).reshape(s.size, model.n_out)[-n:]
+        for i in range(model.n_out):
+            gains[i, j], off = np.polyfit(u[-n:, j], y[:, i], 1)
+            if i == j:     # output i's own line (the other inputs at the middle of theirs)
+                offsets[i] = off
+    if not np.isfinite(gains).all():
+        raise ConfigError('the model has no usable static gains')
+    return gains, offsets
+
+
+@dataclass(slots=True)
+class VectorSolution:
+    """One sample's answer: u (n_in,) V, achieved (n_out,) m, miss achieved - target, limit."""
+
+    u: np.ndarray
+    achieved: np.ndarray
+    miss: np.ndarray
+    limit: str          # 'reached', 'voltage', 'slew' or 'not_invertible'
+
+
+class VectorInverse:
+    """
+    Sample-by-sample inverse of a model of n_in inputs and n_out outputs (module docstring).
+
+    u_min, u_max: V, one for every axis or one per input; slew_rate: V/s (inf: none); tol: the
+    Newton iterations stop when every output is within tol m; reach_tol: a larger miss is
+    reported as unreachable; max_iter: Newton steps per sample; du: finite-difference step, V.
+    """
+
+    def __init__(self, model, u_min=-200.0, u_max=200.0, slew_rate: float = math.inf,
+                 fs: float | None = None, tol: float = 1e-12, reach_tol: float = 1e-9,
+                 max_iter: int = 8, du: float = 1e-3):
+        self.model = model
+        self.fs = model_rate(model, fs)
+        self.n_in, self.n_out = int(model.n_in), int(model.n_out)
+        self.u_min = _per_axis(u_min, self.n_in, 'u_min')
+        self.u_max = _per_axis(u_max, self.n_in, 'u_max')
+        if not (self.u_min < self.u_max).all():
+            raise ConfigError('u_min must be below u_max on every axis')
+        if not slew_rate > 0:
+            raise ConfigError(f'slew_rate must be > 0 V/s, got {slew_rate!r}')
+        self.slew_rate = float(slew_rate)
+        self.tol, self.reach_tol = float(tol), float(reach_tol)
+        self.max_iter, self.du = int(max_iter), float(du)
+        self.reset()
+
+    def reset(self) -> None:
+        """Restart at rest: the model's free run from rest, every input at 0 V."""
+        self._stepper = self.model.stepper()
+        self.u_prev = np.clip(np.zeros(self.n_in), self.u_min, self.u_max)
+
+    def _peek(self, u: np.ndarray) -> np.ndarray:
+        return np.array(self._stepper.peek(u), dtype=np.float64).reshape(self.n_out)
+
+    def window(self, dt: float | None) -> tuple[np.ndarray, np.ndarray]:
+        """Reachable inputs (lo, hi) per axis, V: the limits and the slew over dt s."""
+        if dt is None or math.isinf(self.slew_rate):
+            return self.u_min, self.u_max
+        step = self.slew_rate * max(dt, 0.0)
+        return (np.maximum(self.u_min, self.u_prev - step),
+                np.minimum(self.u_max, self.u_prev + step))
+
+    def solve(self, target, dt: float | None = None) -> VectorSolution:
+        """Find u within the window whose next model output is `target` (n_out,) m."""
+        r = np.asarray(target, dtype=np.float64).reshape(self.n_out)
+        lo, hi = self.window(dt)
+        u = np.clip(self.u_prev, lo, hi)
+        y = self._peek(u)
+        clipped = False
+        jac = None
+        for _ in range(self.max_iter):
+            if np.max(np.abs(y - r)) <= self.tol:
+                break
+            if jac is None:   # once per sample (chord method): exact for a linear model
+                jac = np.column_stack([(self._peek(u + e) - y) / self.du
+                                       for e in np.eye(self.n_in) * self.du])
+                square = jac.shape[0] == jac.shape[1]
+            try:
+                step = np.linalg.solve(jac, r - y) if square else \
+                    np.linalg.lstsq(jac, r - y, rcond=None)[0]
+            except np.linalg.LinAlgError:       # singular: no input moves some output
+                step = np.linalg.lstsq(jac, r - y, rcond=None)[0]
+            u_new = np.clip(u + step, lo, hi)
+            clipped = bool((u_new != u + step).any())
+            if np.array_equal(u_new, u):
+                break
+            u = u_new
+            y = self._peek(u)
+        miss = y - r
+        limit = 'reached'
+        if np.max(np.abs(miss)) > self.reach_tol:
+            at_volts = (u <= self.u_min) | (u >= self.u_max)
+            limit = ('voltage' if at_volts.any() else 'slew') if clipped else 'not_invertible'
+        return VectorSolution(u, y, miss, limit)
+
+    def clamp(self, u, dt: float | None = None) -> np.ndarray:
+        """Return u (n_in,) V limited to the window of this sample."""
+        lo, hi = self.window(dt)
+        return np.clip(np.asarray(u, dtype=np.float64), lo, hi)
+
+    def commit(self, u) -> np.ndarray:
+        """Send u (n_in,) V: the model's free run advances with it; returns the model output."""
+        u = np.asarray(u, dtype=np.float64).reshape(self.n_in)
+        self.u_prev = u.copy()
+        return np.array(self._stepper.step(u), dtype=np.float64).reshape(self.n_out)
+
+
+@dataclass
+class AxesStats:
+    """Counters of an AxesController (samples)."""
+
+    references: int = 0
+    commands: int = 0
+    rejected_nonfinite: int = 0     # references with a NaN/inf axis: the previous one held
+    out_of_range: int = 0           # references clamped to [y_min, y_max] on some axis
+    unreachable: int = 0
+    voltage_limited: int = 0
+    slew_limited: int = 0
+    not_invertible: int = 0
+    gaps: int = 0
+    filled: int = 0
+    stamp_outliers: int = 0
+    stream_restarts: int = 0
+    rate_refused: int = 0
+
+
+class AxesController:
+    """
+    References of several axes in, command vectors out (module docstring).
+
+    mode: 'inverse' or 'linear'; u_min/u_max: V (one, or one per input); slew_rate: V/s;
+    y_min/y_max: accepted references per output, m (None: the model's trained output ranges
+    widened by range_margin of their span); max_fill, confirm: see StampGate.
+    """
+
+    def __init__(self, model, mode: str = 'inverse', fs: float | None = None, u_min=-200.0,
+                 u_max=200.0, slew_rate: float = math.inf, y_min=None, y_max=None,
+                 range_margin: float = 0.05, max_fill: int = 2000, confirm: int = 3,
+                 rate_tolerance: float = RATE_TOLERANCE):
+        if mode not in AXES_MODES:
+            raise ConfigError(f'mode must be one of {list(AXES_MODES)} for several axes, got '
+                              f'{mode!r}')
+        self.mode = mode
+        self.inverse = VectorInverse(model, u_min, u_max, slew_rate, fs)
+        self.model = model
+        self.fs = self.inverse.fs
+        self.n_out = self.inverse.n_out
+        self.period_ns = 1e9 / self.fs
+        if mode == 'linear':
+            if model.n_in != model.n_out:
+                raise ConfigError('mode linear pairs input i with output i: needs as many '
+                                  'inputs as outputs')
+            gains, self.offset = static_gains(model, self.fs)
+            self.gain = np.diag(gains).copy()
+        from piezo_narx_ros.ident.base import channel_ranges
+        _, y_rng = channel_ranges(model)
+        if (y_min is None or y_max is None) and y_rng is None:
+            raise ConfigError('the model has no trained output range: give y_min and y_max')
+        pad = range_margin * (y_rng[:, 1] - y_rng[:, 0]) if y_rng is not None else 0.0
+        self.y_min = _per_axis(y_rng[:, 0] - pad if y_min is None else y_min, self.n_out,
+                               'y_min')
+        self.y_max = _per_axis(y_rng[:, 1] + pad if y_max is None else y_max, self.n_out,
+                               'y_max')
+        self.stats = AxesStats()
+        self.gate = StampGate(self.period_ns, int(max_fill), int(confirm))
+        self.rate = RateMonitor(self.period_ns, rate_tolerance)
+        self._last_t: int | None = None
+        self._last_ref: np.ndarray | None = None
+        self._last_values: dict = {}
+
+    @property
+    def holding(self) -> int:
+        """Count the references held back while their stamps are ambiguous."""
+        return self.gate.holding
+
+    def request_reset(self) -> None:
+        """Restart from rest (the actuator is at 0 V now) and forget the stream."""
+        self.inverse.reset()
+        self.gate.reset()
+        self._last_t = None
+
+    def status(self) -> tuple[int, str, dict]:
+        """
+        (level 0 OK / 1 WARN / 2 ERROR, message, counters) for /diagnostics.
+
+        WARN when a target was unreachable, a reference refused or clamped, or a stamp refused
+        since the previous call; ERROR while the reference stream is at another rate.
+        """
+        values = dict(vars(self.stats))
+        values['u_last'] = [round(float(v), 6) for v in self.inverse.u_prev]
+        grew = {k: v - self._last_values.get(k, 0) for k, v in vars(self.stats).items()}
+        self._last_values = dict(vars(self.stats))
+        if self.rate.off:
+            return 2, self.rate.describe('reference') + ': no commands sent', values
+        words = [f'{grew[k]} {what}' for k, what in (
+            ('unreachable', 'reference(s) out of reach (limits or not invertible)'),
+            ('rejected_nonfinite', 'non-finite reference(s) held'),
+            ('out_of_range', 'reference(s) clamped to [y_min, y_max]'),
+            ('stamp_outliers', 'reference stamp(s) refused')) if grew[k]]
+        if words:
+            return 1, '; '.join(words) + ' since the last report', values
+        return 0, f'ok ({self.mode}, {self.n_out} axes)', values
+
+    def on_reference(self, t_ns: int, r) -> list[tuple[int, np.ndarray]]:
+        """One reference (stamp ns, (n_out,) m) -> commands [(t_ns, u (n_in,) V), ...]."""
+        r = np.array(r, dtype=np.float64)
+        if r.shape != (self.n_out,):
+            raise DataError(f'reference must have {self.n_out} axes, got shape {r.shape}')
+        self.stats.references += 1
+        self.rate.received()
+        out: list = []
+        for kind, t, item in self.gate.push(t_ns, r):
+            if kind == SAMPLE:
+                if self.rate.observe(t):
+                    self.stats.rate_refused += 1
+                    self._last_t = t
+                    continue
+                self._accept(t, item, out)
+            else:
+                self._last_t = None
+                self.rate.reset()
+        self.stats.stamp_outliers = self.gate.outliers
+        self.stats.stream_restarts = self.gate.restarts
+        return out
+
+    def flush(self) -> list[tuple[int, np.ndarray]]:
+        """Decide on held references once they stopped (StampGate.flush)."""
+        out: list = []
+        for kind, t, item in self.gate.flush():
+            if kind == SAMPLE:
+                self._accept(t, item, out)
+        return out
+
+    def _accept(self, t_ns: int, r: np.ndarray, out: list) -> None:
+        st, inv = self.stats, self.inverse
+        if not np.isfinite(r).all():
+            st.rejected_nonfinite += 1
+            r = self._last_ref
+        elif ((r < self.y_min) | (r > self.y_max)).any():
+            st.out_of_range += 1
+            r = np.clip(r, self.y_min, self.y_max)
+        dt = bridge_gap(self, t_ns)
+        if r is None:
+            u = inv.u_prev
+        else:
+            self._last_ref = r
+            u = self._command(r, dt)
+        inv.commit(u)
+        st.commands += 1
+        out.append((t_ns, u))
+
+    def _command(self, r: np.ndarray, dt: float | None) -> np.ndarray:
+        inv = self.inverse
+        if self.mode == 'linear':
+            wanted = (r - self.offset) / self.gain
+            u = inv.clamp(wanted, dt)
+            if (u != wanted).any():
+                self._count('voltage' if ((u <= inv.u_min) | (u >= inv.u_max)).any()
+                            else 'slew')
+            return u
+        sol = inv.solve(r, dt)
+        if sol.limit != 'reached':
+            self._count(sol.limit)
+        return sol.u
+
+    def _count(self, why: str) -> None:
+        st = self.stats
+        st.unreachable += 1
+        name = {'voltage': 'voltage_limited', 'slew': 'slew_limited'}.get(why, 'not_invertible')
+        setattr(st, name, getattr(st, name) + 1)
