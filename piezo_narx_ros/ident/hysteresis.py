@@ -31,8 +31,9 @@ import numpy as np
 from ..errors import ConfigError, DataError, ModelFileError
 from . import document
 from . import hysteresis_kernels as hk
-from .base import (DynamicModel, Interval, Options, Tuple, as_record_list, check_parameters,
-                   register_family)
+from . import hysteresis_mimo as hm
+from .base import (DynamicModel, Interval, Options, Tuple, as_channel_lists, as_record_list,
+                   check_parameters, register_family)
 from .kernels import _finite_input, _history
 
 #: Reversals of the estimation input inside its range from which monotone='auto' trusts the data
@@ -52,6 +53,8 @@ START_HOLD_S = 1.0
 DEFAULT_CREEP_TAUS = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
 # Weight arrays of the model file, in the order of the parameter vector theta_.
 _FILE_PARTS = ('W1', 'b1', 'w2', 'c', 'duhem', 'drive', 'g', 'a', 'b', 'y_off')
+#: structure.layout of a several-axes model file (hysteresis_mimo).
+MIMO_LAYOUT = 'operators per input, common-denominator MIMO dynamics'
 # Structure keys that are constructor arguments.
 _FILE_STRUCTURE = ('hidden', 'n_plays', 'n_duhem', 'n_lags', 'na', 'nb', 'creep_taus')
 
@@ -102,31 +105,33 @@ class HysteresisNARX(DynamicModel):
         'hessian_stride': Interval(int, 1, 64),
         'start': Options(('auto', 'rest', 'estimate')),
         'monotone': Options(('auto', 'yes', 'no')),
+        'mimo_order': Interval(int, 1, 60),
     }
 
     def __init__(self, hidden=10, n_plays=12, n_duhem=1, n_lags=3, na=3, nb=3,
                  creep_taus=DEFAULT_CREEP_TAUS, seed=0, max_iter=60, val_fraction=0.0,
-                 max_fail=8, hessian_stride=2, start='auto', monotone='auto'):
+                 max_fail=8, hessian_stride=2, start='auto', monotone='auto', mimo_order=28):
         values = check_parameters(type(self), {
             'hidden': hidden, 'n_plays': n_plays, 'n_duhem': n_duhem, 'n_lags': n_lags,
             'na': na, 'nb': nb, 'creep_taus': creep_taus, 'seed': seed, 'max_iter': max_iter,
             'val_fraction': val_fraction, 'max_fail': max_fail, 'hessian_stride': hessian_stride,
-            'start': start, 'monotone': monotone})
+            'start': start, 'monotone': monotone, 'mimo_order': mimo_order})
         for name, value in values.items():
             setattr(self, name, value)
         self.theta_ = None
+        self.mimo_ = None       # hysteresis_mimo.MimoParts when fitted on several axes
         self.training_info_ = {}
 
     # ------------------------------------------------------------------ structure
     @property
     def nu(self):
-        """Input history the Stepper takes: the increments' depth, samples."""
-        return self.n_lags
+        """Input history the Stepper takes: increments' depth (several axes: order), samples."""
+        return self.mimo_order if self.mimo_ is not None else self.n_lags
 
     @property
     def ny(self):
         """Output history the Stepper takes: the output dynamics' order, samples."""
-        return self.na
+        return self.mimo_order if self.mimo_ is not None else self.na
 
     @property
     def n_inputs(self):
@@ -136,15 +141,19 @@ class HysteresisNARX(DynamicModel):
     @property
     def n_params(self):
         """Return the number of estimated parameters."""
+        if self.mimo_ is not None:
+            return int(self.mimo_.a.size + self.mimo_.B1.size + self.mimo_.B.size)
         return hk.layout(self.hidden, self.n_inputs, self.n_duhem, len(self.creep_taus),
                          self.na, self.nb)[1]
 
     def _is_fitted(self):
-        return self.theta_ is not None
+        return self.theta_ is not None or self.mimo_ is not None
 
     def params_dict(self):
         """Return the constructor arguments (for model files and reports)."""
-        return {name: getattr(self, name) for name in self._parameter_constraints}
+        # mimo_order only shapes a several-axes model: one-axis files stay as they were.
+        return {name: getattr(self, name) for name in self._parameter_constraints
+                if name != 'mimo_order' or self.mimo_ is not None}
 
     # ------------------------------------------------------------------ fitting
     def fit(self, u, y, fs=None):
@@ -156,6 +165,8 @@ class HysteresisNARX(DynamicModel):
         self.
         """
         from .hysteresis_training import train
+        if _several_axes(u, y):
+            return self._fit_mimo(u, y, fs)
         us, ys = as_record_list(u, y, min_len=max(self.n0, 1) + 20)
         if fs is None:
             raise DataError('HysteresisNARX.fit needs the sample rate fs (Hz)')
@@ -209,6 +220,49 @@ class HysteresisNARX(DynamicModel):
         info.update(monotone=bool(monotone), inner_reversals=loops)
         self.training_info_ = info
         return self
+
+    def _fit_mimo(self, u, y, fs):
+        """Fit the several-axes structure (hysteresis_mimo) on (N, n_in) / (N, n_out) records."""
+        us, ys, flat = as_channel_lists(u, y, min_len=4 * self.mimo_order + 20)
+        if fs is None:
+            raise DataError('HysteresisNARX.fit needs the sample rate fs (Hz)')
+        fs = float(fs)
+        if not np.isfinite(fs) or fs <= 0:
+            raise DataError(f'sample rate fs must be a positive number of Hz, got {fs!r}')
+        self.theta_ = None
+        self.n_in_, self.n_out_ = us[0].shape[1], ys[0].shape[1]
+        self.output_2d_ = not flat
+        self._inputs = self._outputs = None
+        self.fs = fs
+        parts, info = hm.fit(us, ys, fs, self.mimo_order)
+        self.mimo_ = parts
+        self.u_scale_ = float(np.max(parts.u_scale))
+        self.y_scale_ = float(np.max(parts.y_scale))
+        self._record_ranges(np.vstack(us), np.vstack(ys), fs)
+        self.training_info_ = info
+        return self
+
+    def _mimo_signal(self, x, name, width, n=None, min_len=1):
+        """Return a user array as (N, width) (several axes)."""
+        from .checks import as_channels
+        return as_channels(x, name, n=n, width=width, min_len=min_len)
+
+    # state.estimate_state reads windows of a several-axes model through _signal.
+    _signal = _mimo_signal
+
+    def _mimo_out(self, y):
+        return self._as_output(y)
+
+    def _mimo_initial_state(self, u_past=None, y_past=None):
+        """State after rest then u_past (nu, n_in) V; y_past (ny, n_out) m sets the outputs."""
+        st = np.zeros(self.mimo_.state_size)
+        if u_past is not None:
+            self.mimo_.simulate(self._mimo_signal(u_past, 'u_past', self.n_in, n=self.nu), st)
+        if y_past is not None:
+            yp = self._mimo_signal(y_past, 'y_past', self.n_out, n=self.ny)
+            lo, hi = self.mimo_.layout['y_hist']
+            st[lo:hi] = (yp[::-1] / self.mimo_.y_scale).ravel()
+        return st
 
     def _signed(self, theta, sign):
         """Return theta with its output negated when sign < 0 (output layer, offset; a copy)."""
@@ -281,6 +335,10 @@ class HysteresisNARX(DynamicModel):
             float(part['y_off'][0]))
         return self
 
+    def output_poles_mimo(self):
+        """Roots of the several-axes model's common denominator A(q); inside the unit circle."""
+        return self.mimo_.poles()
+
     @property
     def drive_slew_rate(self):
         """Learned slew-rate limit of the drive, V/s (inf when it never limits)."""
@@ -325,6 +383,8 @@ class HysteresisNARX(DynamicModel):
         """
         from .regressors import as_signal
         self._require_fitted()
+        if self.mimo_ is not None:
+            return self._mimo_simulate(u, y0, state)
         if state is not None:
             if y0 is not None:
                 raise DataError('give y0 or state, not both')
@@ -350,6 +410,10 @@ class HysteresisNARX(DynamicModel):
         """
         from .regressors import as_signal
         self._require_fitted()
+        if self.mimo_ is not None:
+            u = self._mimo_signal(u, 'u', self.n_in, min_len=self.n0 + 1)
+            y = self._mimo_signal(y, 'y', self.n_out, n=len(u))
+            return self._mimo_out(self.mimo_.predict(u, y))
         u = as_signal(u, 'u', min_len=self.n0 + 1)
         y = as_signal(y, 'y', n=u.size)
         *chain, a, b, y_off = self._kernel_args
@@ -374,6 +438,15 @@ class HysteresisNARX(DynamicModel):
         (estimate_state), whose offset the Stepper adds to every output.
         """
         self._require_fitted()
+        if self.mimo_ is not None:
+            stepper = hm.MimoStepper(self)
+            if state is not None:
+                if u_past is not None or y_past is not None:
+                    raise DataError('give u_past/y_past or state, not both')
+                stepper.set_state(self._check_state(state), self._check_offset(state))
+            else:
+                stepper.reset(u_past, y_past)
+            return stepper
         stepper = HysteresisStepper(self, u_past, y_past)
         if state is not None:
             if u_past is not None or y_past is not None:
@@ -382,13 +455,59 @@ class HysteresisNARX(DynamicModel):
         return stepper
 
     # ------------------------------------------------------------ state from measurement
+    def estimate_state(self, u, y, prior=None):
+        """
+        Return the ModelState at u[0] that best explains a window u, y (see DynamicModel).
+
+        Several axes: the input held at u[0] (or prior's state), then the stage-1 and output
+        histories and the offsets by their posterior mean given the window and the histories'
+        distribution over the estimation records (hysteresis_mimo.estimate_state).
+        """
+        if self.mimo_ is None:
+            return super().estimate_state(u, y, prior)
+        from .state import MIN_WINDOW, ModelState
+        self._require_fitted()
+        u = self._mimo_signal(u, 'u (state window)', self.n_in, min_len=MIN_WINDOW)
+        y = self._mimo_signal(y, 'y (state window)', self.n_out, n=len(u))
+        start = (self._mimo_held_state(u) if prior is None else
+                 ModelState(self._check_state(prior), self._check_offset(prior),
+                            {'history': 'given'}))
+        values, offset, info = hm.estimate_state(self, self.mimo_, u, y, start.values)
+        if not np.all(np.isfinite(values)):
+            raise DataError('no initial state reproduces the window: the model diverges on it')
+        return ModelState(values, np.asarray(offset, dtype=np.float64),
+                          {**start.info, **info, 'window_samples': int(len(u))})
+
     @property
     def state_size(self):
-        """Length of the state vector (layout in hysteresis_kernels)."""
-        return self._state_size()
+        """Length of the state vector (layout in hysteresis_kernels or hysteresis_mimo)."""
+        return self.mimo_.state_size if self.mimo_ is not None else self._state_size()
+
+    def _mimo_simulate(self, u, y0, state):
+        """simulate() of a several-axes model: (N, n_out) m (see simulate)."""
+        if state is not None:
+            if y0 is not None:
+                raise DataError('give y0 or state, not both')
+            values = self._check_state(state)
+            u = self._mimo_signal(u, 'u', self.n_in)
+            return self._mimo_out(self._run_from(values, u) + self._check_offset(state))
+        if y0 is None:
+            u = self._mimo_signal(u, 'u', self.n_in)
+            return self._mimo_out(self.mimo_.simulate(u, np.zeros(self.mimo_.state_size)))
+        n0 = self.n0
+        u = self._mimo_signal(u, 'u', self.n_in, min_len=n0)
+        y0 = self._mimo_signal(y0, 'y0', self.n_out, n=n0, min_len=0)
+        st = self._mimo_initial_state(u[:n0], y0)
+        out = np.empty((len(u), self.n_out))
+        out[:n0] = y0
+        out[n0:] = self.mimo_.simulate(u[n0:], st)
+        return self._mimo_out(out)
 
     def _run_from(self, values, u):
         """Free run (m, without offset) of u (N,) V from the state vector values (normalised)."""
+        if self.mimo_ is not None:
+            return self.mimo_.simulate(self._mimo_signal(u, 'u', self.n_in),
+                                       np.array(values, dtype=np.float64))
         st = np.array(values, dtype=np.float64)
         return hk.simulate(np.asarray(u, dtype=np.float64) / self.u_scale_, st,
                            *self._kernel_args) * self.y_scale_
@@ -416,6 +535,8 @@ class HysteresisNARX(DynamicModel):
         points to u[0] (V) slower than the learned drive limit, so the operators see its path.
         """
         from .state import ModelState, ramp, turning_point_histories
+        if self.mimo_ is not None:
+            return [self._mimo_held_state(u)]
         lo, hi = self.input_range if self.input_range is not None \
             else (-self.u_scale_, self.u_scale_)
         u0 = float(u[0])
@@ -440,6 +561,10 @@ class HysteresisNARX(DynamicModel):
         (as the estimate's from rest), so the spread bounds what the memory can change.
         """
         from .state import ModelState, ramp
+        if self.mimo_ is not None:
+            u0 = np.asarray(u0, dtype=np.float64).reshape(1, self.n_in)
+            return [ModelState(np.zeros(self.state_size), np.zeros(self.n_out),
+                               {'history': 'rest'}), self._mimo_held_state(u0)]
         lo, hi = self.input_range if self.input_range is not None \
             else (-self.u_scale_, self.u_scale_)
         step = self.u_scale_ * min(0.02, 0.5 * self._kernel_args[3])
@@ -452,6 +577,14 @@ class HysteresisNARX(DynamicModel):
             out.append(ModelState(st, 0.0, {'from_v': extreme}))
         return out
 
+    def _mimo_held_state(self, u):
+        """Return the ModelState of the input held at u[0] (V), amplitude from the window."""
+        from .state import ModelState
+        u = self._mimo_signal(u, 'u (state window)', self.n_in)
+        return ModelState(hm.held_state(self.mimo_, u), np.zeros(self.n_out),
+                          {'history': 'input held at (' + ', '.join(f'{v:.6g}' for v in u[0])
+                           + ') V'})
+
     def _run_from_inplace(self, st, u):
         hk.simulate(np.asarray(u, dtype=np.float64) / self.u_scale_, st, *self._kernel_args)
 
@@ -462,6 +595,12 @@ class HysteresisNARX(DynamicModel):
         A creep state whose time constant exceeds a third of the window looks like an offset
         there: it keeps its settled value (normalised units, scale 1).
         """
+        if self.mimo_ is not None:
+            # The stage-1 and output histories enter linearly: after `order` samples they span
+            # every free response the unknown past input leaves.
+            lay = self.mimo_.layout
+            idx = np.r_[np.arange(*lay['yt_hist']), np.arange(*lay['y_hist'])]
+            return idx.astype(int), np.ones(idx.size)
         i_x = max(self.n_lags, 1) + self.n_plays + self.n_duhem
         seen = np.flatnonzero(np.asarray(self.creep_taus) * self.fs <= n_window / 3.0)
         idx = np.r_[i_x + seen, np.arange(i_x + len(self.creep_taus), self._state_size())]
@@ -470,6 +609,8 @@ class HysteresisNARX(DynamicModel):
     # ------------------------------------------------------------------ model file and export
     def file_document(self):
         """Return the envelope family's blocks of the model file (structure, scales, training)."""
+        if self.mimo_ is not None:
+            return self._mimo_document()
         return {'structure': {'kind': self.kind, 'hidden': self.hidden, 'n_plays': self.n_plays,
                               'n_duhem': self.n_duhem, 'n_lags': self.n_lags, 'na': self.na,
                               'nb': self.nb, 'creep_taus': list(self.creep_taus),
@@ -491,6 +632,8 @@ class HysteresisNARX(DynamicModel):
 
     def file_weights(self):
         """Return theta_ split into its named parts (shapes as in the layout) and radii_."""
+        if self.mimo_ is not None:
+            return self.mimo_.arrays()
         lay, shapes = self._file_shapes()
         out = {k: self.theta_[lo:hi].reshape(shapes[k]) for k, (lo, hi) in lay.items()}
         out['radii'] = self.radii_
@@ -500,6 +643,8 @@ class HysteresisNARX(DynamicModel):
     def from_file_document(cls, doc, arrays, name, wpath, fs):
         """Return the HysteresisNARX of a model file (see DynamicModel.from_file_document)."""
         struct = document.get(doc, 'structure', name, (dict,))
+        if struct.get('layout') == MIMO_LAYOUT:
+            return cls._mimo_from_document(doc, arrays, name, wpath, fs)
         missing = [k for k in _FILE_STRUCTURE if k not in struct]
         if missing:
             raise ModelFileError(f'{name}: missing key {"structure." + missing[0]!r}')
@@ -533,8 +678,73 @@ class HysteresisNARX(DynamicModel):
         model.training_info_ = training.get('info') or {}
         return model
 
+    def _mimo_document(self):
+        p = self.mimo_
+        return {'structure': {'kind': self.kind, 'layout': MIMO_LAYOUT,
+                              'mimo_order': self.mimo_order, 'n_features': int(p.B.shape[1]),
+                              'u_radii': list(hm.U_RADII), 'y_radii': list(hm.Y_RADII),
+                              'env_tau_s': hm.ENV_TAU_S, 'nu': self.nu, 'ny': self.ny,
+                              'n_params': self.n_params},
+                'normalisation': {'u_scale': [float(v) for v in p.u_scale],
+                                  'y_scale': [float(v) for v in p.y_scale]},
+                'training': {'seed': self.seed, 'options': self.params_dict(),
+                             'info': self.training_info_,
+                             'method': 'frequency-domain denominator, output-error least '
+                                       'squares numerators'}}
+
+    @classmethod
+    def _mimo_from_document(cls, doc, arrays, name, wpath, fs):
+        """Return the several-axes HysteresisNARX of a model file (layout MIMO_LAYOUT)."""
+        struct = doc['structure']
+        order = struct.get('mimo_order')
+        try:
+            values = check_parameters(cls, {'mimo_order': order})
+        except ConfigError as exc:
+            raise ModelFileError(f'{name}: structure.{exc}') from None
+        if (list(struct.get('u_radii', ())) != list(hm.U_RADII)
+                or list(struct.get('y_radii', ())) != list(hm.Y_RADII)
+                or struct.get('env_tau_s') != hm.ENV_TAU_S):
+            raise ModelFileError(f'{name}: the several-axes operators (u_radii, y_radii, '
+                                 "env_tau_s) differ from this reader's")
+        if fs is None or not math.isfinite(fs) or fs <= 0:
+            raise ModelFileError(f'{name}: a hysteresis_narx model needs a finite fs, got {fs!r}')
+        n = values['mimo_order']
+        shapes = {'mimo_a': (n,), 'mimo_u_scale': None, 'mimo_y_scale': None,
+                  'mimo_env_w': None, 'mimo_B1': None, 'mimo_B': None, 'mimo_state_mean': None,
+                  'mimo_state_cov': None, 'mimo_resid_rms': None}
+        got = {}
+        for key, shape in shapes.items():
+            if key not in arrays:
+                raise ModelFileError(f'{wpath}: missing weight array {key!r}')
+            got[key] = np.asarray(arrays[key], dtype=np.float64)
+            if shape is not None and got[key].shape != shape:
+                raise ModelFileError(f'{wpath}: {key} must have shape {shape}, got '
+                                     f'{got[key].shape}')
+            if not np.all(np.isfinite(got[key])):
+                raise ModelFileError(f'{wpath}: {key} holds non-finite values')
+        try:
+            parts = hm.MimoParts.from_arrays(got, math.exp(-1.0 / (hm.ENV_TAU_S * fs)))
+        except (DataError, IndexError, ValueError) as exc:
+            raise ModelFileError(f'{wpath}: {exc}') from None
+        if np.any(np.abs(parts.poles()) >= 1.0):
+            raise ModelFileError(f'{wpath}: the output dynamics are unstable (a root of A(q) '
+                                 f'has modulus {np.max(np.abs(parts.poles())):.4f} >= 1)')
+        training = document.training_block(doc)
+        model = cls(mimo_order=n)
+        model.mimo_ = parts
+        model.n_in_, model.n_out_ = parts.n_in, parts.n_out
+        model.output_2d_ = True
+        model.fs = float(fs)
+        model.u_scale_ = float(np.max(parts.u_scale))
+        model.y_scale_ = float(np.max(parts.y_scale))
+        model.training_info_ = training.get('info') or {}
+        return model
+
     def c_emitter(self):
         """Return the C emitter of this model (piezo_narx_ros.ident.hysteresis_export)."""
+        if self.mimo_ is not None:
+            from .hysteresis_mimo_export import MimoEmitter
+            return MimoEmitter(self)
         from .hysteresis_export import HysteresisEmitter
         return HysteresisEmitter(self)
 
@@ -632,3 +842,10 @@ class HysteresisStepper:
     def y_past(self):
         """Copy of the last ny outputs [y(k-ny) ... y(k-1)], m."""
         return np.array(self._y_hist, dtype=np.float64)
+
+
+def _several_axes(u, y) -> bool:
+    """Tell whether u, y (one record or lists) have more than one input or output channel."""
+    us = u if isinstance(u, (list, tuple)) else [u]
+    ys = y if isinstance(y, (list, tuple)) else [y]
+    return any(np.ndim(x) == 2 and np.shape(x)[1] > 1 for x in list(us) + list(ys))
