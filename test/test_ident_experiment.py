@@ -377,3 +377,21 @@ def test_hnarx_grid_fits_every_structure_with_every_seed():
         ExperimentConfig(family='hysteresis_narx', hnarx_grid=({'seed': 1},)).validate()
     with pytest.raises(ConfigError, match='hnarx_grid'):
         ExperimentConfig(family='hysteresis_narx', hnarx_grid=(6,)).validate()
+
+
+def test_several_axes_fit_the_envelope_family_once_not_once_per_seed_and_structure():
+    """The several-axes envelope fit uses neither seed nor drive increments: one candidate."""
+    from dataclasses import replace
+
+    from piezo_narx_ros.ident.experiment import PRESETS, distinct_specs
+    cfg = replace(ExperimentConfig(), **PRESETS['envelope'])
+    specs = cfg.specs()
+    n_net = sum(s.kind == 'hysteresis_narx' for s in specs)
+    assert n_net == 6
+    one = Record(u=np.zeros((50, 1)), y=np.zeros((50, 1)), fs=1e3, source='a')
+    three = Record(u=np.zeros((50, 3)), y=np.zeros((50, 3)), fs=1e3, source='b',
+                   inputs=('u1', 'u2', 'u3'), outputs=('y1', 'y2', 'y3'))
+    assert distinct_specs(specs, [one]) == specs
+    kept = distinct_specs(specs, [three])
+    assert [s.kind for s in kept] == ['hysteresis_narx'] + ['arx'] * (len(specs) - n_net)
+    assert kept[0] == specs[0]

@@ -739,6 +739,20 @@ def final_fit(screened: CandidateResult, est: list[Record], val: list[Record],
     return keep_final(screened, final, config)
 
 
+def distinct_specs(specs: list, records: list) -> list:
+    """
+    Return the candidates that differ as fits on these records.
+
+    On records of several axes the envelope family fits a deterministic structure that uses
+    neither the network seed nor the drive increments (ident/hysteresis_mimo.py): its candidates
+    would be the same fit several times (six with the envelope preset), so one is kept.
+    """
+    if not any(getattr(r, 'n_in', 1) > 1 or getattr(r, 'n_out', 1) > 1 for r in records):
+        return list(specs)
+    nets = [s for s in specs if s.kind == 'hysteresis_narx']
+    return nets[:1] + [s for s in specs if s.kind != 'hysteresis_narx']
+
+
 def run_experiment(records: list[Record], config: ExperimentConfig | None = None,
                    executor: Executor | None = None,
                    validation: list[Record] | None = None) -> ExperimentResult:
@@ -793,7 +807,8 @@ def run_experiments(groups: list[list[Record]], config: ExperimentConfig | None 
                            with_state_window(validation, config))
         except PiezoNarxError as exc:
             outcome[g] = exc
-    specs = config.specs()
+    every = [r for g in groups for r in g] + list(validation or [])
+    specs = distinct_specs(config.specs(), every)
     show = config.progress
     if show is None:
         show = config.narx and len(specs) * len(data) > 20 and os.isatty(2)
