@@ -56,3 +56,12 @@ def as_channels(x, name, n=None, width=None, min_len=1):
     if not np.all(np.isfinite(a)):
         raise DataError(f'{name} contains NaN or infinite values')
     return a
+
+
+def input_vector(u_k, n_in):
+    """Return one sample of a several-input Stepper, u_k (n_in,) V, as float64 (else DataError)."""
+    u = np.asarray(u_k, dtype=np.float64)
+    if u.shape != (n_in,):
+        raise DataError(f'stepper input must be {n_in} voltages (one per input), got '
+                        f'shape {u.shape}')
+    return u

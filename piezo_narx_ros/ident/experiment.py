@@ -249,7 +249,8 @@ class ExperimentConfig:
     @property
     def max_n0(self) -> int:
         """Deepest lag of the whole grid, samples."""
-        lags = [s.nu for s in self.specs()] + [s.ny for s in self.specs()]
+        specs = self.specs()
+        lags = [s.nu for s in specs] + [s.ny for s in specs]
         lags += list(self.ny) + list(self.nu) if self.narx and self.family == 'narx' else []
         lags += list(self.arx_na) + list(self.arx_nb)
         return int(max(lags))

@@ -39,6 +39,7 @@ from numba import njit
 from scipy.signal import lfilter
 
 from ..errors import DataError
+from .checks import input_vector
 
 #: Play radii of each input, fractions of its largest |u| (normalised units).
 U_RADII = (0.02, 0.05, 0.1, 0.2, 0.4)
@@ -618,13 +619,6 @@ class MimoStepper:
         #: Added to every output (m, (n_out,)): the sensor offsets of a ModelState.
         self.offset = np.zeros(self.n_out)
 
-    def _input(self, u_k):
-        u = np.asarray(u_k, dtype=np.float64)
-        if u.shape != (self.n_in,):
-            raise DataError(f'stepper input must be {self.n_in} voltages (one per input), got '
-                            f'shape {u.shape}')
-        return u
-
     def set_state(self, values, offset):
         """Continue from a state vector (kernel layout, normalised) and offsets (m)."""
         self._st = np.array(values, dtype=np.float64)
@@ -646,7 +640,7 @@ class MimoStepper:
 
         A non-finite u_k raises DataError and leaves the state untouched.
         """
-        u = self._input(u_k)
+        u = input_vector(u_k, self.n_in)
         if not step(u, self._st, self._out, self._x, self._yt, *self._args):
             raise DataError(f'stepper input must be finite voltages, got {u_k!r}')
         self._u_hist[:-1] = self._u_hist[1:]
@@ -655,7 +649,7 @@ class MimoStepper:
 
     def peek(self, u_k):
         """Return the output step(u_k) would return (n_out,) m, without changing the state."""
-        u = self._input(u_k)
+        u = input_vector(u_k, self.n_in)
         self._scratch[:] = self._st
         if not step(u, self._scratch, self._out, self._x, self._yt, *self._args):
             raise DataError(f'stepper input must be finite voltages, got {u_k!r}')

@@ -16,6 +16,7 @@ import numpy as np
 from numba import njit
 
 from ..errors import DataError
+from .checks import input_vector
 
 
 @njit(cache=True)
@@ -443,28 +444,22 @@ class VectorStepper:
         if y_past is not None:
             self._ybuf -= self.offset
 
-    def _input(self, u_k):
-        u = np.asarray(u_k, dtype=np.float64)
-        if u.shape != (self.n_in,):
-            raise DataError(f'stepper input must be {self.n_in} voltages (one per input), got '
-                            f'shape {u.shape}')
-        return u
-
     def step(self, u_k):
         """
         Feed one input sample u_k (n_in,) V; returns the free-run output y(k) (n_out,) m.
 
         A non-finite u_k raises DataError and leaves the histories untouched.
         """
-        if not type(self)._step(self._input(u_k), self._ubuf, self._ybuf, self._out,
-                                *self._params):
+        u = input_vector(u_k, self.n_in)
+        if not type(self)._step(u, self._ubuf, self._ybuf, self._out, *self._params):
             raise DataError(f'stepper input must be finite voltages, got {u_k!r}')
         return self._out + self.offset
 
     def peek(self, u_k):
         """Return the output step(u_k) would return (n_out,) m, without changing the histories."""
-        if not type(self)._peek(self._input(u_k), self._ubuf, self._ybuf, self._scratch,
-                                self._out, *self._params):
+        u = input_vector(u_k, self.n_in)
+        if not type(self)._peek(u, self._ubuf, self._ybuf, self._scratch, self._out,
+                                *self._params):
             raise DataError(f'stepper input must be finite voltages, got {u_k!r}')
         return self._out + self.offset
 
