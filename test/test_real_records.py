@@ -81,6 +81,10 @@ def test_minor_loops_are_counted_and_noise_is_no_reversal():
     assert inner_reversals([sine]) == 0 and inner_reversals([noisy]) == 0
     fading = sine * np.linspace(1.0, 0.2, sine.size)
     assert inner_reversals([fading]) >= 6
+    # A growing amplitude turns beyond its last turn each time: one loop, growing, no minor loop
+    # (the network's memory of loops inside it is then unconstrained by the data).
+    growing = generate('growing_sine', FS, 10.0, 100.0, freq=2.0, hold=1.0)
+    assert inner_reversals([growing]) == 0
     assert inner_reversals([generate('protocol', FS, 10.0, 100.0, seed=1)]) > 100
 
 

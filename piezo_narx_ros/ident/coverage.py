@@ -26,15 +26,18 @@ INNER_MARGIN = 0.1
 
 def inner_reversals(inputs) -> int:
     """
-    Reversals of the input strictly inside its range over records: how many minor loops.
+    Reversals of the input inside its previous loop, over records: how many minor loops.
 
     inputs: the records' input arrays (V), or Records.
 
     A reversal is a turning point the input then leaves by REVERSAL_DEPTH of the records' input
-    range (so sensor or quantisation noise on a measured input is no reversal); it is inner when
-    it lies INNER_MARGIN of the range away from both the smallest and the largest input. A
-    full-range sine has none; a multisine, a fading sine or nested loops have many. Several
-    input channels ((N, n_in) arrays): the fewest of any channel.
+    range (so sensor or quantisation noise on a measured input is no reversal). It closes a minor
+    loop when it lies inside the loop before it: a top below the previous top, or a bottom above
+    the previous bottom, by REVERSAL_DEPTH, and INNER_MARGIN of the range away from both the
+    smallest and the largest input. A full-range sine has none, and so has a sine of growing
+    amplitude (each turn goes beyond the last and wipes it: it shows one loop, growing); a
+    multisine, a fading sine or nested loops have many. Several input channels ((N, n_in)
+    arrays): the fewest of any channel.
     """
     inputs = [np.asarray(getattr(x, 'u', x), dtype=np.float64) for x in inputs]
     if any(u.ndim == 2 for u in inputs):
@@ -54,13 +57,20 @@ def _inner_reversals(inputs) -> int:
     for u in inputs:
         top = bottom = u[0]
         rising = None
+        last_top = last_bottom = None     # the previous turning points (None: none yet)
         for x in u[1:]:
             top, bottom = max(top, x), min(bottom, x)
             if rising is not False and x < top - depth:       # turned down at `top`
-                count += rising is not None and lo + margin < top < hi - margin
+                if rising is not None:
+                    count += (lo + margin < top < hi - margin and last_top is not None
+                              and top < last_top - depth)
+                    last_top = top
                 rising, bottom = False, x
             elif rising is not True and x > bottom + depth:   # turned up at `bottom`
-                count += rising is not None and lo + margin < bottom < hi - margin
+                if rising is not None:
+                    count += (lo + margin < bottom < hi - margin and last_bottom is not None
+                              and bottom > last_bottom + depth)
+                    last_bottom = bottom
                 rising, top = True, x
     return int(count)
 

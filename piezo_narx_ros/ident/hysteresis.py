@@ -36,9 +36,10 @@ from .base import (DynamicModel, Interval, Options, Tuple, as_channel_lists, as_
                    check_parameters, register_family)
 from .kernels import _finite_input, _history
 
-#: Reversals of the estimation input inside its range from which monotone='auto' trusts the data
-#: to show the network its minor loops (coverage.inner_reversals): a full-range sine has none,
-#: the identification protocol about 470 in 10 s. Measured (docs/real.md): on the
+#: Minor loops of the estimation input (reversals inside the previous loop) from which
+#: monotone='auto' trusts the data to show the network its minor loops (coverage.inner_reversals):
+#: a full-range sine and a sine of growing amplitude have none, the identification protocol about
+#: 185 in 10 s. Measured (docs/real.md): on the
 #: micromanipulator's one full-range sine the free network's seeds scatter from R² 0.85 to 0.99
 #: on its test record and the monotone ones hold 0.998-0.9995; on the protocol the free network is
 #: the more accurate (simulators, 0.19 against 0.27 um worst on slow full-range moves).
@@ -79,8 +80,9 @@ class HysteresisNARX(DynamicModel):
     'yes' keeps the network increasing in every play operator (with the sign of the data's static
     gain), so the output moves with the input the way a Preisach actuator's does wherever the
     input goes, also inside loops the data never showed; 'no' leaves the network free; 'auto':
-    'yes' unless the estimation input reverses inside its range at least MINOR_LOOPS times (then
-    the data show the network its minor loops, and the free network fits them better).
+    'yes' unless the estimation input closes at least MINOR_LOOPS minor loops (reverses inside
+    its previous loop: then the data show the network its minor loops, and the free network fits
+    them better).
 
     Fitted attributes: u_scale_ (V), y_scale_ (m), radii_ (normalised), theta_ (all parameters,
     normalised units), training_info_; fs, input_range, output_range as every model.
