@@ -595,7 +595,10 @@ class HysteresisNARX(DynamicModel):
         Return the output dynamics' history and the creep states n_window samples observe.
 
         A creep state whose time constant exceeds a third of the window looks like an offset
-        there: it keeps its settled value (normalised units, scale 1).
+        there: it keeps its settled value (normalised units, scale 1). So does the output
+        dynamics' history when its slowest pole is that slow (fitted on one slow record, the
+        output dynamics can take a creep-like pole, 2-4 s): the window would trade a decaying
+        mode for the offset (measured: 13.8 um of offset on a 0.5 s multisine, docs/real.md).
         """
         if self.mimo_ is not None:
             # The stage-1 and output histories enter linearly: after `order` samples they span
@@ -605,7 +608,10 @@ class HysteresisNARX(DynamicModel):
             return idx.astype(int), np.ones(idx.size)
         i_x = max(self.n_lags, 1) + self.n_plays + self.n_duhem
         seen = np.flatnonzero(np.asarray(self.creep_taus) * self.fs <= n_window / 3.0)
-        idx = np.r_[i_x + seen, np.arange(i_x + len(self.creep_taus), self._state_size())]
+        idx = i_x + seen
+        pole = float(np.max(np.abs(self.output_poles), initial=0.0))
+        if pole <= 0.0 or (pole < 1.0 and -1.0 / math.log(pole) <= n_window / 3.0):   # samples
+            idx = np.r_[idx, np.arange(i_x + len(self.creep_taus), self._state_size())]
         return idx.astype(int), np.ones(idx.size)
 
     # ------------------------------------------------------------------ model file and export
