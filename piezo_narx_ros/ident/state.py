@@ -124,8 +124,10 @@ def offset_prior(model) -> np.ndarray:
 
 def _score(cost: float, best: float, offset, sigma: np.ndarray) -> float:
     """
-    Negative log-posterior of a candidate, up to a constant: cost relative to the best, in TIEs,
-    plus the offset's Gaussian prior (sigma m per output, inf: none).
+    Return a candidate's negative log-posterior, up to a constant.
+
+    Its window cost relative to the best, in TIEs, plus the offset's Gaussian prior (sigma m per
+    output, inf: none).
     """
     fit = (cost / best - 1.0) / TIE if best > 0 else (0.0 if cost <= 0 else math.inf)
     return fit + 0.5 * float(np.sum((np.ravel(offset) / sigma) ** 2))
