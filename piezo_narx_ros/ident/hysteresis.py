@@ -142,7 +142,7 @@ class HysteresisNARX(DynamicModel):
     def n_params(self):
         """Return the number of estimated parameters."""
         if self.mimo_ is not None:
-            return int(self.mimo_.a.size + self.mimo_.B1.size + self.mimo_.B.size)
+            return self.mimo_.n_params
         return hk.layout(self.hidden, self.n_inputs, self.n_duhem, len(self.creep_taus),
                          self.na, self.nb)[1]
 
@@ -260,8 +260,7 @@ class HysteresisNARX(DynamicModel):
             self.mimo_.simulate(self._mimo_signal(u_past, 'u_past', self.n_in, n=self.nu), st)
         if y_past is not None:
             yp = self._mimo_signal(y_past, 'y_past', self.n_out, n=self.ny)
-            lo, hi = self.mimo_.layout['y_hist']
-            st[lo:hi] = (yp[::-1] / self.mimo_.y_scale).ravel()
+            self.mimo_.set_output_history(st, yp[::-1] / self.mimo_.y_scale)
         return st
 
     def _signed(self, theta, sign):
@@ -598,8 +597,7 @@ class HysteresisNARX(DynamicModel):
         if self.mimo_ is not None:
             # The stage-1 and output histories enter linearly: after `order` samples they span
             # every free response the unknown past input leaves.
-            lay = self.mimo_.layout
-            idx = np.r_[np.arange(*lay['yt_hist']), np.arange(*lay['y_hist'])]
+            idx = hm.adjustable(self.mimo_)
             return idx.astype(int), np.ones(idx.size)
         i_x = max(self.n_lags, 1) + self.n_plays + self.n_duhem
         seen = np.flatnonzero(np.asarray(self.creep_taus) * self.fs <= n_window / 3.0)
@@ -681,7 +679,8 @@ class HysteresisNARX(DynamicModel):
     def _mimo_document(self):
         p = self.mimo_
         return {'structure': {'kind': self.kind, 'layout': MIMO_LAYOUT,
-                              'mimo_order': self.mimo_order, 'n_features': int(p.B.shape[1]),
+                              'mimo_order': self.mimo_order, 'n_features': p.n_features,
+                              'local_models': p.n_local,
                               'u_radii': list(hm.U_RADII), 'y_radii': list(hm.Y_RADII),
                               'env_tau_s': hm.ENV_TAU_S, 'nu': self.nu, 'ny': self.ny,
                               'n_params': self.n_params},
@@ -722,6 +721,9 @@ class HysteresisNARX(DynamicModel):
                                      f'{got[key].shape}')
             if not np.all(np.isfinite(got[key])):
                 raise ModelFileError(f'{wpath}: {key} holds non-finite values')
+        # Local output models (several amplitudes): optional, checked by from_arrays.
+        got.update({key: np.asarray(arrays[key], dtype=np.float64) for key in hm.LOCAL_ARRAYS
+                    if key in arrays})
         try:
             parts = hm.MimoParts.from_arrays(got, math.exp(-1.0 / (hm.ENV_TAU_S * fs)))
         except (DataError, IndexError, ValueError) as exc:
