@@ -154,6 +154,17 @@ def test_local_models_step_run_and_load_alike(model_local, tmp_path):
     assert np.array_equal(s2.y_past, y_past)
     state = estimate_state(model, u[:100], sim[:100])
     assert np.all(np.isfinite(model.simulate(u, state=state)))
+    # The output models' histories enter the run linearly: their Jacobian columns are free
+    # responses (no run of the kernel), equal to the kernel's own difference.
+    parts = model.mimo_
+    lo, hi = parts.output_histories()
+    idx = np.array([lo, lo + 1, lo + parts.order * parts.n_out + 3, hi - 1])
+    J, base = hm._jacobian(parts, u[:200], state.values, idx)
+    for c, i in enumerate(idx):
+        x = state.values.copy()
+        x[i] += 1.0
+        brute = (parts.simulate(u[:200], x) / parts.y_scale - base).ravel()
+        np.testing.assert_allclose(J[:, c], brute, rtol=0, atol=1e-9 * np.max(np.abs(brute)))
 
 
 def test_several_records_each_start_on_their_own(model_2x3):
@@ -207,10 +218,17 @@ def test_features_are_bounded_for_a_bounded_input():
     un = np.clip(rng.standard_normal((2000, 2)), -1, 1)
     yt = np.clip(rng.standard_normal((2000, 3)), -2, 2)
     st = np.zeros(2 * len(hm.U_RADII) + 3 * len(hm.Y_RADII) + 1)
-    X = hm.features(un, yt, st, np.array(hm.U_RADII), np.array(hm.Y_RADII), np.ones(2), 0.9)
-    assert X.shape == (2000, hm.n_features(2, 3)) and np.all(np.isfinite(X))
-    stops = X[:, -3 * len(hm.Y_RADII):]
+    X = hm.features(un, yt, st, np.array(hm.U_RADII), np.array(hm.Y_RADII), np.ones(2), 0.9, 2)
+    assert X.shape == (2000, hm.n_features(2, 3, 2)) and np.all(np.isfinite(X))
+    base = hm.n_features(2, 3, 0)
+    stops = X[:, base - 3 * len(hm.Y_RADII):base]
     assert np.max(np.abs(stops)) <= max(hm.Y_RADII) + 1e-12
+    # Then the products of the stage-1 outputs: yt_i yt_j (i < j), yt_i |yt_j| (i != j).
+    assert np.array_equal(X[:, base:base + 3],
+                          np.column_stack([yt[:, 0] * yt[:, 1], yt[:, 0] * yt[:, 2],
+                                           yt[:, 1] * yt[:, 2]]))
+    assert np.array_equal(X[:, base + 3], yt[:, 0] * np.abs(yt[:, 1]))
+    assert X.shape[1] == base + 9 and hm.n_features(2, 1) == base - 8 * 2
 
 
 @pytest.mark.skipif(shutil.which('gcc') is None, reason='gcc compiles the export')

@@ -125,6 +125,7 @@ class MimoEmitter(Emitter):
              '                p = yt[i] + HM_YR[r];', '            }',
              f'            st[{i_yp} + i * {nyr} + r] = p;', '            x[f++] = yt[i] - p;',
              '        }', '    }',
+             ] + self._products() + [
              f'    for (r = 0; r < {nl * no}; ++r) {{',
              f'        acc = pnr_dot_(HM_B0[r], x, {nf}) + pnr_dot_(HM_BH[r], &st[{i_x}], '
              f'{n * nf});',
@@ -160,6 +161,21 @@ class MimoEmitter(Emitter):
              f'    for (i = 0; i < {no}; ++i) {{', f'        st[{i_yt} + i] = yt[i];',
              f'        st[{i_y} + i] = y[i];', '        y[i] *= HM_Y_SCALE[i];', '    }', '}']
         return '\n'.join(L)
+
+    def _products(self) -> list:
+        """Return the C lines of the stage-1 outputs' product features (hysteresis_mimo.CROSS)."""
+        no = self.n_out
+        out = []
+        if self.p.cross >= 1:
+            out += ['    /* Products of the stage-1 outputs */',
+                    f'    for (i = 0; i < {no}; ++i) {{',
+                    f'        for (j = i + 1; j < {no}; ++j) {{',
+                    '            x[f++] = yt[i] * yt[j];', '        }', '    }']
+        if self.p.cross >= 2:
+            out += [f'    for (i = 0; i < {no}; ++i) {{', f'        for (j = 0; j < {no}; ++j) {{',
+                    '            if (j != i) {', '                x[f++] = yt[i] * fabs(yt[j]);',
+                    '            }', '        }', '    }']
+        return out
 
     def _history(self) -> str:
         no, ny, nu, ni = self.n_out, self.ny, self.nu, self.n_in
