@@ -248,10 +248,10 @@ def finite_inputs(u) -> np.ndarray:
         raise DataError('stepper inputs must be an array of voltages') from None
     if a.ndim != 1:
         raise DataError(f'stepper inputs must be 1-D (n,), got shape {a.shape}')
-    bad = np.flatnonzero(~np.isfinite(a))
-    if bad.size:
-        raise DataError(f'stepper input must be a finite voltage, got {float(a[bad[0]])!r} at '
-                        f'index {bad[0]}')
+    if not np.isfinite(a).all():
+        k = int(np.flatnonzero(~np.isfinite(a))[0])
+        raise DataError(f'stepper input must be a finite voltage, got {float(a[k])!r} at '
+                        f'index {k}')
     return a
 
 
