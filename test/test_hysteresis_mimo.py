@@ -99,6 +99,7 @@ def test_state_from_a_window_and_the_stepper_continue_alike(model_2x3):
     assert np.array_equal(np.array([stepper.step(v) for v in u[start:start + 50]]), sim[:50])
     again = model.stepper(state=stepper.state)
     assert np.array_equal(again.step(u[start + 50]), stepper.step(u[start + 50]))
+    assert np.array_equal(again.step_many(u[start + 51:start + 80]), sim[51:80])
 
 
 def test_one_step_prediction_is_the_model_equation_with_measured_lags(model_2x3):

@@ -40,6 +40,7 @@ from scipy.signal import lfilter
 
 from ..errors import DataError
 from .checks import input_vector
+from .kernels import step_rows
 
 #: Play radii of each input, fractions of its largest |u| (normalised units).
 U_RADII = (0.02, 0.05, 0.1, 0.2, 0.4)
@@ -959,6 +960,10 @@ class MimoStepper:
         if not step(u, self._st, self._out, self._work, *self._args):
             raise DataError(f'stepper input must be finite voltages, got {u_k!r}')
         return self._out + self.offset
+
+    def step_many(self, u):
+        """Feed input rows u (n, n_in) V in order; returns the outputs (n, n_out) m (step_rows)."""
+        return step_rows(self, u)
 
     def peek(self, u_k):
         """Return the output step(u_k) would return (n_out,) m, without changing the state."""
