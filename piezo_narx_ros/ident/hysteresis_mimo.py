@@ -263,10 +263,10 @@ def step(u, st, out, work, ur, yr, env_w, env_lam, a1, B1, a_out, B0, Bh, centre
             s += wl[m] * yl[m * n_out + i]
         out[i] = s
     # Shift the histories (newest first) and store this sample.
-    for k in range(n * nf - 1, nf - 1, -1):
-        st[i_x + k] = st[i_x + k - nf]
-    for f in range(nf):
-        st[i_x + f] = x[f]
+    # One row at a time, newest last: rows do not overlap, so each is a plain copy.
+    for lag in range(n - 1, 0, -1):
+        st[i_x + lag * nf:i_x + (lag + 1) * nf] = st[i_x + (lag - 1) * nf:i_x + lag * nf]
+    st[i_x:i_x + nf] = x
     for k in range(n * n_out - 1, n_out - 1, -1):
         st[i_yt + k] = st[i_yt + k - n_out]
         st[i_y + k] = st[i_y + k - n_out]
