@@ -645,6 +645,9 @@ class HysteresisNARX(DynamicModel):
         struct = document.get(doc, 'structure', name, (dict,))
         if struct.get('layout') == MIMO_LAYOUT:
             return cls._mimo_from_document(doc, arrays, name, wpath, fs)
+        from . import hysteresis_chains as hc     # a chain per axis (module imports this one)
+        if struct.get('layout') == hc.CHAINS_LAYOUT:
+            return hc.HysteresisChains.from_file_document(doc, arrays, name, wpath, fs)
         missing = [k for k in _FILE_STRUCTURE if k not in struct]
         if missing:
             raise ModelFileError(f'{name}: missing key {"structure." + missing[0]!r}')
