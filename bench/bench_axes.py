@@ -153,7 +153,8 @@ def print_free_run(rows: dict, n_seeds: int) -> bool:
     ok = bool((slow_med <= 1e-6).all() and (slow_worst <= 2e-6).all() and (rest <= 2e-6).all()
               and (ms >= 0.9999).all() and runaways == 0)
     um = (lambda a: ' / '.join(f'{v * 1e6:.3f}' for v in a))
-    print('  per axis x / y: slow moves median <= ' + um(slow_med) + um(slow_worst)
+    print('  per axis x / y: slow moves median <= ' + um(slow_med) + ' um (target 1), worst '
+          + um(slow_worst)
           + ' um (2); other moves worst ' + um(rest)
           + ' um (2); multisine R² median ' + ' / '.join(f'{v:.6f}' for v in ms)
           + f' (0.9999); runaways {runaways}: ' + ('MET' if ok else 'NOT MET'))
