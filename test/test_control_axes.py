@@ -72,7 +72,7 @@ def _track(ctl, ref):
 
 
 def test_chains_are_inverted_with_the_coupling_compensated(chains2):
-    """x moves, y holds at 0: y needs a command against x's pull, the baseline leaves it."""
+    """Move x, hold y at 0: y needs a command against x's pull, the baseline leaves it."""
     n = 3000
     t = np.arange(n) / FS
     ref = np.column_stack([15e-6 * np.sin(2 * np.pi * 1.0 * t), np.zeros(n)])

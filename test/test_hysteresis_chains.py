@@ -96,7 +96,7 @@ def test_state_estimated_from_a_window_continues_the_free_run(chains2, stage_dat
 
 
 def test_estimator_runs_the_chains_as_offline(chains2, stage_data):
-    """FreeRunEstimator (the estimator node's logic): from rest and from a measured window."""
+    """Run the estimator node's logic (FreeRunEstimator): from rest and from a window."""
     from piezo_narx_ros.estimator.free_run import FreeRunEstimator
     u, y = stage_data
     n, period, t0 = 3000, 500_000, 10**18

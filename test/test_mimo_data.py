@@ -81,7 +81,7 @@ def test_bad_shapes_get_one_line(tmp_path, u, y, match):
 
 
 def _bag(path, cmd_names, defl_names, n=300, cmd_at=None, defl_at=None):
-    """A bag of n samples; cmd_at / defl_at: {sample: names} for messages naming other axes."""
+    """Write a bag of n samples; cmd_at / defl_at: {sample: names} of messages naming others."""
     from piezo_narx_ros.bag.writer import JOINT_STATE, BagWriter, joint_state_cdr
     rng = np.random.default_rng(3)
     u = rng.uniform(-5, 5, (n, len(cmd_names)))

@@ -269,7 +269,7 @@ class AxesController:
         self._last_t = None
 
     def on_measurement(self, t_ns: int, y) -> None:
-        """A measured deflection vector (stamp of its command, (n_out,) m): chains only."""
+        """Take a measured deflection vector (stamp of its command, (n_out,) m): chains only."""
         if self.chains:
             self.chains.on_measurement(t_ns, y)
 
@@ -450,8 +450,10 @@ class AxisWatch:
 
 class ChainAxes:
     """
-    The controller of a model of one chain per axis (module docstring): one PositionController
-    per chain, fed z* = M^-1 r; their commands, stamps and counters put together.
+    Control a model of one chain per axis (module docstring).
+
+    One PositionController per chain, fed z* = M^-1 r; their commands, stamps and counters put
+    together.
 
     model: a HysteresisChains; mode: CHAIN_MODES; inverse: the AxesController's VectorInverse
     (its limits per axis and slew rate); options: the one-axis controller's (target, advance,
@@ -471,7 +473,7 @@ class ChainAxes:
 
     @property
     def holding(self) -> int:
-        """References held back for their stamps (every chain holds the same ones)."""
+        """Count the references held back for their stamps (every chain holds the same)."""
         return self.axes[0].holding
 
     def targets(self, r: np.ndarray) -> np.ndarray:
@@ -488,7 +490,7 @@ class ChainAxes:
         return self._join([c.flush() for c in self.axes])
 
     def on_measurement(self, t_ns: int, y) -> None:
-        """A measured deflection vector: each chain gets its decoupled motion."""
+        """Take a measured deflection vector: each chain gets its decoupled motion."""
         y = np.asarray(y, dtype=np.float64).reshape(self.M.shape[0])
         z = self.targets(y) if np.isfinite(y).all() else y
         for j, c in enumerate(self.axes):

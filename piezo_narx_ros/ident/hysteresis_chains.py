@@ -39,7 +39,7 @@ from scipy.signal import lfilter
 
 from ..errors import DataError, ModelFileError
 from .checks import as_channels, input_vector
-from .hysteresis import HysteresisNARX
+from .hysteresis import LAYOUTS, HysteresisNARX
 
 #: Structure name in the model file (structure.layout) and the experiment (option 'structure').
 CHAINS_LAYOUT = 'one-axis chain per input, mixed by a coupling matrix'
@@ -240,7 +240,7 @@ def refine_coupling(chains, us, ys, fs, skip_s=1.0):
 
 
 def _line(u, z):
-    """The least-squares line of a chain's training data (as `fit` stores data.line), m/V."""
+    """Return the least-squares line of a chain's training data (as `fit` stores data.line)."""
     gain, offset = np.polyfit(u, z, 1)
     sst = float(np.sum((z - z.mean()) ** 2))
     r2 = 1.0 - float(np.sum((z - gain * u - offset) ** 2)) / sst if sst > 0 else math.nan
@@ -558,7 +558,7 @@ class HysteresisChains(HysteresisNARX):
                                            'window_samples': int(len(u))})
 
     def _bracket_states(self, u0):
-        """The two extreme pasts at u0 (n,) V: each chain's, paired in order."""
+        """Return the two extreme pasts at u0 (n,) V: each chain's, paired in order."""
         u0 = np.broadcast_to(np.asarray(u0, dtype=np.float64), (self.n_in,))
         per = [c._bracket_states(float(u0[j])) for j, c in enumerate(self.chains_)]
         return [_state(np.concatenate([p[k].values for p in per]), np.zeros(self.n_out),
@@ -587,3 +587,6 @@ class HysteresisChains(HysteresisNARX):
     def __repr__(self):
         return (f'HysteresisChains(hidden={self.hidden}, n_plays={self.n_plays}, '
                 f'n_lags={self.n_lags}, seed={self.seed}, axes={self.n_in})')
+
+
+LAYOUTS[CHAINS_LAYOUT] = HysteresisChains
