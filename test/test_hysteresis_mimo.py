@@ -73,6 +73,7 @@ def test_state_from_a_window_and_the_stepper_continue_alike(model_2x3):
     assert np.array_equal(np.array([stepper.step(v) for v in u[start:start + 50]]), sim[:50])
     again = model.stepper(state=stepper.state)
     assert np.array_equal(again.step(u[start + 50]), stepper.step(u[start + 50]))
+    assert np.array_equal(again.step_many(u[start + 51:start + 80]), sim[51:80])
 
 
 def test_several_records_each_start_on_their_own(model_2x3):

@@ -34,7 +34,7 @@ from . import hysteresis_kernels as hk
 from . import hysteresis_mimo as hm
 from .base import (DynamicModel, Interval, Options, Tuple, as_channel_lists, as_record_list,
                    check_parameters, register_family)
-from .kernels import _finite_input, _history
+from .kernels import _finite_input, _history, finite_inputs
 
 #: Reversals of the estimation input inside its range from which monotone='auto' trusts the data
 #: to show the network its minor loops (coverage.inner_reversals): a full-range sine has none,
@@ -822,6 +822,21 @@ class HysteresisStepper:
         y = hk.step(u / self._u_scale, self._st, *self._args) * self._y_scale + self.offset
         self._u_hist.append(u)
         self._y_hist.append(y)
+        return y
+
+    def step_many(self, u):
+        """
+        Feed the inputs u (n,) V in order; returns the free-run outputs y (n,) m.
+
+        The same numbers as n step() calls, in one compiled call. A non-finite input raises
+        DataError before any step: the state stays untouched.
+        """
+        u = finite_inputs(u)
+        yn = np.empty(u.size)
+        hk.step_many(u / self._u_scale, yn, self._st, *self._args)
+        y = yn * self._y_scale + self.offset
+        self._u_hist.extend(u[u.size - self.nu:].tolist() if self.nu else ())
+        self._y_hist.extend(y[y.size - self.ny:].tolist() if self.ny else ())
         return y
 
     def peek(self, u_k):

@@ -40,6 +40,7 @@ from scipy.signal import lfilter
 
 from ..errors import DataError
 from .checks import input_vector
+from .kernels import step_rows
 
 #: Play radii of each input, fractions of its largest |u| (normalised units).
 U_RADII = (0.02, 0.05, 0.1, 0.2, 0.4)
@@ -646,6 +647,10 @@ class MimoStepper:
         self._u_hist[:-1] = self._u_hist[1:]
         self._u_hist[-1] = u
         return self._out + self.offset
+
+    def step_many(self, u):
+        """Feed input rows u (n, n_in) V in order; returns the outputs (n, n_out) m (step_rows)."""
+        return step_rows(self, u)
 
     def peek(self, u_k):
         """Return the output step(u_k) would return (n_out,) m, without changing the state."""
