@@ -58,6 +58,12 @@ def test_free_run_is_the_chains_mixed_and_the_stepper_agrees(chains2, stage_data
     steps = np.array([st.step(u[k]) for k in range(500)])
     assert np.allclose(steps, sim[:500], rtol=0, atol=1e-15)
     assert np.array_equal(st.peek(u[500]), st.step(u[500]))
+    many = m.stepper()
+    assert np.allclose(many.step_many(u[:300]), sim[:300], rtol=0, atol=1e-15)
+    assert np.allclose(many.step_many(u[300:501]), sim[300:501], rtol=0, atol=1e-15)
+    with pytest.raises(DataError, match='row 1'):
+        many.step_many([[0.0, 0.0], [np.inf, 0.0]])
+    assert np.array_equal(many.step(u[501]), st.step(u[501]))      # the bad rows left no trace
     with pytest.raises(DataError, match='finite'):
         st.step([np.nan, 0.0])
     with pytest.raises(DataError, match='2 voltages'):
