@@ -268,6 +268,12 @@ class AxesController:
         self.gate.reset()
         self._last_t = None
 
+    def warm_up(self) -> None:
+        """Load the compiled solvers now, not on the first reference, and go back to rest."""
+        for inv in [c.inverse for c in self.chains.axes] if self.chains else [self.inverse]:
+            inv.solve(0.0 if self.chains else np.zeros(self.n_out))
+            inv.reset()
+
     def on_measurement(self, t_ns: int, y) -> None:
         """Take a measured deflection vector (stamp of its command, (n_out,) m): chains only."""
         if self.chains:

@@ -154,6 +154,7 @@ class ControllerNode(PiezoNode):
             self.model, mode=p['mode'], fs=p['fs'] or None, **u_limits,
             slew_rate=p['slew_rate'] or math.inf, range_margin=p['range_margin'],
             max_fill=p['max_fill'], rate_tolerance=p['rate_tolerance'], **limits, **chain)
+        self.ctl.warm_up()       # compile/load the solvers before the first sample
         self.axis = p['axis']
         self._names = list(self.model.inputs)        # commands: the model's inputs
         self._ref_names = list(self.model.outputs)   # references, deflections: its outputs
