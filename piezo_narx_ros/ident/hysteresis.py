@@ -55,6 +55,9 @@ DEFAULT_CREEP_TAUS = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
 _FILE_PARTS = ('W1', 'b1', 'w2', 'c', 'duhem', 'drive', 'g', 'a', 'b', 'y_off')
 #: structure.layout of a several-axes model file (hysteresis_mimo).
 MIMO_LAYOUT = 'operators per input, common-denominator MIMO dynamics'
+#: Other structure.layout values of this kind -> their class, registered by their own modules
+#: (ident/hysteresis_chains.py; ident/families.py imports it).
+LAYOUTS: dict = {}
 # Structure keys that are constructor arguments.
 _FILE_STRUCTURE = ('hidden', 'n_plays', 'n_duhem', 'n_lags', 'na', 'nb', 'creep_taus')
 
@@ -643,6 +646,9 @@ class HysteresisNARX(DynamicModel):
         struct = document.get(doc, 'structure', name, (dict,))
         if struct.get('layout') == MIMO_LAYOUT:
             return cls._mimo_from_document(doc, arrays, name, wpath, fs)
+        other = LAYOUTS.get(struct.get('layout'))
+        if other is not None:      # a structure of its own module (hysteresis_chains)
+            return other.from_file_document(doc, arrays, name, wpath, fs)
         missing = [k for k in _FILE_STRUCTURE if k not in struct]
         if missing:
             raise ModelFileError(f'{name}: missing key {"structure." + missing[0]!r}')
