@@ -18,7 +18,6 @@ from __future__ import annotations
 import threading
 import time
 
-import rclpy
 from rclpy.clock import Clock, ClockType
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
