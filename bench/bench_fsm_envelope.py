@@ -59,8 +59,10 @@ def main() -> None:
                                                       [r.y for r in train], fs=train[0].fs)
     fit_s = time.perf_counter() - t0
     info = model.training_info_
-    print(f'fit {fit_s:.1f} s (denominator {info["denominator_seconds"]:.1f} s), '
-          f'{model.n_params} parameters, largest pole {info["max_pole"]:.4f}', flush=True)
+    print(f'fit {fit_s:.1f} s (denominators {info["denominator_seconds"]:.1f} s), '
+          f'{model.n_params} parameters, largest pole {info["max_pole"]:.4f}, '
+          f'{len(info["local_centres"])} output model(s) at amplitudes '
+          f'{", ".join(f"{c:.3f}" for c in info["local_centres"])}', flush=True)
     got = scores(model, {lv: load(args.data, lv, score_r) for lv in LEVELS})
     print('RMSE µm           100 mV   200 mV   300 mV')
     for how, per in got.items():

@@ -74,3 +74,13 @@ def arx2(stage_data):
     from piezo_narx_ros.ident.arx import ARXModel
     u, y = stage_data
     return ARXModel(na=2, nb=2).fit(u, y, fs=2000.0)
+
+
+@pytest.fixture(scope='session')
+def chains2(stage_data):
+    """Fit a small 2 x 2 envelope model of one chain per axis on `stage_data`."""
+    from piezo_narx_ros.ident.hysteresis_chains import HysteresisChains
+    u, y = stage_data
+    model = HysteresisChains(hidden=4, n_plays=6, max_iter=15, seed=0).fit(u, y, fs=2000.0)
+    model.inputs = model.outputs = ('x', 'y')
+    return model

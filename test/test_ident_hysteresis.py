@@ -113,6 +113,23 @@ def test_simulate_stepper_predict_agree():
         st.step(float('nan'))
 
 
+def test_step_many_gives_the_numbers_of_single_steps():
+    m = random_model(2)
+    u = walk(900, 2)
+    one, many = m.stepper(), m.stepper()
+    one.offset = many.offset = -3e-7
+    expect = [one.step(v) for v in u]
+    got = np.concatenate([many.step_many(u[:1]), many.step_many(u[1:500]),
+                          many.step_many(u[500:])])
+    assert np.array_equal(got, expect)
+    assert np.array_equal(many.state.values, one.state.values)
+    assert list(many._u_hist) == list(one._u_hist) and list(many._y_hist) == list(one._y_hist)
+    before = many.state.values
+    with pytest.raises(DataError, match='finite voltage, got inf at index 1'):
+        many.step_many([0.5, np.inf])
+    assert np.array_equal(many.state.values, before)
+
+
 def test_operators_freeze_while_the_input_holds():
     m = random_model(4, creep_taus=(0.01,))
     u = walk(6000, 4, hold=(2000, 6000))

@@ -147,6 +147,25 @@ def test_arx_predict_simulate_stepper_agree():
     np.testing.assert_allclose(stepped, sim[n0:], rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize('make', ['arx', 'narx'])
+def test_step_many_gives_the_numbers_of_single_steps_and_refuses_before_stepping(make):
+    u, y, *_ = arx_system(600)
+    m = ARXModel(na=3, nb=2).fit(u, y) if make == 'arx' else random_network()
+    one, many = m.stepper(), m.stepper()
+    one.offset = many.offset = 2e-7
+    expect = np.array([one.step(x) for x in u])
+    got = np.concatenate([many.step_many(u[:7]), many.step_many(u[7:8]),
+                          many.step_many(u[8:8]), many.step_many(u[8:])])
+    assert np.array_equal(got, expect)                 # bit for bit, offset included
+    assert np.array_equal(many.y_past, one.y_past) and np.array_equal(many.u_past, one.u_past)
+    before = many.y_past
+    with pytest.raises(DataError, match=r'finite voltage, got nan at index 2'):
+        many.step_many([1.0, 2.0, np.nan])
+    with pytest.raises(DataError, match=r'must be 1-D \(n,\), got shape \(2, 2\)'):
+        many.step_many(np.zeros((2, 2)))
+    assert np.array_equal(many.y_past, before)         # nothing stepped
+
+
 # ---------------------------------------------------------------- NARX: free-run kernels
 def random_network(nu=3, ny=2, hidden=6, seed=0):
     rng = np.random.default_rng(seed)

@@ -80,7 +80,8 @@ def test_bad_shapes_get_one_line(tmp_path, u, y, match):
     assert '\n' not in str(err.value)
 
 
-def _bag(path, cmd_names, defl_names, n=300):
+def _bag(path, cmd_names, defl_names, n=300, cmd_at=None, defl_at=None):
+    """Write a bag of n samples; cmd_at / defl_at: {sample: names} of messages naming others."""
     from piezo_narx_ros.bag.writer import JOINT_STATE, BagWriter, joint_state_cdr
     rng = np.random.default_rng(3)
     u = rng.uniform(-5, 5, (n, len(cmd_names)))
@@ -91,10 +92,12 @@ def _bag(path, cmd_names, defl_names, n=300):
         d = bag.add_topic('piezo/deflection', JOINT_STATE)
         for k in range(n):
             t = t0 + k * p
-            bag.write(c, t, joint_state_cdr(t, cmd_names, effort=tuple(u[k])))
             by_name = dict(zip(cmd_names, u[k]))
-            pos = tuple(gains.get(nm, 1e-7) * by_name.get(nm, 1.0) for nm in defl_names)
-            bag.write(d, t + 1000, joint_state_cdr(t, defl_names, position=pos))
+            names = (cmd_at or {}).get(k, cmd_names)
+            bag.write(c, t, joint_state_cdr(t, names, effort=tuple(by_name[m] for m in names)))
+            names = (defl_at or {}).get(k, defl_names)
+            pos = tuple(gains.get(nm, 1e-7) * by_name.get(nm, 1.0) for nm in names)
+            bag.write(d, t + 1000, joint_state_cdr(t, names, position=pos))
     return u, gains
 
 
@@ -112,6 +115,36 @@ def test_bag_with_several_command_axes_but_one_deflection_axis_is_refused(tmp_pa
     _bag(tmp_path / 'b', ('x', 'y'), ('x',))
     with pytest.raises(BagError, match='carries the axes x, y but .*deflection names x'):
         load_record(tmp_path / 'b')
+
+
+def test_bag_axes_are_taken_over_the_whole_bag_not_from_its_first_message(tmp_path):
+    """An early message missing an axis is counted and reported, not fatal (issue 20)."""
+    from piezo_narx_ros.bag.reader import read_uy_report
+    # The first two commands name x only (a publisher that came up before y's), one later
+    # deflection names y only, and one command names them in the other order.
+    u, gains = _bag(tmp_path / 'b', ('x', 'y'), ('x', 'y'), n=200,
+                    cmd_at={0: ('x',), 1: ('x',), 50: ('y', 'x')}, defl_at={120: ('y',)})
+    rec, report = read_uy_report(tmp_path / 'b')
+    assert rec.inputs == rec.outputs == ('x', 'y')
+    keep = np.setdiff1d(np.arange(200), [0, 1, 120])
+    assert np.array_equal(rec.u, u[keep])
+    assert np.allclose(rec.y, u[keep] * np.array([gains['x'], gains['y']]), rtol=1e-12, atol=0)
+    assert report.command.malformed == 2 and report.command.missing_axes == {'y': 2}
+    assert report.deflection.malformed == 1 and report.deflection.missing_axes == {'x': 1}
+    lines = report.issues()
+    assert any('command: 2 message(s)' in ln and 'axis missing: y in 2' in ln for ln in lines)
+    assert any('deflection: 1 message(s)' in ln and 'x in 1' in ln for ln in lines)
+
+
+def test_bag_whose_messages_each_name_one_of_two_axes_is_refused_not_mixed(tmp_path):
+    """Messages naming x or y alone never fill one series with both axes' values."""
+    names = {k: (('x',) if k % 2 else ('y',)) for k in range(240)}
+    _bag(tmp_path / 'b', ('x', 'y'), ('x', 'y'), n=240, cmd_at=names, defl_at=names)
+    with pytest.raises(BagError, match=r'no command samples .*240 message\(s\) without effort '
+                       r'of axis y \(120\), x \(120\)'):
+        load_record(tmp_path / 'b')
+    one = load_record(tmp_path / 'b', axis='x')      # one axis is still readable by name
+    assert one.n_in == 1 and one.u.shape == (120, 1)
 
 
 def test_fit_reads_a_named_table_with_inputs_and_outputs_options(tmp_path):

@@ -99,7 +99,14 @@ def test_mimo_narx_free_run_steps_and_file_round_trip(narx_2x3, tmp_path):
     r2 = 1 - ((sim - y)[2:] ** 2).sum(0) / ((y - y.mean(0))[2:] ** 2).sum(0)
     assert sim.shape == (2000, 3) and np.all(r2 > 0.95), r2
     s = m.stepper(u_past=u[:2], y_past=y[:2])
-    assert np.array_equal(np.array([s.step(v) for v in u[2:]]), sim[2:])
+    assert np.array_equal(np.array([s.step(v) for v in u[2:10]]), sim[2:10])
+    assert np.array_equal(s.step_many(u[10:]), sim[10:])       # the rest as one batch
+    before = s.state.values.copy()
+    with pytest.raises(DataError, match=r'finite voltages, got .* at row 1$'):
+        s.step_many(np.array([[0.0, 0.0], [np.nan, 1.0]]))
+    with pytest.raises(DataError, match=r'rows of 2 voltages \(n, 2\), got shape \(4,\)$'):
+        s.step_many(np.zeros(4))
+    assert np.array_equal(s.state.values, before)
     path = save_model(m, tmp_path / 'n.json')
     doc = json.loads(path.read_text())
     assert doc['format_version'] == 3 and doc['inputs'] == ['vx', 'vy']

@@ -186,3 +186,21 @@ def test_remembered_shapes_give_the_bytes_and_values_of_the_general_path():
     assert decode_joint_trajectory(good).position[:, 0].tolist() == [1.0, 2.0, 3.0]
     with pytest.raises(DataError, match='point 1 has 0 positions'):
         decode_joint_trajectory(bad)
+
+
+def test_command_and_deflection_batches_both_take_the_remembered_shape(monkeypatch):
+    """The estimator takes both streams; a deflection batch's point 0 has a layout of its own."""
+    from piezo_narx_ros.nodes import codec
+    t = _stamps(20)
+    cmd = encode_joint_trajectory(t, ['x'], effort=np.arange(20.0)[:, None])
+    meas = encode_joint_trajectory(t, ['x'], position=-np.arange(20.0)[:, None])
+    codec._SHAPES.clear()
+    decode_joint_trajectory(cmd)
+    decode_joint_trajectory(meas)
+
+    def general_path(*_):
+        raise AssertionError('a remembered shape was read the general way')
+    monkeypatch.setattr(codec, '_read_header_names', general_path)
+    for _ in range(2):
+        assert decode_joint_trajectory(cmd).effort[:, 0].tolist() == list(range(20))
+        assert decode_joint_trajectory(meas).position[:, 0].tolist() == [-k for k in range(20)]

@@ -32,6 +32,7 @@ class StreamCheck:
     duplicates: int = 0        # repeated stamps dropped (first occurrence kept)
     conflicting: int = 0       # of those, repeats whose value differed from the kept one
     malformed: int = 0         # messages without the expected field (dropped before pairing)
+    missing_axes: dict = field(default_factory=dict)   # of those, {axis: samples without it}
 
 
 @dataclass
@@ -63,7 +64,9 @@ class PairingReport:
         out = []
         for name, s in (('command', self.command), ('deflection', self.deflection)):
             if s.malformed:
-                out.append(f'{name}: {s.malformed} message(s) without the expected value, dropped')
+                axes = ', '.join(f'{a} in {m}' for a, m in s.missing_axes.items())
+                out.append(f'{name}: {s.malformed} message(s) without the expected value, dropped'
+                           + (f' (axis missing: {axes})' if axes else ''))
             if s.reordered:
                 out.append(f'{name}: {s.reordered} message(s) arrived out of stamp order, sorted')
             if s.duplicates:

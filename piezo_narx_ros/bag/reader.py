@@ -8,6 +8,7 @@ the bag, because turning a bag's definition into a decoder generates and runs Py
 from __future__ import annotations
 
 import struct
+import sys
 import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -197,6 +198,7 @@ class JointSeries:
     names: list = field(default_factory=list)   # joint names seen on the topic
     axis: str | int | None = None                # the axis read: its name, or an index
     channels: tuple = ()       # several axes read (axis None, messages naming several joints)
+    missing: dict = field(default_factory=dict)  # several axes: {axis: samples without it}
 
 
 def _axis_index(names, axis, n_values: int):
@@ -220,11 +222,23 @@ def _axis_index(names, axis, n_values: int):
 
 
 def _channel_indices(names, channels):
-    """Return the indices of `channels` in a message's joint names, or None if one is missing."""
-    try:
-        return [names.index(c) for c in channels]
-    except ValueError:
-        return None
+    """Return the indices of `channels` in a message's joint names (-1 where one is missing)."""
+    return [names.index(c) if c in names else -1 for c in channels]
+
+
+def topic_channels(keys) -> tuple:
+    """
+    Return the axes of a topic from the distinct joint-name tuples its messages carried.
+
+    Every name seen on the topic is an axis (a message naming only some of them does not decide
+    for the others); in the order of the first message that names them all, else first seen
+    first. Fewer than two names: () (the one-axis case, read by `axis`).
+    """
+    union = tuple(dict.fromkeys(n for key in keys for n in key))
+    if len(union) < 2:
+        return ()
+    full = [key for key in keys if set(key) == set(union)]
+    return tuple(full[0]) if full else union
 
 
 def read_joint_series(path: str | Path, fields: dict[str, str], axis: str | int | None = None
@@ -238,9 +252,9 @@ def read_joint_series(path: str | Path, fields: dict[str, str], axis: str | int 
     recorded batched (`<topic>_batch`, JointTrajectory) gives the same samples and stamps.
 
     With axis None and messages naming several joints, every joint is read: the topic's channels
-    are the names of its first such message (in that order), each later message's values are
-    found by name (never by position), and a message lacking one of them counts as malformed;
-    values are then (n, channels).
+    are every name its messages carried over the whole bag (`topic_channels`), each message's
+    values are found by name (never by position), and a sample lacking one of them is counted
+    (`malformed`, and per axis in `missing`), not fatal; values are then (n, channels).
     """
     with open_bag(path) as reader:
         by_conn, kinds = {}, {}
@@ -250,10 +264,10 @@ def read_joint_series(path: str | Path, fields: dict[str, str], axis: str | int 
             conns, kinds[topic] = find_sample_topic(reader, topic, path)
             for c in conns:
                 by_conn[c.id] = topic
-        acc = {t: ([], [], []) for t in fields}
-        bad = dict.fromkeys(fields, 0)
-        seen = {t: {} for t in fields}          # names tuple -> index (cached per topic)
-        chans = dict.fromkeys(fields, ())       # several axes: the topic's channel names
+        # Per topic: stamps, receive times, the sample's joint-name tuple (an id into `seen`),
+        # and its whole value array; which names are axes is decided once the bag is read.
+        acc = {t: ([], [], [], []) for t in fields}
+        seen = {t: {} for t in fields}          # names tuple -> id (first seen first)
         conns = [c for c in reader.connections if c.id in by_conn]
         for conn, log_ns, raw in _messages(reader, conns, path):
             topic = by_conn[conn.id]
@@ -265,37 +279,50 @@ def read_joint_series(path: str | Path, fields: dict[str, str], axis: str | int 
                                f'{absolute_topic(conn.topic)} at log time {log_ns} ns: '
                                f'{_one_line(exc)}') from None
             names = tuple(msg.name if kind == JOINT_STATE else msg.joint_names)
-            samples = joint_samples(msg, kind, fields[topic])
-            cache = seen[topic]
-            if names not in cache:
-                if axis is None and len(names) > 1 and not chans[topic] and not acc[topic][0]:
-                    chans[topic] = names
-                cache[names] = (_channel_indices(names, chans[topic]) if chans[topic] else
-                                _axis_index(names, axis, len(samples[0][1]) if samples else 0))
-            i = cache[names]
-            stamps, logs, values = acc[topic]
-            for t_ns, arr in samples:
-                if isinstance(i, list):
-                    if len(arr) != len(names):
-                        bad[topic] += 1
-                        continue
-                    values.append([float(arr[j]) for j in i])
-                elif i is None or i >= len(arr):
-                    bad[topic] += 1
-                    continue
-                else:
-                    values.append(float(arr[i]))
+            key = seen[topic].setdefault(names, len(seen[topic]))
+            stamps, logs, keys, values = acc[topic]
+            for t_ns, arr in joint_samples(msg, kind, fields[topic]):
                 stamps.append(t_ns)
                 logs.append(log_ns)
-    out = {}
-    for t, (s, lg, v) in acc.items():
-        names = list(dict.fromkeys(n for key in seen[t] for n in key))
-        k = len(chans[t])
-        values = np.asarray(v, dtype=np.float64).reshape((-1, k) if k else (-1,))
-        out[t] = JointSeries(absolute_topic(t), np.asarray(s, dtype=np.int64),
-                             np.asarray(lg, dtype=np.int64), values, bad[t], names, axis,
-                             tuple(chans[t]))
-    return out
+                keys.append(key)
+                values.append(arr)
+    return {t: _series(t, acc[t], list(seen[t]), axis) for t in fields}
+
+
+def _series(topic, acc, keys, axis) -> JointSeries:
+    """Map one topic's samples to its axis (or channels) by name; count the ones lacking it."""
+    stamps, logs, key_of, arrays = acc
+    chans = topic_channels(keys) if axis is None else ()
+    # Per name tuple: the channel indices, or the axis's index (checked against each array).
+    index = [_channel_indices(names, chans) if chans else _axis_index(names, axis, sys.maxsize)
+             for names in keys]
+    missing = dict.fromkeys(chans, 0)
+    keep, values = [], []
+    for n, (key, arr) in enumerate(zip(key_of, arrays)):
+        names, i = keys[key], index[key]
+        if chans:
+            if len(arr) != len(names):
+                continue
+            lacking = [c for c, j in zip(chans, i) if j < 0]
+            for c in lacking:
+                missing[c] += 1
+            if lacking:
+                continue
+            values.append([float(arr[j]) for j in i])
+        else:
+            if i is None or i >= len(arr):
+                continue
+            values.append(float(arr[i]))
+        keep.append(n)
+    keep = np.asarray(keep, dtype=np.int64)
+    names = list(dict.fromkeys(nm for key in keys for nm in key))
+    k = len(chans)
+    return JointSeries(absolute_topic(topic),
+                       np.asarray(stamps, dtype=np.int64).reshape(-1)[keep],
+                       np.asarray(logs, dtype=np.int64).reshape(-1)[keep],
+                       np.asarray(values, dtype=np.float64).reshape((-1, k) if k else (-1,)),
+                       len(key_of) - keep.size, names, axis, chans,
+                       {c: m for c, m in missing.items() if m})
 
 
 def _check_axes(path, series, axis) -> None:
@@ -334,6 +361,8 @@ def read_uy_report(path: str | Path, command_topic: str = COMMAND_TOPIC,
     for s, kind, fld in ((su, 'command', 'effort'), (sy, 'deflection', 'position')):
         if s.values.size == 0:
             which = f'axis {axis!r}' if axis is not None else 'its axis'
+            if s.missing:
+                which = 'axis ' + ', '.join(f'{a} ({m})' for a, m in s.missing.items())
             extra = f' ({s.malformed} message(s) without {fld} of {which})' if s.malformed \
                 else ''
             raise BagError(f'bag {path}: no {kind} samples on {s.topic}{extra}')
@@ -342,7 +371,8 @@ def read_uy_report(path: str | Path, command_topic: str = COMMAND_TOPIC,
         order = [sy.channels.index(c) for c in su.channels]
         sy.values, sy.channels = sy.values[:, order], su.channels
     t_ns, u, y, report = pair_by_stamp(su.stamps_ns, su.values, sy.stamps_ns, sy.values)
-    report.command.malformed, report.deflection.malformed = su.malformed, sy.malformed
+    for check, s in ((report.command, su), (report.deflection, sy)):
+        check.malformed, check.missing_axes = s.malformed, dict(s.missing)
     for name, arr in (('command', u), ('deflection', y)):
         if not np.all(np.isfinite(arr)):
             raise BagError(f'bag {path}: {np.count_nonzero(~np.isfinite(arr))} non-finite '

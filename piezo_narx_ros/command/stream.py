@@ -191,12 +191,17 @@ def make_signal(kind: str, fs: float, seconds: float, amplitude: float, offset: 
     (N, n_axes) volts from plant.signals.generate, axis i with seed + i.
 
     Options not used by `kind` are ignored (a node declares them all); None values mean "default".
+    The protocol's slow sine is the same on every seed: on several axes axis i's protocol is
+    rotated by i / n_axes of a cycle (`shift`), so that no section drives two axes alike and
+    each axis's effect on the others can be told apart (identification of the coupling).
     """
     from piezo_narx_ros.plant.signals import COMMON, OPTIONS, generate
     if kind not in OPTIONS:
         raise ConfigError(f'unknown signal kind {kind!r}; choose one of {", ".join(OPTIONS)}')
     allowed = set(OPTIONS[kind]) | set(COMMON)
     opts = {k: v for k, v in options.items() if k in allowed and v is not None}
-    cols = [generate(kind, fs, seconds, amplitude, offset, seed + i, **opts)
+    cols = [generate(kind, fs, seconds, amplitude, offset, seed + i,
+                     **({'shift': i / n_axes} if kind == 'protocol' and n_axes > 1 else {}),
+                     **opts)
             for i in range(n_axes)]
     return np.stack(cols, axis=1)

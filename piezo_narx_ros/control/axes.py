@@ -14,6 +14,15 @@ stamp handling as PositionController (StampGate, RateMonitor, gaps held), per-ax
 ranges and limits, and two modes: 'inverse' (sensorless) and 'linear', the per-axis baseline
 (each axis's own static line u_i = (r_i - offset_i) / gain_i, coupling ignored: what a user does
 axis by axis without a model of the stage).
+
+A model of one actuator chain per axis (ident/hysteresis_chains.py, y = M z) is inverted in two
+exact steps instead: the coupling by z* = M^-1 r (what each chain must do so that every axis is
+where asked), then each chain by its own one-axis PositionController (`ChainAxes`): the
+quasi-static inverse of its hysteresis and creep (docs/control.md), its limits, its static-gain
+check, and its /diagnostics checks (control.health: anti-phase, tracking error with a sensor,
+unreachable targets), so every reliability check of one axis holds on each axis. With a
+deflection sensor the measured outputs are decoupled the same way (z = M^-1 y), which also gives
+each chain the PI of 'inverse_feedback'.
 """
 from __future__ import annotations
 
@@ -24,10 +33,14 @@ import numpy as np
 
 from piezo_narx_ros.command.stamps import (RATE_TOLERANCE, SAMPLE, RateMonitor, StampGate,
                                            model_rate)
-from piezo_narx_ros.control.controller import bridge_gap
+from piezo_narx_ros.control.controller import PositionController, bridge_gap
+from piezo_narx_ros.control.health import ANTI_PHASE, MIN_JUDGED, ControllerHealth
+from piezo_narx_ros.counters import ERROR, OK
 from piezo_narx_ros.errors import ConfigError, DataError
 
 AXES_MODES = ('inverse', 'linear')
+#: Modes of a model of one chain per axis (ChainAxes): the one-axis controller's, per chain.
+CHAIN_MODES = ('inverse', 'inverse_feedback')
 
 
 def _per_axis(value, n: int, name: str) -> np.ndarray:
@@ -184,6 +197,7 @@ class AxesStats:
     stamp_outliers: int = 0
     stream_restarts: int = 0
     rate_refused: int = 0
+    measurements_rejected: int = 0  # deflections without every axis (chains: the rest pass on)
 
 
 class AxesController:
@@ -198,12 +212,21 @@ class AxesController:
     def __init__(self, model, mode: str = 'inverse', fs: float | None = None, u_min=-200.0,
                  u_max=200.0, slew_rate: float = math.inf, y_min=None, y_max=None,
                  range_margin: float = 0.05, max_fill: int = 2000, confirm: int = 3,
-                 rate_tolerance: float = RATE_TOLERANCE):
-        if mode not in AXES_MODES:
+                 rate_tolerance: float = RATE_TOLERANCE, **chain_options):
+        chains = getattr(model, 'chains_', None) is not None and mode in CHAIN_MODES
+        if mode not in AXES_MODES and not chains:
+            extra = (f'; {list(CHAIN_MODES)} with a model of one chain per axis'
+                     if mode not in CHAIN_MODES else ' (inverse_feedback needs a model of one '
+                     'chain per axis: fit --preset envelope)')
             raise ConfigError(f'mode must be one of {list(AXES_MODES)} for several axes, got '
-                              f'{mode!r}')
+                              f'{mode!r}{extra}')
+        if chain_options and not chains:
+            raise ConfigError(f'{", ".join(sorted(chain_options))}: only for a model of one '
+                              'chain per axis')
         self.mode = mode
         self.inverse = VectorInverse(model, u_min, u_max, slew_rate, fs)
+        self.chains = ChainAxes(model, mode, self.inverse, range_margin, max_fill, confirm,
+                                rate_tolerance, **chain_options) if chains else None
         self.model = model
         self.fs = self.inverse.fs
         self.n_out = self.inverse.n_out
@@ -229,17 +252,32 @@ class AxesController:
         self._last_t: int | None = None
         self._last_ref: np.ndarray | None = None
         self._last_values: dict = {}
+        self.watch = AxisWatch(self.n_out, self.y_max - self.y_min,
+                               None if self.chains else _gain_signs(model, self.fs))
 
     @property
     def holding(self) -> int:
         """Count the references held back while their stamps are ambiguous."""
-        return self.gate.holding
+        return self.chains.holding if self.chains else self.gate.holding
 
     def request_reset(self) -> None:
         """Restart from rest (the actuator is at 0 V now) and forget the stream."""
+        if self.chains:
+            self.chains.request_reset()
         self.inverse.reset()
         self.gate.reset()
         self._last_t = None
+
+    def warm_up(self) -> None:
+        """Load the compiled solvers now, not on the first reference, and go back to rest."""
+        for inv in [c.inverse for c in self.chains.axes] if self.chains else [self.inverse]:
+            inv.solve(0.0 if self.chains else np.zeros(self.n_out))
+            inv.reset()
+
+    def on_measurement(self, t_ns: int, y) -> None:
+        """Take a measured deflection vector (stamp of its command, (n_out,) m): chains only."""
+        if self.chains:
+            self.chains.on_measurement(t_ns, y)
 
     def status(self) -> tuple[int, str, dict]:
         """
@@ -248,12 +286,18 @@ class AxesController:
         WARN when a target was unreachable, a reference refused or clamped, or a stamp refused
         since the previous call; ERROR while the reference stream is at another rate.
         """
+        if self.chains:
+            return self.chains.status()
         values = dict(vars(self.stats))
         values['u_last'] = [round(float(v), 6) for v in self.inverse.u_prev]
         grew = {k: v - self._last_values.get(k, 0) for k, v in vars(self.stats).items()}
         self._last_values = dict(vars(self.stats))
         if self.rate.off:
             return 2, self.rate.describe('reference') + ': no commands sent', values
+        errors = self.watch.problems()
+        if errors:
+            return ERROR, errors[0] + (f' (+{len(errors) - 1} more)' if len(errors) > 1
+                                       else ''), values
         words = [f'{grew[k]} {what}' for k, what in (
             ('unreachable', 'reference(s) out of reach (limits or not invertible)'),
             ('rejected_nonfinite', 'non-finite reference(s) held'),
@@ -268,6 +312,8 @@ class AxesController:
         r = np.array(r, dtype=np.float64)
         if r.shape != (self.n_out,):
             raise DataError(f'reference must have {self.n_out} axes, got shape {r.shape}')
+        if self.chains:
+            return self._from_chains(self.chains.on_reference(t_ns, self._checked(r)))
         self.stats.references += 1
         self.rate.received()
         out: list = []
@@ -287,10 +333,30 @@ class AxesController:
 
     def flush(self) -> list[tuple[int, np.ndarray]]:
         """Decide on held references once they stopped (StampGate.flush)."""
+        if self.chains:
+            return self._from_chains(self.chains.flush())
         out: list = []
         for kind, t, item in self.gate.flush():
             if kind == SAMPLE:
                 self._accept(t, item, out)
+        return out
+
+    def _checked(self, r: np.ndarray) -> np.ndarray:
+        """Count a reference; clamp it to [y_min, y_max] per axis (NaN kept: it is held)."""
+        self.stats.references += 1
+        if not np.isfinite(r).all():
+            self.stats.rejected_nonfinite += 1
+            return r
+        if ((r < self.y_min) | (r > self.y_max)).any():
+            self.stats.out_of_range += 1
+            return np.clip(r, self.y_min, self.y_max)
+        return r
+
+    def _from_chains(self, out: list) -> list:
+        """Commands of the chains: the model follows them; the counters follow the chains'."""
+        for _, u in out:
+            self.inverse.u_prev = u      # the chains' own models follow the commands
+        self.chains.count(self.stats)
         return out
 
     def _accept(self, t_ns: int, r: np.ndarray, out: list) -> None:
@@ -309,6 +375,8 @@ class AxesController:
             u = self._command(r, dt)
         inv.commit(u)
         st.commands += 1
+        if r is not None:
+            self.watch.add(r, u)
         out.append((t_ns, u))
 
     def _command(self, r: np.ndarray, dt: float | None) -> np.ndarray:
@@ -330,3 +398,140 @@ class AxesController:
         st.unreachable += 1
         name = {'voltage': 'voltage_limited', 'slew': 'slew_limited'}.get(why, 'not_invertible')
         setattr(st, name, getattr(st, name) + 1)
+
+
+def _gain_signs(model, fs: float) -> np.ndarray | None:
+    """Sign of each axis's own static gain (input i on output i), None when not square."""
+    if model.n_in != model.n_out:
+        return None
+    try:
+        gains, _ = static_gains(model, fs)
+    except ConfigError:
+        return None
+    return np.sign(np.diag(gains))
+
+
+class AxisWatch:
+    """
+    The anti-phase check of control.health, per axis, for the vector inverse and the baseline.
+
+    Over the last `window` commands: on an axis whose reference moves (more than HOLD_SPAN of
+    its span), commands whose correlation with that axis's reference has the other sign than
+    the axis's own static gain (below ANTI_PHASE) drive it against the reference: an ERROR.
+    """
+
+    def __init__(self, n: int, span: np.ndarray, signs: np.ndarray | None, window: int = 2000):
+        from collections import deque
+        self.span, self.signs = np.asarray(span, dtype=np.float64), signs
+        self._pairs = deque(maxlen=int(window))
+        self.n = n
+
+    def add(self, r: np.ndarray, u: np.ndarray) -> None:
+        """Record one command u (n,) V sent for reference r (n,) m."""
+        if self.signs is not None:
+            self._pairs.append(np.r_[r, u])
+
+    def correlations(self) -> np.ndarray:
+        """Return corr(u_i, r_i) per axis over the window (NaN where nothing moves)."""
+        from piezo_narx_ros.control.health import HOLD_SPAN
+        out = np.full(self.n, math.nan)
+        if len(self._pairs) < MIN_JUDGED:
+            return out
+        a = np.array(self._pairs)
+        r, u = a[:, :self.n], a[:, self.n:]
+        for i in range(self.n):
+            if r[:, i].std() > HOLD_SPAN * self.span[i] and u[:, i].std() > 0:
+                out[i] = float(np.corrcoef(r[:, i], u[:, i])[0, 1])
+        return out
+
+    def problems(self) -> list[str]:
+        """Return one ERROR phrase per axis driven against its reference."""
+        if self.signs is None:
+            return []
+        return [f'axis {i}: commands move against the reference (correlation {c:.3f}; the '
+                f'axis gain is {"positive" if s > 0 else "negative"}): anti-phase'
+                for i, (c, s) in enumerate(zip(self.correlations(), self.signs))
+                if s and c == c and s * c < ANTI_PHASE]
+
+
+class ChainAxes:
+    """
+    Control a model of one chain per axis (module docstring).
+
+    One PositionController per chain, fed z* = M^-1 r; their commands, stamps and counters put
+    together.
+
+    model: a HysteresisChains; mode: CHAIN_MODES; inverse: the AxesController's VectorInverse
+    (its limits per axis and slew rate); options: the one-axis controller's (target, advance,
+    kp, ki, feedback_timeout, window).
+    """
+
+    def __init__(self, model, mode, inverse: VectorInverse, range_margin, max_fill, confirm,
+                 rate_tolerance, **options):
+        self.M = np.array(model.coupling_, dtype=np.float64)
+        self.names = tuple(model.outputs)
+        self.axes = [PositionController(
+            chain, mode=mode, fs=inverse.fs, u_min=float(inverse.u_min[j]),
+            u_max=float(inverse.u_max[j]), slew_rate=inverse.slew_rate,
+            range_margin=range_margin, max_fill=max_fill, confirm=confirm,
+            rate_tolerance=rate_tolerance, **options) for j, chain in enumerate(model.chains_)]
+        self.health = [ControllerHealth(c) for c in self.axes]
+
+    @property
+    def holding(self) -> int:
+        """Count the references held back for their stamps (every chain holds the same)."""
+        return self.axes[0].holding
+
+    def targets(self, r: np.ndarray) -> np.ndarray:
+        """Return what each chain must do, z* = M^-1 r (n,) m."""
+        return np.linalg.solve(self.M, r)
+
+    def on_reference(self, t_ns: int, r: np.ndarray) -> list:
+        """One reference vector (n,) m -> [(t_ns, command (n,) V)], usually one."""
+        z = self.targets(r)
+        return self._join([c.on_reference(t_ns, float(z[j])) for j, c in enumerate(self.axes)])
+
+    def flush(self) -> list:
+        """Decide on held references (every chain the same)."""
+        return self._join([c.flush() for c in self.axes])
+
+    def on_measurement(self, t_ns: int, y) -> None:
+        """Take a measured deflection vector: each chain gets its decoupled motion."""
+        y = np.asarray(y, dtype=np.float64).reshape(self.M.shape[0])
+        z = self.targets(y) if np.isfinite(y).all() else y
+        for j, c in enumerate(self.axes):
+            c.on_measurement(t_ns, float(z[j]))
+
+    def request_reset(self) -> None:
+        """Every chain restarts from rest."""
+        for c in self.axes:
+            c.request_reset()
+
+    @staticmethod
+    def _join(outs: list) -> list:
+        """Put the chains' commands together; they answer the same stamps (same gates)."""
+        stamps = [[t for t, _ in o] for o in outs]
+        if any(s != stamps[0] for s in stamps[1:]):
+            raise DataError(f'the chains answered different stamps: {stamps}')
+        return [(t, np.array([o[k][1] for o in outs])) for k, t in enumerate(stamps[0])]
+
+    def count(self, stats: AxesStats) -> None:
+        """Copy the chains' counters into the AxesController's (limits summed over axes)."""
+        first = self.axes[0].stats
+        for key in ('commands', 'gaps', 'filled', 'stamp_outliers', 'stream_restarts',
+                    'rate_refused'):
+            setattr(stats, key, getattr(first, key))
+        for key in ('unreachable', 'voltage_limited', 'slew_limited', 'not_invertible'):
+            setattr(stats, key, sum(getattr(c.stats, key) for c in self.axes))
+
+    def status(self) -> tuple[int, str, dict]:
+        """Every axis's ControllerHealth tick; the worst level, its first phrase named by axis."""
+        level, message, values = OK, '', {}
+        for name, health in zip(self.names, self.health):
+            lv, msg, vals = health.tick()
+            values.update({f'{name}.{k}': v for k, v in vals.items()})
+            if lv > level:
+                level, message = lv, f'axis {name}: {msg}'
+        if level == OK:
+            message = f'ok ({self.axes[0].mode}, {len(self.axes)} chains, coupling compensated)'
+        return level, message, values

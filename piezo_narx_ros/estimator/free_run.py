@@ -306,11 +306,11 @@ class FreeRunEstimator:
         self._last_t, self._last_u = tl[-1], ul[-1]
         self._t_hist.extend(tl)
         self._u_hist.extend(ul)
-        yl = list(map(self._stepper.step, ul))
+        y = self._stepper.step_many(v)
+        yl = list(y) if self.vector else y.tolist()
         withheld = int(np.count_nonzero(off))
         st.rate_withheld += withheld
         st.estimates += n - withheld
-        y = np.array(yl)
         self.out_of_range_now = not _within(yl[-1], self.y_lo, self.y_hi)
         if self.vector or not (self.y_lo <= min(yl) and max(yl) <= self.y_hi
                                and math.isfinite(sum(yl))):

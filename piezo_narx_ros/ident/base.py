@@ -191,6 +191,13 @@ class DynamicModel:
         raise NotImplementedError
 
     def stepper(self, u_past=None, y_past=None, state=None):   # pragma: no cover - interface
+        """
+        Return the family's per-sample free run, started like simulate().
+
+        Every Stepper has step(u_k) -> y_k, step_many(u (n,) or (n, n_in) V) -> y (n,) or
+        (n, n_out) m (the same numbers as n steps, one call per batch), peek(u_k), reset(u_past,
+        y_past), state and offset.
+        """
         raise NotImplementedError
 
     # Initial state from measurement (ident/state.py): every family implements these three.

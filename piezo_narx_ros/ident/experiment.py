@@ -100,8 +100,9 @@ class CandidateSpec:
         if self.kind == 'hysteresis_narx':
             o = dict(self.options)
             lags = f', lags={o["n_lags"]}' if 'n_lags' in o else ''
+            chains = ', chain per axis' if o.get('structure') == 'chains' else ''
             return (f'HNARX(H={self.hidden}, plays={o.get("n_plays", 12)}, '
-                    f'duhem={o.get("n_duhem", 1)}{lags}, seed={self.seed})')
+                    f'duhem={o.get("n_duhem", 1)}{lags}, seed={self.seed}{chains})')
         seed = f', seed={self.seed}' if self.seed else ''
         return f'NARX(ny={self.ny}, nu={self.nu}, H={self.hidden}{seed})'
 
@@ -112,7 +113,11 @@ class CandidateSpec:
             return ARXModel(na=self.ny, nb=self.nu)
         if self.kind == 'hysteresis_narx':
             from piezo_narx_ros.ident.hysteresis import HysteresisNARX
-            return HysteresisNARX(hidden=self.hidden, seed=self.seed, **dict(self.options))
+            options = dict(self.options)
+            if options.pop('structure', None) == 'chains':     # several axes, see distinct_specs
+                from piezo_narx_ros.ident.hysteresis_chains import HysteresisChains
+                return HysteresisChains(hidden=self.hidden, seed=self.seed, **options)
+            return HysteresisNARX(hidden=self.hidden, seed=self.seed, **options)
         if self.kind == 'narx':
             from piezo_narx_ros.ident.narx import NARXNetwork
             return NARXNetwork(nu=self.nu, ny=self.ny, hidden=self.hidden, seed=self.seed,
@@ -746,12 +751,17 @@ def distinct_specs(specs: list, records: list) -> list:
 
     On records of several axes the envelope family fits a deterministic structure that uses
     neither the network seed nor the drive increments (ident/hysteresis_mimo.py): its candidates
-    would be the same fit several times (six with the envelope preset), so one is kept.
+    would be the same fit several times (six with the envelope preset), so one is kept. With as
+    many inputs as outputs every candidate is also fitted as one chain per axis
+    (ident/hysteresis_chains.py: there seeds and increments matter, as for one axis).
     """
     if not any(getattr(r, 'n_in', 1) > 1 or getattr(r, 'n_out', 1) > 1 for r in records):
         return list(specs)
     nets = [s for s in specs if s.kind == 'hysteresis_narx']
-    return nets[:1] + [s for s in specs if s.kind != 'hysteresis_narx']
+    square = all(getattr(r, 'n_in', 1) == getattr(r, 'n_out', 1) for r in records)
+    chains = [replace(s, options=tuple(sorted(dict(s.options, structure='chains').items())))
+              for s in nets] if square else []
+    return nets[:1] + chains + [s for s in specs if s.kind != 'hysteresis_narx']
 
 
 def run_experiment(records: list[Record], config: ExperimentConfig | None = None,

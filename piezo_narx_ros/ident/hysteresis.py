@@ -34,7 +34,7 @@ from . import hysteresis_kernels as hk
 from . import hysteresis_mimo as hm
 from .base import (DynamicModel, Interval, Options, Tuple, as_channel_lists, as_record_list,
                    check_parameters, register_family)
-from .kernels import _finite_input, _history
+from .kernels import _finite_input, _history, finite_inputs
 
 #: Minor loops of the estimation input (reversals inside the previous loop) from which
 #: monotone='auto' trusts the data to show the network its minor loops (coverage.inner_reversals):
@@ -56,6 +56,9 @@ DEFAULT_CREEP_TAUS = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
 _FILE_PARTS = ('W1', 'b1', 'w2', 'c', 'duhem', 'drive', 'g', 'a', 'b', 'y_off')
 #: structure.layout of a several-axes model file (hysteresis_mimo).
 MIMO_LAYOUT = 'operators per input, common-denominator MIMO dynamics'
+#: Other structure.layout values of this kind -> their class, registered by their own modules
+#: (ident/hysteresis_chains.py; ident/families.py imports it).
+LAYOUTS: dict = {}
 # Structure keys that are constructor arguments.
 _FILE_STRUCTURE = ('hidden', 'n_plays', 'n_duhem', 'n_lags', 'na', 'nb', 'creep_taus')
 
@@ -144,7 +147,7 @@ class HysteresisNARX(DynamicModel):
     def n_params(self):
         """Return the number of estimated parameters."""
         if self.mimo_ is not None:
-            return int(self.mimo_.a.size + self.mimo_.B1.size + self.mimo_.B.size)
+            return self.mimo_.n_params
         return hk.layout(self.hidden, self.n_inputs, self.n_duhem, len(self.creep_taus),
                          self.na, self.nb)[1]
 
@@ -262,8 +265,7 @@ class HysteresisNARX(DynamicModel):
             self.mimo_.simulate(self._mimo_signal(u_past, 'u_past', self.n_in, n=self.nu), st)
         if y_past is not None:
             yp = self._mimo_signal(y_past, 'y_past', self.n_out, n=self.ny)
-            lo, hi = self.mimo_.layout['y_hist']
-            st[lo:hi] = (yp[::-1] / self.mimo_.y_scale).ravel()
+            self.mimo_.set_output_history(st, yp[::-1] / self.mimo_.y_scale)
         return st
 
     def _signed(self, theta, sign):
@@ -603,8 +605,7 @@ class HysteresisNARX(DynamicModel):
         if self.mimo_ is not None:
             # The stage-1 and output histories enter linearly: after `order` samples they span
             # every free response the unknown past input leaves.
-            lay = self.mimo_.layout
-            idx = np.r_[np.arange(*lay['yt_hist']), np.arange(*lay['y_hist'])]
+            idx = hm.adjustable(self.mimo_)
             return idx.astype(int), np.ones(idx.size)
         i_x = max(self.n_lags, 1) + self.n_plays + self.n_duhem
         seen = np.flatnonzero(np.asarray(self.creep_taus) * self.fs <= n_window / 3.0)
@@ -653,6 +654,9 @@ class HysteresisNARX(DynamicModel):
         struct = document.get(doc, 'structure', name, (dict,))
         if struct.get('layout') == MIMO_LAYOUT:
             return cls._mimo_from_document(doc, arrays, name, wpath, fs)
+        other = LAYOUTS.get(struct.get('layout'))
+        if other is not None:      # a structure of its own module (hysteresis_chains)
+            return other.from_file_document(doc, arrays, name, wpath, fs)
         missing = [k for k in _FILE_STRUCTURE if k not in struct]
         if missing:
             raise ModelFileError(f'{name}: missing key {"structure." + missing[0]!r}')
@@ -689,7 +693,8 @@ class HysteresisNARX(DynamicModel):
     def _mimo_document(self):
         p = self.mimo_
         return {'structure': {'kind': self.kind, 'layout': MIMO_LAYOUT,
-                              'mimo_order': self.mimo_order, 'n_features': int(p.B.shape[1]),
+                              'mimo_order': self.mimo_order, 'n_features': p.n_features,
+                              'local_models': p.n_local,
                               'u_radii': list(hm.U_RADII), 'y_radii': list(hm.Y_RADII),
                               'env_tau_s': hm.ENV_TAU_S, 'nu': self.nu, 'ny': self.ny,
                               'n_params': self.n_params},
@@ -730,6 +735,9 @@ class HysteresisNARX(DynamicModel):
                                      f'{got[key].shape}')
             if not np.all(np.isfinite(got[key])):
                 raise ModelFileError(f'{wpath}: {key} holds non-finite values')
+        # Local output models (several amplitudes): optional, checked by from_arrays.
+        got.update({key: np.asarray(arrays[key], dtype=np.float64) for key in hm.LOCAL_ARRAYS
+                    if key in arrays})
         try:
             parts = hm.MimoParts.from_arrays(got, math.exp(-1.0 / (hm.ENV_TAU_S * fs)))
         except (DataError, IndexError, ValueError) as exc:
@@ -824,6 +832,21 @@ class HysteresisStepper:
         y = hk.step(u / self._u_scale, self._st, *self._args) * self._y_scale + self.offset
         self._u_hist.append(u)
         self._y_hist.append(y)
+        return y
+
+    def step_many(self, u):
+        """
+        Feed the inputs u (n,) V in order; returns the free-run outputs y (n,) m.
+
+        The same numbers as n step() calls, in one compiled call. A non-finite input raises
+        DataError before any step: the state stays untouched.
+        """
+        u = finite_inputs(u)
+        yn = np.empty(u.size)
+        hk.step_many(u / self._u_scale, yn, self._st, *self._args)
+        y = yn * self._y_scale + self.offset
+        self._u_hist.extend(u[u.size - self.nu:].tolist() if self.nu else ())
+        self._y_hist.extend(y[y.size - self.ny:].tolist() if self.ny else ())
         return y
 
     def peek(self, u_k):

@@ -156,6 +156,15 @@ def step(un_k, st, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, 
 
 
 @njit(cache=True)
+def step_many(un, yn, st, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, b,
+              y_off):
+    """Run step for each normalised input un[k] in order, yn[k] filled: one call per batch."""
+    for k in range(un.size):
+        yn[k] = step(un[k], st, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, b,
+                     y_off)
+
+
+@njit(cache=True)
 def peek(un_k, st, scratch, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, b,
          y_off):
     """

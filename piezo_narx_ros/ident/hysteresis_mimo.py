@@ -40,6 +40,7 @@ from scipy.signal import lfilter
 
 from ..errors import DataError
 from .checks import input_vector
+from .kernels import step_rows
 
 #: Play radii of each input, fractions of its largest |u| (normalised units).
 U_RADII = (0.02, 0.05, 0.1, 0.2, 0.4)
@@ -53,18 +54,39 @@ SK_ITER = 8
 WEIGHT_POWER = 1.0
 #: Largest pole modulus kept (poles outside are reflected inside, then shrunk to this).
 MAX_POLE = 0.999
+#: No pole nearer z = 1 than this many times the lowest frequency the data excite (_stabilise).
+SLOWEST_FACTOR = 3.0
 
 
-def n_features(n_in, n_out):
-    """Features per sample: 2 n_in + n_in len(U_RADII) + n_out (4 + len(Y_RADII))."""
-    return n_in * (2 + len(U_RADII)) + n_out * (4 + len(Y_RADII))
+#: Products of two stage-1 outputs among the features: 0 none (files before them), 1 yt_i yt_j
+#: (i < j), 2 also yt_i |yt_j| (i != j). The axes' motions mix (a mirror's tilt moves every
+#: reference point): on the FSM they take 5 % off the error at 200 and 300 mV.
+CROSS = 2
 
 
-def state_layout(n_in, n_out, order):
-    """Return {part: (start, stop)} of the kernel state vector and its size."""
-    nf = n_features(n_in, n_out)
+@njit(cache=True)
+def n_cross(n_out, cross):
+    """Return the number of product features of n_out stage-1 outputs (CROSS)."""
+    pairs = n_out * (n_out - 1) // 2
+    return (pairs if cross >= 1 else 0) + (2 * pairs if cross >= 2 else 0)
+
+
+def n_features(n_in, n_out, cross=CROSS):
+    """Features per sample: n_in (2 + len(U_RADII)) + n_out (4 + len(Y_RADII)) + products."""
+    return n_in * (2 + len(U_RADII)) + n_out * (4 + len(Y_RADII)) + n_cross(n_out, cross)
+
+
+def state_layout(n_in, n_out, order, n_local=1, cross=CROSS):
+    """
+    Return {part: (start, stop)} of the kernel state vector and its size.
+
+    y_hist holds the (blended) outputs; with n_local > 1 local output models, yl_hist holds
+    each one's own output history (local-model-major), which is what their dynamics use.
+    """
+    nf = n_features(n_in, n_out, cross)
     sizes = (('u_plays', n_in * len(U_RADII)), ('y_plays', n_out * len(Y_RADII)), ('env', 1),
-             ('x_hist', order * nf), ('yt_hist', order * n_out), ('y_hist', order * n_out))
+             ('x_hist', order * nf), ('yt_hist', order * n_out), ('y_hist', order * n_out),
+             ('yl_hist', order * n_out * n_local if n_local > 1 else 0))
     out, k = {}, 0
     for name, n in sizes:
         out[name] = (k, k + n)
@@ -74,7 +96,7 @@ def state_layout(n_in, n_out, order):
 
 # ------------------------------------------------------------------------------ kernels
 @njit(cache=True)
-def _features_row(un, yt, st, ur, yr, env_w, env_lam, x, i_up, i_yp, i_env):
+def _features_row(un, yt, st, ur, yr, env_w, env_lam, cross, x, i_up, i_yp, i_env):
     """Advance the operators (plays, amplitude) by one sample and fill x (n_f,)."""
     n_in, n_out = un.size, yt.size
     e2 = env_lam * st[i_env]
@@ -115,39 +137,105 @@ def _features_row(un, yt, st, ur, yr, env_w, env_lam, x, i_up, i_yp, i_env):
             st[i_yp + i * yr.size + r] = p
             x[f] = yt[i] - p
             f += 1
+    if cross >= 1:
+        for i in range(n_out):
+            for j in range(i + 1, n_out):
+                x[f] = yt[i] * yt[j]
+                f += 1
+    if cross >= 2:
+        for i in range(n_out):
+            for j in range(n_out):
+                if j != i:
+                    x[f] = yt[i] * abs(yt[j])
+                    f += 1
 
 
 @njit(cache=True)
-def features(un, yt, st, ur, yr, env_w, env_lam):
+def cross_of(n_in, n_out, nf, ur, yr):
+    """Return the CROSS setting that n_f features per sample imply."""
+    extra = nf - n_in * (2 + ur.size) - n_out * (4 + yr.size)
+    return 0 if extra == 0 else (1 if extra == n_cross(n_out, 1) else 2)
+
+
+@njit(cache=True)
+def features(un, yt, st, ur, yr, env_w, env_lam, cross):
     """Return features X (N, n_f) of normalised inputs un (N, n_in), stage-1 outputs yt."""
     n_in, n_out = un.shape[1], yt.shape[1]
-    nf = n_in * (2 + ur.size) + n_out * (4 + yr.size)
+    nf = n_in * (2 + ur.size) + n_out * (4 + yr.size) + n_cross(n_out, cross)
     X = np.empty((un.shape[0], nf))
     i_yp = n_in * ur.size
     i_env = i_yp + n_out * yr.size
     for k in range(un.shape[0]):
-        _features_row(un[k], yt[k], st, ur, yr, env_w, env_lam, X[k], 0, i_yp, i_env)
+        _features_row(un[k], yt[k], st, ur, yr, env_w, env_lam, cross, X[k], 0, i_yp, i_env)
     return X
 
 
 @njit(cache=True)
-def step(u, st, out, x, yt, ur, yr, env_w, env_lam, a, B1, B, u_scale, y_scale):
+def work_size(n_in, n_out, nf, n_local):
+    """Return the length of step's scratch: features, stage-1 and local outputs, weights."""
+    return nf + n_out + n_local * (n_out + 1) + n_in
+
+
+@njit(cache=True, fastmath=True)
+def dot(a, b, lo, n):
+    """
+    Return sum a[k] b[lo + k], k < n.
+
+    The compiler may reorder the sum (vector lanes, 4-8x faster); the C export sums in order,
+    equal to rounding.
+    """
+    s = 0.0
+    for k in range(n):
+        s += a[k] * b[lo + k]
+    return s
+
+
+@njit(cache=True)
+def blend_weights(e, centres, w):
+    """Fill w (L,) with the local models' weights at amplitude e: hats on the centres."""
+    n_local = centres.size
+    w[:] = 0.0
+    if n_local == 1:
+        w[0] = 1.0
+        return
+    ec = min(max(e, centres[0]), centres[n_local - 1])
+    j = 0
+    while j < n_local - 2 and ec > centres[j + 1]:
+        j += 1
+    t = (ec - centres[j]) / (centres[j + 1] - centres[j])
+    w[j] = 1.0 - t
+    w[j + 1] = t
+
+
+@njit(cache=True)
+def step(u, st, out, work, ur, yr, env_w, env_lam, a1, B1, a_out, B0, Bh, centres, u_scale,
+         y_scale):
     """
     Advance the state st by one input u (n_in,) V; fill out (n_out,) with y(k) in m.
 
-    x (n_f,), yt (n_out,): scratch. Returns False (state untouched) when u is not finite.
+    work: scratch of work_size(). Returns False (state untouched) when u is not finite. B0
+    (L n_out, n_f) and Bh (L n_out, n n_f) are the output numerators of the current features
+    and of the feature history (row l n_out + i, history columns in the state's order), a_out
+    (L, n) the local denominators.
     """
     n_in, n_out = u.size, out.size
-    n = a.size
-    nf = x.size
+    n = a1.size
+    nf = B0.shape[1]
+    n_local = a_out.shape[0]
     for j in range(n_in):
         if not math.isfinite(u[j]):
             return False
+    x = work[:nf]
+    yt = work[nf:nf + n_out]
+    yl = work[nf + n_out:nf + n_out + n_local * n_out]
+    wl = work[nf + n_out + n_local * n_out:nf + n_out + n_local * (n_out + 1)]
+    un = work[nf + n_out + n_local * (n_out + 1):nf + n_out + n_local * (n_out + 1) + n_in]
     i_yp = n_in * ur.size
     i_env = i_yp + n_out * yr.size
     i_x = i_env + 1
     i_yt = i_x + n * nf
     i_y = i_yt + n * n_out
+    i_yl = i_y + n * n_out if n_local > 1 else i_y
     # Stage 1: yt(k) from the input history (the first n_in features are the inputs).
     for i in range(n_out):
         s = 0.0
@@ -156,30 +244,39 @@ def step(u, st, out, x, yt, ur, yr, env_w, env_lam, a, B1, B, u_scale, y_scale):
             for lag in range(1, n + 1):
                 s += B1[i, j, lag] * st[i_x + (lag - 1) * nf + j]
         for lag in range(1, n + 1):
-            s -= a[lag - 1] * st[i_yt + (lag - 1) * n_out + i]
+            s -= a1[lag - 1] * st[i_yt + (lag - 1) * n_out + i]
         yt[i] = s
-    un = np.empty(n_in)
     for j in range(n_in):
         un[j] = u[j] / u_scale[j]
-    _features_row(un, yt, st, ur, yr, env_w, env_lam, x, 0, i_yp, i_env)
+    _features_row(un, yt, st, ur, yr, env_w, env_lam, cross_of(n_in, n_out, nf, ur, yr), x, 0,
+                  i_yp, i_env)
+    for r in range(n_local * n_out):
+        lo = i_yl + (r // n_out) * n * n_out + r % n_out
+        s = dot(B0[r], x, 0, nf) + dot(Bh[r], st, i_x, n * nf)
+        for lag in range(1, n + 1):
+            s -= a_out[r // n_out, lag - 1] * st[lo + (lag - 1) * n_out]
+        yl[r] = s
+    blend_weights(math.sqrt(st[i_env]), centres, wl)
     for i in range(n_out):
         s = 0.0
-        for f in range(nf):
-            s += B[i, f, 0] * x[f]
-        for lag in range(1, n + 1):
-            row = i_x + (lag - 1) * nf
-            for f in range(nf):
-                s += B[i, f, lag] * st[row + f]
-            s -= a[lag - 1] * st[i_y + (lag - 1) * n_out + i]
+        for m in range(n_local):
+            s += wl[m] * yl[m * n_out + i]
         out[i] = s
     # Shift the histories (newest first) and store this sample.
-    for k in range(n * nf - 1, nf - 1, -1):
-        st[i_x + k] = st[i_x + k - nf]
-    for f in range(nf):
-        st[i_x + f] = x[f]
+    # One row at a time, newest last: rows do not overlap, so each is a plain copy.
+    for lag in range(n - 1, 0, -1):
+        st[i_x + lag * nf:i_x + (lag + 1) * nf] = st[i_x + (lag - 1) * nf:i_x + lag * nf]
+    st[i_x:i_x + nf] = x
     for k in range(n * n_out - 1, n_out - 1, -1):
         st[i_yt + k] = st[i_yt + k - n_out]
         st[i_y + k] = st[i_y + k - n_out]
+    if n_local > 1:
+        for m in range(n_local):
+            lo = i_yl + m * n * n_out
+            for k in range(n * n_out - 1, n_out - 1, -1):
+                st[lo + k] = st[lo + k - n_out]
+            for i in range(n_out):
+                st[lo + i] = yl[m * n_out + i]
     for i in range(n_out):
         st[i_yt + i] = yt[i]
         st[i_y + i] = out[i]
@@ -188,15 +285,15 @@ def step(u, st, out, x, yt, ur, yr, env_w, env_lam, a, B1, B, u_scale, y_scale):
 
 
 @njit(cache=True)
-def simulate(u, st, ur, yr, env_w, env_lam, a, B1, B, u_scale, y_scale):
+def simulate(u, st, ur, yr, env_w, env_lam, a1, B1, a_out, B0, Bh, centres, u_scale, y_scale):
     """Run u (N, n_in) V freely from state st (advanced in place); returns (N, n_out) m."""
-    n_out = B.shape[0]
-    nf = B.shape[1]
+    n_local = a_out.shape[0]
+    n_out = B0.shape[0] // n_local
     y = np.empty((u.shape[0], n_out))
-    x = np.empty(nf)
-    yt = np.empty(n_out)
+    work = np.empty(work_size(u.shape[1], n_out, B0.shape[1], n_local))
     for k in range(u.shape[0]):
-        if not step(u[k], st, y[k], x, yt, ur, yr, env_w, env_lam, a, B1, B, u_scale, y_scale):
+        if not step(u[k], st, y[k], work, ur, yr, env_w, env_lam, a1, B1, a_out, B0, Bh,
+                    centres, u_scale, y_scale):
             y[k:] = np.nan
             break
     return y
@@ -221,39 +318,107 @@ def _homogeneous(a, n_samples):
     return H
 
 
-def _stabilise(a):
-    """Return A(q) with every root inside MAX_POLE (outside roots reflected, then shrunk)."""
+def _stabilise(a, slowest=0.0):
+    """
+    Return A(q) with every root inside MAX_POLE and at least `slowest` (rad/sample) from z = 1.
+
+    Roots outside the unit circle are reflected inside, then shrunk to MAX_POLE. The data say
+    nothing below their lowest excited frequency f_min: a pole nearer z = 1 than a few times
+    f_min lets the response between 0 and f_min, and so the static gain, take any value
+    (measured on the FSM: static gains of 140 where the data's are near 2, and held
+    inputs that start a free run 30 µm off). Such a root is moved out along 1 - z.
+    """
     roots = np.roots(a)
     mag = np.abs(roots)
     roots = np.where(mag > 1.0, roots / (mag * mag), roots)
     mag = np.abs(roots)
     roots = np.where(mag > MAX_POLE, roots * (MAX_POLE / np.maximum(mag, 1e-300)), roots)
+    gap = np.abs(1.0 - roots)
+    roots = np.where(gap < slowest, 1.0 - (1.0 - roots) * (slowest / np.maximum(gap, 1e-300)),
+                     roots)
     return np.real(np.poly(roots))
 
 
-def frequency_response(us, ys, seg):
+#: Relative RMS difference below which a record repeats with a period (periodic steady state).
+PERIODIC_TOL = 0.01
+#: Longest segment of the pooled frequency response, samples.
+MAX_SEGMENT = 1 << 16
+
+
+def periodic_with(u, seg):
+    """Return whether u (N, n_in) repeats with period seg samples (two periods at least)."""
+    n = u.shape[0] // seg
+    if n < 2:
+        return False
+    first = u[:seg]
+    diff = max(float(np.sqrt(np.mean((u[k * seg:(k + 1) * seg] - first) ** 2)))
+               for k in range(1, n))
+    return diff <= PERIODIC_TOL * max(float(np.sqrt(np.mean(first * first))), 1e-300)
+
+
+def leakage_free(u, seg):
+    """
+    Return whether segments of seg samples of u (N, n_in) need no window.
+
+    They do not when a segment is the whole record, or one period of a record in periodic
+    steady state.
+    """
+    return u.shape[0] == seg or periodic_with(u, seg)
+
+
+def segment_length(us, n_in, order):
+    """
+    Return the segment length (samples, a power of two) of the pooled frequency response.
+
+    The longest (finest resolution, least leakage) with enough segments for every bin: n_in + 1
+    when every segment is leakage-free (whole records or periods: each realisation gives an
+    input direction, the periods average the noise), else 4 n_in windowed segments (a noise
+    input's spectra need averaging).
+    """
+    seg = 1 << int(math.log2(min(MAX_SEGMENT, max(u.shape[0] for u in us))))
+    while seg > 4 * (order + 1):
+        count = sum(u.shape[0] // seg for u in us)
+        free = all(leakage_free(u, seg) for u in us if u.shape[0] >= seg)
+        if count >= (n_in + 1 if free else 4 * n_in):
+            break
+        seg //= 2
+    # Records of several periods: one period per segment (a longer one adds only bins the
+    # excitation leaves empty).
+    while seg > 4 * (order + 1) and all(periodic_with(u, seg // 2)
+                                        for u in us if u.shape[0] >= seg):
+        seg //= 2
+    return seg
+
+
+def frequency_response(us, ys, seg, weights=None):
     """
     Pooled MIMO frequency response G (bins, n_out, n_in) at the bins k/seg of 0 < f < fs/2.
 
-    Every record is cut into segments of seg samples (one period of a periodic excitation is
-    leakage-free); per bin G = S_yu S_uu^-1 over every segment of every record (the best linear
-    approximation of the pooled data). Returns (G, z^-1 at the bins, usable mask): a bin is
-    usable when S_uu is well conditioned (every input excited there, independently).
+    Every record is cut into segments of seg samples; per bin G = S_yu S_uu^-1 over every
+    segment of every record (the best linear approximation of the pooled data), each segment
+    normalised by its input power (a small-amplitude segment counts as much as a large one,
+    as the numerators' relative-error weights) and weighted by the mean over it of `weights`
+    (list of (N,) per record, default 1). Leakage-free segments (`leakage_free`) are taken as
+    they are; others get a Hann window and half overlap. Returns (G, z^-1 at the bins, usable
+    mask): a bin is usable when S_uu is well conditioned (every input excited there,
+    independently).
     """
     U, Y = [], []
-    # Segments shorter than 8192 samples cut a record that is not periodic in them: a Hann
-    # window and half overlap keep their leakage down (8192: the periods of a multisine).
-    window = np.hanning(seg)[:, None] if seg < 8192 else np.ones((seg, 1))
-    hop = seg // 2 if seg < 8192 else seg
-    for un, yn in zip(us, ys):
+    hann = np.hanning(seg)[:, None]
+    for r, (un, yn) in enumerate(zip(us, ys)):
+        window, hop = (np.ones((seg, 1)), seg) if leakage_free(un, seg) else (hann, seg // 2)
         for k in range(0, un.shape[0] - seg + 1, hop):
-            U.append(np.fft.rfft(un[k:k + seg] * window, axis=0)[1:seg // 2])
-            Y.append(np.fft.rfft(yn[k:k + seg] * window, axis=0)[1:seg // 2])
+            w = 1.0 if weights is None else float(np.mean(weights[r][k:k + seg]))
+            c = math.sqrt(w / max(float(np.mean(un[k:k + seg] ** 2)), 1e-300))
+            if c > 0.0:
+                U.append(c * np.fft.rfft(un[k:k + seg] * window, axis=0)[1:seg // 2])
+                Y.append(c * np.fft.rfft(yn[k:k + seg] * window, axis=0)[1:seg // 2])
     U, Y = np.stack(U, -1), np.stack(Y, -1)           # (bins, channels, segments)
     Suu = np.einsum('kjs,kls->kjl', U, U.conj())
     Syu = np.einsum('kis,kls->kil', Y, U.conj())
     ev = np.linalg.eigvalsh(Suu)
-    usable = ev[:, 0] > 1e-6 * np.max(ev[:, -1])
+    # Bins the excitation leaves empty (a multisine's, or beyond its band) hold noise only.
+    usable = (ev[:, 0] > 1e-6 * np.max(ev[:, -1])) & (ev[:, 0] > 1e-3 * np.median(ev[:, 0]))
     G = np.zeros(Syu.shape, dtype=complex)
     G[usable] = np.linalg.solve(Suu[usable].transpose(0, 2, 1),
                                 Syu[usable].transpose(0, 2, 1)).transpose(0, 2, 1)
@@ -261,22 +426,17 @@ def frequency_response(us, ys, seg):
     return G, zinv, usable
 
 
-def fit_denominator(us, ys, order, iterations=SK_ITER + 2):
+def fit_denominator(us, ys, order, weights=None, iterations=SK_ITER + 2):
     """
     Return the common denominator A (order + 1,), stage-1 numerators B1 (n_out, n_in, order + 1).
 
-    Sanathanan-Koerner iterations on the pooled frequency response (frequency_response): the
-    least squares of A(z) G_ij - B_ij(z), weighted by 1 / |A_prev(z)|, one A for every entry;
-    made stable at the end.
+    Sanathanan-Koerner iterations on the pooled frequency response (frequency_response, with
+    the samples' `weights`): the least squares of A(z) G_ij - B_ij(z), weighted by
+    1 / |A_prev(z)|, one A for every entry; made stable at the end.
     """
     n = order
     n_in, n_out = us[0].shape[1], ys[0].shape[1]
-    # The longest segments (finest resolution, up to 8192 samples) that still give every bin
-    # 4 n_in segments to average: independent input directions at every frequency.
-    seg = 8192
-    while seg > 4 * (n + 1) and sum(u.shape[0] // seg for u in us) < 4 * n_in:
-        seg //= 2
-    G, zinv, usable = frequency_response(us, ys, seg)
+    G, zinv, usable = frequency_response(us, ys, segment_length(us, n_in, n), weights)
     if np.count_nonzero(usable) < 2 * n:
         raise DataError(f'the estimation data do not excite the {n_in} inputs independently at '
                         f'enough frequencies for dynamics of order {n}')
@@ -287,25 +447,24 @@ def fit_denominator(us, ys, order, iterations=SK_ITER + 2):
         w = 1.0 / np.abs(V @ a)
         Nrm = np.zeros((n, n))
         rhs = np.zeros(n)
-        blocks = {}
+        # Every b_ij block has the same columns: one pseudo-inverse per iteration.
+        Mb = -V * w[:, None]
+        Mb = np.vstack([Mb.real, Mb.imag])
+        Pb = np.linalg.pinv(Mb)
         for i in range(n_out):
             for j in range(n_in):
                 # Columns [a_1..a_n | b_ij,0..n]: A G - B = 0 with A's leading 1 moved right.
                 Ma = (V[:, 1:] * G[:, i, j:j + 1]) * w[:, None]
-                Mb = -V * w[:, None]
                 t = -G[:, i, j] * w
                 Ma = np.vstack([Ma.real, Ma.imag])
-                Mb = np.vstack([Mb.real, Mb.imag])
                 t = np.r_[t.real, t.imag]
                 # Eliminate b_ij (its own block) : Schur complement onto a.
-                Pb = np.linalg.pinv(Mb)
                 Ra = Ma - Mb @ (Pb @ Ma)
                 rt = t - Mb @ (Pb @ t)
                 Nrm += Ra.T @ Ra
                 rhs += Ra.T @ rt
-                blocks[i, j] = (Pb, Ma, t)
         a = np.r_[1.0, np.linalg.solve(Nrm + 1e-12 * np.trace(Nrm) / n * np.eye(n), rhs)]
-    a = _stabilise(a)
+    a = _stabilise(a, SLOWEST_FACTOR * float(-np.angle(zinv[0])))
     # Numerators for the stable A: least squares of B_ij(z) ~ A(z) G_ij, weighted by 1/|A|.
     w = 1.0 / np.abs(V @ a)
     B1 = np.zeros((n_out, n_in, n + 1))
@@ -335,48 +494,94 @@ def initial_env(un, env_w, env_lam):
     return float(np.mean(un[:n] ** 2 @ env_w))
 
 
-def fit_numerators(a, X_list, ys, weights, ridge=1e-7):
-    """
-    Return the output numerators B (n_out, n_f, n + 1) by weighted least squares (free-run error).
+def running_amplitude(un, env_w, env_lam, init):
+    """Return e (N,): the kernel's running amplitude of normalised inputs un (N, n_in)."""
+    s = (un * un) @ env_w
+    return np.sqrt(lfilter([1.0 - env_lam], [1.0, -env_lam], s, zi=[env_lam * init])[0])
 
-    Regressors: each feature filtered by q^-l / A(q), l = 0..n; each record's free response
-    (homogeneous solutions of 1/A) is projected out per record (a nuisance, fitted with it).
+
+def blend(e, centres):
+    """Return the local models' weights (N, L) at amplitudes e (N,) (blend_weights)."""
+    W = np.empty((e.size, centres.size))
+    for k in range(e.size):
+        blend_weights(float(e[k]), centres, W[k])
+    return W
+
+
+def normal_equations(a_out, X_list, ys, weights, W_list):
     """
-    n = a.size - 1
+    Return the weighted normal equations (G, g) of the output numerators (free-run error).
+
+    Regressors: each feature filtered by q^-l / A_m(q), l = 0..n, times the local model's
+    weight W[:, m] (output blending); each record's free responses (homogeneous solutions of
+    every 1/A_m, weighted alike) are projected out per record (a nuisance fitted with it).
+    Columns are local-model-major, then feature, then lag.
+    """
+    n_local, n = len(a_out), a_out[0].size - 1
     nf = X_list[0].shape[1]
-    n_out = ys[0].shape[1]
-    size = nf * (n + 1)
+    block = nf * (n + 1)
+    size = n_local * block
     G = np.zeros((size, size))
-    g = np.zeros((size, n_out))
-    for X, yn, w in zip(X_list, ys, weights):
-        Xf = lfilter([1.0], a, X, axis=0)
-        R = np.empty((X.shape[0], size))
-        for f in range(nf):
-            R[:, f * (n + 1):(f + 1) * (n + 1)] = _lags(Xf[:, f], n)
-        H = _homogeneous(a, X.shape[0])
-        Q, _ = np.linalg.qr(H)
+    g = np.zeros((size, ys[0].shape[1]))
+    for X, yn, w, W in zip(X_list, ys, weights, W_list):
+        active = [m for m in range(n_local) if np.any(W[:, m] > 0.0)]
+        cols = np.concatenate([np.arange(m * block, (m + 1) * block) for m in active])
+        R = np.empty((X.shape[0], len(active) * block))
+        H = []
+        for k, m in enumerate(active):
+            Xf = lfilter([1.0], a_out[m], X, axis=0)
+            for f in range(nf):
+                lo = k * block + f * (n + 1)
+                R[:, lo:lo + n + 1] = _lags(Xf[:, f], n) * W[:, m:m + 1]
+            H.append(_homogeneous(a_out[m], X.shape[0]) * W[:, m:m + 1])
+        Q, _ = np.linalg.qr(np.hstack(H))
         R -= Q @ (Q.T @ R)
         Y = yn - Q @ (Q.T @ yn)
-        G += (w * w) * (R.T @ R)
-        g += (w * w) * (R.T @ Y)
+        G[np.ix_(cols, cols)] += (w * w) * (R.T @ R)
+        g[cols] += (w * w) * (R.T @ Y)
+    return G, g
+
+
+#: Ridge of the numerators' normal equations, relative to their (unit-scaled) diagonal.
+RIDGE = 1e-10
+
+
+def solve_numerators(G, g, n_local, nf, n, ridge=RIDGE):
+    """Return the output numerators B (L, n_out, n_f, n + 1) of the normal equations (G, g)."""
     scale = np.sqrt(np.maximum(np.diag(G), 1e-300))
-    Gs = G / np.outer(scale, scale) + ridge * np.eye(size)
+    Gs = G / np.outer(scale, scale) + ridge * np.eye(G.shape[0])
     theta = np.linalg.solve(Gs, g / scale[:, None]) / scale[:, None]
-    return np.ascontiguousarray(theta.T.reshape(n_out, nf, n + 1))
+    return np.ascontiguousarray(theta.T.reshape(g.shape[1], n_local, nf, n + 1)
+                                .transpose(1, 0, 2, 3))
 
 
 def held_state(parts, u):
     """
-    Return the state of the input held at u[0] (V) until settled, amplitude from the window u.
+    Return the state of the input brought slowly from rest to u[0] (V) and held there.
 
-    The window's first samples tell the amplitude the input moves with (a record that does not
-    start at rest); its histories are then set from the window (estimate_state).
+    The steady state itself (no simulation): plays where a slow ramp leaves them, every history
+    at the DC response. The amplitude is the window's (u's first samples: a record that does
+    not start at rest moves with it), and the features hold it; estimate_state then sets the
+    histories from the window.
     """
-    poles = np.abs(parts.poles())
-    n = int(min(20000, max(50, math.log(1e-9) / math.log(max(float(np.max(poles)), 0.5)))))
+    un0 = np.asarray(u[0], dtype=np.float64) / parts.u_scale
+    e2 = initial_env(u / parts.u_scale, parts.env_w, parts.env_lam)
+    yt0 = (parts.B1.sum(axis=2) @ un0) / (1.0 + parts.a.sum())
+    small = np.zeros(parts.layout['env'][1])
+    small[-1] = e2
+    # A pole of 1 on the amplitude keeps it; plays from 0 move to where a ramp leaves them.
+    x0 = features(un0[None], yt0[None], small, parts.ur, parts.yr, parts.env_w, 1.0,
+                  parts.cross)[0]
+    yl0 = (parts.B.sum(axis=3) @ x0) / (1.0 + parts.a_out.sum(axis=1))[:, None]
+    w = np.empty(parts.n_local)
+    blend_weights(math.sqrt(e2), parts.centres, w)
     st = np.zeros(parts.state_size)
-    parts.simulate(np.tile(u[0], (n, 1)), st)
-    st[parts.layout['env'][0]] = initial_env(u / parts.u_scale, parts.env_w, parts.env_lam)
+    st[:small.size] = small
+    n, lay = parts.order, parts.layout
+    for name, row in (('x_hist', x0), ('yt_hist', yt0), ('y_hist', w @ yl0)):
+        st[lay[name][0]:lay[name][1]] = np.tile(row, n)
+    if parts.n_local > 1:
+        st[lay['yl_hist'][0]:lay['yl_hist'][1]] = np.concatenate([np.tile(r, n) for r in yl0])
     return st
 
 
@@ -384,19 +589,39 @@ def held_state(parts, u):
 PRIOR_WINDOW, PRIOR_HORIZON, PRIOR_STARTS = 100, 400, 240
 
 
-def _adjustable(parts):
-    lay = parts.layout
-    return np.r_[np.arange(*lay['yt_hist']), np.arange(*lay['y_hist'])]
+def adjustable(parts):
+    """Return the state indices estimate_state adjusts: stage-1 and output dynamics' histories."""
+    return np.r_[np.arange(*parts.layout['yt_hist']), np.arange(*parts.output_histories())]
 
 
 def _jacobian(parts, u, candidate, idx):
-    """Free-run change (N * n_out, normalised) per unit change of each candidate[idx]."""
+    """
+    Free-run change (N * n_out, normalised) per unit change of each candidate[idx].
+
+    The output models' own histories enter linearly: their columns are free responses of
+    1 / A_l (weighted as the run blends them); any other index by a run of the kernel.
+    """
     base = parts.simulate(u, candidate.copy()) / parts.y_scale
+    n, n_out, N = parts.order, parts.n_out, u.shape[0]
+    lo, hi = parts.output_histories()
+    e = running_amplitude(u / parts.u_scale, parts.env_w, parts.env_lam,
+                          candidate[parts.layout['env'][0]])
+    W = blend(e, parts.centres)
+    impulse = np.r_[1.0, np.zeros(N - 1)]
     cols = []
     for i in idx:
-        x = candidate.copy()
-        x[i] += 1.0
-        cols.append((parts.simulate(u, x) / parts.y_scale - base).ravel())
+        col = np.zeros((N, n_out))
+        if lo <= i < hi:
+            m, rest = divmod(i - lo, n * n_out)
+            lag, out = divmod(rest, n_out)
+            a = parts.a_out[m]
+            # y(-lag-1) = 1 reaches y(k) as 1/A driven by -a_{lag+1}, .., -a_n.
+            col[:, out] = W[:, m] * lfilter(-a[lag:], np.r_[1.0, a], impulse)
+        else:
+            x = candidate.copy()
+            x[i] += 1.0
+            col = parts.simulate(u, x) / parts.y_scale - base
+        cols.append(col.ravel())
     return np.column_stack(cols), base
 
 
@@ -412,7 +637,7 @@ def state_prior(parts, us, ys, seed=0):
     are the prior estimate_state weighs a window against.
     """
     rng = np.random.default_rng(seed)
-    idx = _adjustable(parts)
+    idx = adjustable(parts)
     err, deltas = [], []
     J = None
     per = max(1, PRIOR_STARTS // len(us))
@@ -461,7 +686,7 @@ def estimate_state(model, parts, u, y, candidate):
     the learned prior of the correction (state_prior) and a small offset prior. Exact in one
     step (the free run is linear in those histories).
     """
-    idx = _adjustable(parts)
+    idx = adjustable(parts)
     J, base = _jacobian(parts, u, candidate, idx)
     sig = np.maximum(parts.resid_rms, 1e-3 * parts.y_scale) / parts.y_scale
     n_out = parts.n_out
@@ -480,13 +705,24 @@ def estimate_state(model, parts, u, y, candidate):
     return values, delta[k:] * parts.y_scale, {'rms_m': float(np.sqrt(np.mean(fit * fit)))}
 
 
+#: The model file's arrays of local output models (absent for one output model).
+LOCAL_ARRAYS = ('mimo_a_out', 'mimo_centres')
+
+
 class MimoParts:
     """The fitted arrays of the several-axes structure (normalised units; see module docstring)."""
 
-    def __init__(self, a, B1, B, u_scale, y_scale, env_w, env_lam):
-        self.a = np.ascontiguousarray(a[1:], dtype=np.float64)      # a_1 .. a_n
+    def __init__(self, a, B1, B, u_scale, y_scale, env_w, env_lam, a_out=None, centres=None):
+        self.a = np.ascontiguousarray(a[1:], dtype=np.float64)      # stage 1: a_1 .. a_n
         self.B1 = np.ascontiguousarray(B1, dtype=np.float64)
-        self.B = np.ascontiguousarray(B, dtype=np.float64)
+        B = np.asarray(B, dtype=np.float64)
+        # One output model: B (n_out, n_f, n + 1) over the stage-1 denominator (as before the
+        # local models); several: B (L, n_out, n_f, n + 1), a_out (L, n), centres (L,).
+        self.B = np.ascontiguousarray(B[None] if B.ndim == 3 else B)
+        self.a_out = (self.a[None].copy() if a_out is None
+                      else np.ascontiguousarray(a_out, dtype=np.float64))
+        self.centres = (np.zeros(1) if centres is None
+                        else np.ascontiguousarray(centres, dtype=np.float64))
         self.u_scale = np.ascontiguousarray(u_scale, dtype=np.float64)
         self.y_scale = np.ascontiguousarray(y_scale, dtype=np.float64)
         self.env_w = np.ascontiguousarray(env_w, dtype=np.float64)
@@ -495,67 +731,142 @@ class MimoParts:
         self.yr = np.array(Y_RADII, dtype=np.float64)
         self.n_in, self.n_out = self.B1.shape[1], self.B1.shape[0]
         self.order = self.a.size
-        if self.B.shape != (self.n_out, n_features(self.n_in, self.n_out), self.order + 1) \
-                or self.B1.shape[2] != self.order + 1:
+        self.n_local = self.B.shape[0]
+        # Files written before the product features hold fewer: the count says which.
+        self.cross = next((c for c in (CROSS, 0, 1, 2)
+                           if n_features(self.n_in, self.n_out, c) == self.B.shape[2]), CROSS)
+        nf = n_features(self.n_in, self.n_out, self.cross)
+        if (self.B.shape != (self.n_local, self.n_out, nf, self.order + 1)
+                or self.B1.shape[2] != self.order + 1
+                or self.a_out.shape != (self.n_local, self.order)
+                or self.centres.shape != (self.n_local,)
+                or (self.n_local > 1 and np.any(np.diff(self.centres) <= 0))):
             raise DataError('several-axes envelope arrays do not match each other')
-        self.layout, self.state_size = state_layout(self.n_in, self.n_out, self.order)
+        self.layout, self.state_size = state_layout(self.n_in, self.n_out, self.order,
+                                                    self.n_local, self.cross)
+        # The kernel's numerators: rows l n_out + i; the history's in the state's order.
+        rows = self.n_local * self.n_out
+        self.B0 = np.ascontiguousarray(self.B[..., 0].reshape(rows, nf))
+        self.Bh = np.ascontiguousarray(self.B[..., 1:].transpose(0, 1, 3, 2).reshape(rows, -1))
+
+    @property
+    def n_params(self):
+        """Return the number of estimated parameters (denominators and numerators)."""
+        extra = self.a_out.size if self.n_local > 1 else 0
+        return int(self.a.size + extra + self.B1.size + self.B.size)
+
+    @property
+    def n_features(self):
+        """Return the number of operator features per sample."""
+        return int(self.B.shape[2])
 
     @property
     def args(self):
         """Return the kernel arguments after (u, st): operators, dynamics, scales."""
-        return (self.ur, self.yr, self.env_w, self.env_lam, np.r_[1.0, self.a][1:], self.B1,
-                self.B, self.u_scale, self.y_scale)
+        return (self.ur, self.yr, self.env_w, self.env_lam, self.a, self.B1, self.a_out,
+                self.B0, self.Bh, self.centres, self.u_scale, self.y_scale)
 
     def poles(self):
-        """Return the roots of A(q) (z-plane)."""
-        return np.roots(np.r_[1.0, self.a])
+        """Return the roots of the stage-1 and every output denominator (z-plane)."""
+        return np.concatenate([np.roots(np.r_[1.0, a]) for a in (self.a, *self.a_out)])
 
     def simulate(self, u, st):
         """Run u (N, n_in) V freely from state st (advanced in place): (N, n_out) m."""
         return simulate(np.ascontiguousarray(u, dtype=np.float64), st, *self.args)
 
+    def output_histories(self):
+        """Return the index ranges of the histories the output dynamics use (state vector)."""
+        return self.layout['yl_hist' if self.n_local > 1 else 'y_hist']
+
+    def set_output_history(self, st, rows):
+        """Set st's output histories to rows (n, n_out) of normalised outputs, newest first."""
+        lo, hi = self.layout['y_hist']
+        st[lo:hi] = np.asarray(rows, dtype=np.float64).ravel()
+        if self.n_local > 1:
+            lo, hi = self.layout['yl_hist']
+            st[lo:hi] = np.tile(st[self.layout['y_hist'][0]:self.layout['y_hist'][1]],
+                                self.n_local)
+
     def operator_features(self, u):
-        """Return the features X (N, n_f) of u (N, n_in) V run from rest (stage 1 included)."""
+        """Return the features X (N, n_f) and amplitude e (N,) of u (N, n_in) V from rest."""
         un = u / self.u_scale
         a = np.r_[1.0, self.a]
         yt = np.column_stack([sum(lfilter(self.B1[i, j], a, un[:, j])
                                   for j in range(self.n_in)) for i in range(self.n_out)])
         st = np.zeros(self.n_in * self.ur.size + self.n_out * self.yr.size + 1)
-        return features(np.ascontiguousarray(un), np.ascontiguousarray(yt), st, self.ur,
-                        self.yr, self.env_w, self.env_lam)
+        X = features(np.ascontiguousarray(un), np.ascontiguousarray(yt), st, self.ur,
+                     self.yr, self.env_w, self.env_lam, self.cross)
+        return X, running_amplitude(un, self.env_w, self.env_lam, 0.0)
 
     def predict(self, u, y):
-        """Return the one-step-ahead output (N, n_out) m: features from rest, measured lags."""
-        X = self.operator_features(u)
+        """
+        Return the one-step-ahead output (N, n_out) m: features from rest, measured lags.
+
+        Every local output model's lags are the measured outputs; their predictions are blended
+        as in the free run. With one output model, the error is A(q) applied to the free-run
+        error (docs/mimo.md).
+        """
+        X, e = self.operator_features(u)
+        W = blend(e, self.centres)
         yn = y / self.y_scale
         n, N = self.order, u.shape[0]
         out = np.zeros((N, self.n_out))
-        for i in range(self.n_out):
-            for f in range(X.shape[1]):
-                out[:, i] += lfilter(self.B[i, f], [1.0], X[:, f])
-            out[:, i] -= lfilter(np.r_[0.0, self.a], [1.0], yn[:, i])
+        for m in range(self.n_local):
+            for i in range(self.n_out):
+                p = -lfilter(np.r_[0.0, self.a_out[m]], [1.0], yn[:, i])
+                for f in range(X.shape[1]):
+                    p += lfilter(self.B[m, i, f], [1.0], X[:, f])
+                out[:, i] += W[:, m] * p
         out *= self.y_scale
         out[:n] = y[:n]
         return out
 
     def arrays(self):
-        """Return the named arrays of the model file."""
-        return {'mimo_a': self.a, 'mimo_B1': self.B1, 'mimo_B': self.B,
-                'mimo_u_scale': self.u_scale, 'mimo_y_scale': self.y_scale,
-                'mimo_env_w': self.env_w, 'mimo_state_mean': self.state_mean,
-                'mimo_state_cov': self.state_cov, 'mimo_resid_rms': self.resid_rms}
+        """Return the named arrays of the model file (one output model: as before local ones)."""
+        out = {'mimo_a': self.a, 'mimo_B1': self.B1,
+               'mimo_B': self.B[0] if self.n_local == 1 else self.B,
+               'mimo_u_scale': self.u_scale, 'mimo_y_scale': self.y_scale,
+               'mimo_env_w': self.env_w, 'mimo_state_mean': self.state_mean,
+               'mimo_state_cov': self.state_cov, 'mimo_resid_rms': self.resid_rms}
+        if self.n_local > 1:
+            out.update(mimo_a_out=self.a_out, mimo_centres=self.centres)
+        return out
 
     @classmethod
     def from_arrays(cls, arrays, env_lam):
         """Return MimoParts from the model file's arrays (names as `arrays()`)."""
+        local = {}
+        for key in LOCAL_ARRAYS:
+            if key in arrays:
+                local[key[5:]] = np.asarray(arrays[key], dtype=np.float64)
+                if not np.all(np.isfinite(local[key[5:]])):
+                    raise DataError(f'{key} holds non-finite values')
+        if len(local) == 1:
+            raise DataError('mimo_a_out and mimo_centres come together')
         parts = cls(np.r_[1.0, arrays['mimo_a']], arrays['mimo_B1'], arrays['mimo_B'],
                     arrays['mimo_u_scale'], arrays['mimo_y_scale'], arrays['mimo_env_w'],
-                    env_lam)
-        k = 2 * parts.order * parts.n_out
+                    env_lam, **local)
+        lo, hi = parts.layout['yt_hist']
+        k = (hi - lo) + (parts.output_histories()[1] - parts.output_histories()[0])
         parts.state_mean = np.asarray(arrays['mimo_state_mean']).reshape(k)
         parts.state_cov = np.asarray(arrays['mimo_state_cov']).reshape(k, k)
         parts.resid_rms = np.asarray(arrays['mimo_resid_rms']).reshape(parts.n_out)
         return parts
+
+
+#: The output dynamics are scheduled on the running amplitude (two local output models) when
+#: it spreads over this ratio (its 90th to 10th percentile over the estimation data).
+LOCAL_SPREAD = 1.5
+#: Percentiles of the running amplitude at which the local output models are centred.
+LOCAL_QUANTILES = (10.0, 90.0)
+
+
+def local_centres(es):
+    """Return the local models' centres (L,) from the estimation records' amplitudes e."""
+    q = np.percentile(np.concatenate(es), LOCAL_QUANTILES)
+    if q[0] <= 0.0 or q[-1] / q[0] < LOCAL_SPREAD:
+        return np.zeros(1)
+    return q
 
 
 def fit(us, ys, fs, order):
@@ -577,22 +888,34 @@ def fit(us, ys, fs, order):
     uns = [np.ascontiguousarray(u / u_scale) for u in us]
     yns = [np.ascontiguousarray(y / y_scale) for y in ys]
     weights = [max(float(np.sqrt(np.mean(y * y))), 1e-12) ** -WEIGHT_POWER for y in yns]
+    env0 = [initial_env(un, env_w, env_lam) for un in uns]
+    es = [running_amplitude(un, env_w, env_lam, e0) for un, e0 in zip(uns, env0)]
+    centres = local_centres(es)
+    W_list = [blend(e, centres) for e in es]
     a, B1 = fit_denominator(uns, yns, order)
+    a_out = [a] if centres.size == 1 else [
+        fit_denominator(uns, yns, order, [W[:, m] for W in W_list])[0]
+        for m in range(centres.size)]
     t1 = time.perf_counter()
     X_list = []
     ur, yr = np.array(U_RADII), np.array(Y_RADII)
     n_in, n_out = u_scale.size, y_scale.size
-    for un, yn in zip(uns, yns):
+    for un, yn, e0 in zip(uns, yns, env0):
         yt = stage1(a, B1, un, yn)
         st = np.zeros(n_in * ur.size + n_out * yr.size + 1)
-        st[-1] = initial_env(un, env_w, env_lam)
-        X_list.append(features(un, np.ascontiguousarray(yt), st, ur, yr, env_w, env_lam))
-    B = fit_numerators(a, X_list, yns, weights)
-    parts = MimoParts(a, B1, B, u_scale, y_scale, env_w, env_lam)
+        st[-1] = e0
+        X_list.append(features(un, np.ascontiguousarray(yt), st, ur, yr, env_w, env_lam,
+                               CROSS))
+    G, g = normal_equations(a_out, X_list, yns, weights, W_list)
+    B = solve_numerators(G, g, centres.size, X_list[0].shape[1], order)
+    parts = MimoParts(a, B1, B, u_scale, y_scale, env_w, env_lam,
+                      None if centres.size == 1 else np.array([x[1:] for x in a_out]),
+                      None if centres.size == 1 else centres)
     parts.state_mean, parts.state_cov, parts.resid_rms = state_prior(parts, us, ys)
     info = {'denominator_seconds': t1 - t0, 'fit_seconds': time.perf_counter() - t0,
             'max_pole': float(np.max(np.abs(parts.poles()))), 'order': int(order),
-            'n_features': int(B.shape[1]), 'record_weights': [float(w) for w in weights]}
+            'n_features': int(parts.n_features), 'record_weights': [float(w) for w in weights],
+            'local_centres': [float(c) for c in centres]}
     return parts, info
 
 
@@ -613,9 +936,8 @@ class MimoStepper:
         self._st = np.zeros(self._parts.state_size)
         self._scratch = np.zeros_like(self._st)
         self._out = np.zeros(self.n_out)
-        self._x = np.zeros(self._parts.B.shape[1])
-        self._yt = np.zeros(self.n_out)
-        self._u_hist = np.zeros((self.nu, self.n_in))
+        self._work = np.zeros(work_size(self.n_in, self.n_out, self._parts.n_features,
+                                        self._parts.n_local))
         #: Added to every output (m, (n_out,)): the sensor offsets of a ModelState.
         self.offset = np.zeros(self.n_out)
 
@@ -623,16 +945,10 @@ class MimoStepper:
         """Continue from a state vector (kernel layout, normalised) and offsets (m)."""
         self._st = np.array(values, dtype=np.float64)
         self.offset = np.array(offset, dtype=np.float64).reshape(self.n_out)
-        lo, _ = self._parts.layout['x_hist']
-        nf = self._x.size
-        rows = [self._st[lo + k * nf: lo + k * nf + self.n_in] for k in range(self.nu)]
-        self._u_hist = np.array(rows[::-1]).reshape(self.nu, self.n_in) * self._parts.u_scale
 
     def reset(self, u_past=None, y_past=None):
         """Restart from rest, feed u_past (nu, n_in) V; y_past (ny, n_out) m sets the outputs."""
         self._st = self._model._mimo_initial_state(u_past, y_past)
-        self._u_hist = np.zeros((self.nu, self.n_in)) if u_past is None else \
-            np.array(u_past, dtype=np.float64).reshape(self.nu, self.n_in)
 
     def step(self, u_k):
         """
@@ -641,17 +957,19 @@ class MimoStepper:
         A non-finite u_k raises DataError and leaves the state untouched.
         """
         u = input_vector(u_k, self.n_in)
-        if not step(u, self._st, self._out, self._x, self._yt, *self._args):
+        if not step(u, self._st, self._out, self._work, *self._args):
             raise DataError(f'stepper input must be finite voltages, got {u_k!r}')
-        self._u_hist[:-1] = self._u_hist[1:]
-        self._u_hist[-1] = u
         return self._out + self.offset
+
+    def step_many(self, u):
+        """Feed input rows u (n, n_in) V in order; returns the outputs (n, n_out) m (step_rows)."""
+        return step_rows(self, u)
 
     def peek(self, u_k):
         """Return the output step(u_k) would return (n_out,) m, without changing the state."""
         u = input_vector(u_k, self.n_in)
         self._scratch[:] = self._st
-        if not step(u, self._scratch, self._out, self._x, self._yt, *self._args):
+        if not step(u, self._scratch, self._out, self._work, *self._args):
             raise DataError(f'stepper input must be finite voltages, got {u_k!r}')
         return self._out + self.offset
 
@@ -668,8 +986,10 @@ class MimoStepper:
 
     @property
     def u_past(self):
-        """Copy of the last nu inputs (nu, n_in), V."""
-        return self._u_hist.copy()
+        """Copy of the last nu inputs (nu, n_in), V (from the state's feature history)."""
+        lo, _ = self._parts.layout['x_hist']
+        rows = self._st[lo:lo + self.nu * self._parts.n_features].reshape(self.nu, -1)
+        return rows[::-1, :self.n_in] * self._parts.u_scale
 
     @property
     def y_past(self):

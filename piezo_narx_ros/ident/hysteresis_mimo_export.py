@@ -22,7 +22,7 @@ class MimoEmitter(Emitter):
     def __init__(self, model):
         super().__init__(model)
         self.p = model.mimo_
-        self.nf = self.p.B.shape[1]
+        self.nf = self.p.n_features
         self.order = self.p.order
         self.lay = self.p.layout
 
@@ -39,7 +39,8 @@ class MimoEmitter(Emitter):
                 'env': 'running mean square of the normalised inputs',
                 'x_hist': f'features x(k-1) .. x(k-n), {self.nf} per sample, newest first',
                 'yt_hist': 'stage-1 outputs yt(k-1) .. yt(k-n), newest first',
-                'y_hist': 'outputs y(k-1) .. y(k-n) (normalised), newest first'}
+                'y_hist': 'outputs y(k-1) .. y(k-n) (normalised), newest first',
+                'yl_hist': "each local output model's outputs, n rows of n_out per model"}
         return ([f'x[{lo} .. {hi - 1}]: {what[k]}' for k, (lo, hi) in self.lay.items()
                  if hi > lo] +
                 ['normalised units (u / HM_U_SCALE, y / HM_Y_SCALE per channel), as the Python',
@@ -62,20 +63,31 @@ class MimoEmitter(Emitter):
                 c_array('HM_YR', p.yr, 'play radii of the stage-1 outputs (normalised)'),
                 c_array('HM_ENV_W', p.env_w, 'weights of the running mean square'),
                 c_scalar('HM_ENV_LAM', p.env_lam, 'running mean square pole'),
-                c_array('HM_A', p.a, 'common denominator a_1 .. a_n'),
+                c_array('HM_A', p.a, 'stage-1 denominator a_1 .. a_n'),
                 c_array('HM_B1', p.B1.reshape(-1, self.order + 1),
                         'stage-1 numerators, row i * n_in + j'),
-                c_array('HM_B', p.B.reshape(-1, self.order + 1),
-                        'output numerators, row i * n_f + f')]
+                c_array('HM_AO', p.a_out, 'output denominators a_1 .. a_n, row l'),
+                c_array('HM_B0', p.B0, 'output numerators of x(k), row l * n_out + i'),
+                c_array('HM_BH', p.Bh, 'output numerators of the feature history (state '
+                        'order), row l * n_out + i')] + (
+            [] if p.n_local == 1 else
+            [c_array('HM_C', p.centres, 'running amplitudes the local output models are '
+                     'centred at')])
 
     def _step(self) -> str:
         ni, no, nf, n = self.n_in, self.n_out, self.nf, self.order
         nur, nyr = self.p.ur.size, self.p.yr.size
         i_yp, i_env = self.lay['y_plays'][0], self.lay['env'][0]
         i_x, i_yt, i_y = self.lay['x_hist'][0], self.lay['yt_hist'][0], self.lay['y_hist'][0]
-        L = ['static void pnr_step_(pnr_state_t *s, const double *u, double *y)', '{',
+        nl = self.p.n_local
+        i_yl = self.lay['yl_hist'][0] if nl > 1 else i_y
+        L = ['/* sum a[k] b[k], k < n (hysteresis_mimo.dot, which may order it otherwise) */',
+             'static double pnr_dot_(const double *a, const double *b, int n)', '{',
+             '    double s = 0.0;', '    int k;', '    for (k = 0; k < n; ++k) {',
+             '        s += a[k] * b[k];', '    }', '    return s;', '}', '',
+             'static void pnr_step_(pnr_state_t *s, const double *u, double *y)', '{',
              '    double *st = s->x;',
-             f'    double un[{ni}], yt[{no}], x[{nf}];',
+             f'    double un[{ni}], yt[{no}], x[{nf}], yl[{nl * no}], w[{nl}];',
              '    double acc, e2, e, p;', '    int i, j, r, f, lag, k;',
              f'    for (i = 0; i < {no}; ++i) {{', '        acc = 0.0;',
              f'        for (j = 0; j < {ni}; ++j) {{',
@@ -113,29 +125,64 @@ class MimoEmitter(Emitter):
              '                p = yt[i] + HM_YR[r];', '            }',
              f'            st[{i_yp} + i * {nyr} + r] = p;', '            x[f++] = yt[i] - p;',
              '        }', '    }',
-             f'    for (i = 0; i < {no}; ++i) {{', '        acc = 0.0;',
-             f'        for (f = 0; f < {nf}; ++f) {{',
-             f'            acc += HM_B[i * {nf} + f][0] * x[f];', '        }',
+             ] + self._products() + [
+             f'    for (r = 0; r < {nl * no}; ++r) {{',
+             f'        acc = pnr_dot_(HM_B0[r], x, {nf}) + pnr_dot_(HM_BH[r], &st[{i_x}], '
+             f'{n * nf});',
              f'        for (lag = 1; lag < {n + 1}; ++lag) {{',
-             f'            for (f = 0; f < {nf}; ++f) {{',
-             f'                acc += HM_B[i * {nf} + f][lag]'
-             f' * st[{i_x} + (lag - 1) * {nf} + f];',
-             '            }',
-             f'            acc -= HM_A[lag - 1] * st[{i_y} + (lag - 1) * {no} + i];', '        }',
-             '        y[i] = acc;', '    }',
+             f'            acc -= HM_AO[r / {no}][lag - 1]'
+             f' * st[{i_yl} + (r / {no}) * {n * no} + (lag - 1) * {no} + r % {no}];',
+             '        }', '        yl[r] = acc;', '    }',
+             ] + (['    w[0] = 1.0;'] if nl == 1 else [
+                 '    /* Blend the local models: hats on the centres HM_C, clamped at the ends */',
+                 f'    for (r = 0; r < {nl}; ++r) {{', '        w[r] = 0.0;', '    }',
+                 f'    e = e < HM_C[0] ? HM_C[0] : (e > HM_C[{nl - 1}] ? HM_C[{nl - 1}] : e);',
+                 '    j = 0;', f'    while (j < {nl - 2} && e > HM_C[j + 1]) {{', '        ++j;',
+                 '    }', '    p = (e - HM_C[j]) / (HM_C[j + 1] - HM_C[j]);',
+                 '    w[j] = 1.0 - p;', '    w[j + 1] = p;']) + [
+             f'    for (i = 0; i < {no}; ++i) {{', '        acc = 0.0;',
+             f'        for (r = 0; r < {nl}; ++r) {{',
+             f'            acc += w[r] * yl[r * {no} + i];',
+             '        }', '        y[i] = acc;', '    }',
              f'    for (k = {n * nf - 1}; k > {nf - 1}; --k) {{',
              f'        st[{i_x} + k] = st[{i_x} + k - {nf}];', '    }',
              f'    for (f = 0; f < {nf}; ++f) {{', f'        st[{i_x} + f] = x[f];', '    }',
              f'    for (k = {n * no - 1}; k > {no - 1}; --k) {{',
              f'        st[{i_yt} + k] = st[{i_yt} + k - {no}];',
              f'        st[{i_y} + k] = st[{i_y} + k - {no}];', '    }',
+             ] + ([] if nl == 1 else [
+                 f'    for (r = 0; r < {nl}; ++r) {{',
+                 f'        for (k = {n * no - 1}; k > {no - 1}; --k) {{',
+                 f'            st[{i_yl} + r * {n * no} + k] = '
+                 f'st[{i_yl} + r * {n * no} + k - {no}];',
+                 '        }', f'        for (i = 0; i < {no}; ++i) {{',
+                 f'            st[{i_yl} + r * {n * no} + i] = yl[r * {no} + i];', '        }',
+                 '    }']) + [
              f'    for (i = 0; i < {no}; ++i) {{', f'        st[{i_yt} + i] = yt[i];',
              f'        st[{i_y} + i] = y[i];', '        y[i] *= HM_Y_SCALE[i];', '    }', '}']
         return '\n'.join(L)
 
+    def _products(self) -> list:
+        """Return the C lines of the stage-1 outputs' product features (hysteresis_mimo.CROSS)."""
+        no = self.n_out
+        out = []
+        if self.p.cross >= 1:
+            out += ['    /* Products of the stage-1 outputs */',
+                    f'    for (i = 0; i < {no}; ++i) {{',
+                    f'        for (j = i + 1; j < {no}; ++j) {{',
+                    '            x[f++] = yt[i] * yt[j];', '        }', '    }']
+        if self.p.cross >= 2:
+            out += [f'    for (i = 0; i < {no}; ++i) {{', f'        for (j = 0; j < {no}; ++j) {{',
+                    '            if (j != i) {', '                x[f++] = yt[i] * fabs(yt[j]);',
+                    '            }', '        }', '    }']
+        return out
+
     def _history(self) -> str:
         no, ny, nu, ni = self.n_out, self.ny, self.nu, self.n_in
         i_y = self.lay['y_hist'][0]
+        # Several local output models: each one's history starts at the given outputs.
+        nl = self.p.n_local if self.p.n_local > 1 else 0
+        i_yl = self.lay['yl_hist'][0]
         return '\n'.join([
             '/* Rest, then the input rows u_past (as stepper(u_past, y_past) does); y_past, when',
             ' * given, sets the output history (oldest row first). */',
@@ -148,6 +195,8 @@ class MimoEmitter(Emitter):
             f'            for (i = 0; i < {no}; ++i) {{',
             f'                s->x[{i_y} + k * {no} + i] = y_past[({ny - 1} - k) * {no} + i]'
             ' / HM_Y_SCALE[i];',
+            ] + [f'                s->x[{i_yl + m * ny * no} + k * {no} + i] = '
+                 f's->x[{i_y} + k * {no} + i];' for m in range(nl)] + [
             '            }', '        }', '    }', '}'])
 
     def definitions(self) -> str:

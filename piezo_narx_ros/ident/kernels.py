@@ -70,6 +70,13 @@ def narx_step(u_k, ubuf, ybuf, Wu, Wy, b1, w2, b2):
 
 
 @njit(cache=True)
+def narx_step_many(u, y, ubuf, ybuf, Wu, Wy, b1, w2, b2):
+    """Run narx_step for each u[k] (V) in order, y[k] (m) filled: one compiled call per batch."""
+    for k in range(u.size):
+        y[k] = narx_step(u[k], ubuf, ybuf, Wu, Wy, b1, w2, b2)
+
+
+@njit(cache=True)
 def narx_peek(u_k, ubuf, ybuf, scratch, Wu, Wy, b1, w2, b2):
     """
     Return y(k) (m) that narx_step would return for u_k (V), leaving ubuf and ybuf untouched.
@@ -125,6 +132,13 @@ def arx_step(u_k, ubuf, ybuf, bu, ay, c):
 
 
 @njit(cache=True)
+def arx_step_many(u, y, ubuf, ybuf, bu, ay, c):
+    """Run arx_step for each u[k] (V) in order, y[k] (m) filled: one compiled call per batch."""
+    for k in range(u.size):
+        y[k] = arx_step(u[k], ubuf, ybuf, bu, ay, c)
+
+
+@njit(cache=True)
 def arx_peek(u_k, ubuf, ybuf, scratch, bu, ay, c):
     """y(k) that arx_step would return for u_k, leaving ubuf and ybuf untouched."""
     for i in range(ubuf.size - 1):
@@ -159,6 +173,7 @@ class Stepper:
 
     #: Added to every output (m): the sensor offset of a ModelState (estimate_state).
     offset = 0.0
+    _step_many = None   # the family's compiled loop (u, y, ubuf, ybuf, *params), see step_many
 
     def __init__(self, params, nu, ny, u_past=None, y_past=None):
         self._params = tuple(params)
@@ -175,6 +190,20 @@ class Stepper:
         self._ybuf[:] = _history(y_past, self.ny, 'y_past')
         if y_past is not None:
             self._ybuf -= self.offset
+
+    def step_many(self, u):
+        """
+        Feed the inputs u (n,) V in order; returns the free-run outputs y (n,) m.
+
+        The same numbers as n step() calls, in one compiled call (a batch of the estimator's
+        stream). A non-finite input raises DataError before any step: the histories stay
+        untouched.
+        """
+        u = finite_inputs(u)
+        y = np.empty(u.size)
+        type(self)._step_many(u, y, self._ubuf, self._ybuf, *self._params)
+        y += self.offset
+        return y
 
     @property
     def y_past(self):
@@ -211,8 +240,25 @@ def _finite_input(u_k) -> float:
     return u
 
 
+def finite_inputs(u) -> np.ndarray:
+    """Return u as a contiguous (n,) float64 array (V); DataError if not 1-D or not all finite."""
+    try:
+        a = np.ascontiguousarray(u, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DataError('stepper inputs must be an array of voltages') from None
+    if a.ndim != 1:
+        raise DataError(f'stepper inputs must be 1-D (n,), got shape {a.shape}')
+    if not np.isfinite(a).all():
+        k = int(np.flatnonzero(~np.isfinite(a))[0])
+        raise DataError(f'stepper input must be a finite voltage, got {float(a[k])!r} at '
+                        f'index {k}')
+    return a
+
+
 class NARXStepper(Stepper):
     """Stepper of a NARXNetwork (see Stepper)."""
+
+    _step_many = staticmethod(narx_step_many)
 
     def step(self, u_k):
         """
@@ -233,6 +279,8 @@ class NARXStepper(Stepper):
 
 class ARXStepper(Stepper):
     """Stepper of an ARXModel (see Stepper)."""
+
+    _step_many = staticmethod(arx_step_many)
 
     def step(self, u_k):
         """
@@ -414,6 +462,30 @@ def _block(x, rows, cols, name):
     return a.reshape(rows, cols)
 
 
+def step_rows(stepper, u) -> np.ndarray:
+    """
+    Step a several-input Stepper through the rows of u (n, n_in) V; returns (n, n_out) m.
+
+    The same numbers as n step() calls. Every row is checked before the first step, so a bad
+    row raises DataError with the state untouched.
+    """
+    try:
+        a = np.asarray(u, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DataError('stepper inputs must be an array of voltages') from None
+    if a.ndim != 2 or a.shape[1] != stepper.n_in:
+        raise DataError(f'stepper inputs must be rows of {stepper.n_in} voltages (n, '
+                        f'{stepper.n_in}), got shape {a.shape}')
+    bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
+    if bad.size:
+        raise DataError(f'stepper input must be finite voltages, got {a[bad[0]]!r} at row '
+                        f'{bad[0]}')
+    out = np.empty((a.shape[0], stepper.n_out))
+    for k in range(a.shape[0]):
+        out[k] = stepper.step(a[k])
+    return out
+
+
 class VectorStepper:
     """
     Free-run a model of several inputs or outputs one sample at a time.
@@ -454,6 +526,10 @@ class VectorStepper:
         if not type(self)._step(u, self._ubuf, self._ybuf, self._out, *self._params):
             raise DataError(f'stepper input must be finite voltages, got {u_k!r}')
         return self._out + self.offset
+
+    def step_many(self, u):
+        """Feed input rows u (n, n_in) V in order; returns the outputs (n, n_out) m (step_rows)."""
+        return step_rows(self, u)
 
     def peek(self, u_k):
         """Return the output step(u_k) would return (n_out,) m, without changing the histories."""

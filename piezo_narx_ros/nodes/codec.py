@@ -349,13 +349,17 @@ class _BatchShape:
     start: int          # byte offset of the first point in the buffer
     names: tuple
     count: int
-    dtype: np.dtype
+    dtype: np.dtype     # of the points from `run` on
     n_pos: int
     n_eff: int
+    head: np.dtype | None   # point 0, when its layout is not the others' (_remember_shape)
+    run: int            # byte offset of the strided points: start, or after point 0
 
 
-# Last batch shape seen per buffer length: a stream's batches share one (same names, same size).
+# Batch shapes seen, per buffer length: a stream's batches share one (same names, same size).
+# A few per length, so that streams of different shapes that happen to be as long stay fast.
 _SHAPES: dict = {}
+_SHAPES_PER_LENGTH = 4
 # Encoded batches per (names, points, positions, efforts): the template bytes of that shape, the
 # offset of its first point and the point dtype.
 _ENCODED: dict = {}
@@ -363,21 +367,31 @@ _ENCODED: dict = {}
 
 def _decode_known_shape(buf: bytes) -> SampleBatch | None:
     """Decode a batch of a shape seen before with one structured view; None if not known."""
-    shape = _SHAPES.get(len(buf))
-    if shape is None or buf[12:shape.start] != shape.prefix or buf[:4] != shape.encapsulation:
-        return None
-    points = np.frombuffer(buf, shape.dtype, shape.count, shape.start)
-    if not ((points['n_pos'] == shape.n_pos).all()
-            and (points['n_vae'] == (0, 0, shape.n_eff)).all()):
-        return None       # same length, other shapes inside: the general path decides
+    for shape in _SHAPES.get(len(buf), ()):
+        if buf[12:shape.start] != shape.prefix or buf[:4] != shape.encapsulation:
+            continue
+        parts = [np.frombuffer(buf, shape.dtype, shape.count - (shape.head is not None),
+                               shape.run)]
+        if shape.head is not None:
+            parts.insert(0, np.frombuffer(buf, shape.head, 1, shape.start))
+        if all((p['n_pos'] == shape.n_pos).all() and (p['n_vae'] == (0, 0, shape.n_eff)).all()
+               for p in parts):
+            return _known_batch(buf, shape, parts)
+    return None       # no shape of this length matches: the general path decides
+
+
+def _known_batch(buf: bytes, shape: _BatchShape, parts: list) -> SampleBatch:
+    """Return the SampleBatch of `parts`, structured views of `buf`'s points in order."""
+    def field(name: str) -> np.ndarray:
+        return parts[0][name] if len(parts) == 1 else np.concatenate([p[name] for p in parts])
     e = '<' if buf[1] == 1 else '>'
     sec, nsec = struct.unpack_from(e + 'iI', buf, 4)
-    stamps = points['sec'].astype(np.int64) * 1_000_000_000 + points['nsec']
+    stamps = field('sec').astype(np.int64) * 1_000_000_000 + field('nsec')
     stamps += sec * 1_000_000_000 + nsec
     empty = np.empty((shape.count, 0))
     return SampleBatch(stamps, list(shape.names),
-                       points['pos'] if shape.n_pos else empty,
-                       points['eff'] if shape.n_eff else empty)
+                       field('pos') if shape.n_pos else empty,
+                       field('eff') if shape.n_eff else empty)
 
 
 def decode_joint_trajectory(buf: bytes) -> SampleBatch:
@@ -401,6 +415,7 @@ def decode_joint_trajectory(buf: bytes) -> SampleBatch:
             raise DataError(f'malformed JointTrajectory ({len(buf)} bytes): {count} points '
                             'cannot fit')
         stamps, positions, efforts = [], [], []
+        first = off
         for k in range(count):
             pos, eff, (sec, nsec), next_off = _read_point(e, data, off)
             if k == 0 or (k == 1 and (len(pos), len(eff)) == (len(positions[0]),
@@ -411,11 +426,11 @@ def decode_joint_trajectory(buf: bytes) -> SampleBatch:
                 if layout is not None and off + (count - k) * layout.size <= len(data):
                     run = _read_run(buf, off + 4, count - k, layout, e, len(pos), len(eff))
                     if run is not None:
-                        if not k and isinstance(buf, bytes) and len(names) in (
+                        if isinstance(buf, bytes) and len(names) in (
                                 0, len(pos), len(eff)) and len(names) >= len(pos) \
                                 and len(names) >= len(eff):
-                            _remember_shape(buf, off + 4, names, count, layout, e, len(pos),
-                                            len(eff))
+                            _remember_shape(buf, first + 4, off + 4, names, count, layout, e,
+                                            len(pos), len(eff))
                         if k:
                             stamps = np.concatenate((stamps, run[0]))
                             positions = np.concatenate((np.reshape(positions, (1, -1)), run[1]))
@@ -440,13 +455,24 @@ def decode_joint_trajectory(buf: bytes) -> SampleBatch:
     return SampleBatch(np.asarray(stamps, dtype=np.int64) + t0, names, positions, efforts)
 
 
-def _remember_shape(buf: bytes, start: int, names, count: int, layout: _PointLayout, e: str,
-                    n_pos: int, n_eff: int) -> None:
-    """Keep the shape of a well-formed batch whose points are one strided run from point 0."""
+def _remember_shape(buf: bytes, start: int, run: int, names, count: int, layout: _PointLayout,
+                    e: str, n_pos: int, n_eff: int) -> None:
+    """
+    Keep the shape of a well-formed batch: points at byte `start`, one strided run from `run`.
+
+    run > start: point 0 has a layout of its own (it starts at the other 8-byte phase: e.g. the
+    positions of one axis, 36 bytes, then 32 for every later point).
+    """
     if len(_SHAPES) > 64:
         _SHAPES.clear()
-    _SHAPES[len(buf)] = _BatchShape(bytes(buf[:4]), bytes(buf[12:start]), start, tuple(names),
-                                    count, _point_dtype(e, layout, n_pos, n_eff), n_pos, n_eff)
+    head = None
+    if run > start:
+        head = _point_dtype(e, _point_layout((start - 4) % 8, n_pos, n_eff, repeat=False),
+                            n_pos, n_eff)
+    shape = _BatchShape(bytes(buf[:4]), bytes(buf[12:start]), start, tuple(names), count,
+                        _point_dtype(e, layout, n_pos, n_eff), n_pos, n_eff, head, run)
+    kept = [k for k in _SHAPES.get(len(buf), ()) if k != shape]
+    _SHAPES[len(buf)] = [shape] + kept[:_SHAPES_PER_LENGTH - 1]
 
 
 def encode_joint_trajectory(t_ns: Sequence[int], names: Sequence[str], position=None,

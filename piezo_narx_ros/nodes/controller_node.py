@@ -144,18 +144,27 @@ class ControllerNode(PiezoNode):
             u_limits = {'u_min': u_rng[:, 0] - pad, 'u_max': u_rng[:, 1] + pad}
         else:
             u_limits = {'u_min': p['u_min'], 'u_max': p['u_max']}
+        # A model of one chain per axis: each chain gets the one-axis controller's options.
+        chain = {} if getattr(self.model, 'chains_', None) is None or p['mode'] == 'linear' \
+            else {'target': None if p['target'] == 'auto' else p['target'],
+                  'advance': None if p['compensate_advance'] else 0.0, 'kp': p['kp'],
+                  'ki': p['ki'], 'feedback_timeout': p['feedback_timeout'],
+                  'window': p['window']}
         self.ctl = AxesController(
             self.model, mode=p['mode'], fs=p['fs'] or None, **u_limits,
             slew_rate=p['slew_rate'] or math.inf, range_margin=p['range_margin'],
-            max_fill=p['max_fill'], rate_tolerance=p['rate_tolerance'], **limits)
+            max_fill=p['max_fill'], rate_tolerance=p['rate_tolerance'], **limits, **chain)
+        self.ctl.warm_up()       # compile/load the solvers before the first sample
         self.axis = p['axis']
         self._names = list(self.model.inputs)        # commands: the model's inputs
         self._ref_names = list(self.model.outputs)   # references, deflections: its outputs
         self._wire(p)
         self.health = None
+        how = ('one chain per axis, coupling compensated' if self.ctl.chains else
+               'vector inverse' if p['mode'] != 'linear' else 'static line per axis')
         self.get_logger().info(
             f"{p['mode']} of {self._ref_names} with {type(self.model).__name__} "
-            f"({p['model']}) at {self.ctl.fs:g} Hz, commands on {self._names}")
+            f"({p['model']}, {how}) at {self.ctl.fs:g} Hz, commands on {self._names}")
 
     def _wire(self, p) -> None:
         """Create the publisher, subscriptions, timers, services and diagnostics."""
@@ -224,8 +233,6 @@ class ControllerNode(PiezoNode):
         self.publish(self.ctl.on_reference(*got))
 
     def on_measurement(self, msg: bytes) -> None:
-        if self.vector:       # the modes of several axes are sensorless
-            return
         got = self._value(msg, 'deflection')
         if got is None:
             self.ctl.stats.measurements_rejected += 1
@@ -251,8 +258,6 @@ class ControllerNode(PiezoNode):
         self.publish([c for t, r in got for c in self.ctl.on_reference(t, r)])
 
     def on_measurement_batch(self, msg: bytes) -> None:
-        if self.vector:
-            return
         got = self._values(msg, 'deflection')
         if got is None:
             self.ctl.stats.measurements_rejected += 1

@@ -18,7 +18,6 @@ from __future__ import annotations
 import threading
 import time
 
-import rclpy
 from rclpy.clock import Clock, ClockType
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
@@ -147,10 +146,10 @@ class PlayerNode(PiezoNode):
         self._clock_pub.publish(msg)
 
     def _exit_if_done(self) -> None:
-        # Shut down from an executor callback: doing it from the pacing thread deadlocks the
-        # EventsExecutor. The timer period also lets reliable writers deliver the tail.
+        # From an executor callback: ending from the pacing thread deadlocks the EventsExecutor.
+        # The timer period also lets reliable writers deliver the tail.
         if self.done:
-            rclpy.try_shutdown(context=self.context)
+            self.finish()
 
     def _status(self):
         values = {'bag': self.params['bag'], 'published': self.published,

@@ -30,8 +30,10 @@ OPTIONS = {
                  'loop': False},
     # The identification protocol (docs/envelope.md): `cycles` repeats of [hold, multisine up to
     # f_max, slow sine at slow_freq decaying from full to a fifth of the amplitude, steps held
-    # 0.15-1 s, ramps at 0.2-30 amplitudes/s], each repeat with fresh random draws.
-    'protocol': {'cycles': 2, 'f_max': 100.0, 'slow_freq': 0.5},
+    # 0.15-1 s, ramps at 0.2-30 amplitudes/s], each repeat with fresh random draws. shift: the
+    # moves after each hold rotated by this fraction (several axes: axis i of n by i/n, so that
+    # the slow sine, the same on every seed, never drives two axes at once).
+    'protocol': {'cycles': 2, 'f_max': 100.0, 'slow_freq': 0.5, 'shift': 0.0},
     # A rig's identification record (docs/real.md): `hold` s at the offset, then one sine at
     # `freq` Hz whose amplitude grows from start_fraction to 1 (linear or exponential growth).
     'growing_sine': {'freq': 1.0, 'hold': 0.0, 'growth': 'linear', 'start_fraction': 0.05},
@@ -218,12 +220,15 @@ def _protocol(t, fs, opt, rng):
     excitation), a slow sine whose amplitude decays linearly from 1 to 0.2 (nested loops at every
     amplitude), random levels held 0.15-1 s (steps and creep), and ramps between random levels at
     random rates (0.2-30 amplitudes/s, log-uniform) with random holds up to 0.3 s. Repeating the
-    cycle puts every kind of move in both halves of a 50/50 estimation/validation split.
+    cycle puts every kind of move in both halves of a 50/50 estimation/validation split. `shift`
+    rotates each cycle's moves after its hold (the record still starts at rest, then jumps into
+    a section and ends where that section began).
     """
     cycles = opt['cycles']
     if isinstance(cycles, bool) or not isinstance(cycles, (int, np.integer)) or cycles < 1:
         raise ConfigError(f'signal parameter cycles must be an integer >= 1, got {cycles!r}')
     slow = _check_freq('slow_freq', opt['slow_freq'], fs)
+    shift = _num('shift', opt['shift'], 0.0, 1.0)
     n = t.size
     bounds = np.linspace(0, n, int(cycles) + 1).astype(int)
     out = np.empty(n)
@@ -240,7 +245,10 @@ def _protocol(t, fs, opt, rng):
         parts.append(np.linspace(1.0, 0.2, tt.size) * np.sin(2.0 * np.pi * slow * tt))
         parts.append(_random_holds(sizes[3], fs, rng))
         parts.append(_random_ramps(sizes[4], fs, rng, parts[-1][-1] if sizes[3] else 0.0))
-        out[bounds[c]:bounds[c + 1]] = np.concatenate(parts)
+        moves = np.concatenate(parts[1:])       # the hold stays first: each cycle starts at rest
+        if shift:
+            moves = np.roll(moves, -int(round(shift * moves.size)))
+        out[bounds[c]:bounds[c + 1]] = np.r_[parts[0], moves]
     return out
 
 
