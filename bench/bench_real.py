@@ -18,6 +18,10 @@ seed the bench, in a temporary directory and only through the command line:
    (no history), whose sensor reads either zero or the estimation session's zero, whichever the
    model matches better (a model fitted on offset records may have absorbed their zero).
    ratio = RMSE(init) / RMSE(reference); the issue's target is ratio <= 2.
+   `--true-past` adds a diagnosis: the same model run from rest through the record's own
+   history (rebuilt from the seed in its file) and the record, told the session's sensor zero,
+   scored after the same window: what a perfect state estimate would give, so that
+   init / true-past measures the estimator and true-past / reference the fit.
 
 Scenarios (SCENARIOS below):
   session  one session (own sensor zero): EST and VAL protocol records, each after its own
@@ -37,7 +41,7 @@ the init columns are empty and the reference starts from the first measured outp
 
 Run: python bench/bench_real.py [--quick] [--scenarios session growing rate yan9a]
      [--plants bouc_wen preisach] [--seeds 0 1 2] [--presets paper envelope] [--data DIR]
-     [--jobs 2] [--keep DIR] [--json FILE]
+     [--jobs 2] [--keep DIR] [--json FILE] [--true-past]
 """
 import argparse
 import json
@@ -265,10 +269,11 @@ def print_row(row):
     if row.error:
         print(f'  {row.record:<28} {row.model:<9} error: {row.error}', flush=True)
         return
+    past = row.extra.get('true_past_rmse')
     print(f'  {row.record:<28} {row.model:<9} {_fmt_score(row.today)} '
           f'{_fmt_score(row.init, "not available yet")} {_fmt_score(row.reference, "-")} '
-          f'{_fmt_ratio(row.ratio("init"))} {_fmt_ratio(row.ratio("today"))}  {row.structure}',
-          flush=True)
+          f'{_fmt_ratio(row.ratio("init"))} {_fmt_ratio(row.ratio("today"))}  {row.structure}'
+          + ('' if past is None else f'  true past {1e6 * past:.3f}um'), flush=True)
 
 
 HEADER = (f'  {"record":<28} {"model":<9} {"today: R²  RMSE":>19} {"--init-samples":>19} '
@@ -334,8 +339,8 @@ def structure_label(model_path):
     return label + (f', seed={seed})' if seed is not None and s.get('kind') != 'arx' else ')')
 
 
-def run_cell(cli, work, name, plant, seed, presets, rows):
-    """One scenario x plant x seed: simulate, fit, score; appends Rows."""
+def run_cell(cli, work, name, plant, seed, presets, rows, true_past=False):
+    """One scenario x plant x seed: simulate, fit, score; appends Rows (true_past: a column)."""
     sc = SCENARIOS[name]
     work.mkdir(parents=True, exist_ok=True)
     n_fit = len(sc.est) + len(sc.val)
@@ -355,6 +360,10 @@ def run_cell(cli, work, name, plant, seed, presets, rows):
               + ' (target <= 60 s)', flush=True)
     print(HEADER, flush=True)
     n_init = int(round(INIT_SECONDS * sc.fs))
+    if true_past:
+        import numpy as np
+        with np.load(est[0], allow_pickle=False) as z:
+            zero = json.loads(str(z['meta']))['sensor']['offset_m']
     for take, path, rest in zip(sc.tests, tests, rests):
         for model, (mpath, info, wall, how) in models.items():
             row = Row(name, plant, seed, take.name, model, extra={'fit_s': wall, 'fit': how})
@@ -366,10 +375,38 @@ def run_cell(cli, work, name, plant, seed, presets, rows):
                     row.today = cli.evaluate(mpath, path)
                     row.init = cli.evaluate(mpath, path, n_init)
                     row.reference, row.extra['reference_zero'] = reference(cli, mpath, rest)
+                    if true_past:
+                        row.extra['true_past_rmse'] = true_past_rmse(mpath, path, zero, n_init)
                 except RuntimeError as exc:
                     row.error = str(exc)
             print_row(row)
             rows.append(row)
+
+
+def true_past_rmse(model_path, data_path, zero_m, n_skip):
+    """
+    RMSE (m) after n_skip samples of the model run through the record's history, then the record.
+
+    The history is rebuilt from the record's file (plant.random_history with its seed, as
+    `piezo-narx simulate --history` drew it); zero_m: the sensor zero the model was fitted with
+    (m), subtracted from the record's own. None when the record has no history.
+    """
+    import numpy as np
+
+    from piezo_narx_ros.ident.model_io import load_model
+    from piezo_narx_ros.plant import random_history
+
+    with np.load(data_path, allow_pickle=False) as z:
+        u, y, fs, meta = z['u'], z['y'], float(z['fs']), json.loads(str(z['meta']))
+    past = meta.get('history')
+    if not past:
+        return None
+    u_hist = random_history(fs, past['seconds'], past['amplitude_V'],
+                            offset=meta.get('offset_V', 0.0), seed=past['seed'],
+                            end=float(u[0]), hold=past['hold_s'])
+    sim = load_model(model_path).simulate(np.r_[u_hist, u])[u_hist.size:]
+    err = (y - sim - (meta['sensor']['offset_m'] - zero_m))[n_skip:]
+    return float(np.sqrt(np.mean(err * err)))
 
 
 def reference(cli, model, rests):
@@ -502,6 +539,9 @@ def main(argv=None):
     p.add_argument('--keep', metavar='DIR', help='work in DIR and keep it (default: a temporary '
                                                  'directory, removed)')
     p.add_argument('--json', metavar='FILE', help='write every row as JSON')
+    p.add_argument('--true-past', action='store_true',
+                   help="also score each model run through the record's own (rebuilt) history: "
+                        'the error a perfect state estimate would leave')
     args = p.parse_args(argv)
     if args.quick:
         args.plants, args.seeds = ['bouc_wen'], [0]
@@ -521,7 +561,7 @@ def main(argv=None):
             for plant in args.plants:
                 for seed in args.seeds:
                     run_cell(cli, root / f'{name}_{plant}_{seed}', name, plant, seed,
-                             args.presets, rows)
+                             args.presets, rows, args.true_past)
     finally:
         if not args.keep:
             shutil.rmtree(root, ignore_errors=True)

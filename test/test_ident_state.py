@@ -71,7 +71,7 @@ def test_state_recovers_a_history_the_model_itself_wrote(hnarx):
 
     Also after a larger sweep than the window saw. The offset alone is not identified: a memory
     the window cannot tell apart (the largest plays, frozen over it) adds a constant too, and the
-    estimate splits the sum its own way (measured: -1.31 um for -2 um); the output is right.
+    estimate splits the sum its own way (measured: -3.10 um for -2 um); the output is right.
     """
     hist = ramp((80.0, -60.0, 20.0), 0.5)       # turning points inside the trained range
     t = np.arange(4000) / FS
