@@ -96,6 +96,16 @@ def state_layout(n_in, n_out, order, n_local=1, cross=CROSS):
 
 # ------------------------------------------------------------------------------ kernels
 @njit(cache=True)
+def _play(p, v, r):
+    """Return a play operator's new output: its last output p held within [v - r, v + r]."""
+    if p < v - r:
+        return v - r
+    if p > v + r:
+        return v + r
+    return p
+
+
+@njit(cache=True)
 def _features_row(un, yt, st, ur, yr, env_w, env_lam, cross, x, i_up, i_yp, i_env):
     """Advance the operators (plays, amplitude) by one sample and fill x (n_f,)."""
     n_in, n_out = un.size, yt.size
@@ -110,11 +120,7 @@ def _features_row(un, yt, st, ur, yr, env_w, env_lam, cross, x, i_up, i_yp, i_en
         f += 1
     for j in range(n_in):
         for r in range(ur.size):
-            p = st[i_up + j * ur.size + r]
-            if p < un[j] - ur[r]:
-                p = un[j] - ur[r]
-            elif p > un[j] + ur[r]:
-                p = un[j] + ur[r]
+            p = _play(st[i_up + j * ur.size + r], un[j], ur[r])
             st[i_up + j * ur.size + r] = p
             x[f] = p
             f += 1
@@ -129,11 +135,7 @@ def _features_row(un, yt, st, ur, yr, env_w, env_lam, cross, x, i_up, i_yp, i_en
         f += 4
     for i in range(n_out):
         for r in range(yr.size):
-            p = st[i_yp + i * yr.size + r]
-            if p < yt[i] - yr[r]:
-                p = yt[i] - yr[r]
-            elif p > yt[i] + yr[r]:
-                p = yt[i] + yr[r]
+            p = _play(st[i_yp + i * yr.size + r], yt[i], yr[r])
             st[i_yp + i * yr.size + r] = p
             x[f] = yt[i] - p
             f += 1
