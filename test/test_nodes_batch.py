@@ -224,7 +224,9 @@ def test_driver_negotiates_version2_with_fake_rig_and_answers_batches():
     drv = start_node('driver_node', '-p', f'target_port:={rig.address[1]}', '-p',
                      f'local_port:={_free_port()}', '-p', 'protocol_version:=0', '-p',
                      f'batch:={batch}', '-p', f'sample_rate:={fs}', '-p', 'reply_timeout:=1.0',
-                     ns='/bdrv')
+                     # a >0.1 s stall of this publisher under load would rightly ramp the
+                     # plant to 0 V and break the bit-exact comparison below
+                     '-p', 'watchdog_timeout:=30.0', ns='/bdrv')
     u = 50.0 * np.sin(np.arange(200) / 15.0)          # well inside the slew limit
     try:
         assert probe.wait_for(lambda: probe.pub.get_subscription_count() >= 1, 30.0)
