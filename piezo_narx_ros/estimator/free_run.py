@@ -222,7 +222,7 @@ class FreeRunEstimator:
     @property
     def steady(self) -> bool:
         """
-        True while measurements only feed the running error: they may then be handed in late.
+        Say whether measurements only feed the running error now (they may be handed in late).
 
         The free run has started, no re-anchoring or memory bracket reads them and no command
         is held. A caller may hold measurements back while this holds, up to `pairing_horizon`
@@ -236,7 +236,7 @@ class FreeRunEstimator:
 
     @property
     def pairing_horizon(self) -> int:
-        """Samples of estimates kept for a late measurement to be paired with (at least)."""
+        """Return how many samples of estimates are kept for late measurements to pair with."""
         return 2 * self._hist
 
     def _hand_over(self) -> None:

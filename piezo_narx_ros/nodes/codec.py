@@ -395,7 +395,7 @@ def _known_batch(buf: bytes, shape: _BatchShape, parts: list) -> SampleBatch:
 
 
 def _known_shape_of(buf) -> _BatchShape | None:
-    """The remembered shape whose header (but the stamp) `buf` repeats, or None."""
+    """Return the remembered shape whose header (but the stamp) `buf` repeats, or None."""
     if not isinstance(buf, bytes):
         return None
     for shape in _SHAPES.get(len(buf), ()):
