@@ -20,7 +20,7 @@ For each seed s (default 0..4, as bench_envelope.py):
    10 Hz. Also the controller's compute per sample (p50 / p99, us).
 
     python bench/bench_axes.py --preset envelope [--seeds 0 1 2 3 4] [--json out.json]
-                               [--no-control] [--hnarx '{"na": 4, "nb": 4}']
+                               [--no-control] [--hnarx '{"na": 4, "nb": 4}'] [--seconds 50]
 """
 from __future__ import annotations
 
@@ -60,13 +60,13 @@ def stage(seed: int):
     return make_axis_plants([], STAGE, fs=FS, seed=seed)
 
 
-def identify(seed: int, preset: str, jobs: int, hnarx=None):
+def identify(seed: int, preset: str, jobs: int, hnarx=None, seconds: float = 25.0):
     """
-    One 2 x 2 model on 25 s of the protocol on each axis: (model, fit s, label, result).
+    One 2 x 2 model on `seconds` of the protocol on each axis: (model, fit s, label, result).
 
     hnarx: HysteresisNARX options over the preset's (e.g. {'na': 4, 'nb': 4}).
     """
-    u = make_signal('protocol', FS, 25.0, 100.0, seed=seed, n_axes=len(AXES))
+    u = make_signal('protocol', FS, seconds, 100.0, seed=seed, n_axes=len(AXES))
     y, _ = stage(seed).run(u)
     cfg = preset_config(preset, seed, jobs, hnarx)
     t0 = time.perf_counter()
@@ -174,10 +174,13 @@ def main(argv=None) -> int:
     ap.add_argument('--json', help='write every figure to this file')
     ap.add_argument('--hnarx', type=json.loads, default={}, metavar='JSON',
                     help="HysteresisNARX options over the preset's, e.g. '{\"na\": 4, \"nb\": 4}'")
+    ap.add_argument('--seconds', type=float, default=25.0,
+                    help='length of the identification record, s (default 25)')
     args = ap.parse_args(argv)
     runs, report = [], {'preset': args.preset, 'seeds': {}}
     for seed in args.seeds:
-        model, fit_s, label, result = identify(seed, args.preset, args.jobs, args.hnarx)
+        model, fit_s, label, result = identify(seed, args.preset, args.jobs, args.hnarx,
+                                               args.seconds)
         coupling = getattr(model, 'coupling_', None)
         extra = '' if coupling is None else \
             f', coupling {np.round(coupling, 4).tolist()} (stage: [[1, 0.05], [0.12, 1]])'
