@@ -160,6 +160,15 @@ class EstimatorNode(PiezoNode):
         """(stamps (n,) int64 ns, `field` of the axis (n,)) of a batch; None when refused."""
         try:
             batch = decode_joint_trajectory(msg)
+        except Exception as exc:  # noqa: BLE001 - refused below, like a batch without the axis
+            batch = exc
+        return self._batch_values(batch, field)
+
+    def _batch_values(self, batch, field: str):
+        """_values of a decoded batch, or of the exception that refused it (warned, None)."""
+        try:
+            if isinstance(batch, Exception):
+                raise batch
             if self.est.vector:
                 names = self._in_names if field == 'effort' else self._out_names
                 return batch.t_ns, batch.columns(field, names)
@@ -217,17 +226,10 @@ class EstimatorNode(PiezoNode):
 
     def _take_held(self) -> None:
         """Hand the held measurement batches to the estimator (FreeRunEstimator.handover)."""
-        for _, got in self._held.take():
-            try:
-                if isinstance(got, Exception):
-                    raise got
-                values = (got.columns('position', self._out_names) if self.est.vector
-                          else got.column('position', self.axis))
-            except Exception as exc:  # noqa: BLE001 - as in _values: warn and go on
-                self.get_logger().warning(f'position batch ignored: {exc}',
-                                          throttle_duration_sec=1.0)
-                continue
-            self._publish_batch(*self.est.on_measurements(got.t_ns, values))
+        for _, batch in self._held.take():
+            got = self._batch_values(batch, 'position')
+            if got is not None:
+                self._publish_batch(*self.est.on_measurements(*got))
 
     def on_idle_check(self) -> None:
         """Commands stopped while one was held back: decide on it now."""
