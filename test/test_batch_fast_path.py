@@ -81,16 +81,22 @@ def _batches(rng, n):
         k += m
 
 
-@pytest.mark.parametrize('init', ['rest', 'measurement'])
-def test_estimator_batch_path_equals_one_sample_path(init):
-    rng = np.random.default_rng(7)
-    model = toy_narx()
-    n = 6000
+def _twin_estimators(seed, init, n=6000):
+    """rng, a troubled stream (stamps, volts), measurements and two identical estimators."""
+    rng = np.random.default_rng(seed)
     t, u = _command_stream(rng, n)
     y_meas = rng.normal(0.0, 1e-7, n)
     # A narrowed range (negative margin): estimates and commands outside it, counted.
-    one, many = (FreeRunEstimator(model, init=init, window=300, init_window=0.02,
-                                  range_margin=-0.3) for _ in range(2))
+    model = toy_narx()
+    twins = [FreeRunEstimator(model, init=init, window=300, init_window=0.02,
+                              range_margin=-0.3) for _ in range(2)]
+    return rng, t, u, y_meas, twins
+
+
+@pytest.mark.parametrize('init', ['rest', 'measurement'])
+def test_estimator_batch_path_equals_one_sample_path(init):
+    n = 6000
+    rng, t, u, y_meas, (one, many) = _twin_estimators(7, init, n)
     got_one, got_many = [], []
     for sl in _batches(rng, n):
         tl, ul = t[sl].tolist(), u[sl].tolist()
@@ -120,13 +126,8 @@ def test_estimator_batch_path_equals_one_sample_path(init):
 @pytest.mark.parametrize('init', ['rest', 'measurement'])
 def test_measurements_held_back_while_steady_change_nothing(init):
     """FreeRunEstimator.steady / handover: measurements handed in late, the same results."""
-    rng = np.random.default_rng(8)
-    model = toy_narx()
     n = 6000
-    t, u = _command_stream(rng, n)
-    y_meas = rng.normal(0.0, 1e-7, n)
-    now, late = (FreeRunEstimator(model, init=init, window=300, init_window=0.02,
-                                  range_margin=-0.3) for _ in range(2))
+    rng, t, u, y_meas, (now, late) = _twin_estimators(8, init, n)
     held, handed, out_now, out_late = [], [], [], []
 
     def hand_over():
