@@ -16,7 +16,7 @@ import time
 import numpy as np
 import pytest
 from sensor_msgs.msg import JointState
-from test_estimator_node import Collector, start_node, stop
+from test_estimator_node import Collector, start_node, stop, wait_matched
 
 from piezo_narx_ros.nodes.codec import make_joint_state
 from piezo_narx_ros.nodes.qos import sample_qos
@@ -95,7 +95,7 @@ def test_bad_references_are_counted_limited_and_survived(model_file):
     from std_srvs.srv import Trigger
     reset = col.node.create_client(Trigger, '/badref/controller_node/reset')
     try:
-        assert col.wait_for(lambda: pub.get_subscription_count() >= 1, 40.0)
+        assert wait_matched(pub, col._data_subs, 1, 40.0)
         t0 = 10**18
         r = 20e-6 * np.sin(np.arange(600) / 40.0)
         sent = r.copy()

@@ -40,6 +40,24 @@ def start_node(module, *ros_args, ns=None):
                             env=dict(os.environ, PYTHONUNBUFFERED='1'))
 
 
+def wait_matched(pub, subs, subscribers, timeout, settle=1.0):
+    """
+    Wait until `pub` has `subscribers` readers and every one of `subs` hears a writer.
+
+    Both counts are this process's side of the match only; the remote node's side (its writer
+    seeing our reader) completes a moment later and is not observable, and a volatile sample
+    published before it is lost. `settle` (s) covers that moment, as the live tests always did.
+    """
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if ((pub is None or pub.get_subscription_count() >= subscribers)
+                and all(s.get_publisher_count() >= 1 for s in subs)):
+            time.sleep(settle)
+            return True
+        time.sleep(0.05)
+    return False
+
+
 def stop(procs, timeout=10.0):
     """SIGINT every process, return their exit codes."""
     for p in procs:
@@ -66,6 +84,7 @@ class Collector:
         self.diag = {}
         self._subs = [self.node.create_subscription(JointState, t, self._cb(t),
                                                     sample_qos(depth=20000)) for t in topics]
+        self._data_subs = list(self._subs)
         if diagnostics:
             self._subs.append(self.node.create_subscription(DiagnosticArray, '/diagnostics',
                                                             self._on_diag, 100))
@@ -101,6 +120,10 @@ class Collector:
                 return True
             time.sleep(0.05)
         return False
+
+    def wait_matched(self, subscribers=1, timeout=30.0):
+        """Wait until the command reaches `subscribers` nodes and every data topic is heard."""
+        return wait_matched(self.pub, self._data_subs, subscribers, timeout)
 
     def arrays(self, topic):
         a = self.data[topic]
@@ -188,7 +211,7 @@ def test_nan_range_and_gap_injection_counted_and_survived(toy_model_file):
     est = start_node('estimator_node', '-p', f'model:={toy_model_file}', '-p', 'init:=rest',
                      ns='/inj')
     try:
-        assert col.wait_for(lambda: col.pub.get_subscription_count() >= 1, 30.0)
+        assert col.wait_matched()
         u = np.random.default_rng(3).uniform(-100, 100, 400)
         sent = u.copy()
         sent[100], sent[150], sent[151] = math.nan, 1e4, math.inf
@@ -242,7 +265,7 @@ def test_reset_and_reinitialize_services(toy_model_file):
         return future.result()
 
     try:
-        assert col.wait_for(lambda: col.pub.get_subscription_count() >= 1, 30.0)
+        assert col.wait_matched()
         u = np.random.default_rng(8).uniform(-100, 100, 600)
         t0 = 10**18
         for k in range(300):

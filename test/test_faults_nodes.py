@@ -279,7 +279,7 @@ def test_live_estimator_refuses_outliers_and_reports_a_second_writer(tmp_path):
                      'init:=rest', ns='/twowriters')
     p, t0, n = 500_000, 10**18, 600
     try:
-        assert col.wait_for(lambda: col.pub.get_subscription_count() >= 1, 30.0)
+        assert col.wait_matched()
         u = np.random.default_rng(3).uniform(-100, 100, n)
         for k in range(n):
             col.pub.publish(make_joint_state(t0 + k * p, ['x'], effort=[u[k]]))
@@ -371,7 +371,7 @@ def test_live_player_loop_feeding_the_estimator_restarts_each_pass(tmp_path):
                      '-p', 'init_window:=0.05', ns='/loop')
     player = None
     try:
-        assert col.wait_for(lambda: col.pub.get_subscription_count() >= 1, 30.0)
+        assert col.wait_matched()
         player = start_node('player_node', '-p', f'bag:={tmp_path / "bag"}', '-p', 'loop:=true',
                             '-p', 'start_delay_s:=0.0', '-p', 'wait_for_subscribers:=1',
                             '-p', 'rate:=4.0', ns='/loop')
@@ -417,7 +417,7 @@ def test_malformed_bytes_reaching_a_running_simulator_and_estimator_are_counted_
            120: good[:20] + (10**6).to_bytes(4, 'little') + good[24:],  # a million names
            200: bytes(np.random.default_rng(1).integers(0, 256, 64, dtype=np.uint8))}
     try:
-        assert col.wait_for(lambda: col.pub.get_subscription_count() >= 2, 40.0)
+        assert col.wait_matched(2, 40.0)
         u = np.random.default_rng(4).uniform(-100, 100, n)
         for k in range(n):
             if k in bad:
@@ -520,7 +520,7 @@ def test_live_streams_at_another_rate_and_two_estimators_of_one_name_are_errors(
              start_node('estimator_node', '-p', model, ns='/dup'),
              start_node('estimator_node', '-p', model, ns='/dup')]
     try:
-        assert col.wait_for(lambda: col.pub.get_subscription_count() >= 1, 30.0)
+        assert col.wait_matched()
         t0, n = 10**18, 500
         for k in range(n):                                   # 2.5 kHz stamps
             col.pub.publish(make_joint_state(t0 + k * 400_000, ['x'], effort=[float(k % 7)]))

@@ -45,9 +45,7 @@ def test_two_axis_pipeline_publishes_every_axis_as_offline(tmp_path):
              start_node('recorder_node', '-p', f'output:={tmp_path / "bag"}', '-p',
                         f'batch:={batch}', ns=ns)]
     try:
-        assert probe.wait_for(lambda: probe.subs[2].get_publisher_count() >= 1
-                              and probe.subs[1].get_publisher_count() >= 1
-                              and probe.pub.get_subscription_count() >= 3, 30.0)
+        assert probe.wait_matched(3)
         # A batch without the y axis, before the stream: refused whole and counted by the nodes;
         # recorded, it is the bag's first command and the reader still pairs x and y by name.
         probe.pub.publish(encode_joint_trajectory([10**18], ['x'], effort=[[1.0]]))
@@ -112,8 +110,7 @@ def test_controller_node_inverts_a_model_of_two_axes(tmp_path, family, request):
     ref = np.column_stack([8e-6 * np.sin(k / 12.0), -5e-6 * np.cos(k / 7.0)])
     t = 10**18 + k * period
     try:
-        assert probe.wait_for(lambda: probe.pub.get_subscription_count() >= 1
-                              and probe.subs[0].get_publisher_count() >= 1, 30.0)
+        assert probe.wait_matched()
         for i in range(0, n, batch):
             probe.pub.publish(encode_joint_trajectory(t[i:i + batch], ['x', 'y'],
                                                       position=ref[i:i + batch]))

@@ -17,7 +17,7 @@ import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
-from test_estimator_node import start_node, stop
+from test_estimator_node import start_node, stop, wait_matched
 from trajectory_msgs.msg import JointTrajectory
 
 from piezo_narx_ros.nodes.codec import decode_joint_trajectory, encode_joint_trajectory
@@ -65,6 +65,10 @@ class BatchProbe:
             time.sleep(0.05)
         return False
 
+    def wait_matched(self, subscribers=1, timeout=30.0):
+        """Wait until `pub_topic` reaches `subscribers` nodes and every recorded topic is heard."""
+        return wait_matched(self.pub, self.subs, subscribers, timeout)
+
     def decoded(self, topic):
         return [decode_joint_trajectory(bytes(raw)) for raw in self.batches[topic]]
 
@@ -97,7 +101,7 @@ def test_command_and_simulator_batches_carry_every_stamp_and_the_offline_plant(t
     probe = BatchProbe('/bcs', ('voltage_command_batch', 'deflection_batch'))
     procs = [start_node('simulator_node', '-p', f'fs:={fs}', '-p', f'batch:={batch}', ns='/bcs')]
     try:
-        assert probe.wait_for(lambda: probe.subs[1].get_publisher_count() >= 1, 30.0)
+        assert wait_matched(None, probe.subs[1:], 0, 30.0)
         procs.append(start_node('command_node', '-p', f'fs:={fs}', '-p', f'batch:={batch}',
                                 '-p', 'loop:=false', '-p', f'seconds:={n / fs}', '-p',
                                 'wait_for_subscribers:=2', '-p', 'amplitude:=50.0',
@@ -130,7 +134,7 @@ def test_estimator_answers_batches_and_survives_nan_gap_and_bad_batches(toy_mode
     est = start_node('estimator_node', '-p', f'model:={toy_model_file}', '-p', 'init:=rest',
                      '-p', f'batch:={batch}', ns='/best')
     try:
-        assert probe.wait_for(lambda: probe.pub.get_subscription_count() >= 1, 30.0)
+        assert probe.wait_matched()
         u = np.random.default_rng(3).uniform(-100, 100, 400)
         sent = u.copy()
         sent[100], sent[150], sent[151] = math.nan, 1e4, math.inf
@@ -180,7 +184,7 @@ def test_controller_answers_reference_batches_like_the_one_sample_path(toy_model
     lo, hi = model.output_range
     r = lo + (hi - lo) * (0.5 + 0.3 * np.sin(np.arange(160) / 9.0))
     try:
-        assert probe.wait_for(lambda: probe.pub.get_subscription_count() >= 1, 30.0)
+        assert probe.wait_matched()
         for i in range(0, r.size, batch):
             probe.pub.publish(encode_joint_trajectory(
                 [T0 + k * period for k in range(i, i + batch)], ['x'],
@@ -229,7 +233,7 @@ def test_driver_negotiates_version2_with_fake_rig_and_answers_batches():
                      '-p', 'watchdog_timeout:=30.0', ns='/bdrv')
     u = 50.0 * np.sin(np.arange(200) / 15.0)          # well inside the slew limit
     try:
-        assert probe.wait_for(lambda: probe.pub.get_subscription_count() >= 1, 30.0)
+        assert probe.wait_matched()
         for i in range(0, u.size, batch):
             probe.pub.publish(encode_joint_trajectory(
                 [T0 + k * period for k in range(i, i + batch)], ['x'],
