@@ -289,16 +289,19 @@ def test_unstable_or_misshapen_weights_are_refused(tmp_path, fitted):
             load_model(path)
 
 
-def test_drive_limit_starts_only_where_the_input_moves_smoothly():
-    # A jump: the rule's start alone (the limit acts on it and has a derivative). Smooth: the
-    # rule's inactive limit first, then active limits below the largest step.
+def test_drive_limit_starts_only_where_the_input_moves_smoothly_and_fast():
+    # A jump: the rule's start alone (the limit acts on it and has a derivative). Smooth and
+    # slow (a 1 Hz sine: 0.2 % of the range per sample): the rule's inactive limit alone, or it
+    # would cap a faster input. Smooth and fast: active limits too, below the largest step.
     steps = np.r_[np.zeros(100), np.ones(100)]
     assert len(drive_limit_candidates([steps])) == 1
-    smooth = np.sin(np.linspace(0.0, 20.0, 2000))
-    largest = np.max(np.abs(np.diff(smooth)))
-    starts = drive_limit_candidates([smooth])
+    slow = np.sin(2 * np.pi * np.arange(4000) / FS)
+    assert len(drive_limit_candidates([slow])) == 1
+    fast = generate('multisine', FS, 1.0, 1.0, seed=1, f_max=800.0)
+    largest = np.max(np.abs(np.diff(fast)))
+    starts = drive_limit_candidates([fast])
     assert starts[0] >= largest and len(starts) > 1
-    assert all(0.0 < s < largest for s in starts[1:])
+    assert all(0.05 * 2.0 <= s < largest for s in starts[1:])
 
 
 @pytest.fixture(scope='module')
@@ -327,7 +330,7 @@ def test_a_slew_the_smooth_data_show_is_learned(slewing, monkeypatch):
     m_rule, rmse_rule = _slewing_fit(slewing)
     assert len(m_rule.training_info_['drive_starts']) == 1
     assert m_rule.drive_slew_rate > 2.0 * np.max(np.abs(np.diff(slewing[0]))) * FS * 0.99
-    assert rmse < 0.85 * rmse_rule, (rmse, rmse_rule)     # measured 3.7 against 5.3 um
+    assert rmse < 0.7 * rmse_rule, (rmse, rmse_rule)     # measured 2.3 against 5.3 um
 
 
 def test_no_slew_is_invented_where_the_data_show_none():
