@@ -117,6 +117,47 @@ def test_estimator_batch_path_equals_one_sample_path(init):
     assert many.take_input_excursion() == one.take_input_excursion()
 
 
+@pytest.mark.parametrize('init', ['rest', 'measurement'])
+def test_measurements_held_back_while_steady_change_nothing(init):
+    """FreeRunEstimator.steady / handover: measurements handed in late, the same results."""
+    rng = np.random.default_rng(8)
+    model = toy_narx()
+    n = 6000
+    t, u = _command_stream(rng, n)
+    y_meas = rng.normal(0.0, 1e-7, n)
+    now, late = (FreeRunEstimator(model, init=init, window=300, init_window=0.02,
+                                  range_margin=-0.3) for _ in range(2))
+    held, handed, out_now, out_late = [], [], [], []
+
+    def hand_over():
+        handed.append(len(held))
+        while held:
+            ts, ys = late.on_measurements(*held.pop(0))
+            out_late.extend(zip(ts.tolist(), ys.tolist()))
+    late.handover = hand_over
+    for sl in _batches(rng, n):
+        lag = slice(max(0, sl.start - 3), max(0, sl.stop - 3))
+        ts, ys = now.on_measurements(t[lag], y_meas[lag])
+        out_now += list(zip(ts.tolist(), ys.tolist()))
+        if late.steady and len(held) < 7:
+            held.append((t[lag], y_meas[lag]))
+        else:
+            hand_over()
+            ts, ys = late.on_measurements(t[lag], y_meas[lag])
+            out_late += list(zip(ts.tolist(), ys.tolist()))
+        for est, out in ((now, out_now), (late, out_late)):
+            ts, ys = est.on_commands(t[sl], u[sl])
+            out += list(zip(ts.tolist(), ys.tolist()))
+        if rng.random() < 0.01:
+            now.flush()
+            late.flush()
+    assert now.running_error() == late.running_error() and now.running_error()[2] == 300
+    assert sorted(out_late) == sorted(out_now) and len(out_now) > 0.9 * n
+    assert vars(late.stats) == vars(now.stats)
+    assert max(handed) > 3            # measurements were really held, several batches at once
+    assert late.handover is hand_over  # restored after each hand-over
+
+
 def test_estimator_fast_path_is_taken_and_runs_at_the_model_rate():
     model = toy_narx()
     est = FreeRunEstimator(model, init='rest', bracket=False)

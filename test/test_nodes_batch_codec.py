@@ -204,3 +204,60 @@ def test_command_and_deflection_batches_both_take_the_remembered_shape(monkeypat
     for _ in range(2):
         assert decode_joint_trajectory(cmd).effort[:, 0].tolist() == list(range(20))
         assert decode_joint_trajectory(meas).position[:, 0].tolist() == [-k for k in range(20)]
+
+
+def test_batches_decoded_together_equal_each_decoded_alone():
+    """decode_joint_trajectories: runs of one shape in one view, anything else alone, in order."""
+    from trajectory_msgs.msg import JointTrajectoryPoint
+
+    from piezo_narx_ros.nodes import codec
+    from piezo_narx_ros.nodes.codec import decode_joint_trajectories
+    rng = np.random.default_rng(11)
+    codec._SHAPES.clear()
+
+    def batch(k, names, field, n=20):
+        t = _stamps(n, t0=T0 + k * n * 50_000)
+        values = {field: rng.normal(size=(n, len(names)))}
+        return encode_joint_trajectory(t, names, **values)
+
+    def odd_counts():      # as long as a one-axis position batch of 3, other counts inside
+        msg = JointTrajectory()
+        msg.joint_names = ['x']
+        for i, r in enumerate([[1.0, 2.0], [], [3.0]]):
+            point = JointTrajectoryPoint()
+            point.positions = r
+            point.time_from_start.nanosec = i
+            msg.points.append(point)
+        return serialize_message(msg)
+    msgs = ([batch(k, ['x'], 'position') for k in range(6)]            # a run (point 0 apart)
+            + [batch(6, ['x', 'y'], 'effort'), b'\x00\x01\x00\x00\x01']  # another shape, junk
+            + [batch(k, ['x', 'y'], 'effort') for k in range(7, 10)]
+            + [batch(10, ['x'], 'position', n=3), odd_counts(), batch(11, ['x'], 'position', n=3)]
+            + [batch(k, ['x'], 'position') for k in range(12, 14)])
+    for m in msgs:          # every well-formed shape seen once before, as in a running stream
+        try:
+            decode_joint_trajectory(m)
+        except DataError:
+            pass
+    got = decode_joint_trajectories(msgs)
+    assert sum(k for k, _ in got) == len(msgs)
+    assert [k for k, _ in got][:1] == [6]           # the first run was read together
+    i = 0
+    for k, part in got:
+        alone = []
+        for m in msgs[i:i + k]:
+            try:
+                alone.append(decode_joint_trajectory(m))
+            except DataError as exc:
+                alone.append(exc)
+        i += k
+        if isinstance(part, DataError):
+            assert k == 1 and isinstance(alone[0], DataError) and str(part) == str(alone[0])
+            continue
+        assert all(isinstance(a, codec.SampleBatch) and a.names == part.names for a in alone)
+        assert part.t_ns.tolist() == [s for a in alone for s in a.t_ns.tolist()]
+        assert np.array_equal(part.position, np.concatenate([a.position for a in alone]))
+        assert np.array_equal(part.effort, np.concatenate([a.effort for a in alone]))
+    refused = [str(p) for _, p in got if isinstance(p, DataError)]
+    assert len(refused) == 2 and any('point 1 has 0 positions' in r for r in refused)
+    assert decode_joint_trajectories([]) == []

@@ -157,11 +157,15 @@ class FreeRunEstimator:
         self._hist = max(self.n0, 1) + 64 + self.reanchor_every + self.init_samples
         self._err = deque(maxlen=self.window)
         self._ymeas = deque(maxlen=self.window)
+        # A caller that holds measurements back while `steady` (estimator_node decodes them in
+        # bulk) sets this: called before anything that may depend on them (see `steady`).
+        self.handover = None
         self.restart()
 
     # -------------------------------------------------------------------------------- state
     def restart(self, wait_for_measurement: bool | None = None) -> None:
         """Forget the past; the next command starts a new run (initialised per `init`)."""
+        self._hand_over()
         self.gate.reset()
         self._new_run(wait_for_measurement)
 
@@ -215,6 +219,35 @@ class FreeRunEstimator:
     def initialised(self) -> bool:
         return self._stepper is not None
 
+    @property
+    def steady(self) -> bool:
+        """
+        Say whether measurements only feed the running error now (they may be handed in late).
+
+        The free run has started, no re-anchoring or memory bracket reads them and no command
+        is held. A caller may hold measurements back while this holds, up to `pairing_horizon`
+        samples, if it sets `handover` to a function that hands them in (on_measurements): the
+        estimator calls it before it leaves this state's batch path (a command batch that is
+        not the stream's next, a restart, a flush) and before `running_error`, so every result
+        is the same as with each measurement handed in on arrival.
+        """
+        return (self._stepper is not None and self._memory is None and not self.reanchor_every
+                and not self.gate.holding)
+
+    @property
+    def pairing_horizon(self) -> int:
+        """Return how many samples of estimates are kept for late measurements to pair with."""
+        return 2 * self._hist
+
+    def _hand_over(self) -> None:
+        """Have the caller hand in the measurements it holds back (see `steady`)."""
+        if self.handover is not None:
+            handover, self.handover = self.handover, None    # no re-entry while it runs
+            try:
+                handover()
+            finally:
+                self.handover = handover
+
     # ------------------------------------------------------------------------------- inputs
     def on_command(self, t_ns: int, u) -> list[tuple[int, float]]:
         """
@@ -224,6 +257,7 @@ class FreeRunEstimator:
         """
         if self.vector:
             u = np.array(u, dtype=np.float64).reshape(self.n_in)   # kept: a copy
+        self._hand_over()
         self.stats.commands += 1
         self.rate.received()
         if not self._decided:
@@ -259,6 +293,7 @@ class FreeRunEstimator:
         if (clean and self._stepper is not None and self._memory is None
                 and not self.reanchor_every and self.gate.pass_run(t)):
             return self._run_batch(t, ul, v)
+        self._hand_over()
         out = [e for ti, vi in zip(t.tolist(), ul) for e in self.on_command(ti, vi)]
         return self.as_arrays(out)
 
@@ -349,6 +384,7 @@ class FreeRunEstimator:
         A gap within max_fill is estimated, anything else refused as outliers. Returns the
         estimates that became ready. The node calls it when commands have stopped for a while.
         """
+        self._hand_over()
         out: list[tuple[int, float]] = []
         self._apply(self.gate.flush(), out)
         return out
@@ -439,6 +475,7 @@ class FreeRunEstimator:
     # ------------------------------------------------------------------------------ outputs
     def running_error(self) -> tuple[float, float, int]:
         """(RMS error m, R², n) over the last `window` matched samples; NaN when too few."""
+        self._hand_over()
         n = len(self._err)
         if n < 2:
             return math.nan, math.nan, n

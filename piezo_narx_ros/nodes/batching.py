@@ -11,7 +11,8 @@ from __future__ import annotations
 
 from sensor_msgs.msg import JointState
 
-from piezo_narx_ros.nodes.codec import SampleBatch, decode_joint_trajectory
+from piezo_narx_ros.nodes.codec import (SampleBatch, decode_joint_trajectories,
+                                        decode_joint_trajectory)
 from piezo_narx_ros.nodes.params import ParamSpec
 
 BATCH_SUFFIX = '_batch'
@@ -45,3 +46,33 @@ def batch_values(raw: bytes, field: str, axis: str) -> list[tuple[int, float]]:
     """
     b: SampleBatch = decode_joint_trajectory(raw)
     return list(zip(b.t_ns.tolist(), b.column(field, axis).tolist()))
+
+
+class HeldBatches:
+    """
+    Serialized batches held back, to be decoded together (codec.decode_joint_trajectories).
+
+    The estimator's measurement stream at 20 kHz: each batch only feeds the running error once the
+    free run is steady, and decoding and pairing 50 of them at once costs about what one did
+    (FreeRunEstimator.steady says when holding them back is allowed).
+    limit: batches held before `push` says it is time to take them.
+    """
+
+    def __init__(self, limit: int):
+        if limit < 1:
+            raise ValueError(f'limit must be >= 1, got {limit}')
+        self.limit = int(limit)
+        self._raw: list[bytes] = []
+
+    def __len__(self) -> int:
+        return len(self._raw)
+
+    def push(self, raw: bytes) -> bool:
+        """Hold one serialized batch; True once `limit` are held (take them now)."""
+        self._raw.append(raw)
+        return len(self._raw) >= self.limit
+
+    def take(self) -> list:
+        """Decode and release the held batches: [(messages, SampleBatch or DataError)]."""
+        raw, self._raw = self._raw, []
+        return decode_joint_trajectories(raw) if raw else []

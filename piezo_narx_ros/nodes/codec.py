@@ -394,6 +394,81 @@ def _known_batch(buf: bytes, shape: _BatchShape, parts: list) -> SampleBatch:
                        field('eff') if shape.n_eff else empty)
 
 
+def _known_shape_of(buf) -> _BatchShape | None:
+    """Return the remembered shape whose header (but the stamp) `buf` repeats, or None."""
+    if not isinstance(buf, bytes):
+        return None
+    for shape in _SHAPES.get(len(buf), ()):
+        if buf[12:shape.start] == shape.prefix and buf[:4] == shape.encapsulation:
+            return shape
+    return None
+
+
+def _decode_run(bufs: list, shape: _BatchShape) -> SampleBatch | None:
+    """
+    Decode messages of one known shape as one batch of all their points, in order.
+
+    One strided view per field over the joined bytes (m messages of L bytes): the cost of one
+    message for the lot. None when a point's counts differ from the shape (decode one by one).
+    """
+    m, size = len(bufs), len(bufs[0])
+    joined = b''.join(bufs)
+    e = '<' if joined[1] == 1 else '>'
+    n_run = shape.count - (shape.head is not None)
+    parts = [np.ndarray((m, n_run), shape.dtype, joined, shape.run,
+                        (size, shape.dtype.itemsize))]
+    if shape.head is not None:
+        parts.insert(0, np.ndarray((m, 1), shape.head, joined, shape.start, (size, 0)))
+    if not all((p['n_pos'] == shape.n_pos).all() and (p['n_vae'] == (0, 0, shape.n_eff)).all()
+               for p in parts):
+        return None
+
+    def field(name: str) -> np.ndarray:
+        values = parts[0][name] if len(parts) == 1 else np.concatenate(
+            [p[name] for p in parts], axis=1)
+        return values.reshape((m * shape.count,) + values.shape[2:])
+    sec = np.ndarray((m, 1), e + 'i4', joined, 4, (size, 4)).astype(np.int64)
+    nsec = np.ndarray((m, 1), e + 'u4', joined, 8, (size, 4))
+    stamps = (field('sec').astype(np.int64) * 1_000_000_000 + field('nsec')).reshape(m, -1)
+    stamps += sec * 1_000_000_000 + nsec
+    empty = np.empty((m * shape.count, 0))
+    return SampleBatch(stamps.ravel(), list(shape.names),
+                       field('pos') if shape.n_pos else empty,
+                       field('eff') if shape.n_eff else empty)
+
+
+def decode_joint_trajectories(bufs: Sequence[bytes]) -> list[tuple[int, SampleBatch | DataError]]:
+    """
+    Decode serialized JointTrajectory messages in order, consecutive ones of a shape together.
+
+    Returns [(number of messages, SampleBatch of all their points, or the DataError of the one
+    message refused)]: a run of messages of one shape seen before (a stream's usual case: same
+    names, same batch size) is read with one view over all of them, about the cost of one
+    decode_joint_trajectory() for the lot; any other message is decoded alone, so a malformed
+    one is refused alone, exactly as decode_joint_trajectory() refuses it.
+    """
+    out: list = []
+    i, n = 0, len(bufs)
+    while i < n:
+        shape = _known_shape_of(bufs[i])
+        j = i + 1
+        if shape is not None:
+            while j < n and len(bufs[j]) == len(bufs[i]) and _known_shape_of(bufs[j]) is shape:
+                j += 1
+            batch = _decode_run(list(bufs[i:j]), shape) if j - i > 1 else None
+            if batch is not None:
+                out.append((j - i, batch))
+                i = j
+                continue
+        for buf in bufs[i:j]:     # alone: a point of another size is refused with its message
+            try:
+                out.append((1, decode_joint_trajectory(buf)))
+            except DataError as exc:
+                out.append((1, exc))
+        i = j
+    return out
+
+
 def decode_joint_trajectory(buf: bytes) -> SampleBatch:
     """
     Decode a serialized JointTrajectory (CDR) to a SampleBatch of every point's stamp and values.

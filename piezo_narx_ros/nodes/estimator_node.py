@@ -18,7 +18,7 @@ from piezo_narx_ros.command.stamps import RATE_TOLERANCE
 from piezo_narx_ros.errors import ConfigError
 from piezo_narx_ros.estimator.free_run import INIT_MODES, FreeRunEstimator
 from piezo_narx_ros.estimator.health import EstimatorHealth
-from piezo_narx_ros.nodes.batching import BATCH_PARAM, batch_topic, sample_type
+from piezo_narx_ros.nodes.batching import BATCH_PARAM, HeldBatches, batch_topic, sample_type
 from piezo_narx_ros.nodes.codec import (decode_joint_state, decode_joint_trajectory,
                                         encode_joint_state, encode_joint_trajectory)
 from piezo_narx_ros.nodes.diagnostics import Diagnostics
@@ -97,6 +97,10 @@ class EstimatorNode(PiezoNode):
             batch_topic(TOPIC_DEFLECTION, b),
             self.on_measurement_batch if b > 1 else self.on_measurement, sample_type(b))
         self.health = EstimatorHealth(self.est)
+        # Measurement batches held back while the free run is steady and decoded together:
+        # at most a quarter of the estimates kept for pairing, and 50 messages.
+        self._held = HeldBatches(max(1, min(50, self.est.pairing_horizon // (4 * b))))
+        self.est.handover = self._take_held
         self._error_log = EpisodeLog(self.get_logger())
         # A command held back for its ambiguous stamp is decided when commands stop (the stream
         # ended right after a gap); checked a few times a second, nothing to do otherwise.
@@ -202,9 +206,28 @@ class EstimatorNode(PiezoNode):
             self.publish(self.est.on_measurement(*got))
 
     def on_measurement_batch(self, msg: bytes) -> None:
+        if self.est.steady:
+            if self._held.push(msg):
+                self._take_held()
+            return
+        self._take_held()
         got = self._values(msg, 'position')
         if got is not None:
             self._publish_batch(*self.est.on_measurements(*got))
+
+    def _take_held(self) -> None:
+        """Hand the held measurement batches to the estimator (FreeRunEstimator.handover)."""
+        for _, got in self._held.take():
+            try:
+                if isinstance(got, Exception):
+                    raise got
+                values = (got.columns('position', self._out_names) if self.est.vector
+                          else got.column('position', self.axis))
+            except Exception as exc:  # noqa: BLE001 - as in _values: warn and go on
+                self.get_logger().warning(f'position batch ignored: {exc}',
+                                          throttle_duration_sec=1.0)
+                continue
+            self._publish_batch(*self.est.on_measurements(got.t_ns, values))
 
     def on_idle_check(self) -> None:
         """Commands stopped while one was held back: decide on it now."""
