@@ -306,7 +306,7 @@ def test_drive_limit_starts_only_where_the_input_moves_smoothly_and_fast():
 
 @pytest.fixture(scope='module')
 def slewing():
-    """A 0.1-800 Hz multisine at +-100 V: the plant's amplifier slews on ~13 % of the samples."""
+    """Return a 0.1-800 Hz multisine at +-100 V (the amplifier slews on ~13 % of samples)."""
     u = generate('multisine', FS, 1.5, 100.0, seed=1, f_max=800.0)
     fresh = generate('multisine', FS, 1.0, 100.0, seed=2, f_max=800.0)
     return (u, PiezoCantilever(fs=FS, seed=1).run(u).y,

@@ -265,7 +265,7 @@ class ExperimentConfig:
 
     @property
     def fits_narx(self) -> bool:
-        """True when the grid may hold the paper's NARX networks."""
+        """Return True when the grid may hold the paper's NARX networks."""
         return self.family == 'narx' or self.narx_beside != 'no'
 
     @property
