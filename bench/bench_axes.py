@@ -20,6 +20,7 @@ For each seed s (default 0..4, as bench_envelope.py):
    10 Hz. Also the controller's compute per sample (p50 / p99, us).
 
     python bench/bench_axes.py --preset envelope [--seeds 0 1 2 3 4] [--json out.json]
+                               [--no-control] [--hnarx '{"na": 4, "nb": 4}'] [--seconds 50]
 """
 from __future__ import annotations
 
@@ -28,17 +29,16 @@ import json
 import statistics
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_envelope import BATTERY, RUNAWAY_R2, SLOW, TEST_SECONDS  # noqa: E402
+from bench_envelope import BATTERY, RUNAWAY_R2, SLOW, TEST_SECONDS, preset_config  # noqa
 
 from piezo_narx_ros.command.stream import make_signal  # noqa: E402
 from piezo_narx_ros.control.axes import AxesController  # noqa: E402
-from piezo_narx_ros.ident.experiment import PRESETS, ExperimentConfig, run_experiment  # noqa
+from piezo_narx_ros.ident.experiment import PRESETS, run_experiment  # noqa: E402
 from piezo_narx_ros.plant.axes import AxisPlants, make_axis_plants  # noqa: E402
 from piezo_narx_ros.plant.signals import generate  # noqa: E402
 from piezo_narx_ros.record import Record  # noqa: E402
@@ -60,11 +60,15 @@ def stage(seed: int):
     return make_axis_plants([], STAGE, fs=FS, seed=seed)
 
 
-def identify(seed: int, preset: str, jobs: int):
-    """One 2 x 2 model on 25 s of the protocol on each axis: (model, fit s, label, result)."""
-    u = make_signal('protocol', FS, 25.0, 100.0, seed=seed, n_axes=len(AXES))
+def identify(seed: int, preset: str, jobs: int, hnarx=None, seconds: float = 25.0):
+    """
+    One 2 x 2 model on `seconds` of the protocol on each axis: (model, fit s, label, result).
+
+    hnarx: HysteresisNARX options over the preset's (e.g. {'na': 4, 'nb': 4}).
+    """
+    u = make_signal('protocol', FS, seconds, 100.0, seed=seed, n_axes=len(AXES))
     y, _ = stage(seed).run(u)
-    cfg = replace(ExperimentConfig(), **PRESETS[preset], seed=seed, jobs=jobs, progress=False)
+    cfg = preset_config(preset, seed, jobs, hnarx)
     t0 = time.perf_counter()
     rec = Record(u=u, y=y, fs=FS, source=f'protocol seed {seed}', inputs=AXES, outputs=AXES)
     result = run_experiment([rec], cfg)
@@ -168,10 +172,15 @@ def main(argv=None) -> int:
     ap.add_argument('--jobs', type=int, default=2)
     ap.add_argument('--no-control', action='store_true', help='free run only')
     ap.add_argument('--json', help='write every figure to this file')
+    ap.add_argument('--hnarx', type=json.loads, default={}, metavar='JSON',
+                    help="HysteresisNARX options over the preset's, e.g. '{\"na\": 4, \"nb\": 4}'")
+    ap.add_argument('--seconds', type=float, default=25.0,
+                    help='length of the identification record, s (default 25)')
     args = ap.parse_args(argv)
     runs, report = [], {'preset': args.preset, 'seeds': {}}
     for seed in args.seeds:
-        model, fit_s, label, result = identify(seed, args.preset, args.jobs)
+        model, fit_s, label, result = identify(seed, args.preset, args.jobs, args.hnarx,
+                                               args.seconds)
         coupling = getattr(model, 'coupling_', None)
         extra = '' if coupling is None else \
             f', coupling {np.round(coupling, 4).tolist()} (stage: [[1, 0.05], [0.12, 1]])'

@@ -70,6 +70,14 @@ def battery(params, seed):
     return out
 
 
+def preset_config(preset, seed, jobs, hnarx=None):
+    """Return the ExperimentConfig of a preset, HysteresisNARX options `hnarx` over its own."""
+    settings = dict(PRESETS[preset])
+    if hnarx:
+        settings['hnarx'] = {**settings.get('hnarx', {}), **hnarx}
+    return replace(ExperimentConfig(), **settings, seed=seed, jobs=jobs, progress=False)
+
+
 def identify(params, seed, preset, jobs, signal='protocol', hnarx=None):
     """
     Identify one preset on one 25 s record: (selected model, fit wall time s, label).
@@ -78,10 +86,7 @@ def identify(params, seed, preset, jobs, signal='protocol', hnarx=None):
     """
     u = generate(signal, FS, 25.0, 100.0, seed=seed)
     y = PiezoCantilever(params, FS, seed=seed).run(u).y
-    settings = dict(PRESETS[preset])
-    if hnarx:
-        settings['hnarx'] = {**settings.get('hnarx', {}), **hnarx}
-    cfg = replace(ExperimentConfig(), **settings, seed=seed, jobs=jobs, progress=False)
+    cfg = preset_config(preset, seed, jobs, hnarx)
     t0 = time.perf_counter()
     result = run_experiment([Record(u=u, y=y, fs=FS, source=f'{signal} seed {seed}')], cfg)
     return result.best.model, time.perf_counter() - t0, result.best.spec.label

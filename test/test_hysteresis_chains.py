@@ -6,11 +6,14 @@ x by 0.05 of y's) is found before any chain is fitted; the outputs of a stage wh
 their dynamics are refused by the structure test; the fitted model's free run is the chains'
 mixed, step by step as in one call, through a model file, and from an estimated state.
 """
+import shutil
+import subprocess
+
 import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from piezo_narx_ros.errors import DataError, ModelFileError
+from piezo_narx_ros.errors import DataError
 from piezo_narx_ros.ident.hysteresis_chains import (HysteresisChains, check_coupling,
                                                     coupling_matrix)
 from piezo_narx_ros.ident.model_io import load_model, save_model
@@ -81,8 +84,95 @@ def test_model_file_round_trip_gives_the_same_free_run(chains2, stage_data, tmp_
     for a, b in zip(back.chains_, chains2.chains_):
         assert a.input_range == b.input_range and a.output_range == b.output_range
         assert a.metadata['data']['line'] == b.metadata['data']['line']
-    with pytest.raises(ModelFileError, match='C export'):
-        back.c_emitter()
+
+
+#: Three runs of the same rows: from rest (then the final state), from a state vector given first,
+#: and from pnr_init_history on the first PNR_NU rows.
+HARNESS = r"""
+#include <stdio.h>
+#include "pnr_model.h"
+static double in[200000];
+int main(void)
+{
+    double y[PNR_N_OUTPUTS], x[PNR_STATE_SIZE];
+    size_t n = (fread(in, sizeof(double), 200000, stdin) - PNR_STATE_SIZE) / PNR_N_INPUTS, k;
+    const double *u = in + PNR_STATE_SIZE;
+    pnr_state_t s;
+    pnr_init(&s);
+    for (k = 0; k < n; ++k) {
+        pnr_step(&s, u + k * PNR_N_INPUTS, y);
+        fwrite(y, sizeof(double), PNR_N_OUTPUTS, stdout);
+    }
+    pnr_get_state(&s, x);
+    fwrite(x, sizeof(double), PNR_STATE_SIZE, stdout);
+    if (pnr_set_state(&s, in) != 0) {
+        return 2;
+    }
+    for (k = 0; k < n; ++k) {
+        pnr_step(&s, u + k * PNR_N_INPUTS, y);
+        fwrite(y, sizeof(double), PNR_N_OUTPUTS, stdout);
+    }
+    if (pnr_init_history(&s, u, NULL) != 0) {
+        return 3;
+    }
+    for (k = PNR_NU; k < n; ++k) {
+        pnr_step(&s, u + k * PNR_N_INPUTS, y);
+        fwrite(y, sizeof(double), PNR_N_OUTPUTS, stdout);
+    }
+    return 0;
+}
+"""
+
+
+@pytest.mark.skipif(shutil.which('gcc') is None, reason='gcc compiles the export')
+def test_c_export_equals_the_python_stepper(chains2, stage_data, tmp_path, capsys):
+    """`piezo-narx export` of a 2-axis chains model file: C free run and state equal Python's."""
+    from piezo_narx_ros.cli.main import main
+    from piezo_narx_ros.ident.state import ModelState
+    u, _ = stage_data
+    path = save_model(chains2, tmp_path / 'chains.json')
+    with pytest.raises(SystemExit) as stop:
+        main(['export', str(path), '--c', str(tmp_path / 'c')])
+    assert stop.value.code == 0
+    assert 'hysteresis_narx' in capsys.readouterr().out
+    c = tmp_path / 'c'
+    header = (c / 'pnr_model.h').read_text()
+    assert '#define PNR_N_INPUTS 2' in header and '#define PNR_N_OUTPUTS 2' in header
+    assert '#define PNR_HAS_INVERSE 0' in header
+    (c / 'h.c').write_text(HARNESS)
+    flags = ['-std=c99', '-O2', '-Wall', '-Wextra', '-pedantic', '-Werror', '-Wshadow',
+             '-Wstrict-prototypes', '-Wmissing-prototypes']
+    out = subprocess.run(['gcc', *flags, '-I', str(c), str(c / 'h.c'), str(c / 'pnr_model.c'),
+                          '-lm', '-o', str(c / 'h')], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    model, n = load_model(path), 1500
+    v = np.ascontiguousarray(u[1000:1000 + n])
+    handed = model.stepper()
+    handed.step_many(u[:1000])                  # a state in mid-motion, handed to C
+    size = model.c_emitter().state_size
+    x0 = model.c_emitter().state_vector(handed)
+    assert x0.size == size == model.state_size and np.ptp(x0) > 0
+    run = subprocess.run([str(c / 'h')], input=np.concatenate([x0, v.ravel()]).tobytes(),
+                         capture_output=True, timeout=60)
+    assert run.returncode == 0
+    raw = np.frombuffer(run.stdout, dtype=np.float64)
+    y_rest, raw = raw[:2 * n].reshape(n, 2), raw[2 * n:]
+    state_c, raw = raw[:size], raw[size:]
+    y_handed, y_hist = raw[:2 * n].reshape(n, 2), raw[2 * n:].reshape(-1, 2)
+    stepper = model.stepper()
+    y_py = np.array([stepper.step(row) for row in v])
+    assert np.ptp(y_py) > 1e-6
+    assert np.max(np.abs(y_rest - y_py)) <= 1e-12          # m, DESIGN.md's contract
+    # The state (normalised, order 1) to rounding; its layout is the Stepper's state vector.
+    assert np.max(np.abs(state_c - model.c_emitter().state_vector(stepper))) <= 1e-12
+    assert np.array_equal(model.c_emitter().state_vector(stepper), stepper.state.values)
+    y_py = model.simulate(v, state=ModelState(x0, np.zeros(2)))
+    assert np.max(np.abs(y_handed - y_py)) <= 1e-12
+    assert np.max(np.abs(y_py - model.simulate(v))) > 1e-8   # the handed state mattered
+    nu = model.nu
+    y_py = model.stepper(u_past=v[:nu]).step_many(v[nu:])
+    assert y_hist.shape == (n - nu, 2) and np.max(np.abs(y_hist - y_py)) <= 1e-12
 
 
 def test_state_estimated_from_a_window_continues_the_free_run(chains2, stage_data):

@@ -596,10 +596,9 @@ class HysteresisChains(HysteresisNARX):
         return chains_from_document(cls, doc, arrays, name, wpath, fs)
 
     def c_emitter(self):
-        """C export is not written for chains yet: one clear line."""
-        raise ModelFileError('C export of a several-axes envelope model of one chain per axis '
-                             'is not implemented (the one-axis chains can be exported one by '
-                             'one)')
+        """Return the C emitter of this model (hysteresis_chains_export.ChainsEmitter)."""
+        from .hysteresis_chains_export import ChainsEmitter
+        return ChainsEmitter(self)
 
     def __repr__(self):
         return (f'HysteresisChains(hidden={self.hidden}, n_plays={self.n_plays}, '

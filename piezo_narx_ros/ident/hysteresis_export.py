@@ -9,7 +9,13 @@ docstring) is the exported state vector:
      creep states (n_creep), z(k-1) .. z(k-nb), yl(k-1) .. yl(k-na)]   (normalised)
 
 `pnr_quasi_static_` copies peek_static (the inverse's 'quasi_static' target).
+
+The one-sample model is its own function on a state array (`hn_step`), so that a model of several
+chains (hysteresis_chains_export.py) writes each chain with this emitter under its own prefix and
+calls it on its part of the state.
 """
+import re
+
 import numpy as np
 
 from ..export.c_code import Emitter, c_array, c_scalar
@@ -23,8 +29,17 @@ class HysteresisEmitter(Emitter):
     history_note = ('u_past: the last PNR_NU inputs, fed from rest (the state is a function of '
                     'the input history); y_past is not used')
 
-    def __init__(self, model):
+    def __init__(self, model, prefix: str = 'hn', quasi_static: bool = True):
+        """
+        Emitter of a one-axis model; its C names start with `prefix` (constants in capitals).
+
+        quasi_static=False: no pnr_quasi_static_ (a chain of a several-axes model, whose C has
+        no inverse; an unused static function would not compile under -Werror).
+        """
         super().__init__(model)
+        self.prefix = prefix
+        if not quasi_static:
+            self.targets = ('output',)
         (self.radii, self.n_lags, self.duhem, self.rho, self.W1, self.b1, self.w2, self.c,
          self.w_rest, self.g, self.lam, self.a, self.b, self.y_off) = model._kernel_args
         self.m, self.q, self.nl = self.radii.size, self.duhem.shape[0], self.lam.size
@@ -41,14 +56,18 @@ class HysteresisEmitter(Emitter):
         """Return the kernel state's length."""
         return hk.state_size(self.m, self.n_lags, self.q, self.nl, self.na, self.nb)
 
-    @property
-    def state_layout(self) -> list:
-        """Return the layout lines for the header."""
+    def layout_lines(self, start: int = 0) -> list:
+        """Return the state's parts as header lines, indices from `start` (its first double)."""
         rows = [(0, self.lh, 'drive v(k-1) .. v(k-Lh), newest first'),
                 (self.i_p, self.m, 'play operators'), (self.i_s, self.q, 'Duhem states'),
                 (self.i_x, self.nl, 'creep states'), (self.i_z, self.nb, 'z(k-1) .. z(k-nb)'),
                 (self.i_y, self.na, 'yl(k-1) .. yl(k-na), output dynamics')]
-        return ([f'x[{lo} .. {lo + n - 1}]: {what}' for lo, n, what in rows if n] +
+        return [f'x[{start + lo} .. {start + lo + n - 1}]: {what}' for lo, n, what in rows if n]
+
+    @property
+    def state_layout(self) -> list:
+        """Return the layout lines for the header."""
+        return (self.layout_lines() +
                 ['normalised units (u / PNR_U_SCALE, y / PNR_Y_SCALE), as the Python kernel',
                  '(HysteresisStepper.kernel_state); rest is all zeros'])
 
@@ -163,10 +182,12 @@ class HysteresisEmitter(Emitter):
         L += ['    return z;', '}']
         return '\n'.join(L)
 
-    def _step(self) -> str:
+    def _sample(self) -> str:
+        """`hn_step`: one sample of the model on its state array st, u (V) -> y (m)."""
         na, nb = self.na, self.nb
-        L = ['static void pnr_step_(pnr_state_t *s, const double *u, double *y)', '{',
-             '    double *st = s->x;', '    double z = hn_chain(st, u[0] / HN_U_SCALE, HN_RHO);',
+        L = ['/* One sample on the state st: u (V) -> y (m), the state advanced. */',
+             'static double hn_step(double *st, double u)', '{',
+             '    double z = hn_chain(st, u / HN_U_SCALE, HN_RHO);',
              '    double yl = HN_B[0] * z;']
         if na or nb:
             L.append('    int i;')
@@ -183,7 +204,7 @@ class HysteresisEmitter(Emitter):
                       f'        st[{lo} + i] = st[{lo} + i - 1];', '    }']
             if n:
                 L.append(f'    st[{lo}] = {new};')
-        L += ['    y[0] = (yl + HN_Y_OFF) * HN_Y_SCALE;', '}']
+        L += ['    return (yl + HN_Y_OFF) * HN_Y_SCALE;', '}']
         return '\n'.join(L)
 
     def _quasi_static(self) -> str:
@@ -201,21 +222,44 @@ class HysteresisEmitter(Emitter):
             '    z = hn_chain(s2, un, INFINITY);',
             '    return HN_Y_SCALE * (HN_DC_GAIN * z + HN_Y_OFF);', '}'])
 
-    def _history(self) -> str:
-        return '\n'.join([
-            '/* Rest, then the inputs u_past (as simulate()/stepper(u_past) do); y_past is not',
-            " * used: the operators' memory cannot be read from a few outputs. */",
-            'static void pnr_init_history_(pnr_state_t *s, const double *u_past,',
-            '                              const double *y_past)', '{',
-            '    double y[1];', '    int i;', '    (void)y_past;', '    pnr_init(s);',
-            '    if (u_past) {', f'        for (i = 0; i < {self.nu}; ++i) {{',
-            '            pnr_step_(s, &u_past[i], y);', '        }', '    }', '}']
-            if self.nu else [
-            'static void pnr_init_history_(pnr_state_t *s, const double *u_past,',
-            '                              const double *y_past)', '{',
-            '    (void)u_past;', '    (void)y_past;', '    pnr_init(s);', '}'])
+    def named(self, text: str) -> str:
+        """Return C text written with the HN_ / hn_ names under this emitter's prefix."""
+        if self.prefix == 'hn':
+            return text
+        upper, lower = self.prefix.upper() + '_', self.prefix + '_'
+        return re.sub(r'\b(HN|hn)_', lambda m: upper if m.group(1) == 'HN' else lower, text)
+
+    def model_definitions(self) -> str:
+        """Return the constants, the operators' chain and `<prefix>_step`, under the prefix."""
+        return self.named('\n\n'.join(self._constants() + self._helpers() + [self._sample()]))
 
     def definitions(self) -> str:
-        """Return the constants, the chain, pnr_step_, pnr_init_history_, pnr_quasi_static_."""
-        return '\n\n'.join(self._constants() + self._helpers() +
-                           [self._step(), self._history(), self._quasi_static()])
+        """Return the model, pnr_step_, pnr_init_history_ and pnr_quasi_static_."""
+        step = '\n'.join(['static void pnr_step_(pnr_state_t *s, const double *u, double *y)',
+                          '{', '    y[0] = hn_step(s->x, u[0]);', '}'])
+        parts = [self.model_definitions(), step, input_history(self.nu, 1, 1)]
+        if 'quasi_static' in self.targets:
+            parts.append(self.named(self._quasi_static()))
+        return '\n\n'.join(parts)
+
+
+def input_history(nu: int, n_in: int, n_out: int) -> str:
+    """
+    Return `pnr_init_history_` of a model whose state is a function of its inputs alone.
+
+    Rest, then the nu input rows u_past (n_in values each, oldest first) through pnr_step_, as
+    simulate() / stepper(u_past) do; y_past is not used: the operators' memory cannot be read
+    from a few outputs.
+    """
+    head = ['/* Rest, then the inputs u_past (as simulate()/stepper(u_past) do); y_past is not',
+            " * used: the operators' memory cannot be read from a few outputs. */",
+            'static void pnr_init_history_(pnr_state_t *s, const double *u_past,',
+            '                              const double *y_past)', '{']
+    if not nu:
+        return '\n'.join(head + ['    (void)u_past;', '    (void)y_past;', '    pnr_init(s);',
+                                 '}'])
+    row = 'u_past[i]' if n_in == 1 else f'u_past[i * {n_in}]'
+    return '\n'.join(head + [
+        f'    double y[{n_out}];', '    int i;', '    (void)y_past;', '    pnr_init(s);',
+        '    if (u_past) {', f'        for (i = 0; i < {nu}; ++i) {{',
+        f'            pnr_step_(s, &{row}, y);', '        }', '    }', '}'])
