@@ -1,5 +1,6 @@
 """Lag-grid experiment: selection rule, ARX order recovery, parallel = serial, report folder."""
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -348,7 +349,10 @@ def test_envelope_preset_fits_hysteresis_networks_over_seeds(tmp_path):
     specs = cfg.specs()
     n_net = 2 * len(cfg.hnarx_structures())
     assert [s.kind for s in specs[:n_net]] == ['hysteresis_narx'] * n_net
-    assert [s.seed for s in specs[:2]] == [0, 1] and len(specs) == n_net + 9
+    # Then the paper's NARX grid beside them (narx_beside 'auto', first seed), then 9 ARX.
+    assert [s.seed for s in specs[:2]] == [0, 1] and len(specs) == n_net + 16 + 9
+    assert [s.kind for s in specs[n_net:n_net + 16]] == ['narx'] * 16
+    assert {s.seed for s in specs if s.kind == 'narx'} == {0}
     res = run_experiment([rec], cfg)
     assert isinstance(res.best.model, HysteresisNARX) or res.best.spec.kind == 'arx'
     assert res.best.free_run_r2() == max(c.free_run_r2() for c in res.candidates)
@@ -358,6 +362,34 @@ def test_envelope_preset_fits_hysteresis_networks_over_seeds(tmp_path):
         replace(cfg, hnarx={'hidden': 4}).validate()
     with pytest.raises(ConfigError, match='n_plays'):
         replace(cfg, hnarx={'n_plays': 0}).validate()
+
+
+def test_paper_networks_beside_the_envelope_family_only_where_minor_loops_shape_them():
+    """narx_beside 'auto': the NARX grid only on one-axis data closing >= 20 minor loops."""
+    from piezo_narx_ros.ident.experiment import beside
+    from piezo_narx_ros.plant import generate
+    cfg = ExperimentConfig(family='hysteresis_narx', hidden=3, narx_beside='auto',
+                           arx_na=(2,), arx_nb=(2,))
+    cfg.validate()
+    specs = cfg.specs()
+    assert [s.kind for s in specs] == ['hysteresis_narx'] + ['narx'] * 16 + ['arx']
+
+    def rec(u):
+        return Record(u=u, y=np.zeros_like(u), fs=2000.0, source='r')
+    loops = rec(generate('multisine', 2000.0, 4.0, 100.0, seed=1))
+    one_loop = rec(generate('growing_sine', 2000.0, 4.0, 100.0, freq=1.0, hold=0.5))
+    assert beside(specs, cfg, [loops]) == specs
+    assert [s.kind for s in beside(specs, cfg, [one_loop])] == ['hysteresis_narx', 'arx']
+    axes = Record(u=np.c_[loops.u, loops.u], y=np.c_[loops.u, loops.u], fs=2000.0, source='a',
+                  inputs=('u1', 'u2'), outputs=('y1', 'y2'))
+    assert 'narx' not in [s.kind for s in beside(specs, cfg, [axes])]
+    assert beside(specs, replace(cfg, narx_beside='yes'), [one_loop]) == specs
+    assert 'narx' not in [s.kind for s in replace(cfg, narx_beside='no').specs()]
+    with pytest.raises(ConfigError, match='narx_beside'):
+        replace(cfg, narx_beside='maybe').validate()
+    # The paper's training options are checked when its networks are fitted beside.
+    with pytest.raises(ConfigError, match='training'):
+        replace(cfg, training={'no_such_option': 1}).validate()
 
 
 def test_hnarx_grid_fits_every_structure_with_every_seed():
@@ -398,4 +430,4 @@ def test_several_axes_fit_the_envelope_family_once_not_once_per_seed_and_structu
     assert common == [specs[0]]                 # the common-denominator structure: fitted once
     # One chain per axis (ident/hysteresis_chains.py) uses seeds and increments: each kept.
     assert len(kept) == 1 + n_net + (len(specs) - n_net)
-    assert [s.kind for s in kept].count('arx') == len(specs) - n_net
+    assert [s.kind for s in kept].count('arx') == [s.kind for s in specs].count('arx')

@@ -15,8 +15,9 @@ from piezo_narx_ros.errors import ConfigError, DataError, ModelFileError
 from piezo_narx_ros.estimator.free_run import FreeRunEstimator
 from piezo_narx_ros.ident import hysteresis_kernels as hk
 from piezo_narx_ros.ident.hysteresis import HysteresisNARX
-from piezo_narx_ros.ident.hysteresis_training import (_split_theta, initial_theta,
-                                                      operator_features)
+from piezo_narx_ros.ident import hysteresis_training
+from piezo_narx_ros.ident.hysteresis_training import (_split_theta, drive_limit_candidates,
+                                                      initial_theta, operator_features)
 from piezo_narx_ros.ident.model_io import load_model, save_model
 from piezo_narx_ros.plant import PiezoCantilever, generate
 
@@ -286,3 +287,54 @@ def test_unstable_or_misshapen_weights_are_refused(tmp_path, fitted):
         _edit(path, lambda d: d['weights'].pop('sha256', None))
         with pytest.raises(ModelFileError, match=match):
             load_model(path)
+
+
+def test_drive_limit_starts_only_where_the_input_moves_smoothly_and_fast():
+    # A jump: the rule's start alone (the limit acts on it and has a derivative). Smooth and
+    # slow (a 1 Hz sine: 0.2 % of the range per sample): the rule's inactive limit alone, or it
+    # would cap a faster input. Smooth and fast: active limits too, below the largest step.
+    steps = np.r_[np.zeros(100), np.ones(100)]
+    assert len(drive_limit_candidates([steps])) == 1
+    slow = np.sin(2 * np.pi * np.arange(4000) / FS)
+    assert len(drive_limit_candidates([slow])) == 1
+    fast = generate('multisine', FS, 1.0, 1.0, seed=1, f_max=800.0)
+    largest = np.max(np.abs(np.diff(fast)))
+    starts = drive_limit_candidates([fast])
+    assert starts[0] >= largest and len(starts) > 1
+    assert all(0.05 * 2.0 <= s < largest for s in starts[1:])
+
+
+@pytest.fixture(scope='module')
+def slewing():
+    """Return a 0.1-800 Hz multisine at +-100 V (the amplifier slews on ~13 % of samples)."""
+    u = generate('multisine', FS, 1.5, 100.0, seed=1, f_max=800.0)
+    fresh = generate('multisine', FS, 1.0, 100.0, seed=2, f_max=800.0)
+    return (u, PiezoCantilever(fs=FS, seed=1).run(u).y,
+            fresh, PiezoCantilever(fs=FS, seed=2).run(fresh).y)
+
+
+def _slewing_fit(slewing):
+    u, y, fresh, y_fresh = slewing
+    m = HysteresisNARX(hidden=4, n_plays=6, n_lags=3, max_iter=15, seed=0).fit(u, y, fs=FS)
+    return m, np.sqrt(np.mean((y_fresh - m.simulate(fresh)) ** 2))
+
+
+def test_a_slew_the_smooth_data_show_is_learned(slewing, monkeypatch):
+    # A smooth input leaves the rule's limit inactive, where it has no derivative: the slew the
+    # plant's amplifier imposes (1e5 V/s) is found only from an active start.
+    m, rmse = _slewing_fit(slewing)
+    kept = [d for d in m.training_info_['drive_starts'] if d.get('kept')]
+    assert len(kept) == 1 and kept[0] is not m.training_info_['drive_starts'][0]
+    assert 0.7e5 < m.drive_slew_rate < 1.4e5
+    monkeypatch.setattr(hysteresis_training, 'DRIVE_LIMIT_QUANTILES', ())
+    m_rule, rmse_rule = _slewing_fit(slewing)
+    assert len(m_rule.training_info_['drive_starts']) == 1
+    assert m_rule.drive_slew_rate > 2.0 * np.max(np.abs(np.diff(slewing[0]))) * FS * 0.99
+    assert rmse < 0.7 * rmse_rule, (rmse, rmse_rule)     # measured 2.3 against 5.3 um
+
+
+def test_no_slew_is_invented_where_the_data_show_none():
+    u = generate('multisine', FS, 1.5, 100.0, seed=1, f_max=20.0)
+    y = PiezoCantilever(fs=FS, seed=1).run(u).y
+    m = HysteresisNARX(hidden=4, n_plays=6, max_iter=5, seed=0).fit(u, y, fs=FS)
+    assert m.training_info_['drive_starts'][0].get('kept')

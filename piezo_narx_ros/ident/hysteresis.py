@@ -220,7 +220,11 @@ class HysteresisNARX(DynamicModel):
             more['iterations_from_rest'] = info['iterations']
             more['record_starts'] = starts
             more['fit_seconds'] += info['fit_seconds']
+            more['drive_starts'] = info['drive_starts']
             info = more
+        # The drive limits tried as starts, in V/s (the training's are per normalised sample).
+        info['drive_starts'] = [{**d, 'rho': d['rho'] * u_scale * fs}
+                                for d in info['drive_starts']]
         info['record_offsets_m'] = [o * y_scale for o in info.pop('record_offsets')]
         info.update(monotone=bool(monotone), inner_reversals=loops)
         self.training_info_ = info
