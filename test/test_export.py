@@ -466,7 +466,7 @@ def test_the_header_compiles_as_cpp_for_s_functions(exported, tmp_path):
 def _edge_models():
     # The smallest structures: no input lags, no Duhem state, no creep, no output dynamics;
     # the emitters leave out empty arrays and loops (C has no zero-length arrays).
-    from test_ident_hysteresis import random_model
+    from test_ident_hysteresis import amplifier_model, random_model
     arx = ARXModel(1, 0, fit_intercept=False).set_coefficients([-0.5], [2e-7])
     rng = np.random.default_rng(2)
     narx = NARXNetwork(0, 1, 1).set_weights(rng.normal(size=(1, 2)), [0.1], [0.2], 0.3,
@@ -475,7 +475,8 @@ def _edge_models():
     one = random_model(seed=2, scale=0.5, n_lags=1, n_duhem=1, creep_taus=(0.1,), na=1, nb=0)
     for m in (arx, narx):
         m.fs = FS
-    return {'arx nb=0': arx, 'narx nu=0': narx, 'hnarx bare': bare, 'hnarx one': one}
+    return {'arx nb=0': arx, 'narx nu=0': narx, 'hnarx bare': bare, 'hnarx one': one,
+            'hnarx amplifier': amplifier_model()}
 
 
 @pytest.mark.parametrize('name', list(_edge_models()))

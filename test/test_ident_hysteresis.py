@@ -32,7 +32,7 @@ def random_model(seed=0, scale=1.0, **kw):
     m = HysteresisNARX(**args)
     rng = np.random.default_rng(seed)
     theta = rng.normal(0.0, scale, m.n_params)
-    lay, _ = hk.layout(m.hidden, m.n_inputs, m.n_duhem, len(m.creep_taus), m.na, m.nb)
+    lay, _ = m._layout()
     lo, hi = lay['a']
     theta[lo:hi] = [-1.2, 0.5][:m.na]           # poles 0.6 +- 0.37j, inside the unit circle
     m.set_theta(theta, u_scale=100.0, y_scale=1e-5, radii=(np.arange(m.n_plays) / 5.0) ** 2,
@@ -48,7 +48,8 @@ def walk(n, seed=0, hold=(0, 0)):
     return u
 
 
-def test_training_jacobian_matches_finite_differences():
+@pytest.mark.parametrize('amplifier', [False, True])
+def test_training_jacobian_matches_finite_differences(amplifier):
     rng = np.random.default_rng(1)
     un = walk(600, 1) / 100.0
     un[300:350] = un[299]
@@ -58,21 +59,26 @@ def test_training_jacobian_matches_finite_differences():
     radii = (np.arange(5) / 5) ** 2
     lam = np.exp(-1 / (np.array([0.005, 0.05]) * FS))
     H, q, L, na, nb = 3, 2, 2, 2, 2
-    theta, _ = initial_theta([un], [yn], radii, L, H, q, lam.size, na, nb, rng)
+    kap = 1.5 if amplifier else np.inf
+    theta, _ = initial_theta([un], [yn], radii, L, H, q, lam.size, na, nb, rng, kap=kap)
     theta += rng.normal(0, 0.05, theta.size)
     d = radii.size + L + q
-    lay, P = hk.layout(H, d, q, lam.size, na, nb)
+    lay, P = hk.layout(H, d, q, lam.size, na, nb, 2 if amplifier else 1)
     theta[lay['drive'][0]] = np.log(0.5)                   # the two spikes are limited
+    if amplifier:
+        # rho/kap = 0.33: the walk's steps decay first-order, the 0.8 spike ramps then decays,
+        # the 1.2 spike ramps the whole sample: every piece of the drive is crossed.
+        theta[lay['drive'][0] + 1] = np.log(kap)
 
     def out(t):
-        W1, b1, w2, c, dh, rho, g, a, b, yo = _split_theta(t, lay, H, d, q)
-        _, (F, S, _, _, _) = operator_features(un, radii, L, dh, rho)
+        W1, b1, w2, c, dh, dr, g, a, b, yo = _split_theta(t, lay, H, d, q)
+        _, (F, S, _, _, _, _, _) = operator_features(un, radii, L, dh, dr)
         return hk.forward(F, S, W1, b1, w2, c, g, lam, a, b, yo)
 
-    W1, b1, w2, c, dh, rho, g, a, b, yo = _split_theta(theta, lay, H, d, q)
-    _, parts = operator_features(un, radii, L, dh, rho, with_jac=True)
+    W1, b1, w2, c, dh, dr, g, a, b, yo = _split_theta(theta, lay, H, d, q)
+    _, (F, S, JD, DF, SR, DFK, SRK) = operator_features(un, radii, L, dh, dr, with_jac=True)
     J = np.empty((un.size, P))
-    y = hk.jacobian(*parts, rho, W1, b1, w2, c, g, lam, a, b, yo, J)
+    y = hk.jacobian(F, S, JD, DF, SR, dr[0], DFK, SRK, dr[1], W1, b1, w2, c, g, lam, a, b, yo, J)
     np.testing.assert_allclose(y, out(theta), rtol=0, atol=1e-12)
     for name, (lo, hi) in lay.items():
         for p in range(lo, hi):
@@ -81,6 +87,77 @@ def test_training_jacobian_matches_finite_differences():
             fd = (out(theta + step) - out(theta - step)) / (2 * h)
             err = np.max(np.abs(J[:, p] - fd)) / (np.max(np.abs(fd)) + 1e-12)
             assert err < 1e-5, (name, p, err)
+
+
+def test_amplifier_drive_is_the_sampled_slew_limited_first_order_amplifier():
+    # The drive with a bandwidth is the exact end-of-sample output of the plant's amplifier
+    # (dv/dt = clip(w_a (u - v), -slew, slew), u held), in samples: w_a = kap, slew = rho.
+    # Checked against a finely integrated ramp, against the plant's own closed form, and with
+    # kap = inf against the plain clip (bit for bit: older models run the same numbers).
+    from piezo_narx_ros.plant.kernels import amplifier_substep
+    rng = np.random.default_rng(4)
+    prev, un = rng.uniform(-1, 1, (2, 300))
+    rho, kap = np.exp(rng.uniform(-3, 0, 300)), np.exp(rng.uniform(-1, 2.5, 300))
+    fine = prev.copy()
+    n = 20000
+    for _ in range(n):
+        fine += np.clip(kap * (un - fine), -rho, rho) / n
+    pieces = set()
+    for i in range(300):
+        p, x, r, k = prev[i], un[i], rho[i], kap[i]
+        v = hk.amplifier(p, x, r, k)
+        e = abs(x - p)
+        pieces.add(0 if e <= r / k else 2 if e - r / k >= r else 1)
+        assert v == pytest.approx(amplifier_substep(p, x, k, r, 1.0), abs=1e-14)
+        assert abs(v - fine[i]) < 2e-4 * max(1.0, k), (p, x, r, k)
+        assert hk.amplifier(p, x, r, np.inf) == p + np.clip(x - p, -r, r)
+        # Derivatives: the same value, and central differences.
+        val, gp, gr, gk = hk.amplifier_derivatives(p, x, r, k)
+        assert val == v
+        h = 1e-7
+        for got, d in ((gp, (h, 0, 0)), (gr, (0, h, 0)), (gk, (0, 0, h))):
+            fd = (hk.amplifier(p + d[0], x, r + d[1], k + d[2])
+                  - hk.amplifier(p - d[0], x, r - d[1], k - d[2])) / (2 * h)
+            assert got == pytest.approx(fd, abs=1e-6)
+    assert pieces == {0, 1, 2}
+
+
+def amplifier_model(seed=5):
+    """A random model whose drive has a bandwidth and slews (1 V per sample at u_scale 100 V)."""
+    m = random_model(seed, scale=0.5, amplifier='yes')
+    lay, _ = m._layout()
+    theta = m.theta_.copy()
+    theta[lay['drive'][0]:lay['drive'][1]] = [np.log(0.01), np.log(1.5)]
+    return m.set_theta(theta)
+
+
+def test_amplifier_model_file_stepper_and_old_files(tmp_path, fitted):
+    m = amplifier_model()
+    u = generate('multisine', FS, 1.0, 100.0, seed=1, f_max=800.0)
+    y = m.simulate(u)
+    st = m.stepper()
+    assert np.array_equal(np.array([st.step(v) for v in u]), y)
+    assert np.array_equal(m.stepper().step_many(u), y)
+    # It differs from the slew-only drive where the command slews (the same other weights).
+    plain = HysteresisNARX(**{k: v for k, v in m.params_dict().items() if k != 'amplifier'})
+    lay, _ = m._layout()
+    theta = np.delete(m.theta_, lay['drive'][0] + 1)
+    plain.set_theta(theta, m.u_scale_, m.y_scale_, m.radii_, m.fs)
+    assert not np.array_equal(plain.simulate(u), y)
+    path = save_model(m, tmp_path / 'amp.json')
+    doc = json.loads(path.read_text())
+    assert doc['structure']['amplifier'] is True
+    back = load_model(path)
+    assert back.amplifier_ and np.array_equal(back.simulate(u), y)
+    assert back.drive_bandwidth == pytest.approx(1.5 * FS / (2 * np.pi))
+    _edit(path, lambda d: d['structure'].update(amplifier='yes'))
+    with pytest.raises(ModelFileError, match='amplifier'):
+        load_model(path)
+    # A model without it writes no new field anywhere: older readers load it as before.
+    path = save_model(fitted[0], tmp_path / 'old.json')
+    text = path.read_text()
+    assert 'amplifier' not in text and not fitted[0].amplifier_
+    assert np.load(path.with_suffix('.npz'))['drive'].shape == (1,)
 
 
 def test_simulate_stepper_predict_agree():
@@ -101,8 +178,8 @@ def test_simulate_stepper_predict_agree():
     assert np.array_equal(m.simulate(u, y_meas[:n0] + 1e-3)[n0:], y[n0:])
     # One step ahead: the free-run operator chain with measured output lags.
     pred = m.predict(u, y_meas)
-    z = hk.operator_chain(u / m.u_scale_, *m._kernel_args[:11])
-    a, b, y_off = m._kernel_args[11:]
+    z = hk.operator_chain(u / m.u_scale_, *m._kernel_args[:12])
+    a, b, y_off = m._kernel_args[12:]
     k = 1234
     yl = y_meas / m.y_scale_ - y_off
     manual = (sum(b[i] * z[k - i] for i in range(b.size))
@@ -150,7 +227,7 @@ def test_free_run_is_bounded_for_any_bounded_input():
     m = random_model(5, scale=3.0)
     u = walk(100000, 5) * 1.5
     y = m.simulate(u)
-    radii, n_lags, dh, rho, W1, b1, w2, c, w_rest, g, lam, a, b, y_off = m._kernel_args
+    radii, n_lags, dh, rho, kap, W1, b1, w2, c, w_rest, g, lam, a, b, y_off = m._kernel_args
     umax = np.max(np.abs(u)) / m.u_scale_
     phi_max = np.r_[np.full(m.n_plays, umax), np.full(n_lags, 2 * umax),
                     np.max(np.abs(dh[:, :2]), axis=1) / hk.BETA_MIN]
@@ -304,6 +381,18 @@ def test_drive_limit_starts_only_where_the_input_moves_smoothly_and_fast():
     assert all(0.05 * 2.0 <= s < largest for s in starts[1:])
 
 
+def test_the_drive_gets_a_bandwidth_only_where_the_command_slews():
+    # amplifier='auto': a command that moves far in most samples (a wideband multisine), not
+    # the protocol (jumps, but few), a slow sine or the default multisine (4.7 % of its range).
+    slews = hysteresis_training.drive_slews
+    assert slews([generate('multisine', 5000.0, 1.0, 60.0, seed=1, f_max=1500.0)])
+    assert slews([generate('multisine', FS, 1.0, 100.0, seed=1, f_max=800.0)])
+    assert not slews([generate('protocol', FS, 10.0, 100.0, seed=1)])
+    assert not slews([generate('multisine', FS, 4.0, 100.0, seed=1)])
+    assert not slews([np.sin(2 * np.pi * np.arange(4000) / FS)])
+    assert not slews([np.zeros(10)])
+
+
 @pytest.fixture(scope='module')
 def slewing():
     """Return a 0.1-800 Hz multisine at +-100 V (the amplifier slews on ~13 % of samples)."""
@@ -315,7 +404,8 @@ def slewing():
 
 def _slewing_fit(slewing):
     u, y, fresh, y_fresh = slewing
-    m = HysteresisNARX(hidden=4, n_plays=6, n_lags=3, max_iter=15, seed=0).fit(u, y, fs=FS)
+    m = HysteresisNARX(hidden=4, n_plays=6, n_lags=3, max_iter=15, seed=0,
+                       amplifier='no').fit(u, y, fs=FS)
     return m, np.sqrt(np.mean((y_fresh - m.simulate(fresh)) ** 2))
 
 
@@ -338,3 +428,19 @@ def test_no_slew_is_invented_where_the_data_show_none():
     y = PiezoCantilever(fs=FS, seed=1).run(u).y
     m = HysteresisNARX(hidden=4, n_plays=6, max_iter=5, seed=0).fit(u, y, fs=FS)
     assert m.training_info_['drive_starts'][0].get('kept')
+
+
+def test_a_model_file_written_before_the_amplifier_runs_the_same_bits():
+    # test/data/hnarx_slew: a small model fitted on the protocol and saved, with its free run
+    # of a 0.1-500 Hz multisine, by the code before the drive had a bandwidth (its slew limit,
+    # 3.7e4 V/s, clips that multisine). Loading and running it must give the same bits.
+    from pathlib import Path
+    here = Path(__file__).parent / 'data' / 'hnarx_slew'
+    m = load_model(here / 'model.json')
+    with np.load(here / 'expected.npz') as z:
+        u, y = z['u'], z['y']
+    assert not m.amplifier_ and m.drive_bandwidth == np.inf
+    assert np.array_equal(m.simulate(u), y)
+    assert np.array_equal(m.stepper().step_many(u), y)
+    lay, _ = m._layout()
+    assert lay['drive'][1] - lay['drive'][0] == 1

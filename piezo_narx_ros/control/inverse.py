@@ -125,7 +125,7 @@ class ModelInverse:
             step = narx_step if self.kind == 'narx' else arx_step
             self._advance = lambda u: step(u, arrays[0], arrays[1], *params)
         if self.kind == 'hysteresis_narx':
-            radii, n_lags, dh, rho, W1, b1, w2, c, w_rest, g, lam, a, b, y_off = params
+            radii, n_lags, dh, rho, kap, W1, b1, w2, c, w_rest, g, lam, a, b, y_off = params
             static = self.target == 'quasi_static'
             if static:
                 b = np.array([np.sum(b) / (1.0 + np.sum(a))])    # [G], the DC gain
@@ -133,7 +133,8 @@ class ModelInverse:
             self._solve = ck.solve_hysteresis
             self._args = work + (static, st, np.zeros(st.size), np.zeros(st.size),
                                  float(self.model.u_scale_), float(self.model.y_scale_), radii,
-                                 n_lags, dh, rho, W1, b1, w2, c, w_rest, g, lam, a, b, y_off)
+                                 n_lags, dh, rho, kap, W1, b1, w2, c, w_rest, g, lam, a, b,
+                                 y_off)
         else:
             ubuf, ybuf = arrays
             self._solve = ck.solve_narx if self.kind == 'narx' else ck.solve_arx
@@ -174,12 +175,12 @@ class ModelInverse:
     def value(self, u: float) -> float:
         """Return the model's value for input u (V) in the target's sense (m), state untouched."""
         if self.kind == 'hysteresis_narx':
-            (static, st, s1, s2, u_scale, y_scale, radii, n_lags, dh, rho, W1, b1, w2, c, w_rest,
-             g, lam, a, b, y_off) = self._args[3:]
+            (static, st, s1, s2, u_scale, y_scale, radii, n_lags, dh, rho, kap, W1, b1, w2, c,
+             w_rest, g, lam, a, b, y_off) = self._args[3:]
             un = float(u) / u_scale
             if static:
-                return y_scale * hk.peek_static(un, st, s1, s2, radii, n_lags, dh, rho, W1, b1,
-                                                w2, c, w_rest, g, lam, b, y_off)
+                return y_scale * hk.peek_static(un, st, s1, s2, radii, n_lags, dh, rho, kap, W1,
+                                                b1, w2, c, w_rest, g, lam, b, y_off)
         return self.stepper.peek(u)
 
     def estimate_advance(self, freq: float = 5.0, seconds: float = 1.0) -> float:

@@ -217,8 +217,8 @@ def result(sv):
 
 @njit(cache=True)
 def solve_hysteresis(target, lo, hi, u_prev, tol_u, tol_y, max_iter, n_grid, sv, cand, g, static,
-                     st, scratch, scratch2, u_scale, y_scale, radii, n_lags, duhem, rho, W1, b1,
-                     w2, c, w_rest, gc, lam, a, b, y_off):
+                     st, scratch, scratch2, u_scale, y_scale, radii, n_lags, duhem, rho, kap, W1,
+                     b1, w2, c, w_rest, gc, lam, a, b, y_off):
     """
     Solve a HysteresisNARX (state st, normalised units) for g(u) = target (m), u in [lo, hi] V.
 
@@ -229,11 +229,11 @@ def solve_hysteresis(target, lo, hi, u_prev, tol_u, tol_y, max_iter, n_grid, sv,
         for j in range(n):
             un = cand[j] / u_scale
             if static:
-                yn = hk.peek_static(un, st, scratch, scratch2, radii, n_lags, duhem, rho, W1, b1,
-                                    w2, c, w_rest, gc, lam, b, y_off)
+                yn = hk.peek_static(un, st, scratch, scratch2, radii, n_lags, duhem, rho, kap,
+                                    W1, b1, w2, c, w_rest, gc, lam, b, y_off)
             else:
-                yn = hk.peek(un, st, scratch, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest,
-                             gc, lam, a, b, y_off)
+                yn = hk.peek(un, st, scratch, radii, n_lags, duhem, rho, kap, W1, b1, w2, c,
+                             w_rest, gc, lam, a, b, y_off)
             g[j] = y_scale * yn
         n = update(sv, cand, g, n)
     return result(sv)

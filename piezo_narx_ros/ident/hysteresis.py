@@ -10,6 +10,8 @@ linear output dynamics (the `--preset envelope` family).
     phi(k) = [play operators of v (n_plays radii), v increments over n_lags samples,
               learned Duhem states of v (n_duhem)]
     v(k) = v(k-1) + clip(u(k) - v(k-1), -rho, rho)   the drive, rho learned (amplifier slew)
+    (with `amplifier`: the sampled output of a slew-limited first-order amplifier, its
+    bandwidth learned too: hysteresis_kernels.amplifier)
 
 Why this structure (docs/envelope.md has the measurements): the paper's network feeds its own
 output back through a sigmoid layer. A rate-independent plant holding its input has a continuum of
@@ -85,10 +87,16 @@ class HysteresisNARX(DynamicModel):
     input goes, also inside loops the data never showed; 'no' leaves the network free; 'auto':
     'yes' unless the estimation input closes at least MINOR_LOOPS minor loops (reverses inside
     its previous loop: then the data show the network its minor loops, and the free network fits
-    them better).
+    them better). amplifier: the drive also learns a first-order amplifier bandwidth beside its
+    slew limit (the exact sampled output of a slew-limited first-order amplifier fed the held
+    command: hysteresis_kernels.amplifier): 'yes', 'no', or 'auto': 'yes' when the command
+    moves smoothly and fast enough to slew (hysteresis_training.drive_slews), else 'no'.
+    Measured in docs/real.md ("The amplifier's bandwidth"): on a 0.1-1500 Hz multisine at
+    5 kHz it finds the simulated amplifier's slew and bandwidth.
 
     Fitted attributes: u_scale_ (V), y_scale_ (m), radii_ (normalised), theta_ (all parameters,
-    normalised units), training_info_; fs, input_range, output_range as every model.
+    normalised units), amplifier_ (bool: the drive has a learned bandwidth), training_info_;
+    fs, input_range, output_range as every model.
     """
 
     kind = 'hysteresis_narx'
@@ -111,20 +119,24 @@ class HysteresisNARX(DynamicModel):
         'start': Options(('auto', 'rest', 'estimate')),
         'monotone': Options(('auto', 'yes', 'no')),
         'mimo_order': Interval(int, 1, 60),
+        'amplifier': Options(('auto', 'no', 'yes')),
     }
 
     def __init__(self, hidden=10, n_plays=12, n_duhem=1, n_lags=3, na=3, nb=3,
                  creep_taus=DEFAULT_CREEP_TAUS, seed=0, max_iter=60, val_fraction=0.0,
-                 max_fail=8, hessian_stride=2, start='auto', monotone='auto', mimo_order=28):
+                 max_fail=8, hessian_stride=2, start='auto', monotone='auto', mimo_order=28,
+                 amplifier='auto'):
         values = check_parameters(type(self), {
             'hidden': hidden, 'n_plays': n_plays, 'n_duhem': n_duhem, 'n_lags': n_lags,
             'na': na, 'nb': nb, 'creep_taus': creep_taus, 'seed': seed, 'max_iter': max_iter,
             'val_fraction': val_fraction, 'max_fail': max_fail, 'hessian_stride': hessian_stride,
-            'start': start, 'monotone': monotone, 'mimo_order': mimo_order})
+            'start': start, 'monotone': monotone, 'mimo_order': mimo_order,
+            'amplifier': amplifier})
         for name, value in values.items():
             setattr(self, name, value)
         self.theta_ = None
         self.mimo_ = None       # hysteresis_mimo.MimoParts when fitted on several axes
+        self.amplifier_ = amplifier == 'yes'   # set by fit (auto) or the model file
         self.training_info_ = {}
 
     # ------------------------------------------------------------------ structure
@@ -148,17 +160,23 @@ class HysteresisNARX(DynamicModel):
         """Return the number of estimated parameters."""
         if self.mimo_ is not None:
             return self.mimo_.n_params
+        return self._layout()[1]
+
+    def _layout(self):
+        """Return hysteresis_kernels.layout of this structure (offsets, size)."""
         return hk.layout(self.hidden, self.n_inputs, self.n_duhem, len(self.creep_taus),
-                         self.na, self.nb)[1]
+                         self.na, self.nb, 2 if self.amplifier_ else 1)
 
     def _is_fitted(self):
         return self.theta_ is not None or self.mimo_ is not None
 
     def params_dict(self):
         """Return the constructor arguments (for model files and reports)."""
-        # mimo_order only shapes a several-axes model: one-axis files stay as they were.
+        # mimo_order only shapes a several-axes model, amplifier a model that uses it: other
+        # files stay as they were.
         return {name: getattr(self, name) for name in self._parameter_constraints
-                if name != 'mimo_order' or self.mimo_ is not None}
+                if (name != 'mimo_order' or self.mimo_ is not None)
+                and (name != 'amplifier' or self.amplifier_)}
 
     # ------------------------------------------------------------------ fitting
     def fit(self, u, y, fs=None):
@@ -192,6 +210,9 @@ class HysteresisNARX(DynamicModel):
         # The monotone network rises with the input; an actuator whose output falls with the
         # voltage is fitted on the negated output and the output layer negated after.
         sign = -1.0 if monotone and _gain_sign(us, ys) < 0 else 1.0
+        from .hysteresis_training import drive_slews
+        self.amplifier_ = self.amplifier == 'yes' or (
+            self.amplifier == 'auto' and drive_slews([x / u_scale for x in us]))
 
         def fit_on(prefixes, theta0):
             skip = [p.size for p in prefixes]
@@ -203,7 +224,7 @@ class HysteresisNARX(DynamicModel):
                 self.hessian_stride,
                 theta0=None if theta0 is None else self._signed(theta0, sign),
                 skip=skip, record_offsets=len(us) > 1,
-                monotone=monotone)
+                monotone=monotone, amplifier=self.amplifier_)
             info['record_offsets'] = [sign * o for o in info['record_offsets']]
             return self._signed(theta, sign), info
 
@@ -227,6 +248,8 @@ class HysteresisNARX(DynamicModel):
                                 for d in info['drive_starts']]
         info['record_offsets_m'] = [o * y_scale for o in info.pop('record_offsets')]
         info.update(monotone=bool(monotone), inner_reversals=loops)
+        if self.amplifier_:
+            info['drive_bandwidth_hz'] = self.drive_bandwidth
         self.training_info_ = info
         return self
 
@@ -276,8 +299,7 @@ class HysteresisNARX(DynamicModel):
         """Return theta with its output negated when sign < 0 (output layer, offset; a copy)."""
         theta = np.array(theta, dtype=np.float64)
         if sign < 0:
-            lay, _ = hk.layout(self.hidden, self.n_inputs, self.n_duhem, len(self.creep_taus),
-                               self.na, self.nb)
+            lay, _ = self._layout()
             for name in ('w2', 'c', 'y_off'):
                 lo, hi = lay[name]
                 theta[lo:hi] = -theta[lo:hi]
@@ -326,8 +348,7 @@ class HysteresisNARX(DynamicModel):
             raise DataError(f'radii must hold {self.n_plays} finite values')
         if not (self.u_scale_ > 0 and self.y_scale_ > 0):
             raise DataError('u_scale and y_scale must be > 0')
-        lay, _ = hk.layout(self.hidden, self.n_inputs, self.n_duhem, len(self.creep_taus),
-                           self.na, self.nb)
+        lay, _ = self._layout()
         part = {k: theta[lo:hi] for k, (lo, hi) in lay.items()}
         H, d = self.hidden, self.n_inputs
         W1 = np.ascontiguousarray(part['W1'].reshape(H, d))
@@ -338,7 +359,9 @@ class HysteresisNARX(DynamicModel):
         self._kernel_args = (
             np.ascontiguousarray(self.radii_), int(self.n_lags),
             np.ascontiguousarray(part['duhem'].reshape(self.n_duhem, 6)),
-            float(np.exp(part['drive'][0])), W1, b1, w2, part['c'].copy(), w_rest,
+            float(np.exp(part['drive'][0])),
+            float(np.exp(part['drive'][1])) if self.amplifier_ else np.inf,
+            W1, b1, w2, part['c'].copy(), w_rest,
             part['g'].copy(), self._lam(), part['a'].copy(), part['b'].copy(),
             float(part['y_off'][0]))
         return self
@@ -353,9 +376,14 @@ class HysteresisNARX(DynamicModel):
         return self._kernel_args[3] * self.u_scale_ * self.fs
 
     @property
+    def drive_bandwidth(self):
+        """Learned amplifier bandwidth of the drive, Hz (inf without `amplifier`)."""
+        return self._kernel_args[4] * self.fs / (2.0 * math.pi)
+
+    @property
     def output_poles(self):
         """Roots of the output dynamics' A(q) (z-plane); all inside the unit circle."""
-        a = self._kernel_args[11]
+        a = self._kernel_args[12]
         return np.roots(np.r_[1.0, a]) if a.size else np.zeros(0)
 
     # ------------------------------------------------------------------ inference
@@ -628,7 +656,8 @@ class HysteresisNARX(DynamicModel):
                               'n_duhem': self.n_duhem, 'n_lags': self.n_lags, 'na': self.na,
                               'nb': self.nb, 'creep_taus': list(self.creep_taus),
                               'activation': self.activation, 'nu': self.nu, 'ny': self.ny,
-                              'n_params': self.n_params},
+                              'n_params': self.n_params,
+                              **({'amplifier': True} if self.amplifier_ else {})},
                 'normalisation': {'u_scale': self.u_scale_, 'y_scale': self.y_scale_},
                 'training': {'seed': self.seed, 'options': self.params_dict(),
                              'info': self.training_info_,
@@ -636,8 +665,7 @@ class HysteresisNARX(DynamicModel):
 
     def _file_shapes(self):
         """Return {weight array name: shape} of the model file (theta_ split by its layout)."""
-        lay, _ = hk.layout(self.hidden, self.n_inputs, self.n_duhem, len(self.creep_taus),
-                           self.na, self.nb)
+        lay, _ = self._layout()
         shapes = {k: (hi - lo,) for k, (lo, hi) in lay.items()}
         shapes['W1'] = (self.hidden, self.n_inputs)
         shapes['duhem'] = (self.n_duhem, 6)
@@ -683,6 +711,12 @@ class HysteresisNARX(DynamicModel):
         training = document.training_block(doc)
         seed = training.get('seed', 0)
         model = cls(**values, seed=seed if isinstance(seed, int) and seed >= 0 else 0)
+        # Written only by a model whose drive has a bandwidth (older files: a slew limit alone).
+        amplifier = struct.get('amplifier', False)
+        if not isinstance(amplifier, bool):
+            raise ModelFileError(f'{name}: structure.amplifier must be true or false, got '
+                                 f'{amplifier!r}')
+        model.amplifier_ = amplifier
         _, shapes = model._file_shapes()
         theta = np.concatenate([document.weight_array(arrays, k, shapes[k], wpath).ravel()
                                 for k in _FILE_PARTS])

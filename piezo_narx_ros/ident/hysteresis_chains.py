@@ -437,9 +437,14 @@ class HysteresisChains(HysteresisNARX):
                                  if k != 'mimo_order'})
 
     def params_dict(self):
-        """Return the constructor arguments (mimo_order left out: it shapes no chain)."""
+        """
+        Return the constructor arguments (mimo_order left out: it shapes no chain).
+
+        amplifier only when not its default 'auto': each chain's own document says whether its
+        drive has one, and files without it stay as they were.
+        """
         return {name: getattr(self, name) for name in self._parameter_constraints
-                if name != 'mimo_order'}
+                if name != 'mimo_order' and (name != 'amplifier' or self.amplifier != 'auto')}
 
     @property
     def nu(self):

@@ -40,9 +40,12 @@ class HysteresisEmitter(Emitter):
         self.prefix = prefix
         if not quasi_static:
             self.targets = ('output',)
-        (self.radii, self.n_lags, self.duhem, self.rho, self.W1, self.b1, self.w2, self.c,
-         self.w_rest, self.g, self.lam, self.a, self.b, self.y_off) = model._kernel_args
+        (self.radii, self.n_lags, self.duhem, self.rho, self.kap, self.W1, self.b1, self.w2,
+         self.c, self.w_rest, self.g, self.lam, self.a, self.b, self.y_off) = model._kernel_args
         self.m, self.q, self.nl = self.radii.size, self.duhem.shape[0], self.lam.size
+        # A drive with an amplifier bandwidth (hysteresis_kernels.amplifier); without one the C
+        # is the slew-limited drive's, as before it existed.
+        self.amp = bool(np.isfinite(self.kap))
         self.na, self.nb = self.a.size, self.b.size - 1
         self.lh = max(self.n_lags, 1)
         self.i_p = self.lh
@@ -85,6 +88,8 @@ class HysteresisEmitter(Emitter):
         out = [c_scalar('HN_U_SCALE', m.u_scale_, 'input scale, V'),
                c_scalar('HN_Y_SCALE', m.y_scale_, 'output scale, m'),
                c_scalar('HN_RHO', self.rho, 'drive slew limit per sample (normalised)'),
+               *([c_scalar('HN_KAP', self.kap, 'drive amplifier bandwidth, 2 pi f_a / fs')]
+                 if self.amp else []),
                c_array('HN_RADII', self.radii, 'play radii (normalised)'),
                c_array('HN_W1T', self.W1.T, 'network-input x hidden weights (W1 transposed)'),
                c_array('HN_B1', self.b1, 'hidden biases'),
@@ -129,7 +134,23 @@ class HysteresisEmitter(Emitter):
     phi = x > 1e-8 ? (1.0 - e) / beta : ad * (1.0 - 0.5 * x);
     return s * e + sg * alpha * phi;
 }"""
-        return ([duhem] if self.q else []) + [self._chain()]
+        amp = """static double hn_amplifier(double prev, double un, double rho, double kap)
+{
+    double e = un - prev;
+    double ae = fabs(e);
+    double eps = rho / kap;
+    double sg, t;
+    if (ae <= eps) {
+        return un - e * exp(-kap);
+    }
+    sg = e > 0.0 ? 1.0 : -1.0;
+    t = (ae - eps) / rho;
+    if (t >= 1.0) {
+        return prev + sg * rho;
+    }
+    return un - sg * eps * exp(-kap * (1.0 - t));
+}"""
+        return ([duhem] if self.q else []) + ([amp] if self.amp else []) + [self._chain()]
 
     def _chain(self) -> str:
         """`hn_chain`: drive, operators, network and creep of one sample -> z (normalised)."""
@@ -137,15 +158,21 @@ class HysteresisEmitter(Emitter):
         hidden, d = self.W1.shape
         L = ['/* One sample of the input chain (step() up to z): the drive clipped to +-rho, the',
              ' * operators, the network and the creep; st[0 .. i_z) updated. */',
-             'static double hn_chain(double *st, double un, double rho)', '{',
+             ('static double hn_chain(double *st, double un, double rho, double kap)'
+              if self.amp else 'static double hn_chain(double *st, double un, double rho)'),
+             '{',
              f'    double phi[{d}];', '    double dv = un - st[0];',
              f'    double zh[{hidden}];', '    double v, lo, hi, w, z;']
         if n_lags:
             L.append('    double cur, prev;')
         if q:
             L.append('    double dk, sd;')
-        L += ['    int h, i, j;', '    if (dv > rho) {', '        dv = rho;',
-              '    } else if (dv < -rho) {', '        dv = -rho;', '    }',
+        clip = ['if (dv > rho) {', '    dv = rho;', '} else if (dv < -rho) {', '    dv = -rho;',
+                '}']
+        if self.amp:     # kap INFINITY (the quasi-static value): the plain clip, as the kernel
+            clip = (['if (kap == INFINITY) {'] + ['    ' + x for x in clip]
+                    + ['} else {', '    dv = hn_amplifier(st[0], un, rho, kap) - st[0];', '}'])
+        L += ['    int h, i, j;'] + ['    ' + x for x in clip] + [
               '    un = st[0] + dv;',
               f'    for (i = 0; i < {m}; ++i) {{', f'        v = st[{self.i_p} + i];',
               '        lo = un - HN_RADII[i];', '        hi = un + HN_RADII[i];',
@@ -187,7 +214,8 @@ class HysteresisEmitter(Emitter):
         na, nb = self.na, self.nb
         L = ['/* One sample on the state st: u (V) -> y (m), the state advanced. */',
              'static double hn_step(double *st, double u)', '{',
-             '    double z = hn_chain(st, u / HN_U_SCALE, HN_RHO);',
+             ('    double z = hn_chain(st, u / HN_U_SCALE, HN_RHO, HN_KAP);' if self.amp
+              else '    double z = hn_chain(st, u / HN_U_SCALE, HN_RHO);'),
              '    double yl = HN_B[0] * z;']
         if na or nb:
             L.append('    int i;')
@@ -209,17 +237,18 @@ class HysteresisEmitter(Emitter):
 
     def _quasi_static(self) -> str:
         n, lh, hi = self.state_size, self.lh, self.lh + self.m + self.q
+        inf = 'INFINITY, INFINITY' if self.amp else 'INFINITY'
         return '\n'.join([
             '/* The quasi-static value (m) for input u: hysteresis_kernels.peek_static. */',
             'static double pnr_quasi_static_(const pnr_state_t *s, double u)', '{',
             '    double un = u / HN_U_SCALE;', f'    double s1[{n}], s2[{n}];', '    double z;',
             '    int i;', f'    for (i = 0; i < {n}; ++i) {{', '        s1[i] = s->x[i];',
             '        s2[i] = s->x[i];', '    }',
-            '    hn_chain(s1, un, INFINITY);   /* the operators move to un along the real path */',
+            f'    hn_chain(s1, un, {inf});   /* the operators move to un along the real path */',
             f'    for (i = {lh}; i < {hi}; ++i) {{', '        s2[i] = s1[i];', '    }',
             f'    for (i = 0; i < {lh}; ++i) {{',
             '        s2[i] = un;                /* input increments 0 */', '    }',
-            '    z = hn_chain(s2, un, INFINITY);',
+            f'    z = hn_chain(s2, un, {inf});',
             '    return HN_Y_SCALE * (HN_DC_GAIN * z + HN_Y_OFF);', '}'])
 
     def named(self, text: str) -> str:

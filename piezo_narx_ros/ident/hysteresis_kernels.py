@@ -5,7 +5,11 @@ Everything here works in normalised units: un = u / u_scale, yn = y / y_scale. O
 
   drive    v(k) = v(k-1) + clip(un(k) - v(k-1), -rho, rho),  rho = exp(drive) (learned): the
            voltage the actuator gets when the amplifier's slew rate limits a jump (a capacitive
-           load fed by a current-limited amplifier); rho large = no limit
+           load fed by a current-limited amplifier); rho large = no limit.
+           With an amplifier bandwidth kap = 2*pi*f_a/fs (learned, `amplifier`; inf = none) the
+           drive is the exact end-of-sample output of dv/dt = clip(w_a*(un - v), -rho, rho) for
+           un held over the sample (`amplifier`): a ramp at the slew limit while the error is
+           above rho/kap, then the first-order decay, as the simulated amplifier (plant/)
   operators of the drive (rate-independent: frozen while the input holds)
     p_i(k)  play of radius r_i:       p_i = min(v + r_i, max(v - r_i, p_i(k-1)))
     s_j(k)  Duhem state j, along the drive's path d = v(k) - v(k-1) with sign sg and slope
@@ -19,7 +23,8 @@ Everything here works in normalised units: un = u / u_scale, yn = y / y_scale. O
   output   yl(k) = -sum_j a_j yl(k-j) + sum_i b_i z(k-i),  yn(k) = yl(k) + y_off
 
 Parameter vector theta = [W1 (H*d, row-major), b1 (H), w2 (H), c (d), duhem (6 per state),
-drive (1), g (n_creep), a (na), b (nb+1), y_off]; `layout` gives the offsets.
+drive (1: log rho; 2 with an amplifier bandwidth: log rho, log kap), g (n_creep), a (na),
+b (nb+1), y_off]; `layout` gives the offsets.
 
 The state of a free run (`step`) is one float array:
   [v(k-1) .. v(k-Lh) (Lh = max(n_lags, 1)), plays (m), duhem (q), creep (n_creep),
@@ -35,10 +40,10 @@ from numba import njit
 BETA_MIN = 0.01
 
 
-def layout(hidden, d, n_duhem, n_creep, na, nb):
-    """Offsets into theta: dict of name -> (start, stop), and the total size."""
+def layout(hidden, d, n_duhem, n_creep, na, nb, n_drive=1):
+    """Offsets into theta: dict of name -> (start, stop), and the total size (n_drive: 1, 2)."""
     sizes = (('W1', hidden * d), ('b1', hidden), ('w2', hidden), ('c', d), ('duhem', 6 * n_duhem),
-             ('drive', 1), ('g', n_creep), ('a', na), ('b', nb + 1), ('y_off', 1))
+             ('drive', n_drive), ('g', n_creep), ('a', na), ('b', nb + 1), ('y_off', 1))
     out, k = {}, 0
     for name, n in sizes:
         out[name] = (k, k + n)
@@ -88,13 +93,66 @@ def _duhem_update(s, d, al_p, al_m, r_pp, r_pm, r_mp, r_mm):
 
 
 @njit(cache=True)
-def step(un_k, st, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, b, y_off):
+def amplifier(prev, un_k, rho, kap):
+    """
+    Drive at the end of a sample from prev toward un_k held over it (normalised, per sample).
+
+    Exact solution of dv/dt = clip(kap*(un_k - v), -rho, rho) over one sample (time in samples):
+    first-order with the pole exp(-kap) while |un_k - v| <= rho/kap, else a ramp at rho until
+    the error is rho/kap, then the decay. kap = inf: the plain clip (the slew-only drive).
+    """
+    e = un_k - prev
+    if kap == np.inf:
+        if e > rho:
+            e = rho
+        elif e < -rho:
+            e = -rho
+        return prev + e
+    ae = abs(e)
+    eps = rho / kap
+    if ae <= eps:
+        return un_k - e * math.exp(-kap)
+    sg = 1.0 if e > 0.0 else -1.0
+    t = (ae - eps) / rho
+    if t >= 1.0:
+        return prev + sg * rho
+    return un_k - sg * eps * math.exp(-kap * (1.0 - t))
+
+
+@njit(cache=True)
+def amplifier_derivatives(prev, un_k, rho, kap):
+    """
+    Return (v, dv/dprev, dv/drho, dv/dkap) of `amplifier` (kap finite).
+
+    Continuous across the three pieces (first-order, ramp then decay, ramp): with
+    Q = exp(-kap*(1 - t)), t the ramp's share of the sample, dv/dprev = Q, dv/drho = sg*Q*t,
+    dv/dkap = sg*Q*rho*(1 - t)/kap.
+    """
+    e = un_k - prev
+    ae = abs(e)
+    eps = rho / kap
+    if ae <= eps:
+        q = math.exp(-kap)
+        return un_k - e * q, q, 0.0, e * q
+    sg = 1.0 if e > 0.0 else -1.0
+    t = (ae - eps) / rho
+    if t >= 1.0:
+        return prev + sg * rho, 1.0, sg, 0.0
+    q = math.exp(-kap * (1.0 - t))
+    return un_k - sg * eps * q, q, sg * q * t, sg * q * rho * (1.0 - t) / kap
+
+
+@njit(cache=True)
+def step(un_k, st, radii, n_lags, duhem, rho, kap, W1, b1, w2, c, w_rest, g, lam, a, b, y_off):
     """Advance the free-run state `st` by one normalised input un_k; returns yn(k)."""
-    dv = un_k - st[0]
-    if dv > rho:
-        dv = rho
-    elif dv < -rho:
-        dv = -rho
+    if kap == np.inf:
+        dv = un_k - st[0]
+        if dv > rho:
+            dv = rho
+        elif dv < -rho:
+            dv = -rho
+    else:
+        dv = amplifier(st[0], un_k, rho, kap) - st[0]
     un_k = st[0] + dv
     m = radii.size
     q = duhem.shape[0]
@@ -156,17 +214,17 @@ def step(un_k, st, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, 
 
 
 @njit(cache=True)
-def step_many(un, yn, st, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, b,
-              y_off):
+def step_many(un, yn, st, radii, n_lags, duhem, rho, kap, W1, b1, w2, c, w_rest, g,
+              lam, a, b, y_off):
     """Run step for each normalised input un[k] in order, yn[k] filled: one call per batch."""
     for k in range(un.size):
-        yn[k] = step(un[k], st, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, b,
-                     y_off)
+        yn[k] = step(un[k], st, radii, n_lags, duhem, rho, kap, W1, b1, w2, c, w_rest, g, lam, a,
+                     b, y_off)
 
 
 @njit(cache=True)
-def peek(un_k, st, scratch, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, b,
-         y_off):
+def peek(un_k, st, scratch, radii, n_lags, duhem, rho, kap, W1, b1, w2, c, w_rest, g, lam, a,
+         b, y_off):
     """
     yn(k) that `step` would return for un_k, leaving st untouched (scratch: same size as st).
 
@@ -174,21 +232,21 @@ def peek(un_k, st, scratch, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g,
     """
     for i in range(st.size):
         scratch[i] = st[i]
-    return step(un_k, scratch, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, b,
-                y_off)
+    return step(un_k, scratch, radii, n_lags, duhem, rho, kap, W1, b1, w2, c, w_rest, g, lam, a,
+                b, y_off)
 
 
 @njit(cache=True)
-def peek_static(un_k, st, scratch, scratch2, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g,
-                lam, gain, y_off):
+def peek_static(un_k, st, scratch, scratch2, radii, n_lags, duhem, rho, kap, W1, b1, w2, c, w_rest,
+                g, lam, gain, y_off):
     """
     gain*z(k) + y_off for un_k with the input increments at their held value 0.
 
     The output the rate-independent operators (plays and Duhem states moved along un(k-1) -> un_k)
     and the creep settle to, without the drive's short-term dynamics (its slew limit included) or
     the output dynamics. st is untouched (scratch, scratch2: same size as st); gain: [G], the
-    output dynamics' DC gain; rho is taken for the signature's sake (the settled drive reaches
-    un_k).
+    output dynamics' DC gain; rho and kap are taken for the signature's sake (the settled drive
+    reaches un_k).
     """
     lh = max(n_lags, 1)
     hi = lh + radii.size + duhem.shape[0]
@@ -197,28 +255,29 @@ def peek_static(un_k, st, scratch, scratch2, radii, n_lags, duhem, rho, W1, b1, 
         scratch[i] = st[i]
         scratch2[i] = st[i]
     # First step: the operators move to un_k along the real path, the drive reaching it.
-    step(un_k, scratch, radii, n_lags, duhem, np.inf, W1, b1, w2, c, w_rest, g, lam, no_a, gain,
-         y_off)
+    step(un_k, scratch, radii, n_lags, duhem, np.inf, np.inf, W1, b1, w2, c, w_rest, g, lam, no_a,
+         gain, y_off)
     for i in range(lh, hi):
         scratch2[i] = scratch[i]
     for j in range(lh):
         scratch2[j] = un_k               # increments 0; the operators stay where they are
-    return step(un_k, scratch2, radii, n_lags, duhem, np.inf, W1, b1, w2, c, w_rest, g, lam, no_a,
-                gain, y_off)
+    return step(un_k, scratch2, radii, n_lags, duhem, np.inf, np.inf, W1, b1, w2, c, w_rest, g,
+                lam, no_a, gain, y_off)
 
 
 @njit(cache=True)
-def simulate(un, st, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, b, y_off):
+def simulate(un, st, radii, n_lags, duhem, rho, kap, W1, b1, w2, c, w_rest, g, lam, a, b,
+             y_off):
     """Free run over un (N,) from state st (updated in place); returns yn (N,)."""
     out = np.empty(un.size)
     for k in range(un.size):
-        out[k] = step(un[k], st, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, a, b,
-                      y_off)
+        out[k] = step(un[k], st, radii, n_lags, duhem, rho, kap, W1, b1, w2, c, w_rest, g, lam, a,
+                      b, y_off)
     return out
 
 
 @njit(cache=True)
-def operator_chain(un, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam):
+def operator_chain(un, radii, n_lags, duhem, rho, kap, W1, b1, w2, c, w_rest, g, lam):
     """
     z(k) (N,) of the operator/network/creep chain from rest.
 
@@ -235,19 +294,35 @@ def operator_chain(un, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam)
     out = np.empty(un.size)
     # The output part of `step` is skipped by giving it b = [1], no a: yl(k) = z(k).
     for k in range(un.size):
-        out[k] = step(un[k], st, radii, n_lags, duhem, rho, W1, b1, w2, c, w_rest, g, lam, none,
-                      one, 0.0)
+        out[k] = step(un[k], st, radii, n_lags, duhem, rho, kap, W1, b1, w2, c, w_rest, g, lam,
+                      none, one, 0.0)
     return out
 
 
 # ------------------------------------------------------------------------------ training kernels
 @njit(cache=True)
-def drive(un, rho):
-    """Rate-limited drive v (N,) from rest and dv/drho (N,)."""
+def drive(un, rho, kap=np.inf):
+    """
+    Rate-limited drive v (N,) from rest, dv/drho (N,) and dv/dkap (N,; zeros when kap = inf).
+
+    With kap finite, the amplifier's drive (`amplifier`), its derivatives carried through
+    v(k-1) (dv(k)/dtheta = dv/dprev * dv(k-1)/dtheta + the sample's own).
+    """
     n = un.size
     v = np.empty(n)
     dv = np.empty(n)
+    dk = np.zeros(n)
     prev, dprev = 0.0, 0.0
+    if kap != np.inf:
+        dkprev = 0.0
+        for k in range(n):
+            prev, gp, gr, gk = amplifier_derivatives(prev, un[k], rho, kap)
+            dprev = gp * dprev + gr
+            dkprev = gp * dkprev + gk
+            v[k] = prev
+            dv[k] = dprev
+            dk[k] = dkprev
+        return v, dv, dk
     for k in range(n):
         e = un[k] - prev
         if e > rho:
@@ -258,7 +333,7 @@ def drive(un, rho):
             prev, dprev = un[k], 0.0
         v[k] = prev
         dv[k] = dprev
-    return v, dv
+    return v, dv, dk
 
 
 @njit(cache=True)
@@ -397,12 +472,15 @@ def forward(F, S, W1, b1, w2, c, g, lam, a, b, y_off):
 # fastmath: the training's derivatives may be summed in any order (vectorised); the free run
 # (step / simulate), which the estimator and the scores use, stays exact IEEE arithmetic.
 @njit(cache=True, fastmath=True)
-def jacobian(F, S, JD, DF, SR, rho, W1, b1, w2, c, g, lam, a, b, y_off, J):
+def jacobian(F, S, JD, DF, SR, rho, DFK, SRK, kap, W1, b1, w2, c, g, lam, a, b, y_off, J):
     """
     Compute the free-run output yn (N,) and its exact derivative J (N, P) w.r.t. theta.
 
     Layout in the module docstring; from the features F, Duhem states S, their derivatives JD
-    (Duhem parameters) and DF, SR (rho), and rho itself (the drive parameter is log rho).
+    (Duhem parameters) and DF, SR (rho), and rho itself (the drive parameter is log rho); with
+    an amplifier bandwidth (the drive's second parameter, log kap) DFK, SRK (N rows) are the
+    features' and Duhem states' derivatives with respect to kap; without one they have no rows
+    and kap is not used.
     """
     n = F.shape[0]
     H, d = W1.shape
@@ -416,7 +494,8 @@ def jacobian(F, S, JD, DF, SR, rho, W1, b1, w2, c, g, lam, a, b, y_off, J):
     o_c = o_w2 + H
     o_dh = o_c + d
     o_dr = o_dh + 6 * q
-    o_g = o_dr + 1
+    amp = DFK.shape[0] > 0        # (not kap != inf: fastmath assumes no infinities)
+    o_g = o_dr + (2 if amp else 1)
     o_a = o_g + nl
     o_b = o_a + na
     o_y = o_b + nb + 1
@@ -457,18 +536,25 @@ def jacobian(F, S, JD, DF, SR, rho, W1, b1, w2, c, g, lam, a, b, y_off, J):
         for i in range(d):
             r[o_c + i] = phi[i]
         drho = 0.0
+        dkap = 0.0
         for i in range(d):
             mi = c[i]
             for h in range(H):
                 mi += w2[h] * sh[h] * (1.0 - sh[h]) * W1[h, i]
             if i < df:
                 drho += mi * DF[k, i]
+                if amp:
+                    dkap += mi * DFK[k, i]
             else:
                 j = i - df
                 drho += mi * SR[k, j]
+                if amp:
+                    dkap += mi * SRK[k, j]
                 for p in range(6):
                     r[o_dh + 6 * j + p] = mi * JD[k, j, p]
         r[o_dr] = rho * drho
+        if amp:
+            r[o_dr + 1] = kap * dkap
         z = w
         for il in range(nl):
             x[il] = lam[il] * x[il] + (1.0 - lam[il]) * w
