@@ -123,7 +123,7 @@ def test_amplifier_drive_is_the_sampled_slew_limited_first_order_amplifier():
 
 
 def amplifier_model(seed=5):
-    """A random model whose drive has a bandwidth and slews (1 V per sample at u_scale 100 V)."""
+    """Return a random model whose drive has a bandwidth and slews (1 V per sample at 100 V)."""
     m = random_model(seed, scale=0.5, amplifier='yes')
     lay, _ = m._layout()
     theta = m.theta_.copy()
