@@ -556,7 +556,8 @@ class HysteresisNARX(DynamicModel):
         the hold lasts only as long as the output dynamics need.
         """
         args = self._kernel_args
-        settle = args[:10] + (np.zeros_like(args[10]),) + args[11:]
+        il = len(args) - 4          # the creep poles lam (then a, b, y_off)
+        settle = args[:il] + (np.zeros_like(args[il]),) + args[il + 1:]
         poles = np.abs(self.output_poles)
         slowest = float(np.max(poles)) if poles.size else 0.0
         n = 20 if slowest <= 0 else int(min(20000, max(20, math.log(1e-9) / math.log(slowest))))

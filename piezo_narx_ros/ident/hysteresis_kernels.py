@@ -536,24 +536,27 @@ def jacobian(F, S, JD, DF, SR, rho, DFK, SRK, kap, W1, b1, w2, c, g, lam, a, b, 
         for i in range(d):
             r[o_c + i] = phi[i]
         drho = 0.0
-        dkap = 0.0
         for i in range(d):
             mi = c[i]
             for h in range(H):
                 mi += w2[h] * sh[h] * (1.0 - sh[h]) * W1[h, i]
             if i < df:
                 drho += mi * DF[k, i]
-                if amp:
-                    dkap += mi * DFK[k, i]
             else:
                 j = i - df
                 drho += mi * SR[k, j]
-                if amp:
-                    dkap += mi * SRK[k, j]
                 for p in range(6):
                     r[o_dh + 6 * j + p] = mi * JD[k, j, p]
         r[o_dr] = rho * drho
         if amp:
+            # A loop of its own: inside the one above it changed how the compiler orders that
+            # loop's sums (fastmath), and with them the bits of every fit without a bandwidth.
+            dkap = 0.0
+            for i in range(d):
+                mi = c[i]
+                for h in range(H):
+                    mi += w2[h] * sh[h] * (1.0 - sh[h]) * W1[h, i]
+                dkap += mi * (DFK[k, i] if i < df else SRK[k, i - df])
             r[o_dr + 1] = kap * dkap
         z = w
         for il in range(nl):
