@@ -6,10 +6,10 @@ Everything here works in normalised units: un = u / u_scale, yn = y / y_scale. O
   drive    v(k) = v(k-1) + clip(un(k) - v(k-1), -rho, rho),  rho = exp(drive) (learned): the
            voltage the actuator gets when the amplifier's slew rate limits a jump (a capacitive
            load fed by a current-limited amplifier); rho large = no limit.
-           With an amplifier bandwidth kap = 2*pi*f_a/fs (learned, `amplifier`; inf = none) the
-           drive is the exact end-of-sample output of dv/dt = clip(w_a*(un - v), -rho, rho) for
-           un held over the sample (`amplifier`): a ramp at the slew limit while the error is
-           above rho/kap, then the first-order decay, as the simulated amplifier (plant/)
+           With an amplifier bandwidth kap = 2*pi*f_a/fs (learned; inf = none) the drive is the
+           exact end-of-sample output of dv/dt = clip(kap*(un - v), -rho, rho), un held over the
+           sample (`amplifier`): a ramp at the slew limit while the error is above rho/kap, then
+           the first-order decay, as the simulated amplifier (plant/)
   operators of the drive (rate-independent: frozen while the input holds)
     p_i(k)  play of radius r_i:       p_i = min(v + r_i, max(v - r_i, p_i(k-1)))
     s_j(k)  Duhem state j, along the drive's path d = v(k) - v(k-1) with sign sg and slope
