@@ -28,7 +28,8 @@ CONFIG_KEYS = ('preset', 'family', 'ny', 'nu', 'hidden', 'seed', 'n_seeds', 'hna
                'narx_beside',
                'arx_na', 'arx_nb', 'arx', 'split', 'max_lag', 'max_outside_fraction', 'residuals',
                'noise_model', 'noise_order', 'selection', 'jobs', 'training', 'final_training',
-               'init_seconds', 'command_topic', 'deflection_topic')
+               'init_seconds', 'ensemble', 'ensemble_margin', 'command_topic',
+               'deflection_topic')
 # Settings that belong to the command line, not to ExperimentConfig, with their defaults.
 CLI_DEFAULTS = {'arx': True, 'command_topic': 'piezo/voltage_command',
                 'deflection_topic': 'piezo/deflection'}
