@@ -1,5 +1,5 @@
 """
-Does the mean of the best candidates' free runs beat the selected single model? (issue 18.4, 20)
+Issue 18.4 / 20: the mean of the best candidates' free runs against the selected model.
 
 The experiment (ident/experiment.py) fits several candidates (network seeds x increments, ARX)
 and selects one by the worst case of its free-run R² over the validation records and outputs.
@@ -24,6 +24,7 @@ Run: python bench/bench_ensemble.py --setting axes|envelope|yan9a [--seeds 0 1 2
 """
 import argparse
 import json
+import os
 import statistics
 import sys
 import time
@@ -66,7 +67,7 @@ def variants(result):
 
 
 def validation_worst(model, result, records, config):
-    """The experiment's worst-case free-run R² of `model` on the same estimation/validation."""
+    """Return the experiment's worst-case free-run R² of `model` on the same records."""
     est, val = split_records(with_state_window(records, config), config.split)
     res = CandidateResult(spec=result.best.spec)
     score_candidate(res, model, est, val, config)
@@ -138,8 +139,43 @@ def run_yan9a(seed, jobs, data):
     return out, fit_s
 
 
+def stepper_costs(steps=20000):
+    """
+    Stepper.step p50 / p99 (us) of preset-size envelope models, single beside ensembles of K.
+
+    Members: HysteresisNARX (hidden 10, 12 plays, the preset's size) fitted briefly (the cost
+    does not depend on the fit), one axis; and HysteresisChains (the same per axis), two axes.
+    Timed one call at a time, as estimator_node's loop runs it, all in one run.
+    """
+    from bench_mimo_stepper import time_steps
+    from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+    from piezo_narx_ros.ident.hysteresis_chains import HysteresisChains
+    u1 = bench_envelope.generate('protocol', 2000.0, 3.0, 100.0, seed=0)
+    y1 = bench_envelope.PiezoCantilever(load_plant_params(bench_envelope.PLANTS['default']),
+                                        2000.0, seed=0).run(u1).y
+    u2 = bench_axes.make_signal('protocol', 2000.0, 3.0, 100.0, seed=0, n_axes=2)
+    y2, _ = bench_axes.stage(0).run(u2)
+    one = [HysteresisNARX(hidden=10, seed=s, max_iter=3).fit(u1, y1, fs=2000.0)
+           for s in range(5)]
+    two = [HysteresisChains(hidden=10, seed=s, max_iter=3).fit(u2, y2, fs=2000.0)
+           for s in range(3)]
+    rng = np.random.default_rng(0)
+    x1 = list(rng.uniform(-50, 50, steps))
+    x2 = list(rng.uniform(-50, 50, (steps, 2)))
+    rows = []
+    for label, models, x in (('1 x 1', one, x1), ('2 x 2 chains', two, x2)):
+        for k in [1] + [k for k in KS if k <= len(models)]:
+            model = models[0] if k == 1 else EnsembleModel(models[:k])
+            t = time_steps(model.stepper(), x) / 1e3
+            rows.append((label, k, float(np.percentile(t, 50)), float(np.percentile(t, 99))))
+            print(f'  {label:13s} K={k}: Stepper.step p50 {rows[-1][2]:6.1f} us, p99 '
+                  f'{rows[-1][3]:6.1f} us', flush=True)
+    print(f'  load average {os.getloadavg()}')
+    return rows
+
+
 def with_rule(run, margin=0.0):
-    """Add 'rule-K': top-K where its validation worst case beats the single's by margin, else single."""
+    """Add 'rule-K': top-K where its validation beats the single's by `margin`, else single."""
     for k in KS:
         top = run.get(f'top-{k}')
         if top is not None:
@@ -154,7 +190,8 @@ def summary(runs, slow, moves):
     for name in names:
         val = [r[name]['val'] for r in runs]
         print(f'  {name:7s} validation worst-case R² median {statistics.median(val):.6f} '
-              f'(worst {min(val):.6f}); beats single on {sum(r[name]["val"] > r["single"]["val"] for r in runs)}/{len(runs)}')  # noqa: E501
+              f'(worst {min(val):.6f}); beats single on '
+              f'{sum(r[name]["val"] > r["single"]["val"] for r in runs)}/{len(runs)}')
         for move in moves:
             rmse = np.array([r[name]['moves'][move][1] for r in runs]) * 1e9   # (seeds, axes)
             r2 = np.array([r[name]['moves'][move][0] for r in runs])
@@ -165,7 +202,7 @@ def summary(runs, slow, moves):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
-    ap.add_argument('--setting', choices=('axes', 'envelope', 'yan9a'), required=True)
+    ap.add_argument('--setting', choices=('axes', 'envelope', 'yan9a', 'stepper'), required=True)
     ap.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2, 3, 4])
     ap.add_argument('--plants', nargs='+', default=['default', 'preisach'])
     ap.add_argument('--jobs', type=int, default=2)
@@ -173,6 +210,9 @@ def main(argv=None):
                                           'data'))
     ap.add_argument('--json')
     args = ap.parse_args(argv)
+    if args.setting == 'stepper':
+        stepper_costs()
+        return 0
     groups = ([(None, args.setting)] if args.setting != 'envelope'
               else [(p, f'envelope {p}') for p in args.plants])
     report = {}

@@ -36,7 +36,7 @@ def members(one_axis):
 
 
 def test_free_run_and_stepper_are_the_mean_of_the_members(members, one_axis):
-    """simulate from rest, from a state and the Stepper: each the mean of the members' own."""
+    """Simulate from rest, from a state and the Stepper: each the mean of the members' own."""
     u, y = one_axis
     ens = EnsembleModel(members)
     runs = [m.simulate(u) for m in members]
@@ -155,9 +155,23 @@ def test_selection_keeps_the_single_model_unless_the_ensemble_is_better(one_axis
     kept = consider_ensemble(cands, (index, False), _halves(u, y, cfg),
                              replace(cfg, ensemble_margin=0.999))
     assert kept == (index, False) and cands[-1].spec.kind == 'ensemble'
+    # ... and a margin of -1 always does (the setting for an offline model).
+    cands = list(singles)
+    kept = consider_ensemble(cands, (index, False), _halves(u, y, cfg),
+                             replace(cfg, ensemble_margin=-1.0))
+    assert kept[0] == len(cands) - 1 and cands[-1].spec.kind == 'ensemble'
 
 
 def _halves(u, y, cfg):
     from piezo_narx_ros.ident.experiment import split_records, with_state_window
     return split_records(with_state_window([Record(u=u, y=y, fs=FS, source='p')], cfg),
                          cfg.split)
+
+
+def test_ensemble_settings_are_checked():
+    """Ensemble K and margin out of range: one ConfigError naming the setting."""
+    from piezo_narx_ros.errors import ConfigError
+    for bad, name in (({'ensemble': 1}, 'ensemble'), ({'ensemble': 17}, 'ensemble'),
+                      ({'ensemble_margin': -2.0}, 'ensemble_margin')):
+        with pytest.raises(ConfigError, match=name):
+            replace(ExperimentConfig(), **bad).validate()

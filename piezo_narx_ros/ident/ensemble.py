@@ -113,7 +113,7 @@ class EnsembleModel(DynamicModel):
         return {'structure': {'kind': self.kind, 'members': members, 'nu': self.nu,
                               'ny': self.ny, 'n_params': self.n_params},
                 'normalisation': None,
-                'training': {'method': 'mean of the members\' outputs (members fitted on their '
+                'training': {'method': "mean of the members' outputs (members fitted on their "
                                        'own; ident/ensemble.py)'}}
 
     def file_weights(self):

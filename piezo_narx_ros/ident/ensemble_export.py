@@ -30,9 +30,9 @@ class EnsembleEmitter(Emitter):
     max_inputs = 64
     max_outputs = 64
     targets = ('output',)
-    history_note = ("u_past: the last PNR_NU input rows, each member fed its own last ones from "
+    history_note = ('u_past: the last PNR_NU input rows, each member fed its own last ones from '
                     "rest (the members' states are functions of the input history); y_past is "
-                    "not used")
+                    'not used')
 
     def __init__(self, model):
         super().__init__(model)

@@ -73,7 +73,7 @@ class ChainsEmitter(Emitter):
     def model_definitions(self) -> str:
         """Return the coupling, every chain's model and `<prefix>_step` on a state array."""
         coupling = c_array(f'{self.prefix.upper()}_M', self.model.coupling_,
-                           f"coupling: y_i = sum_j {self.prefix.upper()}_M[i][j] z_j, z_j chain "
+                           f'coupling: y_i = sum_j {self.prefix.upper()}_M[i][j] z_j, z_j chain '
                            "j's output (m)")
         return '\n\n'.join([coupling] + [e.model_definitions() for e in self.chains] +
                            [self._step()])
