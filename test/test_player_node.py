@@ -31,22 +31,33 @@ def start_player(*params):
 
 
 class RawCollector:
-    """In-process raw subscriptions: (receive time s, bytes) per topic, spun in a thread."""
+    """
+    In-process raw subscriptions: (DDS source timestamp s, bytes) per topic, spun in a thread.
+
+    The source timestamp is the player's own write time: a span measured on it is the player's
+    pacing, not this executor's (which, on a busy machine, can take the first messages late).
+    """
 
     def __init__(self, topics):
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
         self.node = Node('test_sink', context=self.context)
         self.data = {t: [] for t in topics}
-        self.subs = [self.node.create_subscription(
-            JointState, t, lambda b, t=t: self.data[t].append((time.monotonic(), b)),
-            sample_qos(depth=5000), raw=True) for t in topics]
+        self.subs = [self.node.create_subscription(JointState, t, self._store(self.data[t]),
+                                                   sample_qos(depth=5000), raw=True)
+                     for t in topics]
         from rclpy.executors import SingleThreadedExecutor
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._run = True
         self.thread = threading.Thread(target=self._spin, daemon=True)
         self.thread.start()
+
+    @staticmethod
+    def _store(into):
+        def on_message(raw, info):
+            into.append((info['source_timestamp'] * 1e-9, raw))
+        return on_message
 
     def _spin(self):
         while self._run and self.context.ok():
@@ -67,8 +78,8 @@ def _bag(tmp_path, name, topic_prefix, n=N):
 
 
 def test_plays_selected_topic_with_recorded_bytes_and_rate(tmp_path):
-    # 1 s recorded (0.5 s played): a 0.1 s span failed its 0.8x-3x bounds by tens of ms when the
-    # 2-core machine was busy with other test runs.
+    # 1 s recorded (0.5 s played): a 0.1 s span, timed on arrival in this process, failed its
+    # 0.8x-3x bounds by tens of ms when the 2-core machine was busy with other test runs.
     n = 2000
     bag = _bag(tmp_path, 'b', '/play1', n)
     col = RawCollector(['/play1/voltage_command', '/play1/deflection'])
