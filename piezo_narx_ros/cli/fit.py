@@ -210,7 +210,9 @@ def experiment_config(settings: dict, progress: bool):
             noise_order=int(settings['noise_order']), jobs=int(settings['jobs']),
             progress=None if progress else False, training=dict(settings['training']),
             final_training=dict(settings['final_training']),
-            init_seconds=float(settings['init_seconds']))
+            init_seconds=float(settings['init_seconds']),
+            ensemble=int(settings['ensemble']),
+            ensemble_margin=float(settings['ensemble_margin']))
     except (TypeError, ValueError) as exc:
         raise ConfigError(f'invalid setting: {exc}') from None
     cfg.validate()
