@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from ..errors import DataError, ModelFileError
-from .base import DynamicModel, register_family
+from .base import DynamicModel, register_family, registered_families
 from .state import ModelState
 
 #: The model-file format version whose readers know the kind (members nest their own documents).
@@ -124,7 +124,8 @@ class EnsembleModel(DynamicModel):
     @classmethod
     def from_file_document(cls, doc, arrays, name, wpath, fs):
         """Return the EnsembleModel of a model file: each member read by its own family."""
-        from .families import family
+        # The registry (base), not ident.families: that module imports this one.
+        families = registered_families()
         docs = doc['structure'].get('members')
         if not isinstance(docs, list) or len(docs) < 2 or \
                 not all(isinstance(d, dict) for d in docs):
@@ -133,7 +134,7 @@ class EnsembleModel(DynamicModel):
         for i, d in enumerate(docs):
             where = f'{name} (member {i})'
             kind = (d.get('structure') or {}).get('kind')
-            member_cls = family(kind)
+            member_cls = families.get(kind)
             if member_cls is None or member_cls is cls:
                 raise ModelFileError(f'{where}: unknown member kind {kind!r}')
             sub = {k[len(f'member{i}.'):]: v for k, v in arrays.items()
