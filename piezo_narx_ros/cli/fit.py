@@ -28,7 +28,8 @@ CONFIG_KEYS = ('preset', 'family', 'ny', 'nu', 'hidden', 'seed', 'n_seeds', 'hna
                'narx_beside',
                'arx_na', 'arx_nb', 'arx', 'split', 'max_lag', 'max_outside_fraction', 'residuals',
                'noise_model', 'noise_order', 'selection', 'jobs', 'training', 'final_training',
-               'init_seconds', 'command_topic', 'deflection_topic')
+               'init_seconds', 'ensemble', 'ensemble_margin', 'command_topic',
+               'deflection_topic')
 # Settings that belong to the command line, not to ExperimentConfig, with their defaults.
 CLI_DEFAULTS = {'arx': True, 'command_topic': 'piezo/voltage_command',
                 'deflection_topic': 'piezo/deflection'}
@@ -209,7 +210,9 @@ def experiment_config(settings: dict, progress: bool):
             noise_order=int(settings['noise_order']), jobs=int(settings['jobs']),
             progress=None if progress else False, training=dict(settings['training']),
             final_training=dict(settings['final_training']),
-            init_seconds=float(settings['init_seconds']))
+            init_seconds=float(settings['init_seconds']),
+            ensemble=int(settings['ensemble']),
+            ensemble_margin=float(settings['ensemble_margin']))
     except (TypeError, ValueError) as exc:
         raise ConfigError(f'invalid setting: {exc}') from None
     cfg.validate()

@@ -6,7 +6,7 @@ module imports the package's family modules, so that model_io and the C export c
 without naming any family. A new family: a module with a registered DynamicModel subclass (its
 math, file document, Stepper and C emitter) and its import below.
 """
-from . import narx, arx, hysteresis, hysteresis_chains  # noqa: F401 - registration
+from . import narx, arx, hysteresis, hysteresis_chains, ensemble  # noqa: F401 - registration
 from .base import registered_families
 
 __all__ = ['family', 'kinds', 'registered_families']

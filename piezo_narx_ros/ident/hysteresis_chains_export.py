@@ -23,9 +23,11 @@ class ChainsEmitter(Emitter):
     history_note = ('u_past: the last PNR_NU input rows, fed from rest (the state is a function '
                     'of the input history); y_past is not used')
 
-    def __init__(self, model):
+    def __init__(self, model, prefix: str = 'hc'):
+        """Emitter of a chains model; its C names start with `prefix` (an ensemble's member)."""
         super().__init__(model)
-        self.chains = [HysteresisEmitter(c, prefix=f'hc{j}', quasi_static=False)
+        self.prefix = prefix
+        self.chains = [HysteresisEmitter(c, prefix=f'{prefix}{j}', quasi_static=False)
                        for j, c in enumerate(model.chains_)]
         #: Where each chain's state starts in the state vector, and the end.
         self.starts = np.cumsum([0] + [e.state_size for e in self.chains]).tolist()
@@ -56,20 +58,29 @@ class ChainsEmitter(Emitter):
                           'export a chain alone for its inverse)')
 
     def _step(self) -> str:
-        n = self.n_out
-        calls = [f'    z[{j}] = hc{j}_step(&s->x[{self.starts[j]}], u[{j}]);'
+        n, p = self.n_out, self.prefix
+        calls = [f'    z[{j}] = {p}{j}_step(&x[{self.starts[j]}], u[{j}]);'
                  for j in range(len(self.chains))]
         return '\n'.join(
-            ['/* Each chain on its input and its part of the state, then y = M z (m). */',
-             'static void pnr_step_(pnr_state_t *s, const double *u, double *y)', '{',
+            ['/* Each chain on its input and its part of the state x, then y = M z (m). */',
+             f'static void {p}_step(double *x, const double *u, double *y)', '{',
              f'    double z[{n}];', '    int i, j;'] + calls +
             [f'    for (i = 0; i < {n}; ++i) {{', '        y[i] = 0.0;',
-             f'        for (j = 0; j < {n}; ++j) {{', '            y[i] += HC_M[i][j] * z[j];',
+             f'        for (j = 0; j < {n}; ++j) {{',
+             f'            y[i] += {p.upper()}_M[i][j] * z[j];',
              '        }', '    }', '}'])
 
-    def definitions(self) -> str:
-        """Return the coupling, every chain's model, pnr_step_ and pnr_init_history_."""
-        coupling = c_array('HC_M', self.model.coupling_,
-                           "coupling: y_i = sum_j HC_M[i][j] z_j, z_j chain j's output (m)")
+    def model_definitions(self) -> str:
+        """Return the coupling, every chain's model and `<prefix>_step` on a state array."""
+        coupling = c_array(f'{self.prefix.upper()}_M', self.model.coupling_,
+                           f'coupling: y_i = sum_j {self.prefix.upper()}_M[i][j] z_j, z_j chain '
+                           "j's output (m)")
         return '\n\n'.join([coupling] + [e.model_definitions() for e in self.chains] +
-                           [self._step(), input_history(self.nu, self.n_in, self.n_out)])
+                           [self._step()])
+
+    def definitions(self) -> str:
+        """Return the model, pnr_step_ and pnr_init_history_."""
+        step = '\n'.join(['static void pnr_step_(pnr_state_t *s, const double *u, double *y)',
+                          '{', f'    {self.prefix}_step(s->x, u, y);', '}'])
+        return '\n\n'.join([self.model_definitions(), step,
+                            input_history(self.nu, self.n_in, self.n_out)])
