@@ -1,0 +1,145 @@
+"""
+The state set from a short measured window, over many random pasts (ident/state.py, issue 18).
+
+bench_real.py scores each model on a few test records; this bench asks the state estimator
+alone, on many: for each model fitted by bench_real (`--keep DIR`), K test records of its own
+plant, each after its own random 20 s history and 1 s hold, half of them with the sensor zero
+moved (uniform in +-2.5 um, as a session of another day) and half with the estimation session's
+zero; the test signal cycles through what a rig records after a past nobody logged: a hold then
+a growing 3 Hz sine, a 0.5 Hz triangle, a 0.1-10 Hz multisine, held levels, the protocol. Each
+record's first `--window` seconds set the state (`model.estimate_state`), the rest is scored:
+
+    ratio = RMSE(free run from the estimated state) / RMSE(the same model from rest, on the
+            same command applied to the plant at rest, the better of the two sensor zeros)
+
+the ratio bench_real prints (issue 18's target: <= 2). Also the start from rest without any
+measurement (`rest`) and the model run through the record's own past with the zero told
+(`true`): what a perfect state estimate of this model would give. No fitting: seconds per
+model, so rules of the estimator can be compared on the same pasts.
+
+    python bench/bench_real.py --scenarios session growing --seeds 0 1 --presets envelope \
+        --keep /tmp/real
+    python bench/bench_state.py /tmp/real [--trials 10] [--window 0.5] [--json out.json]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from piezo_narx_ros.ident.model_io import load_model
+from piezo_narx_ros.plant import PiezoCantilever, generate, load_plant_params, random_history
+from piezo_narx_ros.share import config_path
+
+PLANTS = {'bouc_wen': 'plant.yaml', 'preisach': 'plant_preisach.yaml'}
+SPREAD = 2.5e-6          # a moved sensor zero: uniform in +-SPREAD (m)
+TEST_SECONDS = 10.0
+# name -> (generate kind, options); each after the record's own past
+SIGNALS = {
+    'hold, growing 3 Hz': ('growing_sine', {'freq': 3.0, 'hold': 1.0}),
+    'triangle 0.5 Hz': ('triangle', {'freq': 0.5}),
+    'multisine 0.1-10 Hz': ('multisine', {'f_max': 10.0}),
+    'held levels': ('holds', {'hold': 1.5, 'ramp': 0.05}),
+    'protocol': ('protocol', {}),
+}
+
+
+def rmse(e) -> float:
+    """Root mean square of e (same unit)."""
+    return float(np.sqrt(np.mean(np.square(e))))
+
+
+def cells(root: Path):
+    """(name, plant, model path, estimation session's zero m) of each kept bench_real cell."""
+    for cell in sorted(p for p in root.iterdir() if p.is_dir()):
+        path = cell / 'fit_envelope' / 'model.json'
+        plant = next((k for k in PLANTS if f'_{k}_' in cell.name), None)
+        est = sorted(cell.glob('est_*_rig.npz'))
+        if not path.exists() or plant is None or not est:
+            continue
+        with np.load(est[0], allow_pickle=False) as z:
+            zero = json.loads(str(z['meta']))['sensor']['offset_m']
+        yield cell.name, plant, path, zero
+
+
+def trial(model, plant_name, fs, zero, k, window_s):
+    """One test record after a random past; returns {'signal', 'moved', 'init', 'rest', ...}."""
+    name = list(SIGNALS)[k % len(SIGNALS)]
+    kind, options = SIGNALS[name]
+    rng = np.random.default_rng(1000 + k)
+    moved = bool(k % 2)
+    offset = zero + (rng.uniform(-SPREAD, SPREAD) if moved else 0.0)
+    params = load_plant_params(config_path(PLANTS[plant_name]))
+    u = generate(kind, fs, TEST_SECONDS, 100.0, seed=500 + k, **options)
+    past = random_history(fs, 20.0, 100.0, seed=700 + k, end=float(u[0]), hold=1.0)
+    y = PiezoCantilever(params, fs=fs, seed=300 + k, sensor_offset=offset).run(
+        u, history=past).y
+    n = int(round(window_s * fs))
+    refs = [rmse(PiezoCantilever(params, fs=fs, seed=300 + k, sensor_offset=z).run(u).y[n:]
+                 - model.simulate(u)[n:]) for z in (0.0, zero)]
+    ref = min(refs)
+    t0 = time.perf_counter()
+    state = model.estimate_state(u[:n], y[:n])
+    seconds = time.perf_counter() - t0
+    init = rmse(y[n:] - model.simulate(u, state=state)[n:])
+    rest = rmse(y[n:] - model.simulate(u)[n:])
+    true = rmse(y[n:] - model.simulate(np.r_[past, u])[past.size:][n:] - (offset - zero))
+    return {'signal': name, 'moved': moved, 'ref_m': ref, 'init': init / ref,
+            'rest': rest / ref, 'true': true / ref, 'estimate_s': seconds,
+            'offset_err_m': float(state.offset) - (offset - zero)}
+
+
+def summarise(rows, key):
+    """'median / worst (share > 2x)' of rows[key]."""
+    v = [r[key] for r in rows]
+    over = sum(x > 2.0 for x in v)
+    return f'{statistics.median(v):5.2f} / {max(v):5.2f} ({over}/{len(v)} > 2x)'
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
+    ap.add_argument('root', type=Path, help='a bench_real.py --keep directory')
+    ap.add_argument('--trials', type=int, default=10, help='test records per model')
+    ap.add_argument('--window', type=float, default=0.5, help='measured window, s')
+    ap.add_argument('--json', type=Path, help='write every trial as JSON')
+    args = ap.parse_args(argv)
+    rows = []
+    t0 = time.perf_counter()
+    for name, plant, path, zero in cells(args.root):
+        model = load_model(path)
+        got = [trial(model, plant, model.fs, zero, k, args.window) for k in range(args.trials)]
+        for r in got:
+            r['cell'] = name
+        rows += got
+        took = statistics.median(r['estimate_s'] for r in got)
+        print(f'{name:26s} init {summarise(got, "init")}  rest {summarise(got, "rest")}  '
+              f'true {summarise(got, "true")}  estimate {took:.2f} s', flush=True)
+    if not rows:
+        print(f'no bench_real cells with an envelope model under {args.root}', file=sys.stderr)
+        return 2
+    print('\nby signal (ratio to the start from rest on the plant at rest: median / worst)')
+    for sig in SIGNALS:
+        sub = [r for r in rows if r['signal'] == sig]
+        if sub:
+            print(f'  {sig:22s} init {summarise(sub, "init")}  rest {summarise(sub, "rest")}  '
+                  f'true {summarise(sub, "true")}')
+    for moved in (False, True):
+        sub = [r for r in rows if r['moved'] == moved]
+        print(f'  {"zero moved" if moved else "same zero":22s} init {summarise(sub, "init")}  '
+              f'rest {summarise(sub, "rest")}  true {summarise(sub, "true")}')
+    mean = statistics.mean(r['init'] for r in rows)
+    print(f'  {"all":22s} init {summarise(rows, "init")}  rest {summarise(rows, "rest")}  '
+          f'true {summarise(rows, "true")}   mean init {mean:.2f}')
+    print(f'wall {time.perf_counter() - t0:.0f} s')
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
