@@ -21,6 +21,10 @@ For each seed s (default 0..4, as bench_envelope.py):
 
     python bench/bench_axes.py --preset envelope [--seeds 0 1 2 3 4] [--json out.json]
                                [--no-control] [--hnarx '{"na": 4, "nb": 4}'] [--seconds 50]
+                               [--keep DIR]
+
+--keep DIR pickles each seed's ExperimentResult (every candidate with its fitted model) to
+DIR/seed<s>.pkl, for analyses of the candidates without fitting again.
 """
 from __future__ import annotations
 
@@ -176,6 +180,8 @@ def main(argv=None) -> int:
                     help="HysteresisNARX options over the preset's, e.g. '{\"na\": 4, \"nb\": 4}'")
     ap.add_argument('--seconds', type=float, default=25.0,
                     help='length of the identification record, s (default 25)')
+    ap.add_argument('--keep', metavar='DIR',
+                    help="pickle each seed's ExperimentResult (candidates with models) here")
     args = ap.parse_args(argv)
     runs, report = [], {'preset': args.preset, 'seeds': {}}
     for seed in args.seeds:
@@ -189,6 +195,14 @@ def main(argv=None) -> int:
         for c in result.candidates:
             print(f'    candidate {c.spec.label:44s} worst-case free-run R² '
                   f'{c.free_run_r2():10.6f}{"  " + c.error[:90] if c.error else ""}')
+        if args.keep:
+            import pickle
+            Path(args.keep).mkdir(parents=True, exist_ok=True)
+            try:
+                with open(Path(args.keep) / f'seed{seed}.pkl', 'wb') as fh:
+                    pickle.dump(result, fh)
+            except (pickle.PicklingError, TypeError, AttributeError) as exc:
+                print(f'  --keep: seed {seed} not pickled: {exc}', flush=True)
         run = free_run_battery(model, seed)
         runs.append(run)
         entry = {'label': label, 'fit_seconds': fit_s,
