@@ -21,10 +21,11 @@ For each seed s (default 0..4, as bench_envelope.py):
 
     python bench/bench_axes.py --preset envelope [--seeds 0 1 2 3 4] [--json out.json]
                                [--no-control] [--hnarx '{"na": 4, "nb": 4}'] [--seconds 50]
-                               [--keep DIR]
+                               [--keep DIR | --kept DIR]
 
 --keep DIR pickles each seed's ExperimentResult (every candidate with its fitted model) to
-DIR/seed<s>.pkl, for analyses of the candidates without fitting again.
+DIR/seed<s>.pkl, for analyses of the candidates without fitting again; --kept DIR takes the
+models from there instead of fitting (fit s: the kept experiment's wall time).
 """
 from __future__ import annotations
 
@@ -182,11 +183,19 @@ def main(argv=None) -> int:
                     help='length of the identification record, s (default 25)')
     ap.add_argument('--keep', metavar='DIR',
                     help="pickle each seed's ExperimentResult (candidates with models) here")
+    ap.add_argument('--kept', metavar='DIR',
+                    help='take the models of an earlier --keep DIR instead of fitting')
     args = ap.parse_args(argv)
     runs, report = [], {'preset': args.preset, 'seeds': {}}
     for seed in args.seeds:
-        model, fit_s, label, result = identify(seed, args.preset, args.jobs, args.hnarx,
-                                               args.seconds)
+        if args.kept:
+            import pickle
+            with open(Path(args.kept) / f'seed{seed}.pkl', 'rb') as fh:
+                result = pickle.load(fh)
+            model, fit_s, label = result.best.model, result.wall_seconds, result.best.spec.label
+        else:
+            model, fit_s, label, result = identify(seed, args.preset, args.jobs, args.hnarx,
+                                                   args.seconds)
         coupling = getattr(model, 'coupling_', None)
         extra = '' if coupling is None else \
             f', coupling {np.round(coupling, 4).tolist()} (stage: [[1, 0.05], [0.12, 1]])'
