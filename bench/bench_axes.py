@@ -21,6 +21,12 @@ For each seed s (default 0..4, as bench_envelope.py):
 
     python bench/bench_axes.py --preset envelope [--seeds 0 1 2 3 4] [--json out.json]
                                [--no-control] [--hnarx '{"na": 4, "nb": 4}'] [--seconds 50]
+                               [--keep DIR | --kept DIR]
+
+--keep DIR writes each seed's selected model as a model file (DIR/seed<s>/model.json, the
+JSON + .npz of `piezo-narx fit`, loaded without pickle) and its fit time and label
+(DIR/seed<s>/fit.json); --kept DIR runs the battery and control on those models instead of
+fitting (fit s: the kept fit's wall time).
 """
 from __future__ import annotations
 
@@ -39,6 +45,7 @@ from bench_envelope import BATTERY, RUNAWAY_R2, SLOW, TEST_SECONDS, preset_confi
 from piezo_narx_ros.command.stream import make_signal  # noqa: E402
 from piezo_narx_ros.control.axes import AxesController  # noqa: E402
 from piezo_narx_ros.ident.experiment import PRESETS, run_experiment  # noqa: E402
+from piezo_narx_ros.ident.model_io import load_model, save_model  # noqa: E402
 from piezo_narx_ros.plant.axes import AxisPlants, make_axis_plants  # noqa: E402
 from piezo_narx_ros.plant.signals import generate  # noqa: E402
 from piezo_narx_ros.record import Record  # noqa: E402
@@ -176,19 +183,33 @@ def main(argv=None) -> int:
                     help="HysteresisNARX options over the preset's, e.g. '{\"na\": 4, \"nb\": 4}'")
     ap.add_argument('--seconds', type=float, default=25.0,
                     help='length of the identification record, s (default 25)')
+    ap.add_argument('--keep', metavar='DIR',
+                    help="write each seed's selected model (a model file) and fit time here")
+    ap.add_argument('--kept', metavar='DIR',
+                    help='take the models of an earlier --keep DIR instead of fitting')
     args = ap.parse_args(argv)
     runs, report = [], {'preset': args.preset, 'seeds': {}}
     for seed in args.seeds:
-        model, fit_s, label, result = identify(seed, args.preset, args.jobs, args.hnarx,
-                                               args.seconds)
+        if args.kept:
+            kept = Path(args.kept) / f'seed{seed}'
+            model = load_model(kept / 'model.json')
+            fit = json.loads((kept / 'fit.json').read_text())
+            fit_s, label, result = fit['fit_seconds'], fit['label'], None
+        else:
+            model, fit_s, label, result = identify(seed, args.preset, args.jobs, args.hnarx,
+                                                   args.seconds)
         coupling = getattr(model, 'coupling_', None)
         extra = '' if coupling is None else \
             f', coupling {np.round(coupling, 4).tolist()} (stage: [[1, 0.05], [0.12, 1]])'
         print(f'seed {seed}: {label} ({type(model).__name__}, {model.n_in} x {model.n_out}), '
               f'fit {fit_s:.1f} s{extra}', flush=True)
-        for c in result.candidates:
+        for c in result.candidates if result is not None else ():
             print(f'    candidate {c.spec.label:44s} worst-case free-run R² '
                   f'{c.free_run_r2():10.6f}{"  " + c.error[:90] if c.error else ""}')
+        if args.keep:
+            kept = Path(args.keep) / f'seed{seed}'
+            save_model(model, kept / 'model.json')
+            (kept / 'fit.json').write_text(json.dumps({'fit_seconds': fit_s, 'label': label}))
         run = free_run_battery(model, seed)
         runs.append(run)
         entry = {'label': label, 'fit_seconds': fit_s,

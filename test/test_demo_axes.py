@@ -18,6 +18,8 @@ from piezo_narx_ros.share import config_path
 def test_two_axis_demo_settings_name_the_stage():
     s = load_settings(config_path('demo_2axis.yaml'))
     assert s['axes'] == ['x', 'y']
+    assert s['seconds'] == 50.0         # two axes record twice one axis's 25 s (docs/mimo.md)
+    assert load_settings(config_path('demo_2axis.yaml'), quick=True)['seconds'] < 10
     assert plant_file(s['plant_params']) == str(config_path('plant_2axis.yaml'))
     with pytest.raises(ConfigError, match='axes'):
         load_settings(None, axes=['x', 'x'])
