@@ -183,12 +183,15 @@ def dot(a, b, lo, n):
     """
     Return sum a[k] b[lo + k], k < n.
 
-    The compiler may reorder the sum (vector lanes, 4-8x faster); the C export sums in order,
-    equal to rounding.
+    The compiler may reorder the sum (vector lanes); the C export sums in order, equal to
+    rounding. b is sliced first: indexed as b[lo + k] the loop stayed scalar (the index may be
+    negative, so numba wraps it), 3.3x slower (4.6 against 1.4 us for the FSM's six 1512-term
+    sums per step, measured side by side).
     """
+    bb = b[lo:lo + n]
     s = 0.0
     for k in range(n):
-        s += a[k] * b[lo + k]
+        s += a[k] * bb[k]
     return s
 
 
