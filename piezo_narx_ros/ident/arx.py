@@ -31,6 +31,7 @@ class ARXModel(LaggedModel):
     fit_intercept : estimate the constant c (absorbs sensor/voltage offsets); False forces c = 0.
     """
 
+    adjustable_state_linear = True   # output lags enter linearly (ident/state.py)
     kind = 'arx'
 
     def __init__(self, na=2, nb=2, fit_intercept=True):

@@ -202,6 +202,10 @@ class DynamicModel:
 
     # Initial state from measurement (ident/state.py): every family implements these three.
     state_size = 0   # length of the state vector
+    #: True when the free run is affine in the states `_adjustable_state` names (the output
+    #: dynamics' and creep histories of a linear output part): the window's Gauss-Newton then
+    #: reuses one Jacobian (ident/state.py). False (a network fed its own outputs): recomputed.
+    adjustable_state_linear = False
 
     def _run_from(self, values, u):   # pragma: no cover - interface
         """Free run (m, without offset) of u (N,) V from the state vector `values`."""

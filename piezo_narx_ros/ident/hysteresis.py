@@ -103,6 +103,8 @@ class HysteresisNARX(DynamicModel):
     file_format_version = 2     # the kind was added in format version 2
     activation = 'logistic'
     state_from_input = True
+    # Creep and output histories feed linear filters only (ident/state.py reuses one Jacobian).
+    adjustable_state_linear = True
     _parameter_constraints = {
         'hidden': Interval(int, 1, 200),
         'n_plays': Interval(int, 1, 64),

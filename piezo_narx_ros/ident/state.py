@@ -139,7 +139,8 @@ def _refine(model, values: np.ndarray, u: np.ndarray, y: np.ndarray, idx: np.nda
     Gauss-Newton with Huber weights on values[idx] and the offset; returns (values, offset, cost).
 
     Finite differences of the free run give the Jacobian; exact in one step for the families whose
-    adjustable states enter linearly (the hysteresis family, ARX).
+    adjustable states enter linearly (the hysteresis family, ARX: `adjustable_state_linear`),
+    whose Jacobian is therefore computed once and reused by the Huber reweighting's iterations.
     """
     prior = values[idx].copy()
     x = values.copy()
@@ -150,17 +151,20 @@ def _refine(model, values: np.ndarray, u: np.ndarray, y: np.ndarray, idx: np.nda
     n_off = 1 if y.ndim == 1 else y.shape[1]
     ones = [np.ones(len(u))] if y.ndim == 1 else list(np.kron(np.ones((len(u), 1)),
                                                               np.eye(n_off)).T)
+    linear = bool(getattr(model, 'adjustable_state_linear', False))
+    A = None
     for _ in range(max(1, iterations)):
         r = (y - base - offset).ravel()
-        cols = []
-        for i, h in zip(idx, scale):
-            xi = x.copy()
-            xi[i] += eps * h
-            cols.append(((model._run_from(xi, u) - base) / eps).ravel())   # per unit of scale
-        A = np.column_stack(cols + ones)
+        if A is None or not linear:
+            cols = []
+            for i, h in zip(idx, scale):
+                xi = x.copy()
+                xi[i] += eps * h
+                cols.append(((model._run_from(xi, u) - base) / eps).ravel())   # per unit of scale
+            A = np.column_stack(cols + ones)
         w, _ = robust_weights(r)
         Aw, rw = A * w[:, None], r * w
-        n_adj = len(cols)
+        n_adj = len(idx)
         norm2 = float(np.mean(np.sum(Aw[:, :n_adj] ** 2, axis=0))) if n_adj else 0.0
         lam = np.r_[np.full(n_adj, RIDGE * norm2 + 1e-300), np.zeros(n_off)]
         # The prior pulls x[idx] back to the candidate's settled values.
