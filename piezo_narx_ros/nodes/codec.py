@@ -481,7 +481,7 @@ def warm_up() -> None:
 
 
 def _plain(a: np.ndarray) -> np.ndarray:
-    """`a` as the kernels are compiled for it (C-contiguous, writable): a copy if need be."""
+    """Return `a` as the kernels take it (C-contiguous, writable), copied if need be."""
     f = a.flags
     return a if f.c_contiguous and f.writeable else np.array(a, order='C')
 
