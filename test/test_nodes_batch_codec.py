@@ -1,4 +1,6 @@
 """nodes/codec.py, batches: JointTrajectory CDR bytes against rclpy's and rosbags' serialisers."""
+import dataclasses
+
 import numpy as np
 import pytest
 from rclpy.serialization import deserialize_message, serialize_message
@@ -59,6 +61,45 @@ def test_stamps_round_trip_exactly_whatever_their_spacing(stamps):
     assert [t0 + p.time_from_start.sec * 10**9 + p.time_from_start.nanosec
             for p in msg.points] == stamps
     assert all(0 <= p.time_from_start.nanosec < 10**9 for p in msg.points)
+
+
+@pytest.mark.parametrize('stamps', [
+    [T0, T0 - 7, T0 - 1_000_000_001, T0 + 5],        # negative offsets
+    [-1_500_000_000, -1_499_999_999, 2],
+    [T0, T0 + 2**31 * 10**9 + 3, T0 + 1],            # an offset beyond int32 seconds: wraps
+])
+@pytest.mark.parametrize('n_axes, fields', [(1, ('effort',)), (1, ('position',)),
+                                            (3, ('position', 'effort')), (0, ())])
+def test_compiled_batches_are_the_bytes_and_values_of_the_numpy_paths(stamps, n_axes, fields):
+    """codec_kernels (a stream's second batch on) against the numpy views and the general path."""
+    from piezo_narx_ros.nodes import codec
+    names = ['x', 'y', 'z'][:n_axes]
+    pos, eff = _case(len(stamps), n_axes, fields, seed=3)
+    codec._ENCODED.clear()
+    codec._SHAPES.clear()
+    general = encode_joint_trajectory(stamps, names, pos, eff)    # remembers the template
+    (template,) = codec._ENCODED.values()
+    assert template[1] is not None                     # little-endian host: compiled
+    compiled = encode_joint_trajectory(stamps, names, pos, eff)
+    codec._ENCODED[next(iter(codec._ENCODED))] = (template[0], None, *template[2:])
+    assert compiled == general == encode_joint_trajectory(stamps, names, pos, eff)
+    first = decode_joint_trajectory(general)           # the general path; remembers the shape
+    (shape,) = codec._SHAPES[len(general)]
+    assert shape.meta is not None
+    again = decode_joint_trajectory(general)           # compiled
+    codec._SHAPES[len(general)] = [dataclasses.replace(shape, meta=None)]
+    views = decode_joint_trajectory(general)           # numpy views
+    for b in (again, views):
+        assert b.t_ns.tolist() == first.t_ns.tolist()
+        assert np.array_equal(b.position, first.position)
+        assert np.array_equal(b.effort, first.effort)
+        assert b.names == first.names
+    msg = deserialize_message(compiled, JointTrajectory)
+    t0 = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+    assert [t0 + p.time_from_start.sec * 10**9 + p.time_from_start.nanosec
+            for p in msg.points] == again.t_ns.tolist()
+    if max(stamps) - min(stamps) < 2**31 * 10**9:
+        assert again.t_ns.tolist() == stamps
 
 
 @pytest.mark.parametrize('little_endian', [False, True])

@@ -245,3 +245,40 @@ def test_cdr_decode_refuses_truncated_bytes():
     raw = serialize_message(make_joint_state(5, ['x'], effort=[1.0]))
     with pytest.raises(DataError, match='malformed JointState'):
         decode_joint_state(raw[:30])
+
+
+def test_remembered_joint_states_give_the_bytes_and_values_of_the_general_path():
+    """The encoder's templates and the decoder's remembered shapes change no byte or value."""
+    from rclpy.serialization import serialize_message
+
+    from piezo_narx_ros.nodes import codec
+    rng = np.random.default_rng(4)
+    cases = [(['x'], 1, 0), (['x'], 0, 1), (['x'], 1, 1), (['x', 'yy', 'zzz'], 3, 3),
+             (['ab', 'c'], 0, 0), ([], 0, 1)]
+    for names, n_pos, n_eff in cases:
+        codec._STATE_ENCODED.clear()
+        codec._STATE_SHAPES.clear()
+        for t_ns in (1_795_241_581_123_456_789, -1_500_000_001, 7):
+            pos, eff = rng.normal(size=n_pos).tolist(), rng.normal(size=n_eff).tolist()
+            fast = encode_joint_state(t_ns, names, pos, eff)     # a template after the first
+            kept = dict(codec._STATE_ENCODED)
+            codec._STATE_ENCODED.clear()
+            assert fast == encode_joint_state(t_ns, names, pos, eff)
+            codec._STATE_ENCODED.update(kept)
+            for _ in range(2):                                  # general, then remembered
+                s = decode_joint_state(fast)
+                assert (s.t_ns, s.names, s.position, s.effort) == (t_ns, names, pos, eff)
+            assert codec._STATE_SHAPES[len(fast)]
+    # As long as a remembered message, other names or counts inside: read the general way.
+    codec._STATE_SHAPES.clear()
+    first = serialize_message(make_joint_state(5, ['ab'], [1.0, 2.0], []))
+    other = serialize_message(make_joint_state(6, ['cd'], [3.0, 4.0], []))
+    moved = serialize_message(make_joint_state(7, ['ab'], [5.0], [6.0]))
+    assert len(first) == len(other) == len(moved)
+    for raw, want in ((first, (['ab'], [1.0, 2.0], [])), (first, (['ab'], [1.0, 2.0], [])),
+                      (other, (['cd'], [3.0, 4.0], [])), (moved, (['ab'], [5.0], [6.0]))):
+        s = decode_joint_state(raw)
+        assert (s.names, s.position, s.effort) == want
+    # A remembered shape's names are the caller's own list.
+    decode_joint_state(first).names.append('z')
+    assert decode_joint_state(first).names == ['ab']

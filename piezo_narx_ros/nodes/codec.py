@@ -7,6 +7,7 @@ exact and never accumulates float error over long runs.
 from __future__ import annotations
 
 import struct
+import sys
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Sequence
@@ -122,20 +123,83 @@ def _read_doubles(e: str, data, off: int) -> tuple[tuple, int]:
     return struct.unpack_from(f'{e}{count}d', data, off), off + 8 * count
 
 
+@dataclass(frozen=True)
+class _StateShape:
+    """
+    What a stream's JointStates repeat: every byte but the stamp's and the values'.
+
+    Byte ranges [0, 4) and [12, pos) (encapsulation; frame_id, names, the positions' count),
+    [pos_end, eff) (the empty velocities, the efforts' count) and [eff_end, length) (usually
+    nothing) as they were; the values unpacked with `pos_values` / `eff_values` at pos / eff.
+    """
+
+    encapsulation: bytes
+    head: bytes
+    mid: bytes
+    tail: bytes
+    pos: int
+    pos_end: int
+    eff: int
+    eff_end: int
+    stamp: struct.Struct
+    pos_values: struct.Struct
+    eff_values: struct.Struct
+    names: tuple
+
+
+# JointState shapes seen, per buffer length (a stream's messages share one); templates of the
+# encoder per (names, positions, efforts): its bytes, where the values go and their Structs.
+_STATE_SHAPES: dict = {}
+_STATE_ENCODED: dict = {}
+
+
 def decode_joint_state(buf: bytes) -> Sample:
     """
     Decode a serialized JointState (CDR, as from a raw=True subscription) to a Sample.
 
-    Raises DataError on a truncated or malformed buffer.
+    Raises DataError on a truncated or malformed buffer. A message of a shape seen before (same
+    length, and every byte but the stamp and the values the same: a stream's usual case) is read
+    with three unpacks.
     """
+    if isinstance(buf, bytes):
+        for sh in _STATE_SHAPES.get(len(buf), ()):
+            if buf[12:sh.pos] == sh.head and buf[sh.pos_end:sh.eff] == sh.mid \
+                    and buf[:4] == sh.encapsulation and buf[sh.eff_end:] == sh.tail:
+                sec, nsec = sh.stamp.unpack_from(buf, 4)
+                return Sample(sec * 1_000_000_000 + nsec, list(sh.names),
+                              list(sh.pos_values.unpack_from(buf, sh.pos)),
+                              list(sh.eff_values.unpack_from(buf, sh.eff)))
     try:
         e, data, t_ns, names, off = _read_header_names(buf)
-        position, off = _read_doubles(e, data, off)
-        _, off = _read_doubles(e, data, off)          # velocity
-        effort, off = _read_doubles(e, data, off)
+        position, off, pos = _read_doubles_at(e, data, off)
+        velocity, off = _read_doubles(e, data, off)
+        pos_end = off
+        effort, off, eff = _read_doubles_at(e, data, off)
     except (struct.error, IndexError, UnicodeDecodeError) as exc:
         raise DataError(f'malformed JointState ({len(buf)} bytes): {exc}') from None
+    if isinstance(buf, bytes) and not velocity:
+        _remember_state_shape(buf, e, names, pos + 4, len(position), pos_end + 4, eff + 4,
+                              len(effort), off + 4)
     return Sample(t_ns, names, list(position), list(effort))
+
+
+def _read_doubles_at(e: str, data, off: int) -> tuple[tuple, int, int]:
+    """_read_doubles, also returning where the values start (after count and alignment)."""
+    values, end = _read_doubles(e, data, off)
+    return values, end, end - 8 * len(values)
+
+
+def _remember_state_shape(buf: bytes, e: str, names, pos: int, n_pos: int, pos_end: int,
+                          eff: int, n_eff: int, eff_end: int) -> None:
+    """Keep the shape of a well-formed JointState (absolute byte offsets; _StateShape)."""
+    if len(_STATE_SHAPES) > 64:
+        _STATE_SHAPES.clear()
+    shape = _StateShape(bytes(buf[:4]), bytes(buf[12:pos]), bytes(buf[pos_end:eff]),
+                        bytes(buf[eff_end:]), pos, pos_end, eff, eff_end,
+                        struct.Struct(e + 'iI'), struct.Struct(f'{e}{n_pos}d'),
+                        struct.Struct(f'{e}{n_eff}d'), tuple(names))
+    kept = [k for k in _STATE_SHAPES.get(len(buf), ()) if k != shape]
+    _STATE_SHAPES[len(buf)] = [shape] + kept[:_SHAPES_PER_LENGTH - 1]
 
 
 def _header_names(t_ns: int, names: Sequence[str]) -> bytearray:
@@ -163,10 +227,30 @@ def _put_doubles(out: bytearray, values: Sequence[float]) -> None:
 
 def encode_joint_state(t_ns: int, names: Sequence[str], position: Sequence[float] = (),
                        effort: Sequence[float] = ()) -> bytes:
-    """Encode JointState CDR (little endian, empty frame_id and velocity) for Publisher.publish."""
+    """
+    Encode JointState CDR (little endian, empty frame_id and velocity) for Publisher.publish.
+
+    A stream's usual message (the names and value counts of one encoded before) is written into
+    that one's bytes: the stamp and values packed in place.
+    """
+    key = (tuple(names), len(position), len(effort))
+    template = _STATE_ENCODED.get(key)
+    if template is not None:
+        raw, pos, pos_values, eff, eff_values = template
+        out = bytearray(raw)
+        _STAMP.pack_into(out, 4, *divmod(int(t_ns), 1_000_000_000))
+        pos_values.pack_into(out, pos, *position)
+        eff_values.pack_into(out, eff, *effort)
+        return bytes(out)
     out = _header_names(t_ns, names)
+    at = []
     for values in (position, (), effort):
         _put_doubles(out, values)
+        at.append(len(out) - 8 * len(values))
+    if len(_STATE_ENCODED) > 64:
+        _STATE_ENCODED.clear()
+    _STATE_ENCODED[key] = (bytes(out), at[0], struct.Struct(f'<{len(position)}d'), at[2],
+                           struct.Struct(f'<{len(effort)}d'))
     return bytes(out)
 
 
@@ -354,21 +438,65 @@ class _BatchShape:
     n_eff: int
     head: np.dtype | None   # point 0, when its layout is not the others' (_remember_shape)
     run: int            # byte offset of the strided points: start, or after point 0
+    meta: np.ndarray | None = None   # the points for codec_kernels (None: numpy views)
 
 
 # Batch shapes seen, per buffer length: a stream's batches share one (same names, same size).
 # A few per length, so that streams of different shapes that happen to be as long stay fast.
 _SHAPES: dict = {}
 _SHAPES_PER_LENGTH = 4
-# Encoded batches per (names, points, positions, efforts): the template bytes of that shape, the
-# offset of its first point and the point dtype.
+# Encoded batches per (names, points, positions, efforts): the template bytes of that shape, its
+# codec_kernels meta (or None), then (offset, point dtype, points) of point 0 and of the run.
 _ENCODED: dict = {}
+# The compiled point readers and writers (nodes.codec_kernels): one call per batch instead of a
+# dozen numpy calls of about a microsecond each. Imported on first use (numba's import takes
+# about half a second, which a tool reading one bag need not pay); little-endian hosts only, the
+# byte order the kernels read.
+_KERNELS = None
+_KERNEL_HOST = sys.byteorder == 'little'
+_WARM = False
+
+
+def _kernels():
+    global _KERNELS
+    if _KERNELS is None:
+        from piezo_narx_ros.nodes import codec_kernels
+        _KERNELS = codec_kernels
+    return _KERNELS
+
+
+def warm_up() -> None:
+    """
+    Load (or compile) the batch kernels now rather than on a stream's second batch.
+
+    Nodes with batch streams call it at start: the first use would otherwise hold the stream up
+    while numba loads them (0.1-1 s; a few seconds the first time they are compiled).
+    """
+    global _WARM
+    if _KERNEL_HOST and not _WARM:
+        t = np.arange(2, dtype=np.int64)
+        for _ in range(2):       # the first round remembers the shape, the second uses it
+            decode_joint_trajectory(encode_joint_trajectory(t, ['x'], effort=np.zeros((2, 1))))
+        _WARM = True
+
+
+def _plain(a: np.ndarray) -> np.ndarray:
+    """Return `a` as the kernels take it (C-contiguous, writable), copied if need be."""
+    f = a.flags
+    return a if f.c_contiguous and f.writeable else np.array(a, order='C')
 
 
 def _decode_known_shape(buf: bytes) -> SampleBatch | None:
     """Decode a batch of a shape seen before with one structured view; None if not known."""
     for shape in _SHAPES.get(len(buf), ()):
         if buf[12:shape.start] != shape.prefix or buf[:4] != shape.encapsulation:
+            continue
+        if shape.meta is not None:       # little endian: one compiled call
+            sec, nsec = _STAMP.unpack_from(buf, 4)
+            ok, stamps, pos, eff = _kernels().read_points(
+                np.frombuffer(buf, np.uint8), shape.meta, sec * 1_000_000_000 + nsec)
+            if ok:
+                return SampleBatch(stamps, list(shape.names), pos, eff)
             continue
         parts = [np.frombuffer(buf, shape.dtype, shape.count - (shape.head is not None),
                                shape.run)]
@@ -544,8 +672,14 @@ def _remember_shape(buf: bytes, start: int, run: int, names, count: int, layout:
     if run > start:
         head = _point_dtype(e, _point_layout((start - 4) % 8, n_pos, n_eff, repeat=False),
                             n_pos, n_eff)
+    meta = None
+    if e == '<' and _KERNEL_HOST:
+        meta = _kernels().make_meta(
+            start, run, count, n_pos, n_eff, layout.size,
+            _point_layout((start - 4) % 8, n_pos, n_eff, repeat=False) if run > start else None,
+            layout)
     shape = _BatchShape(bytes(buf[:4]), bytes(buf[12:start]), start, tuple(names), count,
-                        _point_dtype(e, layout, n_pos, n_eff), n_pos, n_eff, head, run)
+                        _point_dtype(e, layout, n_pos, n_eff), n_pos, n_eff, head, run, meta)
     kept = [k for k in _SHAPES.get(len(buf), ()) if k != shape]
     _SHAPES[len(buf)] = [shape] + kept[:_SHAPES_PER_LENGTH - 1]
 
@@ -565,14 +699,20 @@ def encode_joint_trajectory(t_ns: Sequence[int], names: Sequence[str], position=
     eff = np.empty((n, 0)) if effort is None else \
         np.asarray(effort, dtype=np.float64).reshape(n, -1)
     t0 = int(stamps[0]) if n else 0
-    sec, nsec = np.divmod(stamps - t0, 1_000_000_000)
     key = (tuple(names), n, pos.shape[1], eff.shape[1])
     template = _ENCODED.get(key)
+    if template is not None and template[1] is not None:   # a stream's usual batch, compiled
+        out = bytearray(template[0])
+        _STAMP.pack_into(out, 4, *divmod(t0, 1_000_000_000))
+        _kernels().write_points(np.frombuffer(out, np.uint8), template[1], _plain(stamps), t0,
+                                _plain(pos), _plain(eff))
+        return bytes(out)
+    sec, nsec = np.divmod(stamps - t0, 1_000_000_000)
     if template is not None:      # a stream's usual batch: its bytes but the values and stamps
         out = bytearray(template[0])
         _STAMP.pack_into(out, 4, *divmod(t0, 1_000_000_000))
         k = 0
-        for start, dtype, count in template[1:]:   # point 0 alone (other phase), then the run
+        for start, dtype, count in template[2:]:   # point 0 alone (other phase), then the run
             points = np.frombuffer(out, dtype, count, start)
             if pos.shape[1]:
                 points['pos'] = pos[k:k + count]
@@ -606,11 +746,14 @@ def encode_joint_trajectory(t_ns: Sequence[int], names: Sequence[str], position=
                 if len(_ENCODED) > 64:
                     _ENCODED.clear()
                 parts = [(start, _point_dtype('<', layout, pos.shape[1], eff.shape[1]), rest)]
+                own = None
                 if k:
                     own = _point_layout((first - 4) % 8, pos.shape[1], eff.shape[1], False)
                     parts.insert(0, (first, _point_dtype('<', own, pos.shape[1], eff.shape[1]),
                                      1))
-                _ENCODED[key] = (bytes(out), *parts)
+                meta = _kernels().make_meta(first, start, n, pos.shape[1], eff.shape[1],
+                                            layout.size, own, layout) if _KERNEL_HOST else None
+                _ENCODED[key] = (bytes(out), meta, *parts)
             break
         _put_doubles(out, pos[k].tolist())
         out += b'\x00' * 8                            # velocities, accelerations: empty

@@ -154,6 +154,13 @@ def main_for(node_cls) -> Callable[[list[str] | None], None]:
     return main
 
 
+def _warm_codec(msg_type) -> None:
+    """Load the batch codec's compiled kernels before a batch stream's first message."""
+    if msg_type is not JointState:
+        from piezo_narx_ros.nodes import codec
+        codec.warm_up()
+
+
 class PiezoNode(Node):
     """
     Node base.
@@ -191,6 +198,7 @@ class PiezoNode(Node):
         `sample_qos` (or `qos`, e.g. a bag's recorded profile), the standard QoS overrides, and
         incompatible-QoS reporting (QosWatch).
         """
+        _warm_codec(msg_type)
         pub = self.create_publisher(msg_type, topic, qos or sample_qos(depth),
                                     qos_overriding_options=qos_overriding(),
                                     event_callbacks=self.qos_watch.callbacks('publisher', topic))
@@ -204,6 +212,7 @@ class PiezoNode(Node):
 
         With the same QoS handling as `sample_publisher`.
         """
+        _warm_codec(msg_type)
         sub = self.create_subscription(
             msg_type, topic, callback, sample_qos(depth), raw=raw,
             qos_overriding_options=qos_overriding(),
