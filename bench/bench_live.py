@@ -218,7 +218,8 @@ def axes_model(axes: list, fs: float, seconds: float = 4.0):
 
 
 def run_rate(fs: float, seconds: float, model_path: Path, publish_period: float,
-             executor: str, rt: int = 0, batch: int = 1, axes=('x',)) -> dict:
+             executor: str, rt: int = 0, batch: int = 1, axes=('x',),
+             amplitude: float = 100.0) -> dict:
     """
     Run command -> simulator -> estimator for `seconds` at `fs` Hz and observe it.
 
@@ -243,7 +244,8 @@ def run_rate(fs: float, seconds: float, model_path: Path, publish_period: float,
         procs['command'] = start('command_node', ns, f'fs:={fs}', 'loop:=false',
                                  f'seconds:={seconds}', 'wait_for_subscribers:=3',
                                  f'publish_period:={publish_period}', 'kind:=multisine',
-                                 'amplitude:=100.0', f'batch:={batch}', f'axes:={names}')
+                                 f'amplitude:={amplitude}', f'batch:={batch}',
+                                 f'axes:={names}')
         cmd = probe.recv['voltage_command']
         probe.spin_until(lambda: len(cmd) > 0, 60.0)
         cpu0 = {k: cpu_seconds(p.pid) for k, p in procs.items()}
@@ -294,11 +296,18 @@ def main(argv=None) -> int:
     os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 100))
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
+    from piezo_narx_ros.ident.base import channel_ranges
     from piezo_narx_ros.ident.model_io import load_model, save_model
     tmp = tempfile.TemporaryDirectory()
+    amplitude = 100.0
     if args.model:
         model_path = Path(args.model)
         model = load_model(model_path)
+        if model.n_in > 1:   # the streams carry the model's own axis names, in its order
+            axes = list(model.inputs)
+        # Commands inside the range the model was fitted on (the FSM's are millivolts).
+        rng = channel_ranges(model)[0]
+        amplitude = float(np.max(np.abs(rng))) if rng is not None else amplitude
     elif len(axes) > 1:
         model = axes_model(axes, float(args.rates.split(',')[0]))
         model_path = save_model(model, Path(tmp.name) / 'axes.json')
@@ -322,7 +331,7 @@ def main(argv=None) -> int:
                 model.fs = fs
             model_path = save_model(model, Path(tmp.name) / f'toy{fs:g}.json')
         r = run_rate(fs, args.seconds, model_path, args.publish_period, args.executor, args.rt,
-                     args.batch, axes)
+                     args.batch, axes, amplitude)
         print(f'\n--- {fs:g} Hz, {args.seconds:g} s, {r["n"]} samples '
               f'(exit codes {r["codes"]}; load average now {os.getloadavg()[0]:.1f}) ---')
         for k, lines in r['errors'].items():
