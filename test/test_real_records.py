@@ -125,6 +125,26 @@ def test_evaluate_init_samples_scores_after_the_window_and_saves_the_run(tmp_pat
                                                            rel=1e-9)
 
 
+def test_evaluate_says_when_the_state_window_leaves_the_memory_open(hnarx):
+    """
+    A window that holds the input sets the level, not the hysteresis memory: evaluate says so.
+
+    A window that sweeps the trained range wipes the memory: no warning, `determined`.
+    """
+    from piezo_narx_ros.cli.evaluate import memory_windows
+    t = np.arange(4000) / FS
+    held = record(np.r_[np.full(1000, 20.0), 20.0 + 70.0 * np.sin(2 * np.pi * t[:3000])],
+                  name='held')
+    swept = record(100.0 * np.sin(2 * np.pi * 2.0 * t), name='swept')
+    windows, notes = memory_windows(hnarx, [held, swept], 1000)
+    assert [w['determined'] for w in windows] == [False, True]
+    assert windows[0]['memory_spread_m'] > 0.1e-6 and windows[1]['memory_spread_m'] == 0.0
+    assert windows[0]['window_input_v'] == [20.0, 20.0]
+    assert len(notes) == 1 and notes[0].startswith("held: the first 1000 samples do not set "
+                                                   "the model's memory")
+    assert memory_windows(hnarx, [held], 0) == ([], [])     # from rest: nothing to say
+
+
 def test_fit_validate_cli_refuses_an_estimation_record_as_validation(tmp_path):
     r = record(generate('multisine', FS, 2.0, 80.0, seed=1), seed=1)
     np.savez(tmp_path / 'a.npz', u=r.u, y=r.y, fs=FS)

@@ -12,7 +12,10 @@ residuals themselves, and the JSON says so. Prints a short summary, or with --js
      "simulation": {...}, "tests": {name: true|false}, "tests_passed": bool,
      "tests_residuals": "simulation",
      "tests_noise_model": {"kind", "order", "coef", "source"} | null,
-     "tests_raw": {name: true|false}, "tests_detail": {...}, "warnings": [...]}
+     "tests_raw": {name: true|false}, "tests_detail": {...},
+     "state_windows": [{"source", "window_samples", "memory_spread_m", "determined",
+                        "window_input_v"}] (one axis, with --init-samples N > 0),
+     "warnings": [...]}
 
 Never imports torch.
 """
@@ -113,6 +116,41 @@ def range_warnings(model, records, margin: float = 0.1) -> list[str]:
     return out
 
 
+def memory_windows(model, records, init_samples) -> tuple[list[dict], list[str]]:
+    """
+    Whether each record's state window determines the model's memory; (per record, warnings).
+
+    The two extreme pasts the model admits (from above and from below: estimator.memory) are run
+    through the window's inputs: where they still differ after it, the window has not set the
+    hysteresis memory (a hold gives the level, not the memory), the state estimate has guessed
+    the rest, and the score after the window carries that guess. One axis only (None entries
+    for several); nothing for a free run from rest or without --init-samples.
+    """
+    import numpy as np
+
+    from piezo_narx_ros.estimator.memory import MemoryBracket
+    if not init_samples or model.n_in != 1 or model.n_out != 1:
+        return [], []
+    out, notes = [], []
+    for r in records:
+        u = np.asarray(r.u, dtype=np.float64).reshape(len(r))[:int(init_samples)]
+        bracket = MemoryBracket(model, float(u[0]))
+        for x in u:
+            bracket.step(float(x))
+        entry = {'source': r.source, 'window_samples': int(u.size),
+                 'memory_spread_m': 0.0 if bracket.determined else float(bracket.spread),
+                 'determined': bool(bracket.determined),
+                 'window_input_v': [float(u.min()), float(u.max())]}
+        out.append(entry)
+        if not bracket.determined:
+            notes.append(f'{r.source}: the first {u.size} samples do not set the model\'s memory '
+                         f'(the input moved over [{u.min():.4g}, {u.max():.4g}] V there): pasts '
+                         f'from above and from below still differ by '
+                         f'{bracket.spread * 1e6:.3g} um after them, so the score after them '
+                         'carries the state estimate\'s guess')
+    return out, notes
+
+
 def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='simulation',
              noise_model='stored', noise_order=20, init_samples=None):
     """
@@ -173,6 +211,8 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
         noise = fit_noise_models(model, records, noise_order, max_lag)
         source = 'fitted on the evaluated residuals'
     notes = range_warnings(model, records)
+    windows, memory = memory_windows(model, records, init_samples)
+    notes += memory
     for line in notes:
         warnings.warn(line)
     with np.errstate(all='ignore'):   # overflow far outside the range: reported below instead
@@ -202,6 +242,7 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
                               else {**nm, 'source': source}),
         'tests_raw': {k: v['passed'] for k, v in tests['raw'][residuals].get('tests', {}).items()},
         'tests_detail': tests,
+        'state_windows': windows,
         'warnings': notes,
     }
 
