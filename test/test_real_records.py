@@ -140,8 +140,8 @@ def test_evaluate_says_when_the_state_window_leaves_the_memory_open(hnarx):
     assert [w['determined'] for w in windows] == [False, True]
     assert windows[0]['memory_spread_m'] > 0.1e-6 and windows[1]['memory_spread_m'] == 0.0
     assert windows[0]['window_input_v'] == [20.0, 20.0]
-    assert len(notes) == 1 and notes[0].startswith("held: the first 1000 samples do not set "
-                                                   "the model's memory")
+    assert len(notes) == 1
+    assert notes[0].startswith("held: the first 1000 samples do not set the model's memory")
     assert memory_windows(hnarx, [held], 0) == ([], [])     # from rest: nothing to say
 
 

@@ -143,11 +143,11 @@ def memory_windows(model, records, init_samples) -> tuple[list[dict], list[str]]
                  'window_input_v': [float(u.min()), float(u.max())]}
         out.append(entry)
         if not bracket.determined:
-            notes.append(f'{r.source}: the first {u.size} samples do not set the model\'s memory '
+            notes.append(f"{r.source}: the first {u.size} samples do not set the model's memory "
                          f'(the input moved over [{u.min():.4g}, {u.max():.4g}] V there): pasts '
                          f'from above and from below still differ by '
                          f'{bracket.spread * 1e6:.3g} um after them, so the score after them '
-                         'carries the state estimate\'s guess')
+                         "carries the state estimate's guess")
     return out, notes
 
 
