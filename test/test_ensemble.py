@@ -56,6 +56,21 @@ def test_free_run_and_stepper_are_the_mean_of_the_members(members, one_axis):
                          - np.mean(by_hand, axis=0))) <= 1e-15
 
 
+def test_bracket_states_are_the_members_own_and_evaluate_reads_them(members, one_axis):
+    """From above / below: each member's own extreme past; the spread evaluate reports."""
+    from piezo_narx_ros.cli.evaluate import memory_windows
+    u, y = one_axis
+    ens = EnsembleModel(members)
+    pair = ens._bracket_states(20.0)
+    for i in range(2):
+        own = [m.simulate(u, state=m._bracket_states(20.0)[i]) for m in members]
+        assert np.allclose(ens.simulate(u, state=pair[i]), np.mean(own, axis=0), rtol=0,
+                           atol=1e-15)
+    held = Record(u=np.full(1000, 20.0), y=np.zeros(1000), fs=FS, source='held')
+    windows, notes = memory_windows(ens, [held], 500)
+    assert not windows[0]['determined'] and windows[0]['memory_spread_m'] > 0 and notes
+
+
 def test_model_file_round_trip_is_bit_identical(members, one_axis, chains2, arx2, stage_data,
                                                 tmp_path):
     """One axis (two envelope networks) and two axes (chains + ARX): same numbers after load."""

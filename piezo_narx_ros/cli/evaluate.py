@@ -134,7 +134,10 @@ def memory_windows(model, records, init_samples) -> tuple[list[dict], list[str]]
     out, notes = [], []
     for r in records:
         u = np.asarray(r.u, dtype=np.float64).reshape(len(r))[:int(init_samples)]
-        bracket = MemoryBracket(model, float(u[0]))
+        try:
+            bracket = MemoryBracket(model, float(u[0]))
+        except (AttributeError, NotImplementedError):   # a family without brackets
+            return [], []
         for x in u:
             bracket.step(float(x))
         entry = {'source': r.source, 'window_samples': int(u.size),

@@ -179,6 +179,16 @@ class EnsembleModel(DynamicModel):
         cuts = np.cumsum([int(m.state_size) for m in self.members])[:-1]
         return [ModelState(v, zero) for v in np.split(values, cuts)], offset
 
+    def _bracket_states(self, u0):
+        """
+        The two extreme pasts at u0 (V): every member from above, every member from below.
+
+        The ensemble is the mean of its members, so its runs from these bound what the unknown
+        past can still change (estimator.memory; `evaluate --init-samples`).
+        """
+        pairs = [m._bracket_states(u0) for m in self.members]
+        return [self.join_states([p[i] for p in pairs]) for i in range(2)]
+
     def as_member_states(self, state):
         """Member ModelStates carrying the ensemble's offset each (their mean is that offset)."""
         parts, offset = self._member_states(state)
