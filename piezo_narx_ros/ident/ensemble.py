@@ -181,7 +181,7 @@ class EnsembleModel(DynamicModel):
 
     def _bracket_states(self, u0):
         """
-        The two extreme pasts at u0 (V): every member from above, every member from below.
+        Return the two extreme pasts at u0 (V): every member from above, then from below.
 
         The ensemble is the mean of its members, so its runs from these bound what the unknown
         past can still change (estimator.memory; `evaluate --init-samples`).
