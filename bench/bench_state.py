@@ -67,13 +67,17 @@ def cells(root: Path):
         yield cell.name, plant, path, zero
 
 
-def trial(model, plant_name, fs, zero, k, window_s):
-    """One test record after a random past; returns {'signal', 'moved', 'init', 'rest', ...}."""
+def trial(model, plant_name, fs, zero, k, window_s, spread=SPREAD):
+    """
+    One test record after a random past; returns {'signal', 'moved', 'init', 'rest', ...}.
+
+    spread: the moved sensor zero is uniform in +-spread (m) on every other record.
+    """
     name = list(SIGNALS)[k % len(SIGNALS)]
     kind, options = SIGNALS[name]
     rng = np.random.default_rng(1000 + k)
     moved = bool(k % 2)
-    offset = zero + (rng.uniform(-SPREAD, SPREAD) if moved else 0.0)
+    offset = zero + (rng.uniform(-spread, spread) if moved else 0.0)
     params = load_plant_params(config_path(PLANTS[plant_name]))
     u = generate(kind, fs, TEST_SECONDS, 100.0, seed=500 + k, **options)
     past = random_history(fs, 20.0, 100.0, seed=700 + k, end=float(u[0]), hold=1.0)
@@ -106,13 +110,16 @@ def main(argv=None) -> int:
     ap.add_argument('root', type=Path, help='a bench_real.py --keep directory')
     ap.add_argument('--trials', type=int, default=10, help='test records per model')
     ap.add_argument('--window', type=float, default=0.5, help='measured window, s')
+    ap.add_argument('--spread', type=float, default=SPREAD * 1e6,
+                    help='a moved sensor zero is uniform in +-SPREAD um (default %(default)s)')
     ap.add_argument('--json', type=Path, help='write every trial as JSON')
     args = ap.parse_args(argv)
     rows = []
     t0 = time.perf_counter()
     for name, plant, path, zero in cells(args.root):
         model = load_model(path)
-        got = [trial(model, plant, model.fs, zero, k, args.window) for k in range(args.trials)]
+        got = [trial(model, plant, model.fs, zero, k, args.window,
+                     args.spread * 1e-6) for k in range(args.trials)]
         for r in got:
             r['cell'] = name
         rows += got

@@ -1,4 +1,6 @@
 """nodes/ plumbing: QoS, validated parameters, JointState/CDR codec, diagnostics (in-process)."""
+import time
+
 import numpy as np
 import pytest
 import rclpy
@@ -282,3 +284,34 @@ def test_remembered_joint_states_give_the_bytes_and_values_of_the_general_path()
     # A remembered shape's names are the caller's own list.
     decode_joint_state(first).names.append('z')
     assert decode_joint_state(first).names == ['ab']
+
+
+class _Backlog:
+    """An executor and a draining node: each spin takes one of `n` queued messages."""
+
+    def __init__(self, n):
+        self.n, self.taken, self.spins = n, 0, 0
+
+    def spin_once(self, timeout_sec):
+        self.spins += 1
+        if self.taken < self.n:
+            self.taken += 1
+        else:
+            time.sleep(timeout_sec)                     # nothing ready: waits as rclpy does
+
+    def drain_count(self):
+        return self.taken
+
+
+def test_a_stop_signal_drains_what_was_delivered_then_stops():
+    from piezo_narx_ros.nodes import runtime
+    queued = _Backlog(500)
+    runtime._drain(queued, queued)
+    assert queued.taken == 500                          # nothing delivered is left behind
+    assert queued.spins <= 500 + 20                     # and it stops once the queue is quiet
+    # A stream that never ends (a publisher still running) is cut at DRAIN_S.
+    endless = _Backlog(10 ** 9)
+    start = time.monotonic()
+    runtime._drain(endless, endless)
+    assert runtime.DRAIN_S <= time.monotonic() - start < runtime.DRAIN_S + 1.0
+    assert PiezoNode.drain_count(None) is None          # other nodes stop at once

@@ -5,7 +5,8 @@ Subscriptions are raw (serialized CDR, never decoded); each message is stamped w
 time (system clock, ns) and handed to a BagRecorder, whose writer thread does the file work. A
 topic enters the bag at its first message, with the QoS profiles its publishers offer (from the
 ROS graph, as `ros2 bag record` stores them) so that a player can republish with the same QoS.
-SIGINT/SIGTERM close the bag (summary and metadata.yaml); after SIGKILL,
+SIGINT/SIGTERM/SIGHUP close the bag (summary and metadata.yaml) after taking what DDS already
+delivered; after SIGKILL,
 `piezo-narx bag repair BAG` restores it.
 
     recorder_node --ros-args -p output:=bags/run1 \
@@ -166,6 +167,10 @@ class RecorderNode(PiezoNode):
         if len(self._subs) < len(self._wanted):
             return DIAG_WARN, 'waiting for topic types', values
         return DIAG_OK, 'recording', values
+
+    def drain_count(self) -> int:
+        """Messages received so far (run_node drains the queues on a stop signal)."""
+        return self.recorder.received
 
     def close(self) -> None:
         """Stop recording: write the queue, the MCAP summary and metadata.yaml."""
