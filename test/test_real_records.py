@@ -223,6 +223,16 @@ def test_fit_and_evaluate_at_a_resampled_rate(tmp_path):
     assert json.loads(good.stdout)['n'] > 1400
     bad = piezo_narx('evaluate', str(tmp_path / 'o' / 'model.json'), str(tmp_path / 'a.npz'))
     assert bad.returncode == 2 and '2000 Hz' in bad.stderr and '1000 Hz' in bad.stderr
+    # Validation records at the rig's rate are resampled like the estimation records (they were
+    # compared with the resampled rate first, and every --resample --validate fit was refused).
+    v = record(generate('multisine', FS, 3.0, 80.0, seed=2), seed=2)
+    np.savez(tmp_path / 'v.npz', u=v.u, y=v.y, fs=FS)
+    out = piezo_narx('fit', str(tmp_path / 'a.npz'), '--validate', str(tmp_path / 'v.npz'),
+                     '--resample', '1000', '--ny', '1', '--nu', '0', '--hidden', '2', '--arx-na',
+                     '2', '--arx-nb', '2', '--out', str(tmp_path / 'ov'), '--no-report',
+                     '--quiet')
+    assert out.returncode == 0, out.stderr
+    assert json.loads((tmp_path / 'ov' / 'model.json').read_text())['fs'] == 1000.0
 
 
 def test_records_of_sessions_with_different_sensor_zeros_fit_together():

@@ -261,7 +261,7 @@ def _run(args) -> int:
         raise ConfigError(f'--out {out} already holds a model ({out / "model.json"}); choose '
                           'another directory or pass --force to overwrite it')
     records = _resampled(_load(args, settings, config, inputs, whole=bool(args.validate)), args)
-    validation = (_resampled(_load_validation(args, settings, records), args) if args.validate
+    validation = (_load_validation(args, settings, records) if args.validate
                   else None)
     config = _with_init_samples(config, args.init_samples, records[0].fs)
     from piezo_narx_ros.ident.experiment import run_experiment
@@ -299,6 +299,9 @@ def _load_validation(args, settings, records):
     """
     Load the --validate records: the estimation rate, none of them an estimation record.
 
+    With --resample they are resampled as the estimation records were, before the rates are
+    compared (records given at the rig's rate validate a model fitted at the slower one).
+
     Warns in words where the estimation data cover less than the validation data (coverage).
     """
     import warnings
@@ -316,6 +319,7 @@ def _load_validation(args, settings, records):
     validation = load_records(val_paths, fs=args.fs, command_topic=settings['command_topic'],
                               deflection_topic=settings['deflection_topic'],
                               **reading_options(args))
+    validation = _resampled(validation, args)
     fs = records[0].fs
     for r in validation:
         if abs(r.fs - fs) > 1e-6 * fs:
