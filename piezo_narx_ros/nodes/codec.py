@@ -668,16 +668,11 @@ def _remember_shape(buf: bytes, start: int, run: int, names, count: int, layout:
     """
     if len(_SHAPES) > 64:
         _SHAPES.clear()
-    head = None
-    if run > start:
-        head = _point_dtype(e, _point_layout((start - 4) % 8, n_pos, n_eff, repeat=False),
-                            n_pos, n_eff)
+    own = _point_layout((start - 4) % 8, n_pos, n_eff, repeat=False) if run > start else None
+    head = None if own is None else _point_dtype(e, own, n_pos, n_eff)
     meta = None
     if e == '<' and _KERNEL_HOST:
-        meta = _kernels().make_meta(
-            start, run, count, n_pos, n_eff, layout.size,
-            _point_layout((start - 4) % 8, n_pos, n_eff, repeat=False) if run > start else None,
-            layout)
+        meta = _kernels().make_meta(start, run, count, n_pos, n_eff, layout.size, own, layout)
     shape = _BatchShape(bytes(buf[:4]), bytes(buf[12:start]), start, tuple(names), count,
                         _point_dtype(e, layout, n_pos, n_eff), n_pos, n_eff, head, run, meta)
     kept = [k for k in _SHAPES.get(len(buf), ()) if k != shape]
