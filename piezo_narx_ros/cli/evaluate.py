@@ -123,8 +123,8 @@ def memory_windows(model, records, init_samples) -> tuple[list[dict], list[str]]
     The two extreme pasts the model admits (from above and from below: estimator.memory) are run
     through the window's inputs: where they still differ after it, the window has not set the
     hysteresis memory (a hold gives the level, not the memory), the state estimate has guessed
-    the rest, and the score after the window carries that guess. One axis only (None entries
-    for several); nothing for a free run from rest or without --init-samples.
+    the rest, and the score after the window carries that guess. One axis only: nothing for
+    several, for a free run from rest, without --init-samples or for a family without brackets.
     """
     import numpy as np
 
