@@ -128,15 +128,14 @@ def memory_windows(model, records, init_samples) -> tuple[list[dict], list[str]]
     """
     import numpy as np
 
-    from piezo_narx_ros.estimator.memory import MemoryBracket
+    from piezo_narx_ros.estimator.memory import memory_bracket
     if not init_samples or model.n_in != 1 or model.n_out != 1:
         return [], []
     out, notes = [], []
     for r in records:
         u = np.asarray(r.u, dtype=np.float64).reshape(len(r))[:int(init_samples)]
-        try:
-            bracket = MemoryBracket(model, float(u[0]))
-        except (AttributeError, NotImplementedError):   # a family without brackets
+        bracket = memory_bracket(model, float(u[0]))
+        if bracket is None:                             # a family without brackets
             return [], []
         for x in u:
             bracket.step(float(x))

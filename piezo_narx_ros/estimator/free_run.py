@@ -38,7 +38,7 @@ import numpy as np
 from piezo_narx_ros.command.stamps import (RATE_TOLERANCE, SAMPLE, RateMonitor, StampGate,
                                            model_rate)
 from piezo_narx_ros.errors import ConfigError, DataError
-from piezo_narx_ros.estimator.memory import MemoryBracket
+from piezo_narx_ros.estimator.memory import memory_bracket
 from piezo_narx_ros.ident.state import MIN_WINDOW
 
 INIT_MODES = ('auto', 'rest', 'measurement')
@@ -530,10 +530,7 @@ class FreeRunEstimator:
         self.stats.init = how
         self.stats.state = 'undetermined'
         if self.bracket:
-            try:
-                self._memory = MemoryBracket(self.model, u0)
-            except (AttributeError, NotImplementedError):   # a family without brackets
-                self._memory = None
+            self._memory = memory_bracket(self.model, u0)
 
     def _emit(self, t_ns: int, y_hat: float, out: list) -> None:
         if self.rate.off:                  # the model's state still follows the commands

@@ -49,3 +49,15 @@ class MemoryBracket:
             self.determined = True
             self._steppers = []
         return self.spread
+
+
+def memory_bracket(model, u0: float) -> MemoryBracket | None:
+    """
+    Return the MemoryBracket of `model` from the first command u0 (V).
+
+    None for a family without brackets (`_bracket_states` missing or not implemented).
+    """
+    try:
+        return MemoryBracket(model, u0)
+    except (AttributeError, NotImplementedError):
+        return None
