@@ -392,6 +392,48 @@ def test_paper_networks_beside_the_envelope_family_only_where_minor_loops_shape_
         replace(cfg, training={'no_such_option': 1}).validate()
 
 
+def test_increment_free_structure_only_where_the_estimation_input_moves_slowly():
+    """without_increments 'auto': every seed also without increments on slow one-axis inputs."""
+    from piezo_narx_ros.ident.coverage import SLOW_STEP, step_share
+    from piezo_narx_ros.ident.experiment import increments
+    from piezo_narx_ros.plant import generate
+    cfg = ExperimentConfig(family='hysteresis_narx', hidden=3, n_seeds=2,
+                           without_increments='auto', hnarx_grid=({}, {'n_lags': 6}),
+                           arx_na=(2,), arx_nb=(2,))
+    cfg.validate()
+    specs = cfg.specs()
+    assert [dict(s.options).get('n_lags') for s in specs if s.kind == 'hysteresis_narx'] == \
+        [None, None, 6, 6, 0, 0]
+
+    def rec(u, fs=2000.0):
+        return Record(u=u, y=np.zeros_like(u), fs=fs, source='r')
+    # A 1 Hz growing sine at 2 kHz steps 0.16 % of its range; at 10 kHz 0.03 %.
+    slow = rec(generate('growing_sine', 2000.0, 4.0, 100.0, freq=1.0, hold=0.5))
+    slow10k = rec(generate('growing_sine', 10000.0, 2.0, 100.0, freq=1.0, hold=0.5), 10000.0)
+    # The protocol and APRBS jump (a piecewise-constant input is as fast as its jumps).
+    fast = [rec(generate('protocol', 2000.0, 4.0, 100.0, seed=1)),
+            rec(generate('aprbs', 2000.0, 4.0, 100.0, seed=1))]
+    assert step_share([slow]) < SLOW_STEP and step_share([slow10k]) < step_share([slow])
+    assert all(step_share([r]) > 2 * SLOW_STEP for r in fast)
+    assert increments(specs, cfg, [slow]) == specs
+    for r in fast:
+        assert [s for s in increments(specs, cfg, [r]) if s.kind == 'hysteresis_narx'] == \
+            specs[:4]
+    # A slow record with a fast one: the fit's inputs move fast where it matters.
+    assert len(increments(specs, cfg, [slow, fast[0]])) == len(specs) - 2
+    axes = Record(u=np.c_[slow.u, slow.u], y=np.c_[slow.u, slow.u], fs=2000.0, source='a',
+                  inputs=('u1', 'u2'), outputs=('y1', 'y2'))
+    assert len(increments(specs, cfg, [axes])) == len(specs) - 2
+    assert increments(specs, replace(cfg, without_increments='yes'), fast) == specs
+    assert len(replace(cfg, without_increments='no').specs()) == len(specs) - 2
+    # Not added twice when the grid has a structure without increments already.
+    own = replace(cfg, hnarx_grid=({}, {'n_lags': 0}))
+    assert own.increment_free() is None and len(own.specs()) == len(specs) - 2
+    assert len(increments(own.specs(), own, fast)) == len(own.specs())
+    with pytest.raises(ConfigError, match='without_increments'):
+        replace(cfg, without_increments='maybe').validate()
+
+
 def test_hnarx_grid_fits_every_structure_with_every_seed():
     """Each structure of hnarx_grid is its options over hnarx, fitted with every seed."""
     cfg = ExperimentConfig(family='hysteresis_narx', n_seeds=2, hidden=3, arx_na=(), arx_nb=(),

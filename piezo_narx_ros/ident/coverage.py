@@ -18,6 +18,14 @@ BAND_FACTOR = 2.0
 BAND_TAIL = 0.05
 
 
+#: A command moves slowly when the SLOW_QUANTILE of its steps is below this share of its range per
+#: sample: a full-range sine of frequency f steps at most pi f / fs, so below 0.5 % it has more
+#: than about 630 samples per cycle (a 1 Hz sine at 2 kHz 0.16 %, at 10 kHz 0.03 %; the
+#: identification protocol at 2 kHz 4.0 %, at 10 kHz 1.1 %; the micromanipulator 1.6 %).
+SLOW_STEP = 0.005
+SLOW_QUANTILE = 0.95
+#: Steps below this share of the range are holds (or a measured input's noise), not moves.
+MOVING = 1e-6
 #: A reversal of the input counts when it moves back by this fraction of its range (not noise).
 REVERSAL_DEPTH = 0.05
 #: ... and is "inner" (a minor loop) when this fraction of the range away from both extremes.
@@ -44,6 +52,29 @@ def inner_reversals(inputs) -> int:
         cols = [u.reshape(len(u), -1) for u in inputs]
         return min(_inner_reversals([c[:, i] for c in cols]) for i in range(cols[0].shape[1]))
     return _inner_reversals(inputs)
+
+
+def step_share(inputs) -> float:
+    """
+    Return the SLOW_QUANTILE of the input's moving steps within records, as a share of its range.
+
+    inputs: the records' input arrays (V), or Records. Steps are taken within each record (not
+    across records), and only those where the input moves (above MOVING of the range): a
+    piecewise-constant input (APRBS, steps, held levels) is as fast as its jumps, not as slow as
+    its holds. Several input channels ((N, n_in)): the fastest channel. 0 for a constant input or
+    records of one sample.
+    """
+    inputs = [np.asarray(getattr(x, 'u', x), dtype=np.float64) for x in inputs]
+    cols = [u.reshape(len(u), -1) for u in inputs]
+    share = 0.0
+    for i in range(cols[0].shape[1]):
+        steps = np.concatenate([np.abs(np.diff(c[:, i])) for c in cols])
+        span = (max(float(np.max(c[:, i])) for c in cols)
+                - min(float(np.min(c[:, i])) for c in cols))
+        steps = steps[steps > MOVING * span]
+        if steps.size and span > 0:
+            share = max(share, float(np.quantile(steps, SLOW_QUANTILE)) / span)
+    return share
 
 
 def _inner_reversals(inputs) -> int:
