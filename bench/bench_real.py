@@ -58,7 +58,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -120,17 +120,6 @@ SCENARIOS = {
                _take('triangle 0.5 Hz', 'triangle', 10, freq=0.5),
                _take('multisine 0.1-10 Hz', 'multisine', 10, f_max=10),
                _take('held levels', 'holds', 10, hold=1.5, ramp=0.05))),
-    # The 10 kHz bench recorded as rigs record: the growing scenario's records at
-    # 10 kHz with a 16-bit sensor (a fit of 200,000 estimation samples).
-    'growing10k': Scenario(
-        fs=10000.0,
-        est=(_take('est growing 1 Hz', 'growing_sine', 20, freq=1, hold=2),),
-        val=(_take('val growing 10 Hz', 'growing_sine', 10, freq=10, hold=1),),
-        tests=(_take('growing 3 Hz', 'growing_sine', 10, freq=3, hold=1),
-               _take('triangle 0.5 Hz', 'triangle', 10, freq=0.5),
-               _take('multisine 0.1-10 Hz', 'multisine', 10, f_max=10),
-               _take('held levels', 'holds', 10, hold=1.5, ramp=0.05)),
-        sensor=('--sensor-bits', '16', '--sensor-span', '2e-4'), timed=True),
     'rate': Scenario(
         fs=10000.0,
         est=(_take('est protocol', 'protocol', 4),),
@@ -149,6 +138,10 @@ SCENARIOS = {
                      f_max=1500)),
         init_seconds=0.1),
 }
+# The 10 kHz bench recorded as rigs record: the growing scenario's records at 10 kHz with
+# a 16-bit sensor (a fit of 200,000 estimation samples).
+SCENARIOS['growing10k'] = replace(SCENARIOS['growing'], fs=10000.0,
+                                  sensor=SCENARIOS['rate'].sensor, timed=True)
 ALL_SCENARIOS = tuple(SCENARIOS) + ('yan9a',)
 # Run when named: a growing10k cell fits 200,000 samples per preset (5-7 min each).
 DEFAULT_SCENARIOS = tuple(s for s in ALL_SCENARIOS if s != 'growing10k')

@@ -21,7 +21,7 @@ BAND_TAIL = 0.05
 #: A command moves slowly when the SLOW_QUANTILE of its steps is below this share of its range per
 #: sample: a full-range sine of frequency f steps at most pi f / fs, so below 0.5 % it has more
 #: than about 630 samples per cycle (a 1 Hz sine at 2 kHz 0.16 %, at 10 kHz 0.03 %; the
-#: identification protocol at 2 kHz 4.0 %, at 10 kHz 1.1 %; the micromanipulator 1.6 %).
+#: identification protocol at 2 kHz 5.3 %, at 10 kHz 1.1 %; the micromanipulator 1.6 %).
 SLOW_STEP = 0.005
 SLOW_QUANTILE = 0.95
 #: Steps below this share of the range are holds (or a measured input's noise), not moves.

@@ -848,13 +848,17 @@ def distinct_specs(specs: list, records: list) -> list:
     many inputs as outputs every candidate is also fitted as one chain per axis
     (ident/hysteresis_chains.py: there seeds and increments matter, as for one axis).
     """
-    if not any(getattr(r, 'n_in', 1) > 1 or getattr(r, 'n_out', 1) > 1 for r in records):
+    if _one_axis(records):
         return list(specs)
     nets = [s for s in specs if s.kind == 'hysteresis_narx']
     square = all(getattr(r, 'n_in', 1) == getattr(r, 'n_out', 1) for r in records)
     chains = [replace(s, options=tuple(sorted(dict(s.options, structure='chains').items())))
               for s in nets] if square else []
     return nets[:1] + chains + [s for s in specs if s.kind != 'hysteresis_narx']
+
+
+def _one_axis(records: list[Record]) -> bool:
+    return all(getattr(r, 'n_in', 1) == 1 and getattr(r, 'n_out', 1) == 1 for r in records)
 
 
 def beside(specs: list, config: ExperimentConfig, est: list[Record]) -> list:
@@ -868,8 +872,7 @@ def beside(specs: list, config: ExperimentConfig, est: list[Record]) -> list:
         return list(specs)
     from .coverage import inner_reversals
     from .hysteresis import MINOR_LOOPS
-    one_axis = all(getattr(r, 'n_in', 1) == 1 and getattr(r, 'n_out', 1) == 1 for r in est)
-    if one_axis and inner_reversals(est) >= MINOR_LOOPS:
+    if _one_axis(est) and inner_reversals(est) >= MINOR_LOOPS:
         return list(specs)
     return [s for s in specs if s.kind != 'narx']
 
@@ -885,8 +888,7 @@ def increments(specs: list, config: ExperimentConfig, est: list[Record]) -> list
     if extra is None or config.without_increments != 'auto':
         return list(specs)
     from .coverage import SLOW_STEP, step_share
-    one_axis = all(getattr(r, 'n_in', 1) == 1 and getattr(r, 'n_out', 1) == 1 for r in est)
-    if one_axis and step_share(est) < SLOW_STEP:
+    if _one_axis(est) and step_share(est) < SLOW_STEP:
         return list(specs)
 
     def added(spec):
