@@ -7,7 +7,11 @@ plant, each after its own random 20 s history and 1 s hold, half of them with th
 moved (uniform in +-2.5 um, as a session of another day) and half with the estimation session's
 zero; the test signal cycles through what a rig records after a past nobody logged: a hold then
 a growing 3 Hz sine, a 0.5 Hz triangle, a 0.1-10 Hz multisine, held levels, the protocol. Each
-record's first `--window` seconds set the state (`model.estimate_state`), the rest is scored:
+record's first `--window` seconds set the state (`model.estimate_state`), the rest is scored.
+`--pasts`: `random` (the default) ends each past with a ramp from above or below; `fade` ends it
+with a fade-out about the record's first command (how the real micromanipulator's test record
+ends each segment before its hold); `both` alternates them every len(SIGNALS) records.
+
 
     ratio = RMSE(free run from the estimated state) / RMSE(the same model from rest, on the
             same command applied to the plant at rest, the better of the two sensor zeros)
@@ -19,7 +23,8 @@ model, so rules of the estimator can be compared on the same pasts.
 
     python bench/bench_real.py --scenarios session growing --seeds 0 1 --presets envelope \
         --keep /tmp/real
-    python bench/bench_state.py /tmp/real [--trials 10] [--window 0.5] [--json out.json]
+    python bench/bench_state.py /tmp/real [--trials 10] [--window 0.5] [--pasts both] \
+        [--json out.json]
 """
 from __future__ import annotations
 
@@ -67,11 +72,29 @@ def cells(root: Path):
         yield cell.name, plant, path, zero
 
 
-def trial(model, plant_name, fs, zero, k, window_s, spread=SPREAD):
+def fade_history(fs, amplitude, seed, end, hold=1.0) -> np.ndarray:
     """
-    One test record after a random past; returns {'signal', 'moved', 'init', 'rest', ...}.
+    Return a random past (V) ended by a fade-out about `end` V, then `hold` s there.
 
-    spread: the moved sensor zero is uniform in +-spread (m) on every other record.
+    20 s of random ramps (random_history), then 3-8 s of a 0.5-5 Hz sine about `end` whose
+    amplitude (30-100 % of `amplitude`, clipped to +-amplitude) falls linearly to 0.
+    """
+    base = random_history(fs, 20.0, amplitude, seed=seed, end=end, hold=0.0)
+    rng = np.random.default_rng(seed + 99)
+    freq, seconds = rng.uniform(0.5, 5.0), rng.uniform(3.0, 8.0)
+    top = rng.uniform(0.3, 1.0) * amplitude
+    t = np.arange(int(seconds * fs)) / fs
+    fade = np.clip(end + top * (1.0 - t / seconds) * np.sin(2 * np.pi * freq * t),
+                   -amplitude, amplitude)
+    return np.concatenate([base, fade, np.full(int(round(hold * fs)), end)])
+
+
+def trial(model, plant_name, fs, zero, k, window_s, spread=SPREAD, pasts='random'):
+    """
+    One test record after a random past; returns {'signal', 'moved', 'past', 'init', ...}.
+
+    spread: the moved sensor zero is uniform in +-spread (m) on every other record; pasts:
+    'random', 'fade' or 'both' (see the module docstring).
     """
     name = list(SIGNALS)[k % len(SIGNALS)]
     kind, options = SIGNALS[name]
@@ -80,7 +103,12 @@ def trial(model, plant_name, fs, zero, k, window_s, spread=SPREAD):
     offset = zero + (rng.uniform(-spread, spread) if moved else 0.0)
     params = load_plant_params(config_path(PLANTS[plant_name]))
     u = generate(kind, fs, TEST_SECONDS, 100.0, seed=500 + k, **options)
-    past = random_history(fs, 20.0, 100.0, seed=700 + k, end=float(u[0]), hold=1.0)
+    kind_of_past = pasts if pasts != 'both' else ('fade' if (k // len(SIGNALS)) % 2 else
+                                                  'random')
+    if kind_of_past == 'fade':
+        past = fade_history(fs, 100.0, seed=700 + k, end=float(u[0]))
+    else:
+        past = random_history(fs, 20.0, 100.0, seed=700 + k, end=float(u[0]), hold=1.0)
     y = PiezoCantilever(params, fs=fs, seed=300 + k, sensor_offset=offset).run(
         u, history=past).y
     n = int(round(window_s * fs))
@@ -93,7 +121,7 @@ def trial(model, plant_name, fs, zero, k, window_s, spread=SPREAD):
     init = rmse(y[n:] - model.simulate(u, state=state)[n:])
     rest = rmse(y[n:] - model.simulate(u)[n:])
     true = rmse(y[n:] - model.simulate(np.r_[past, u])[past.size:][n:] - (offset - zero))
-    return {'signal': name, 'moved': moved, 'ref_m': ref, 'init': init / ref,
+    return {'signal': name, 'moved': moved, 'past': kind_of_past, 'ref_m': ref, 'init': init / ref,
             'rest': rest / ref, 'true': true / ref, 'estimate_s': seconds,
             'offset_err_m': float(state.offset) - (offset - zero)}
 
@@ -112,6 +140,9 @@ def main(argv=None) -> int:
     ap.add_argument('--window', type=float, default=0.5, help='measured window, s')
     ap.add_argument('--spread', type=float, default=SPREAD * 1e6,
                     help='a moved sensor zero is uniform in +-SPREAD um (default %(default)s)')
+    ap.add_argument('--pasts', choices=('random', 'fade', 'both'), default='random',
+                    help='how each past ends: a ramp from above or below, a fade-out, or both '
+                         '(default %(default)s)')
     ap.add_argument('--json', type=Path, help='write every trial as JSON')
     args = ap.parse_args(argv)
     rows = []
@@ -119,7 +150,7 @@ def main(argv=None) -> int:
     for name, plant, path, zero in cells(args.root):
         model = load_model(path)
         got = [trial(model, plant, model.fs, zero, k, args.window,
-                     args.spread * 1e-6) for k in range(args.trials)]
+                     args.spread * 1e-6, args.pasts) for k in range(args.trials)]
         for r in got:
             r['cell'] = name
         rows += got
@@ -135,13 +166,18 @@ def main(argv=None) -> int:
         if sub:
             print(f'  {sig:22s} init {summarise(sub, "init")}  rest {summarise(sub, "rest")}  '
                   f'true {summarise(sub, "true")}')
+    for kind in sorted({r['past'] for r in rows}):
+        sub = [r for r in rows if r['past'] == kind]
+        print(f'  {"past: " + kind:22s} init {summarise(sub, "init")}  '
+              f'rest {summarise(sub, "rest")}  true {summarise(sub, "true")}')
     for moved in (False, True):
         sub = [r for r in rows if r['moved'] == moved]
         print(f'  {"zero moved" if moved else "same zero":22s} init {summarise(sub, "init")}  '
               f'rest {summarise(sub, "rest")}  true {summarise(sub, "true")}')
     mean = statistics.mean(r['init'] for r in rows)
     print(f'  {"all":22s} init {summarise(rows, "init")}  rest {summarise(rows, "rest")}  '
-          f'true {summarise(rows, "true")}   mean init {mean:.2f}')
+          f'true {summarise(rows, "true")}   mean init {mean:.2f}, sum of RMSE '
+          f'{1e6 * sum(r["init"] * r["ref_m"] for r in rows):.2f} um')
     print(f'wall {time.perf_counter() - t0:.0f} s')
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))

@@ -191,3 +191,44 @@ def test_a_zero_moved_by_many_scales_does_not_outweigh_the_window():
     # and a candidate 2 TIEs worse loses to an equal offset.
     assert _score(1.0, 1.0, 0.5e-6, sigma) < _score(1.0, 1.0, 2e-6, sigma)
     assert _score(1.0, 1.0, 2e-6, sigma) < _score(1.0 + 2 * TIE, 1.0, 2e-6, sigma)
+
+
+def test_a_hold_after_a_fade_out_is_explained_by_the_demagnetised_memory(hnarx, monkeypatch):
+    """
+    A move ended by a fade-out leaves a memory no two-turning-point past writes.
+
+    On the hold after it every past explains the window; the demagnetised candidate is taken
+    (step 5 of ident/state.py) and the sweep after the hold runs closer than from the past the
+    offset prior alone would take (the micromanipulator's holds: 1.2 -> 0.33 um, docs/real.md).
+    """
+    u_hist, _, _ = session()
+    t = np.arange(int(3.0 * FS)) / FS
+    fade = 30.0 + 60.0 * (1.0 - t / t[-1]) * np.sin(2 * np.pi * 2.0 * t)
+    n = 1000
+    sweep = 30.0 + 70.0 * np.sin(2 * np.pi * np.arange(4000) / FS)
+    u = np.r_[np.full(n, 30.0), sweep]
+    past = np.r_[u_hist, fade, np.full(int(0.5 * FS), 30.0)]
+    y = PiezoCantilever(fs=FS, seed=5).run(np.r_[past, u]).y[past.size:] + 1e-6
+    state = hnarx.estimate_state(u[:n], y[:n])
+    assert state.info.get('demagnetised') is True
+    # Fitting a record that starts so, the fit replays the fade-out before it (not rest).
+    hist, starts = hnarx._start_histories([u], [y])
+    assert starts[0]['turning_points_v'] == state.info['history_turning_points_v']
+    assert hist[0].size > 0 and hist[0][-1] == 30.0
+    e_state = rms(y[n:] - hnarx.simulate(u, state=state)[n:])
+    everything = type(hnarx)._state_candidates
+    monkeypatch.setattr(type(hnarx), '_state_candidates',
+                        lambda self, w: [c for c in everything(self, w)
+                                         if not c.info.get('demagnetised')])
+    before = hnarx.estimate_state(u[:n], y[:n])
+    e_before = rms(y[n:] - hnarx.simulate(u, state=before)[n:])
+    assert e_state < 0.5 * e_before, (e_state, e_before)    # measured: 0.13 against 0.99 um
+
+
+def test_the_fade_out_stays_in_the_input_range_and_ends_about_its_centre():
+    from piezo_narx_ros.ident.state import fade_out
+    pts = np.array(fade_out(30.0, -100.0, 100.0, cycles=10))
+    assert pts.size == 20 and pts.max() <= 100.0 and pts.min() >= -100.0
+    assert pts[0] == 100.0 and abs(pts[-1] - 30.0) < 15.0    # last swing: a tenth of 130 V
+    swings = np.abs(pts - 30.0)
+    assert np.all(np.diff(swings[1::2]) < 0)                  # the lower swings shrink

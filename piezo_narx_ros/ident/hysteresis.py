@@ -570,10 +570,11 @@ class HysteresisNARX(DynamicModel):
         """
         States after every input history of up to two turning points on 13 levels, settled at u0.
 
-        The levels span the trained input range; a history ramps from rest through its turning
-        points to u[0] (V) slower than the learned drive limit, so the operators see its path.
+        And after a fade-out about u0 (the demagnetised memory, state.py step 5). The levels span
+        the trained input range; a history ramps from rest through its turning points to u[0]
+        (V) slower than the learned drive limit, so the operators see its path.
         """
-        from .state import ModelState, ramp, turning_point_histories
+        from .state import ModelState, fade_out, ramp, turning_point_histories
         if self.mimo_ is not None:
             return [self._mimo_held_state(u)]
         lo, hi = self.input_range if self.input_range is not None \
@@ -588,6 +589,12 @@ class HysteresisNARX(DynamicModel):
             self._run_from_inplace(st, ramp(pts + (u0,), step))
             out.append(ModelState(self._settled(st, u0), 0.0,
                                   {'history_turning_points_v': list(pts)}))
+        # A move ended by a fade-out, demagnetised about u0 (state.py, step 5).
+        pts = fade_out(u0, min(lo, u0), max(hi, u0))
+        st = np.zeros(self._state_size())
+        self._run_from_inplace(st, ramp(pts + (u0,), step))
+        out.append(ModelState(self._settled(st, u0), 0.0,
+                              {'history_turning_points_v': list(pts), 'demagnetised': True}))
         return out
 
     def _bracket_states(self, u0):

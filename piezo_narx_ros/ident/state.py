@@ -32,6 +32,14 @@ best explains the measured window, for every family:
    issue's rig by 4.7 um), and a Gaussian's quadratic tail then outweighs clear differences in
    the window's cost and takes a past that explains part of the moved zero by memory (zeros
    moved by up to +-14 um: the worst moved record 62x -> 11x; within +-2.5 um the same choices).
+5. **A hold after a fade-out.** Rigs end a move by fading its amplitude out (the real
+   micromanipulator's test record fades each segment out, then holds), which leaves the memory
+   demagnetised about the hold level: a past of many turning points, none of the candidates of 1.
+   The hysteresis family adds it as a candidate, and it is taken where it scores within
+   `DEMAG_MARGIN` of the winner with an offset within one prior scale of the winner's: wrong, it
+   costs at most that much of persistent offset; the winner, wrong, costs the whole memory
+   (measured on the micromanipulator's two holds: 1.2 and 0.96 um after the window -> 0.33 and
+   0.16 um; over random one-sided pasts and fade-outs, docs/real.md).
 
 `model.simulate(u, state=s)` and `model.stepper(state=s)` then free-run from it; the offset (m) is
 added to every output. docs/real.md has the measurements behind the choices.
@@ -62,6 +70,11 @@ TIE = 0.05
 #: Scale of the sensor offset's (Cauchy) prior, as a fraction of the trained output span
 #: (2.5 um on the simulators' 82 um; the issue's rig moved its zero by up to 4.7 um).
 OFFSET_PRIOR = 0.03
+#: Score margin (log-likelihood units) within which the demagnetised memory (step 5) is taken
+#: over the most probable candidate, its offset within one prior scale of that candidate's.
+DEMAG_MARGIN = 1.0
+#: Cycles of the fade-out that writes the demagnetised candidate (its amplitude falls linearly).
+FADE_CYCLES = 40
 
 
 @dataclass(frozen=True)
@@ -235,16 +248,51 @@ def estimate_state(model, u, y, prior: ModelState | None = None,
         sigma = offset_prior(model)
         # Step 4: the window's cost and the offset's prior, both in units of log-likelihood.
         order = sorted(ranked, key=lambda r: (_score(r[0], best, r[2], sigma), r[1]))
+        keep = order[:N_REFINE]
+        keep += [r for r in order[N_REFINE:] if candidates[r[1]].info.get('demagnetised')][:1]
         refined = {r[1]: _refine(model, candidates[r[1]].values.astype(np.float64), u, y, idx,
                                  scale, iterations)
-                   for r in order[:N_REFINE]}
+                   for r in keep}
     low = min(c for _, _, c in refined.values())
     i = min(refined, key=lambda k: (_score(refined[k][2], low, refined[k][1], sigma), k))
+    i = _after_fade_out(candidates, refined, i, low, sigma)
     values, offset, cost = refined[i]
     info = {**candidates[i].info, 'window_samples': int(len(u)), 'rms_m': math.sqrt(cost),
             'candidates': len(candidates), 'indistinguishable': len(tied)}
     offset = float(offset) if np.ndim(offset) == 0 else np.asarray(offset, dtype=np.float64)
     return ModelState(values=values, offset=offset, info=info)
+
+
+def _after_fade_out(candidates, refined: dict, i: int, low: float, sigma: np.ndarray) -> int:
+    """
+    Return the demagnetised candidate's index where step 5 takes it over candidate i, else i.
+
+    refined: index -> (values, offset m, cost m^2); low: the lowest refined cost; sigma: the
+    offset prior's scale per output (m).
+    """
+    d = next((k for k in refined if candidates[k].info.get('demagnetised')), None)
+    if d is None or d == i:
+        return i
+    s_d = _score(refined[d][2], low, refined[d][1], sigma)
+    s_i = _score(refined[i][2], low, refined[i][1], sigma)
+    near = np.all(np.abs(np.ravel(refined[d][1]) - np.ravel(refined[i][1])) <= sigma)
+    return d if s_d <= s_i + DEMAG_MARGIN and near else i
+
+
+def fade_out(u0: float, lo: float, hi: float, cycles: int = FADE_CYCLES) -> tuple[float, ...]:
+    """
+    Return the turning points (V) of an oscillation about u0 fading out, within [lo, hi] V.
+
+    Its amplitude starts at the largest [lo, hi] allows about u0 and falls linearly to 0 over
+    `cycles` cycles: what it leaves is the memory of a move ended by a fade-out, demagnetised
+    about u0 down to the last cycle's amplitude.
+    """
+    top = max(hi - u0, u0 - lo)
+    pts = []
+    for k in range(int(cycles)):
+        a = top * (1.0 - k / cycles)
+        pts += [min(hi, u0 + a), max(lo, u0 - a)]
+    return tuple(float(p) for p in pts)
 
 
 def turning_point_histories(lo: float, hi: float, u0: float, n_levels: int = 13,
