@@ -11,6 +11,7 @@ record's first `--window` seconds set the state (`model.estimate_state`), the re
 `--pasts`: `random` (the default) ends each past with a ramp from above or below; `fade` ends it
 with a fade-out about the record's first command (how the real micromanipulator's test record
 ends each segment before its hold); `both` alternates them every len(SIGNALS) records.
+`--state-past fade-out` tells the estimate that each past faded out (ident/state.py step 5).
 
 
     ratio = RMSE(free run from the estimated state) / RMSE(the same model from rest, on the
@@ -38,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from piezo_narx_ros.ident.model_io import load_model
+from piezo_narx_ros.ident.state import PASTS
 from piezo_narx_ros.plant import PiezoCantilever, generate, load_plant_params, random_history
 from piezo_narx_ros.share import config_path
 
@@ -89,12 +91,14 @@ def fade_history(fs, amplitude, seed, end, hold=1.0) -> np.ndarray:
     return np.concatenate([base, fade, np.full(int(round(hold * fs)), end)])
 
 
-def trial(model, plant_name, fs, zero, k, window_s, spread=SPREAD, pasts='random'):
+def trial(model, plant_name, fs, zero, k, window_s, spread=SPREAD, pasts='random',
+          state_past='any'):
     """
     One test record after a random past; returns {'signal', 'moved', 'past', 'init', ...}.
 
     spread: the moved sensor zero is uniform in +-spread (m) on every other record; pasts:
-    'random', 'fade' or 'both' (see the module docstring).
+    'random', 'fade' or 'both' (see the module docstring); state_past: what the estimate is
+    told about how the past ended (estimate_state's past).
     """
     name = list(SIGNALS)[k % len(SIGNALS)]
     kind, options = SIGNALS[name]
@@ -116,7 +120,7 @@ def trial(model, plant_name, fs, zero, k, window_s, spread=SPREAD, pasts='random
                  - model.simulate(u)[n:]) for z in (0.0, zero)]
     ref = min(refs)
     t0 = time.perf_counter()
-    state = model.estimate_state(u[:n], y[:n])
+    state = model.estimate_state(u[:n], y[:n], past=state_past)
     seconds = time.perf_counter() - t0
     init = rmse(y[n:] - model.simulate(u, state=state)[n:])
     rest = rmse(y[n:] - model.simulate(u)[n:])
@@ -143,6 +147,9 @@ def main(argv=None) -> int:
     ap.add_argument('--pasts', choices=('random', 'fade', 'both'), default='random',
                     help='how each past ends: a ramp from above or below, a fade-out, or both '
                          '(default %(default)s)')
+    ap.add_argument('--state-past', choices=PASTS, default='any',
+                    help='what the state estimate is told about how each past ended '
+                         '(default %(default)s)')
     ap.add_argument('--json', type=Path, help='write every trial as JSON')
     args = ap.parse_args(argv)
     rows = []
@@ -150,7 +157,8 @@ def main(argv=None) -> int:
     for name, plant, path, zero in cells(args.root):
         model = load_model(path)
         got = [trial(model, plant, model.fs, zero, k, args.window,
-                     args.spread * 1e-6, args.pasts) for k in range(args.trials)]
+                     args.spread * 1e-6, args.pasts, args.state_past)
+               for k in range(args.trials)]
         for r in got:
             r['cell'] = name
         rows += got

@@ -89,6 +89,8 @@ class Record:
     # its recording set (a recording that did not start at rest); 0: from rest; None: from the
     # first n0 measured outputs (lagged models, the paper's convention) or rest (the others).
     state_window: int | None = None
+    # How the recording's unlogged past ended, for that state: 'any' or 'fade-out' (ident.state).
+    state_past: str = 'any'
     inputs: tuple | None = None       # n_in channel names (None: default_names)
     outputs: tuple | None = None      # n_out channel names
 
@@ -137,7 +139,8 @@ class Record:
                       y_true=None if self.y_true is None else self.y_true[cut].copy(),
                       u_before=before_u.copy() if before_u.size else None,
                       y_before=before_y.copy() if before_y.size else None,
-                      state_window=self.state_window, inputs=self.inputs, outputs=self.outputs)
+                      state_window=self.state_window, state_past=self.state_past,
+                      inputs=self.inputs, outputs=self.outputs)
 
     def split(self, fraction: float = 0.5) -> tuple['Record', 'Record']:
         """(estimation, validation): the first `fraction` of the samples and the rest."""

@@ -53,6 +53,18 @@ def test_from_rest_equals_offline_simulate(model):
     assert est.stats.init == 'rest' and est.stats.estimates == 3000
 
 
+def test_init_past_reaches_the_state_estimate(model, monkeypatch):
+    seen = []
+    estimate = type(model).estimate_state
+    monkeypatch.setattr(type(model), 'estimate_state',
+                        lambda self, u, y, prior=None, past='any':
+                        seen.append(past) or estimate(self, u, y, prior, past))
+    u = _u(200, 2)
+    est = FreeRunEstimator(model, init='measurement', init_window=W, init_past='fade-out')
+    _feed(est, u, meas=model.simulate(u))
+    assert est.stats.init == 'measurement' and seen == ['fade-out']
+
+
 def test_from_measurement_equals_simulate_from_the_estimated_state(model):
     u = _u(3000, 1)
     y_meas = model.simulate(u) + 3e-8          # a sensor offset: the state is not rest
@@ -179,6 +191,8 @@ def test_measurement_arriving_before_command_is_matched(model):
 def test_bad_configuration_refused(model):
     with pytest.raises(ConfigError, match='init'):
         FreeRunEstimator(model, init='sometimes')
+    with pytest.raises(ConfigError, match="init_past must be one of \\['any', 'fade-out'\\]"):
+        FreeRunEstimator(model, init_past='ramped')
     with pytest.raises(ConfigError, match='u_min'):
         FreeRunEstimator(model, u_min=1.0, u_max=0.0)
     with pytest.raises(ConfigError, match='not a NARX'):
@@ -275,6 +289,7 @@ def test_defaults_are_the_estimator_nodes():
             est.reanchor_every) == (node['init'], node['u_min'], node['u_max'],
                                     node['max_fill'], node['window'], node['reanchor_every'])
     assert est.init_timeout_samples == round(node['init_timeout'] * _Echo.fs)
+    assert est.init_past == node['init_past'] == 'any'
     assert est.y_hi == pytest.approx(_Echo.output_range[1] + node['range_margin'] * span)
 
 

@@ -193,36 +193,40 @@ def test_a_zero_moved_by_many_scales_does_not_outweigh_the_window():
     assert _score(1.0, 1.0, 2e-6, sigma) < _score(1.0 + 2 * TIE, 1.0, 2e-6, sigma)
 
 
-def test_a_hold_after_a_fade_out_is_explained_by_the_demagnetised_memory(hnarx, monkeypatch):
+def fade_out_record(end=30.0, offset=1e-6):
+    """Return (u, y) of a plant record: a random past, a fade-out about `end` V, a 0.5 s hold."""
+    u_hist, _, _ = session()
+    t = np.arange(int(3.0 * FS)) / FS
+    fade = end + 60.0 * (1.0 - t / t[-1]) * np.sin(2 * np.pi * 2.0 * t)
+    sweep = end + 70.0 * np.sin(2 * np.pi * np.arange(4000) / FS)
+    u = np.r_[np.full(1000, end), sweep]
+    past = np.r_[u_hist, fade, np.full(int(0.5 * FS), end)]
+    return u, PiezoCantilever(fs=FS, seed=5).run(np.r_[past, u]).y[past.size:] + offset
+
+
+def test_told_the_past_faded_out_a_hold_takes_the_demagnetised_memory(hnarx):
     """
     A move ended by a fade-out leaves a memory no two-turning-point past writes.
 
-    On the hold after it every past explains the window; the demagnetised candidate is taken
-    (step 5 of ident/state.py) and the sweep after the hold runs closer than from the past the
-    offset prior alone would take (the micromanipulator's holds: 1.2 -> 0.33 um, docs/real.md).
+    On the hold after it every past explains the window. Told so (past='fade-out'), the state
+    takes the demagnetised memory and the sweep after the hold runs closer; by default the
+    candidates and the choice are those of 1-4 (the micromanipulator's holds: 1.2 -> 0.33 um).
     """
-    u_hist, _, _ = session()
-    t = np.arange(int(3.0 * FS)) / FS
-    fade = 30.0 + 60.0 * (1.0 - t / t[-1]) * np.sin(2 * np.pi * 2.0 * t)
+    u, y = fade_out_record()
     n = 1000
-    sweep = 30.0 + 70.0 * np.sin(2 * np.pi * np.arange(4000) / FS)
-    u = np.r_[np.full(n, 30.0), sweep]
-    past = np.r_[u_hist, fade, np.full(int(0.5 * FS), 30.0)]
-    y = PiezoCantilever(fs=FS, seed=5).run(np.r_[past, u]).y[past.size:] + 1e-6
-    state = hnarx.estimate_state(u[:n], y[:n])
-    assert state.info.get('demagnetised') is True
-    # Fitting a record that starts so, the fit replays the fade-out before it (not rest).
-    hist, starts = hnarx._start_histories([u], [y])
-    assert starts[0]['turning_points_v'] == state.info['history_turning_points_v']
-    assert hist[0].size > 0 and hist[0][-1] == 30.0
-    e_state = rms(y[n:] - hnarx.simulate(u, state=state)[n:])
-    everything = type(hnarx)._state_candidates
-    monkeypatch.setattr(type(hnarx), '_state_candidates',
-                        lambda self, w: [c for c in everything(self, w)
-                                         if not c.info.get('demagnetised')])
-    before = hnarx.estimate_state(u[:n], y[:n])
-    e_before = rms(y[n:] - hnarx.simulate(u, state=before)[n:])
-    assert e_state < 0.5 * e_before, (e_state, e_before)    # measured: 0.13 against 0.99 um
+    told = hnarx.estimate_state(u[:n], y[:n], past='fade-out')
+    default = hnarx.estimate_state(u[:n], y[:n])
+    assert told.info.get('demagnetised') is True and 'demagnetised' not in default.info
+    assert told.info['candidates'] == default.info['candidates'] + 1
+    e_told = rms(y[n:] - hnarx.simulate(u, state=told)[n:])
+    e_default = rms(y[n:] - hnarx.simulate(u, state=default)[n:])
+    assert e_told < 0.5 * e_default, (e_told, e_default)     # measured: 0.13 against 0.99 um
+    # A window that moves rejects a fade-out that did not happen: the sweep of session().
+    _, u2, y2 = session()
+    moved = hnarx.estimate_state(u2[:n], y2[:n], past='fade-out')
+    assert 'demagnetised' not in moved.info
+    with pytest.raises(DataError, match='past must be one of any, fade-out'):
+        hnarx.estimate_state(u[:n], y[:n], past='ramp')
 
 
 def test_the_fade_out_stays_in_the_input_range_and_ends_about_its_centre():

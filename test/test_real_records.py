@@ -125,6 +125,30 @@ def test_evaluate_init_samples_scores_after_the_window_and_saves_the_run(tmp_pat
                                                            rel=1e-9)
 
 
+def test_evaluate_past_fade_out_needs_a_window_and_is_reported(tmp_path, hnarx):
+    from piezo_narx_ros.ident.model_io import save_model
+    model = save_model(hnarx, tmp_path / 'm.json')
+    t = np.arange(int(3.0 * FS)) / FS
+    fade = 20.0 + 60.0 * (1.0 - t / t[-1]) * np.sin(2 * np.pi * 2.0 * t)
+    u = np.r_[np.full(1000, 20.0), 20.0 + 70.0 * np.sin(2 * np.pi * t[:4000])]
+    rec = record(u, seed=4, offset=1e-6, before=np.r_[fade, np.full(1000, 20.0)])
+    np.savez(tmp_path / 'r.npz', u=rec.u, y=rec.y, fs=FS)
+    bad = piezo_narx('evaluate', str(model), str(tmp_path / 'r.npz'), '--past', 'fade-out')
+    assert bad.returncode != 0 and '--init-samples' in bad.stderr.strip().splitlines()[-1]
+
+    def score(past):
+        out = piezo_narx('evaluate', str(model), str(tmp_path / 'r.npz'), '--json',
+                         '--init-samples', '1000', '--past', past)
+        assert out.returncode == 0, out.stderr
+        return json.loads(out.stdout)
+    told, default = score('fade-out'), score('any')
+    assert (told['past'], default['past']) == ('fade-out', 'any')
+    # The hold leaves the memory open: the warning says so, and (by default) how to say more.
+    assert any('--past fade-out' in w for w in default['warnings'])
+    assert not any('--past fade-out' in w for w in told['warnings'])
+    assert told['simulation']['rmse'] < default['simulation']['rmse']
+
+
 def test_evaluate_says_when_the_state_window_leaves_the_memory_open(hnarx):
     """
     A window that holds the input sets the level, not the hysteresis memory: evaluate says so.

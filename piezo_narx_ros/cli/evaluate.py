@@ -13,6 +13,7 @@ residuals themselves, and the JSON says so. Prints a short summary, or with --js
      "tests_residuals": "simulation",
      "tests_noise_model": {"kind", "order", "coef", "source"} | null,
      "tests_raw": {name: true|false}, "tests_detail": {...},
+     "past": "any" | "fade-out" (--past),
      "state_windows": [{"source", "window_samples", "memory_spread_m", "determined",
                         "window_input_v"}] (one axis, with --init-samples N > 0),
      "warnings": [...]}
@@ -35,6 +36,13 @@ def add_parser(subparsers):
                         'creep, output dynamics, sensor offset); scores on the samples after '
                         'them; 0: free run from rest (default: the first n0 measured outputs, '
                         "the paper's convention)")
+    from piezo_narx_ros.ident.state import PASTS
+    p.add_argument('--past', choices=PASTS, default=PASTS[0],
+                   help='with --init-samples: how the unlogged past before the record ended. '
+                        'any (default): histories of up to two turning points, the zero the '
+                        'model was fitted with breaking ties on a hold; fade-out: a move ended '
+                        'by fading its amplitude out (the memory demagnetised about the first '
+                        'command), kept unless the window rejects it')
     p.add_argument('--resample', type=float, metavar='HZ',
                    help='resample the inputs to this slower rate first (anti-aliased), for a '
                         'model fitted with fit --resample')
@@ -149,7 +157,9 @@ def memory_windows(model, records, init_samples) -> tuple[list[dict], list[str]]
                          f'(the input moved over [{u.min():.4g}, {u.max():.4g}] V there): pasts '
                          f'from above and from below still differ by '
                          f'{bracket.spread * 1e6:.3g} um after them, so the score after them '
-                         "carries the state estimate's guess")
+                         "carries the state estimate's guess"
+                         + (' (if the last move before the record faded out, say so with '
+                            '--past fade-out)' if r.state_past == 'any' else ''))
     return out, notes
 
 
@@ -316,10 +326,18 @@ def _run(args) -> int:
     if args.resample is not None:
         from piezo_narx_ros.ident.resample import resample_record
         records = [resample_record(r, args.resample) for r in records]
+    if args.past != 'any':
+        if not args.init_samples:
+            from piezo_narx_ros.errors import ConfigError
+            raise ConfigError(f'--past {args.past} needs --init-samples N > 0: it says how the '
+                              'past before the measured window ended')
+        from dataclasses import replace
+        records = [replace(r, state_past=args.past) for r in records]
     result = evaluate(model, records, args.max_lag, args.max_outside_fraction, args.residuals,
                       args.noise_model, args.noise_order, args.init_samples)
     if args.save_output:
         save_output(model, records, args.init_samples, args.save_output)
+    result['past'] = args.past
     if args.json:
         print(json.dumps(json_safe(result)))
         return 0

@@ -89,13 +89,15 @@ class FreeRunEstimator:
     of at most max_fill) is taken as a new stream rather than an outlier (module docstring).
     rate_tolerance: relative difference between the stream's stamp rate and fs beyond which the
     estimates are withheld (RateMonitor). fs must be the model's own rate when the model has one.
+    init_past: how the unlogged past before the measured window ended ('any' or 'fade-out',
+    ident.state step 5).
     """
 
     def __init__(self, model, fs: float | None = None, init: str = 'auto', u_min: float = -200.0,
                  u_max: float = 200.0, max_fill: int = 2000, range_margin: float = 0.1,
                  window: int = 2000, reanchor_every: int = 0, init_timeout: float = 1.0,
                  confirm: int = 3, rate_tolerance: float = RATE_TOLERANCE,
-                 init_window: float = 0.5, bracket: bool = True):
+                 init_window: float = 0.5, bracket: bool = True, init_past: str = 'any'):
         for attr in ('nu', 'ny', 'n0', 'stepper'):
             if not hasattr(model, attr):
                 raise ConfigError(f'model has no {attr!r}: not a NARX/ARX model')
@@ -108,6 +110,10 @@ class FreeRunEstimator:
                 or not 0 < rate_tolerance < 1:
             raise ConfigError('max_fill, reanchor_every, init_timeout must be >= 0, window >= 2, '
                               'confirm >= 1 and rate_tolerance in (0, 1)')
+        from piezo_narx_ros.ident.state import PASTS
+        if init_past not in PASTS:
+            raise ConfigError(f'init_past must be one of {list(PASTS)}, got {init_past!r}')
+        self.init_past = init_past
         if not (math.isfinite(init_window) and 0 <= init_window <= init_timeout):
             raise ConfigError(f'init_window must be in [0, init_timeout = {init_timeout:g}] s, '
                               f'got {init_window:g}')
@@ -594,7 +600,7 @@ class FreeRunEstimator:
         u_win = np.array([u for _, u, _ in pending[start:start + n]])
         y_win = np.array([meas[t] for t, _, _ in pending[start:start + n]])
         try:
-            state = self.model.estimate_state(u_win, y_win)
+            state = self.model.estimate_state(u_win, y_win, past=self.init_past)
         except DataError:
             return False
         self.stats.unestimated += start

@@ -211,8 +211,12 @@ class DynamicModel:
         """Free run (m, without offset) of u (N,) V from the state vector `values`."""
         raise NotImplementedError
 
-    def _state_candidates(self, u):   # pragma: no cover - interface
-        """Return the ModelStates the model reaches through input histories ending at u[0]."""
+    def _state_candidates(self, u, past='any'):   # pragma: no cover - interface
+        """
+        Return the ModelStates the model reaches through input histories ending at u[0].
+
+        past: how the history ended (ident.state.PASTS); a family adds what it can represent.
+        """
         raise NotImplementedError
 
     def _bracket_states(self, u0):   # pragma: no cover - interface
@@ -223,15 +227,16 @@ class DynamicModel:
         """Return (indices of the state a window of n_window samples may adjust, their size)."""
         raise NotImplementedError
 
-    def estimate_state(self, u, y, prior=None):
+    def estimate_state(self, u, y, prior=None, past='any'):
         """
         Return the ModelState at u[0] that best explains a window u (N,) V, y (N,) m.
 
         Hysteresis memory, creep, output dynamics and sensor offset (ident/state.py); prior: a
-        ModelState believed to hold (its memory is kept, the rest refined on the window).
+        ModelState believed to hold (its memory is kept, the rest refined on the window); past:
+        how the record's unlogged past ended ('any' or 'fade-out', ident/state.py step 5).
         """
         from .state import estimate_state
-        return estimate_state(self, u, y, prior)
+        return estimate_state(self, u, y, prior, past=past)
 
     def _check_state(self, state):
         """Return a ModelState's vector (float64 copy); DataError when it does not fit."""

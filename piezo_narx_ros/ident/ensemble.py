@@ -91,11 +91,12 @@ class EnsembleModel(DynamicModel):
         self._require_fitted()
         return EnsembleStepper(self, u_past, y_past, state)
 
-    def estimate_state(self, u, y, prior=None):
+    def estimate_state(self, u, y, prior=None, past='any'):
         """Each member's estimate on the window u (N,) V, y (N,) m; offsets averaged."""
         self._require_fitted()
         priors = [None] * len(self.members) if prior is None else self.as_member_states(prior)
-        states = [m.estimate_state(u, y, prior=p) for m, p in zip(self.members, priors)]
+        states = [m.estimate_state(u, y, prior=p, past=past)
+                  for m, p in zip(self.members, priors)]
         return self.join_states(states)
 
     # ------------------------------------------------------------------ model file and export

@@ -461,7 +461,8 @@ def free_run(model, record: Record) -> tuple[np.ndarray, np.ndarray]:
     estimator does (`--init-samples`): model.estimate_state on the record's first N samples. When
     the record continues a recording (a validation half), its input history is known: the state
     found at the recording's start is run through that history and then refined (offset, creep,
-    output dynamics) on the record's first N samples. A free run of NaN when no state is found.
+    output dynamics) on the record's first N samples; `state_past` says how the unlogged past
+    ended (ident.state, step 5). A free run of NaN when no state is found.
     """
     pred, sim = _free_run(model, record)
     return as_columns(pred), as_columns(sim)
@@ -485,12 +486,14 @@ def _free_run(model, record: Record):
                 prior = None
                 if before:
                     m = min(n, len(u_before))
-                    start = model.estimate_state(u_before[:m], y_before[:m])
+                    start = model.estimate_state(u_before[:m], y_before[:m],
+                                                 past=record.state_past)
                     stepper = model.stepper(state=start)
                     for value in u_before:
                         stepper.step(value)
                     prior = stepper.state
-                state = model.estimate_state(u[:n], y[:n], prior=prior)
+                state = model.estimate_state(u[:n], y[:n], prior=prior,
+                                             past=record.state_past)
                 sim = model.simulate(u, state=state)
             except DataError:
                 sim = np.full(np.shape(pred), np.nan)

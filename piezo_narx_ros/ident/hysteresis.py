@@ -493,16 +493,20 @@ class HysteresisNARX(DynamicModel):
         return stepper
 
     # ------------------------------------------------------------ state from measurement
-    def estimate_state(self, u, y, prior=None):
+    def estimate_state(self, u, y, prior=None, past='any'):
         """
         Return the ModelState at u[0] that best explains a window u, y (see DynamicModel).
 
         Several axes: the input held at u[0] (or prior's state), then the stage-1 and output
         histories and the offsets by their posterior mean given the window and the histories'
-        distribution over the estimation records (hysteresis_mimo.estimate_state).
+        distribution over the estimation records (hysteresis_mimo.estimate_state); past is
+        checked but has no candidates to choose among there.
         """
         if self.mimo_ is None:
-            return super().estimate_state(u, y, prior)
+            return super().estimate_state(u, y, prior, past)
+        from .state import PASTS
+        if past not in PASTS:
+            raise DataError(f'past must be one of {", ".join(PASTS)}, got {past!r}')
         from .state import MIN_WINDOW, ModelState
         self._require_fitted()
         u = self._mimo_signal(u, 'u (state window)', self.n_in, min_len=MIN_WINDOW)
@@ -566,13 +570,14 @@ class HysteresisNARX(DynamicModel):
         hk.simulate(np.full(n, u0 / self.u_scale_), st, *settle)
         return st
 
-    def _state_candidates(self, u):
+    def _state_candidates(self, u, past='any'):
         """
         States after every input history of up to two turning points on 13 levels, settled at u0.
 
-        And after a fade-out about u0 (the demagnetised memory, state.py step 5). The levels span
-        the trained input range; a history ramps from rest through its turning points to u[0]
-        (V) slower than the learned drive limit, so the operators see its path.
+        With past='fade-out', also after a fade-out about u0 (the demagnetised memory, state.py
+        step 5). The levels span the trained input range; a history ramps from rest through its
+        turning points to u[0] (V) slower than the learned drive limit, so the operators see its
+        path.
         """
         from .state import ModelState, fade_out, ramp, turning_point_histories
         if self.mimo_ is not None:
@@ -589,7 +594,9 @@ class HysteresisNARX(DynamicModel):
             self._run_from_inplace(st, ramp(pts + (u0,), step))
             out.append(ModelState(self._settled(st, u0), 0.0,
                                   {'history_turning_points_v': list(pts)}))
-        # A move ended by a fade-out, demagnetised about u0 (state.py, step 5).
+        if past != 'fade-out':
+            return out
+        # A move ended by a fade-out, demagnetised about u0 (state.py step 5).
         pts = fade_out(u0, min(lo, u0), max(hi, u0))
         st = np.zeros(self._state_size())
         self._run_from_inplace(st, ramp(pts + (u0,), step))

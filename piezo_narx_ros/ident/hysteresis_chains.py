@@ -554,12 +554,12 @@ class HysteresisChains(HysteresisNARX):
         return self._mix(np.column_stack([c._run_from(v, u[:, j]) for j, (c, v) in enumerate(
             zip(self.chains_, self.split_state(np.asarray(values, dtype=np.float64))))]))
 
-    def estimate_state(self, u, y, prior=None):
+    def estimate_state(self, u, y, prior=None, past='any'):
         """
         Return the ModelState at u[0] explaining a window u (N, n) V, y (N, n) m.
 
-        Each chain's own estimate (HysteresisNARX.estimate_state) on its input and its decoupled
-        output; offsets per output = M times the chains' offsets.
+        Each chain's own estimate (HysteresisNARX.estimate_state, past as there) on its input and
+        its decoupled output; offsets per output = M times the chains' offsets.
         """
         from .state import MIN_WINDOW, ModelState
         self._require_fitted()
@@ -570,7 +570,7 @@ class HysteresisChains(HysteresisNARX):
             offs = decouple(self._check_offset(prior)[None, :], self.coupling_)[0]
             priors = [_state(v, float(o)) for v, o in zip(
                 self.split_state(self._check_state(prior)), offs)]
-        states = [c.estimate_state(u[:, j], z[:, j], priors[j])
+        states = [c.estimate_state(u[:, j], z[:, j], priors[j], past)
                   for j, c in enumerate(self.chains_)]
         offset = self.coupling_ @ np.array([float(s.offset) for s in states])
         values = np.concatenate([s.values for s in states])

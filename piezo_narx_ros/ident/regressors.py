@@ -229,8 +229,8 @@ class LaggedModel(DynamicModel):
     def _zero_offset(self):
         return 0.0 if self.n_out == 1 else np.zeros(self.n_out)
 
-    def _state_candidates(self, u):
-        """One candidate: the input held at u[0] (V) long enough for the output to settle."""
+    def _state_candidates(self, u, past='any'):
+        """One candidate (any past): the input held at u[0] (V) until the output settles."""
         from .state import ModelState
         u0 = u[0] if self._scalar_io else np.asarray(u[0], dtype=np.float64)
         label = (f'{float(u0):.6g} V' if self._scalar_io

@@ -32,14 +32,15 @@ best explains the measured window, for every family:
    issue's rig by 4.7 um), and a Gaussian's quadratic tail then outweighs clear differences in
    the window's cost and takes a past that explains part of the moved zero by memory (zeros
    moved by up to +-14 um: the worst moved record 62x -> 11x; within +-2.5 um the same choices).
-5. **A hold after a fade-out.** Rigs end a move by fading its amplitude out (the real
-   micromanipulator's test record fades each segment out, then holds), which leaves the memory
-   demagnetised about the hold level: a past of many turning points, none of the candidates of 1.
-   The hysteresis family adds it as a candidate, and it is taken where it scores within
-   `DEMAG_MARGIN` of the winner with an offset within one prior scale of the winner's: wrong, it
-   costs at most that much of persistent offset; the winner, wrong, costs the whole memory
-   (measured on the micromanipulator's two holds: 1.2 and 0.96 um after the window -> 0.33 and
-   0.16 um; over random one-sided pasts and fade-outs, docs/real.md).
+5. **A hold after a fade-out** (`past='fade-out'`, opt-in). Some rigs end a move by fading
+   its amplitude out (the real micromanipulator's test record fades each segment out, then
+   holds), which leaves the memory demagnetised about the hold level: a past of many turning
+   points, none of the candidates of 1. Told so, the hysteresis family adds that candidate and
+   takes it unless the window rejects it (its cost more than `DEMAG_MARGIN` TIEs above the
+   best). The window cannot tell it from the pasts of 1 on a hold, so this is the user's
+   knowledge of the rig, not a default: on the micromanipulator's two holds 1.20 and 0.96 um
+   after the window -> 0.33 and 0.16 um, on simulated records after pasts that end with a ramp
+   up to 5x worse (docs/real.md, "A hold after a fade-out").
 
 `model.simulate(u, state=s)` and `model.stepper(state=s)` then free-run from it; the offset (m) is
 added to every output. docs/real.md has the measurements behind the choices.
@@ -70,8 +71,10 @@ TIE = 0.05
 #: Scale of the sensor offset's (Cauchy) prior, as a fraction of the trained output span
 #: (2.5 um on the simulators' 82 um; the issue's rig moved its zero by up to 4.7 um).
 OFFSET_PRIOR = 0.03
-#: Score margin (log-likelihood units) within which the demagnetised memory (step 5) is taken
-#: over the most probable candidate, its offset within one prior scale of that candidate's.
+#: How a record's unlogged past ended (step 5): 'any' (the candidates of 1; the default) or
+#: 'fade-out' (a move ended by fading its amplitude out: the demagnetised memory).
+PASTS = ('any', 'fade-out')
+#: TIEs of window cost above the best within which past='fade-out' keeps the demagnetised memory.
 DEMAG_MARGIN = 1.0
 #: Cycles of the fade-out that writes the demagnetised candidate (its amplitude falls linearly).
 FADE_CYCLES = 40
@@ -209,17 +212,20 @@ def _refine(model, values: np.ndarray, u: np.ndarray, y: np.ndarray, idx: np.nda
 
 
 def estimate_state(model, u, y, prior: ModelState | None = None,
-                   iterations: int = 5) -> ModelState:
+                   iterations: int = 5, past: str = 'any') -> ModelState:
     """
     Return the ModelState at u[0] that best explains the window u (N,) V, y (N,) m.
 
     Several channels: u (N, n_in), y (N, n_out); the offset is then one per output (n_out,) m.
     See the module docstring. prior: the state the model is believed to be in (e.g. run through
-    a known input history): the only candidate, refined on the window. N >= MIN_WINDOW;
-    DataError otherwise. The window's own samples are part of the run: simulate(u_window,
-    state=s) reproduces y_window as well as the model can.
+    a known input history): the only candidate, refined on the window. past: how the record's
+    unlogged past ended, one of PASTS (step 5). N >= MIN_WINDOW; DataError otherwise. The
+    window's own samples are part of the run: simulate(u_window, state=s) reproduces y_window
+    as well as the model can.
     """
     model._require_fitted()
+    if past not in PASTS:
+        raise DataError(f'past must be one of {", ".join(PASTS)}, got {past!r}')
     if model.n_in == 1 and model.n_out == 1:
         u = as_signal(u, 'u (state window)', min_len=MIN_WINDOW)
         y = as_signal(y, 'y (state window)', n=u.size)
@@ -230,7 +236,7 @@ def estimate_state(model, u, y, prior: ModelState | None = None,
         candidates = [ModelState(model._check_state(prior), model._check_offset(prior),
                                  {'history': 'given'})]
     else:
-        candidates = model._state_candidates(u)
+        candidates = model._state_candidates(u, past)
     idx, scale = model._adjustable_state(len(u))
     ranked = []
     with np.errstate(all='ignore'):   # a candidate that diverges is ranked last, not reported
@@ -255,7 +261,8 @@ def estimate_state(model, u, y, prior: ModelState | None = None,
                    for r in keep}
     low = min(c for _, _, c in refined.values())
     i = min(refined, key=lambda k: (_score(refined[k][2], low, refined[k][1], sigma), k))
-    i = _after_fade_out(candidates, refined, i, low, sigma)
+    if past == 'fade-out':
+        i = _after_fade_out(candidates, refined, i, low)
     values, offset, cost = refined[i]
     info = {**candidates[i].info, 'window_samples': int(len(u)), 'rms_m': math.sqrt(cost),
             'candidates': len(candidates), 'indistinguishable': len(tied)}
@@ -263,20 +270,18 @@ def estimate_state(model, u, y, prior: ModelState | None = None,
     return ModelState(values=values, offset=offset, info=info)
 
 
-def _after_fade_out(candidates, refined: dict, i: int, low: float, sigma: np.ndarray) -> int:
+def _after_fade_out(candidates, refined: dict, i: int, low: float) -> int:
     """
-    Return the demagnetised candidate's index where step 5 takes it over candidate i, else i.
+    Return the demagnetised candidate's index unless the window rejects it (step 5), else i.
 
-    refined: index -> (values, offset m, cost m^2); low: the lowest refined cost; sigma: the
-    offset prior's scale per output (m).
+    refined: index -> (values, offset m, cost m^2); low: the lowest refined cost (m^2).
     """
     d = next((k for k in refined if candidates[k].info.get('demagnetised')), None)
-    if d is None or d == i:
+    if d is None:
         return i
-    s_d = _score(refined[d][2], low, refined[d][1], sigma)
-    s_i = _score(refined[i][2], low, refined[i][1], sigma)
-    near = np.all(np.abs(np.ravel(refined[d][1]) - np.ravel(refined[i][1])) <= sigma)
-    return d if s_d <= s_i + DEMAG_MARGIN and near else i
+    if low <= 0:
+        return d if refined[d][2] <= 0 else i
+    return d if (refined[d][2] / low - 1.0) / TIE <= DEMAG_MARGIN else i
 
 
 def fade_out(u0: float, lo: float, hi: float, cycles: int = FADE_CYCLES) -> tuple[float, ...]:

@@ -18,6 +18,7 @@ from piezo_narx_ros.command.stamps import RATE_TOLERANCE
 from piezo_narx_ros.errors import ConfigError
 from piezo_narx_ros.estimator.free_run import INIT_MODES, FreeRunEstimator
 from piezo_narx_ros.estimator.health import EstimatorHealth
+from piezo_narx_ros.ident.state import PASTS
 from piezo_narx_ros.nodes.batching import BATCH_PARAM, HeldBatches, batch_topic, sample_type
 from piezo_narx_ros.nodes.codec import (decode_joint_state, decode_joint_trajectory,
                                         encode_joint_state, encode_joint_trajectory)
@@ -49,6 +50,10 @@ class EstimatorNode(PiezoNode):
                   choices=INIT_MODES, read_only=True),
         ParamSpec('init_window', 0.5, 'measured samples that set the initial state, s',
                   low=0.0, high=60.0, read_only=True),
+        ParamSpec('init_past', 'any', "how the actuator's unlogged past ended, for init: "
+                  'measurement: any (histories of up to two turning points) or fade-out (a move '
+                  'ended by fading its amplitude out: the memory demagnetised about the first '
+                  'command)', choices=PASTS, read_only=True),
         ParamSpec('init_timeout', 1.0, 'longest wait for the initial measurements, s (then '
                   'from rest); at least init_window', low=0.0, high=60.0, read_only=True),
         ParamSpec('u_min', -200.0, 'lowest accepted command, V (lower ones are rejected)',
@@ -75,7 +80,7 @@ class EstimatorNode(PiezoNode):
             self.model, fs=p['fs'] or None, init=p['init'], u_min=p['u_min'], u_max=p['u_max'],
             max_fill=p['max_fill'], range_margin=p['range_margin'], window=p['window'],
             reanchor_every=p['reanchor_every'], init_timeout=p['init_timeout'],
-            init_window=p['init_window'],
+            init_window=p['init_window'], init_past=p['init_past'],
             rate_tolerance=p['rate_tolerance'])
         # Compile/load the kernel before the first sample.
         self.est.model.stepper().step(np.zeros(self.est.n_in) if self.est.vector else 0.0)
