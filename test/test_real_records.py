@@ -7,6 +7,7 @@ do not cover, the estimator's measured start and its "is the state determined ye
 import json
 import subprocess
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -147,6 +148,25 @@ def test_evaluate_past_fade_out_needs_a_window_and_is_reported(tmp_path, hnarx):
     assert any('--past fade-out' in w for w in default['warnings'])
     assert not any('--past fade-out' in w for w in told['warnings'])
     assert told['simulation']['rmse'] < default['simulation']['rmse']
+
+
+def test_fit_past_reaches_every_scored_state_window():
+    from types import SimpleNamespace
+
+    from piezo_narx_ros.cli.fit import experiment_config, load_settings
+    from piezo_narx_ros.errors import ConfigError
+    from piezo_narx_ros.ident.experiment import with_state_window
+    args = SimpleNamespace(**dict.fromkeys(
+        ('config', 'ny', 'nu', 'hidden', 'seed', 'n_seeds', 'split', 'arx_na', 'arx_nb',
+         'max_lag', 'max_outside_fraction', 'residuals', 'noise_model', 'noise_order', 'jobs',
+         'command_topic', 'deflection_topic')), preset='envelope', no_arx=False,
+        init_past='fade-out')
+    cfg = experiment_config(load_settings(args), progress=False)
+    assert (cfg.init_past, cfg.init_seconds) == ('fade-out', 0.5)
+    recs = with_state_window([record(np.zeros(2000))], cfg)
+    assert (recs[0].state_window, recs[0].state_past) == (1000, 'fade-out')
+    with pytest.raises(ConfigError, match='init_past must be one of any, fade-out'):
+        replace(cfg, init_past='ramp').validate()
 
 
 def test_evaluate_says_when_the_state_window_leaves_the_memory_open(hnarx):

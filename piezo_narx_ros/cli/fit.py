@@ -28,7 +28,7 @@ CONFIG_KEYS = ('preset', 'family', 'ny', 'nu', 'hidden', 'seed', 'n_seeds', 'hna
                'narx_beside', 'without_increments',
                'arx_na', 'arx_nb', 'arx', 'split', 'max_lag', 'max_outside_fraction', 'residuals',
                'noise_model', 'noise_order', 'selection', 'jobs', 'training', 'final_training',
-               'init_seconds', 'ensemble', 'ensemble_margin', 'command_topic',
+               'init_seconds', 'init_past', 'ensemble', 'ensemble_margin', 'command_topic',
                'deflection_topic')
 # Settings that belong to the command line, not to ExperimentConfig, with their defaults.
 CLI_DEFAULTS = {'arx': True, 'command_topic': 'piezo/voltage_command',
@@ -56,6 +56,11 @@ def add_parser(subparsers):
                         'state (hysteresis memory, creep, sensor offset) before its free run is '
                         'scored: for recordings that do not start at rest (default: the '
                         "preset's init_seconds; 0: from rest)")
+    from piezo_narx_ros.ident.state import PASTS
+    p.add_argument('--past', dest='init_past', choices=PASTS,
+                   help="with a state window (--init-samples, the envelope preset's 0.5 s): how "
+                        "the recordings' unlogged pasts ended; fade-out: a move ended by fading "
+                        'its amplitude out, as evaluate --past (default: any)')
     p.add_argument('--resample', type=float, metavar='HZ',
                    help='fit a model at this slower rate: every record is low-pass filtered and '
                         'resampled to it first (anti-aliased)')
@@ -175,7 +180,7 @@ def load_settings(args) -> dict:
     settings['preset'] = preset
     for key in ('ny', 'nu', 'hidden', 'seed', 'n_seeds', 'split', 'arx_na', 'arx_nb', 'max_lag',
                 'max_outside_fraction', 'residuals', 'noise_model', 'noise_order', 'jobs',
-                'command_topic', 'deflection_topic'):
+                'command_topic', 'deflection_topic', 'init_past'):
         value = getattr(args, key, None)
         if value is not None:
             settings[key] = value
@@ -212,6 +217,7 @@ def experiment_config(settings: dict, progress: bool):
             progress=None if progress else False, training=dict(settings['training']),
             final_training=dict(settings['final_training']),
             init_seconds=float(settings['init_seconds']),
+            init_past=str(settings['init_past']),
             ensemble=int(settings['ensemble']),
             ensemble_margin=float(settings['ensemble_margin']))
     except (TypeError, ValueError) as exc:

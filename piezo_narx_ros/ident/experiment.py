@@ -54,6 +54,7 @@ from piezo_narx_ros.ident import metrics
 from piezo_narx_ros.ident.correlation import correlation_tests
 from piezo_narx_ros.ident.data import Record, check_length
 from piezo_narx_ros.ident.executor import Executor, LocalExecutor, TaskFailure, in_worker
+from piezo_narx_ros.ident.state import PASTS
 from piezo_narx_ros.ident.noise_model import NOISE_MODELS, ARNoiseModel, fit_ar_noise_model
 from piezo_narx_ros.record import as_columns, channels_arg, check_same_channels
 
@@ -163,6 +164,9 @@ class ExperimentConfig:
     # Seconds at the start of each recording whose measurement sets a model's initial state
     # before its free run is scored (recordings that do not start at rest); 0: from rest.
     init_seconds: float = 0.0
+    # How the recordings' unlogged pasts ended, for those states: 'any' or 'fade-out'
+    # (ident/state.py PASTS, step 5).
+    init_past: str = 'any'
     max_lag: int = 20                   # correlation test lags
     max_outside_fraction: float = 0.05  # chance-rate tolerance (docs/validation.md); 0 = strict
     residuals: str = 'simulation'       # which residuals' tests select: simulation | prediction
@@ -269,6 +273,9 @@ class ExperimentConfig:
         if not (isinstance(self.init_seconds, (int, float)) and 0.0 <= self.init_seconds <= 600):
             raise ConfigError(f'init_seconds must be a number of seconds in [0, 600], got '
                               f'{self.init_seconds!r}')
+        if self.init_past not in PASTS:
+            raise ConfigError(f'init_past must be one of {", ".join(PASTS)}, got '
+                              f'{self.init_past!r}')
         if self.residuals not in RESIDUAL_KINDS:
             raise ConfigError('residuals must be prediction or simulation, got '
                               f'{self.residuals!r}')
@@ -431,11 +438,15 @@ class ExperimentResult:
 
 
 def with_state_window(records: list[Record], config: ExperimentConfig) -> list[Record]:
-    """Return copies of records whose free runs start from config.init_seconds measured."""
+    """
+    Return copies of records whose free runs start from config.init_seconds measured.
+
+    Their pasts ended as config.init_past says.
+    """
     if not config.init_seconds:
         return list(records)
-    return [replace(r, state_window=max(1, int(round(config.init_seconds * r.fs))))
-            for r in records]
+    return [replace(r, state_window=max(1, int(round(config.init_seconds * r.fs))),
+                    state_past=config.init_past) for r in records]
 
 
 def split_records(records: list[Record],
