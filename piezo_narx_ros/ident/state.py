@@ -39,8 +39,8 @@ best explains the measured window, for every family:
    takes it unless the window rejects it (its cost more than `DEMAG_MARGIN` TIEs above the
    best). The window cannot tell it from the pasts of 1 on a hold, so this is the user's
    knowledge of the rig, not a default: on the micromanipulator's two holds 1.20 and 0.96 um
-   after the window -> 0.33 and 0.16 um, on simulated records after pasts that end with a ramp
-   up to 5x worse (docs/real.md, "A hold after a fade-out").
+   after the window -> 0.33 and 0.16 um; told so wrongly (simulated pasts that end with a
+   ramp), the summed error grew 1.2-3.5x (docs/real.md, "A hold after a fade-out").
 
 `model.simulate(u, state=s)` and `model.stepper(state=s)` then free-run from it; the offset (m) is
 added to every output. docs/real.md has the measurements behind the choices.
