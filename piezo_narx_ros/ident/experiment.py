@@ -54,7 +54,7 @@ from piezo_narx_ros.ident import metrics
 from piezo_narx_ros.ident.correlation import correlation_tests
 from piezo_narx_ros.ident.data import Record, check_length
 from piezo_narx_ros.ident.executor import Executor, LocalExecutor, TaskFailure, in_worker
-from piezo_narx_ros.ident.state import PASTS
+from piezo_narx_ros.ident.state import check_past
 from piezo_narx_ros.ident.noise_model import NOISE_MODELS, ARNoiseModel, fit_ar_noise_model
 from piezo_narx_ros.record import as_columns, channels_arg, check_same_channels
 
@@ -273,9 +273,7 @@ class ExperimentConfig:
         if not (isinstance(self.init_seconds, (int, float)) and 0.0 <= self.init_seconds <= 600):
             raise ConfigError(f'init_seconds must be a number of seconds in [0, 600], got '
                               f'{self.init_seconds!r}')
-        if self.init_past not in PASTS:
-            raise ConfigError(f'init_past must be one of {", ".join(PASTS)}, got '
-                              f'{self.init_past!r}')
+        check_past(self.init_past, 'init_past', ConfigError)
         if self.residuals not in RESIDUAL_KINDS:
             raise ConfigError('residuals must be prediction or simulation, got '
                               f'{self.residuals!r}')

@@ -504,10 +504,8 @@ class HysteresisNARX(DynamicModel):
         """
         if self.mimo_ is None:
             return super().estimate_state(u, y, prior, past)
-        from .state import PASTS
-        if past not in PASTS:
-            raise DataError(f'past must be one of {", ".join(PASTS)}, got {past!r}')
-        from .state import MIN_WINDOW, ModelState
+        from .state import MIN_WINDOW, ModelState, check_past
+        check_past(past)
         self._require_fitted()
         u = self._mimo_signal(u, 'u (state window)', self.n_in, min_len=MIN_WINDOW)
         y = self._mimo_signal(y, 'y (state window)', self.n_out, n=len(u))
@@ -589,19 +587,14 @@ class HysteresisNARX(DynamicModel):
         # Rest itself: a record whose first command is a jump from 0 V (the actuator idle at 0 V
         # when the recording started; the micromanipulator's records look like this).
         out = [ModelState(np.zeros(self._state_size()), 0.0, {'history_turning_points_v': None})]
-        for pts in turning_point_histories(min(lo, u0), max(hi, u0), u0):
+        histories = [(pts, {}) for pts in turning_point_histories(min(lo, u0), max(hi, u0), u0)]
+        if past == 'fade-out':   # a move ended by a fade-out, demagnetised about u0 (step 5)
+            histories.append((fade_out(u0, min(lo, u0), max(hi, u0)), {'demagnetised': True}))
+        for pts, tags in histories:
             st = np.zeros(self._state_size())
             self._run_from_inplace(st, ramp(pts + (u0,), step))
             out.append(ModelState(self._settled(st, u0), 0.0,
-                                  {'history_turning_points_v': list(pts)}))
-        if past != 'fade-out':
-            return out
-        # A move ended by a fade-out, demagnetised about u0 (state.py step 5).
-        pts = fade_out(u0, min(lo, u0), max(hi, u0))
-        st = np.zeros(self._state_size())
-        self._run_from_inplace(st, ramp(pts + (u0,), step))
-        out.append(ModelState(self._settled(st, u0), 0.0,
-                              {'history_turning_points_v': list(pts), 'demagnetised': True}))
+                                  {'history_turning_points_v': list(pts), **tags}))
         return out
 
     def _bracket_states(self, u0):

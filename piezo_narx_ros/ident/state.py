@@ -224,8 +224,7 @@ def estimate_state(model, u, y, prior: ModelState | None = None,
     as well as the model can.
     """
     model._require_fitted()
-    if past not in PASTS:
-        raise DataError(f'past must be one of {", ".join(PASTS)}, got {past!r}')
+    check_past(past)
     if model.n_in == 1 and model.n_out == 1:
         u = as_signal(u, 'u (state window)', min_len=MIN_WINDOW)
         y = as_signal(y, 'y (state window)', n=u.size)
@@ -268,6 +267,13 @@ def estimate_state(model, u, y, prior: ModelState | None = None,
             'candidates': len(candidates), 'indistinguishable': len(tied)}
     offset = float(offset) if np.ndim(offset) == 0 else np.asarray(offset, dtype=np.float64)
     return ModelState(values=values, offset=offset, info=info)
+
+
+def check_past(past, name: str = 'past', error: type[Exception] = DataError) -> str:
+    """Return past if it is one of PASTS; else raise error naming `name` and the choices."""
+    if past not in PASTS:
+        raise error(f'{name} must be one of {", ".join(PASTS)}, got {past!r}')
+    return past
 
 
 def _after_fade_out(candidates, refined: dict, i: int, low: float) -> int:
