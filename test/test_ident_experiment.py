@@ -476,3 +476,16 @@ def test_several_axes_fit_the_envelope_family_once_not_once_per_seed_and_structu
     # One chain per axis (ident/hysteresis_chains.py) uses seeds and increments: each kept.
     assert len(kept) == 1 + n_net + (len(specs) - n_net)
     assert [s.kind for s in kept].count('arx') == [s.kind for s in specs].count('arx')
+
+
+def test_init_past_reaches_every_network_candidate_and_not_through_hnarx():
+    """init_past 'fade-out' builds every HysteresisNARX told so; 'past' inside hnarx is refused."""
+    from piezo_narx_ros.ident.experiment import PRESETS
+    cfg = replace(ExperimentConfig(), **{**PRESETS['envelope'], 'n_seeds': 1}, jobs=1)
+    told = replace(cfg, init_past='fade-out')
+    nets = [s for s in told.specs() if s.kind == 'hysteresis_narx']
+    assert nets and all(dict(s.options)['past'] == 'fade-out' for s in nets)
+    assert all(s.build().past == 'fade-out' for s in nets)
+    assert all('past' not in dict(s.options) for s in cfg.specs())
+    with pytest.raises(ConfigError, match='init_past'):
+        replace(cfg, hnarx={'past': 'fade-out'}).validate()

@@ -236,3 +236,24 @@ def test_the_fade_out_stays_in_the_input_range_and_ends_about_its_centre():
     assert pts[0] == 100.0 and abs(pts[-1] - 30.0) < 15.0    # last swing: a tenth of 130 V
     swings = np.abs(pts - 30.0)
     assert np.all(np.diff(swings[1::2]) < 0)                  # the lower swings shrink
+
+
+def test_a_fit_told_its_records_pasts_faded_out_starts_them_demagnetised(hnarx):
+    """
+    `fit --past fade-out` also reaches the fit's own estimated record starts (start='auto').
+
+    A record that opens with a hold after a fade-out is prepended the fade-out's turning points;
+    told nothing, the start is a past of at most two turning points, as before.
+    """
+    import copy
+
+    from piezo_narx_ros.ident.state import FADE_CYCLES
+    u, y = fade_out_record()
+    told = copy.deepcopy(hnarx)
+    told.past = 'fade-out'
+    (history,), (start,) = told._start_histories([u], [y])
+    (_,), (default,) = hnarx._start_histories([u], [y])
+    assert len(start['turning_points_v']) == 2 * FADE_CYCLES
+    assert history.size > 0 and history[-1] == u[0]
+    assert default['turning_points_v'] is None or len(default['turning_points_v']) <= 2
+    assert 'past' not in hnarx.params_dict() and told.params_dict()['past'] == 'fade-out'

@@ -58,9 +58,10 @@ def add_parser(subparsers):
                         "preset's init_seconds; 0: from rest)")
     from piezo_narx_ros.ident.state import PASTS
     p.add_argument('--past', dest='init_past', choices=PASTS,
-                   help="with a state window (--init-samples, the envelope preset's 0.5 s): how "
-                        "the recordings' unlogged pasts ended; fade-out: a move ended by fading "
-                        'its amplitude out, as evaluate --past (default: any)')
+                   help="how the recordings' unlogged pasts ended, for their state windows "
+                        "(--init-samples, the envelope preset's 0.5 s) and the fit's estimated "
+                        'record starts; fade-out: a move ended by fading its amplitude out, as '
+                        'evaluate --past (default: any)')
     p.add_argument('--resample', type=float, metavar='HZ',
                    help='fit a model at this slower rate: every record is low-pass filtered and '
                         'resampled to it first (anti-aliased)')

@@ -198,6 +198,8 @@ class ExperimentConfig:
         if self.narx and self.family == 'hysteresis_narx':
             from piezo_narx_ros.ident.hysteresis import HysteresisNARX
             for structure in self.hnarx_structures():
+                if self.init_past != 'any':   # the fit's own record starts are told it too
+                    structure = {**structure, 'past': self.init_past}
                 probe = HysteresisNARX(hidden=self.hidden, **structure)
                 options = tuple(sorted(structure.items()))
                 out += [CandidateSpec('hysteresis_narx', nu=probe.nu, ny=probe.ny,
@@ -257,10 +259,11 @@ class ExperimentConfig:
         if self.narx and self.family == 'hysteresis_narx':
             from piezo_narx_ros.ident.hysteresis import HysteresisNARX
             for structure in self.hnarx_structures():
-                bad = {'hidden', 'seed'} & set(structure)
+                bad = {'hidden', 'seed', 'past'} & set(structure)
                 if bad:
                     raise ConfigError(f'hnarx: set {", ".join(sorted(bad))} with the top-level '
-                                      f'settings, not inside hnarx or hnarx_grid')
+                                      f'settings (past: init_past), not inside hnarx or '
+                                      f'hnarx_grid')
                 HysteresisNARX(hidden=self.hidden, **structure)   # ConfigError on a bad option
         if self.narx and self.family == 'narx' and (not self.ny or not self.nu):
             raise ConfigError('NARX grid is empty: give at least one ny and one nu')

@@ -37,6 +37,7 @@ from . import hysteresis_mimo as hm
 from .base import (DynamicModel, Interval, Options, Tuple, as_channel_lists, as_record_list,
                    check_parameters, register_family)
 from .kernels import _finite_input, _history, finite_inputs
+from .state import PASTS
 
 #: Minor loops of the estimation input (reversals inside the previous loop) from which
 #: monotone='auto' trusts the data to show the network its minor loops (coverage.inner_reversals):
@@ -81,7 +82,8 @@ class HysteresisNARX(DynamicModel):
     estimation record starts: 'rest', or 'estimate' (a record that does not start at rest: after
     a fit from rest, each record's starting memory is estimated from its first seconds, prepended
     as an input history and the fit continued); 'auto': 'estimate' when a record's first input is
-    away from 0 V, else 'rest'. monotone:
+    away from 0 V, else 'rest'. past: how the estimation records' unlogged pasts ended, for
+    that estimate (state.PASTS; 'fade-out' as `evaluate --past fade-out`). monotone:
     'yes' keeps the network increasing in every play operator (with the sign of the data's static
     gain), so the output moves with the input the way a Preisach actuator's does wherever the
     input goes, also inside loops the data never showed; 'no' leaves the network free; 'auto':
@@ -122,18 +124,19 @@ class HysteresisNARX(DynamicModel):
         'monotone': Options(('auto', 'yes', 'no')),
         'mimo_order': Interval(int, 1, 60),
         'amplifier': Options(('auto', 'no', 'yes')),
+        'past': Options(PASTS),
     }
 
     def __init__(self, hidden=10, n_plays=12, n_duhem=1, n_lags=3, na=3, nb=3,
                  creep_taus=DEFAULT_CREEP_TAUS, seed=0, max_iter=60, val_fraction=0.0,
                  max_fail=8, hessian_stride=2, start='auto', monotone='auto', mimo_order=28,
-                 amplifier='auto'):
+                 amplifier='auto', past='any'):
         values = check_parameters(type(self), {
             'hidden': hidden, 'n_plays': n_plays, 'n_duhem': n_duhem, 'n_lags': n_lags,
             'na': na, 'nb': nb, 'creep_taus': creep_taus, 'seed': seed, 'max_iter': max_iter,
             'val_fraction': val_fraction, 'max_fail': max_fail, 'hessian_stride': hessian_stride,
             'start': start, 'monotone': monotone, 'mimo_order': mimo_order,
-            'amplifier': amplifier})
+            'amplifier': amplifier, 'past': past})
         for name, value in values.items():
             setattr(self, name, value)
         self.theta_ = None
@@ -174,11 +177,12 @@ class HysteresisNARX(DynamicModel):
 
     def params_dict(self):
         """Return the constructor arguments (for model files and reports)."""
-        # mimo_order only shapes a several-axes model, amplifier a model that uses it: other
-        # files stay as they were.
+        # mimo_order only shapes a several-axes model, amplifier a model that uses it, past a
+        # fit told how its records' pasts ended: other files stay as they were.
         return {name: getattr(self, name) for name in self._parameter_constraints
                 if (name != 'mimo_order' or self.mimo_ is not None)
-                and (name != 'amplifier' or self.amplifier_)}
+                and (name != 'amplifier' or self.amplifier_)
+                and (name != 'past' or self.past != 'any')}
 
     # ------------------------------------------------------------------ fitting
     def fit(self, u, y, fs=None):
@@ -311,8 +315,9 @@ class HysteresisNARX(DynamicModel):
         """
         Per record, an input history (V) that puts the model where the record starts.
 
-        From estimate_state on the record's first START_WINDOW_S seconds: rest, a ramp through
-        the estimated turning points to the record's first input, a hold of START_HOLD_S.
+        From estimate_state on the record's first START_WINDOW_S seconds (told `past`): rest, a
+        ramp through the estimated turning points to the record's first input, a hold of
+        START_HOLD_S.
         Returns (histories, [{'turning_points_v', 'offset_m'}, ...]).
         """
         from .state import ramp
@@ -320,7 +325,7 @@ class HysteresisNARX(DynamicModel):
         step = self.u_scale_ * min(0.02, 0.5 * self._kernel_args[3])
         for u, y in zip(us, ys):
             n = int(min(u.size, max(self.n0 + 20, round(START_WINDOW_S * self.fs))))
-            state = self.estimate_state(u[:n], y[:n])
+            state = self.estimate_state(u[:n], y[:n], past=self.past)
             pts = state.info['history_turning_points_v']
             if pts is None:   # from rest: nothing before the record
                 out.append(np.zeros(0))
