@@ -29,7 +29,8 @@ def add_parser(subparsers):
         description='Score a model file on inputs in prediction and free-run simulation.')
     p.add_argument('model', metavar='MODEL', help='model .json written by piezo-narx fit')
     p.add_argument('inputs', nargs='+', metavar='INPUT',
-                   help='.npz, text table (.csv, .tsv, .txt, .dat), .mcap or rosbag2 directory')
+                   help='.npz, text table (.csv, .tsv, .txt, .dat), MATLAB .mat (v7 or older), '
+                        '.mcap or rosbag2 directory')
     p.add_argument('--json', action='store_true', help='print one JSON object')
     p.add_argument('--init-samples', type=int, metavar='N',
                    help="the first N measured samples set the model's state (hysteresis memory, "

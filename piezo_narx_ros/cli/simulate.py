@@ -60,11 +60,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     g.add_argument('--levels',
                    help='steps: comma-separated levels, in units of the amplitude (0,1,0,-1,0)')
     g.add_argument('--hold', type=float, help='steps: hold per level, s (even split)')
-    g.add_argument('--file', help='playback: .npz (key --key) or a text table (column --column),'
-                                  ' played as recorded')
-    g.add_argument('--key', help='playback .npz key (u)')
+    g.add_argument('--file', help='playback: .npz (key --key), .mat (variable --column or --key) '
+                                  'or a text table (column --column), played as recorded')
+    g.add_argument('--key', help='playback .npz key or .mat variable (u)')
     g.add_argument('--column', help='playback table column: header name or 1-based number (the '
-                                    'u column, as fit reads it)')
+                                    'u column, as fit reads it); for a .mat, a variable name')
     g.add_argument('--file-fs', type=float,
                    help='playback file sample rate, Hz, for a file without fs or t')
     g.add_argument('--resample', action='store_const', const=True,

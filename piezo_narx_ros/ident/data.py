@@ -1,12 +1,13 @@
 """
-Input/output records for identification: load (u, y, fs) from NPZ, text tables or rosbag2 MCAP.
+Input/output records for identification: load (u, y, fs) from NPZ, tables, .mat or rosbag2 MCAP.
 
 Every problem raises `DataError` (or `BagError` for bags) with a one-line message that names the
 file and the problem, so `piezo-narx fit` can print it as is. Text tables (.csv with commas or
 semicolons, .tsv/.txt/.dat with tabs or spaces) share one reader and one set of column rules
 (`read_table`, `pick_columns`) with command_node's playback (`read_signal`); a time column gives
 the rate through `time_clock`, which warns about gaps and jitter as the bag reader does. Units
-other than V, m and s are stated by the user (`ident.units.Units`), never guessed.
+other than V, m and s are stated by the user (`ident.units.Units`), never guessed. MATLAB files
+(`load_mat`, read by `matfile.read_mat`) follow the .npz rules with variables for keys.
 """
 from __future__ import annotations
 
@@ -19,10 +20,11 @@ import numpy as np
 
 from piezo_narx_ros.errors import BagError, ConfigError, DataError
 from piezo_narx_ros.ident.units import SI, Units, check_consistent, check_magnitudes
+from piezo_narx_ros.matfile import read_mat
 from piezo_narx_ros.npzfile import read_npz
 from piezo_narx_ros.record import Record, check_names, check_same_channels
 
-__all__ = ['Record', 'MIN_SAMPLES', 'load_npz', 'load_csv', 'load_bag', 'load_record',
+__all__ = ['Record', 'MIN_SAMPLES', 'load_npz', 'load_csv', 'load_mat', 'load_bag', 'load_record',
            'load_records', 'check_length', 'read_table', 'parse_columns', 'pick_columns',
            'time_clock', 'read_signal']
 
@@ -133,23 +135,36 @@ def load_npz(path, fs: float | None = None, units: Units = SI) -> Record:
         raise DataError(f'{source}: missing key(s) {", ".join(missing)} '
                         f'(has {", ".join(sorted(data)) or "none"}; need u, y, fs)')
     file_fs = _fs_value(data['fs'], source) if 'fs' in data else None
-    if file_fs is not None and fs is not None and not np.isclose(file_fs, fs, rtol=1e-9):
-        raise DataError(f'{source}: file says fs = {file_fs} Hz but --fs = {fs} Hz')
     t = data.get('t')
     if t is not None:
         t = _vector('t', t, source) * units.t_factor
+    return _make(data['u'], data['y'], _file_rate(file_fs, t, fs, source, units), source, t,
+                 data.get('y_true'), units, _names_key(data, 'inputs', source),
+                 _names_key(data, 'outputs', source))
+
+
+def _file_rate(file_fs, t, fs, source: str, units: Units, kind: str = 'key') -> float:
+    """
+    Return the rate (Hz) of a file from its fs (Hz), its t (s) and --fs: given ones must agree.
+
+    A file's fs and --fs must agree, and so must a t and the other given one; t alone gives the
+    rate through `time_clock` (gap and jitter warnings). kind: what the file's fs and t are
+    called in messages ('key' in an .npz, 'variable' in a .mat).
+    """
+    if file_fs is not None and fs is not None and not np.isclose(file_fs, fs, rtol=1e-9):
+        raise DataError(f'{source}: file says fs = {file_fs} Hz but --fs = {fs} Hz')
+    if t is not None:
         t_fs = time_clock(t, source, 't', stated='t' in units.stated).fs
         given = file_fs if file_fs is not None else fs
         if given is not None and not np.isclose(t_fs, given, rtol=TIME_RATE_RTOL):
-            said = 'its fs key' if file_fs is not None else '--fs'
-            raise DataError(f'{source}: its t column steps at {t_fs:.6g} Hz but {said} says '
-                            f'{given:g} Hz; correct the file (or --t-unit if t is not in s)')
+            said = f'its fs {kind}' if file_fs is not None else '--fs'
+            raise DataError(f'{source}: its t {"column" if kind == "key" else kind} steps at '
+                            f'{t_fs:.6g} Hz but {said} says {given:g} Hz; correct the file (or '
+                            '--t-unit if t is not in s)')
         file_fs = given if given is not None else t_fs
     if file_fs is None and fs is None:
-        raise DataError(f'{source}: no fs key and no t; pass the sample rate with --fs')
-    return _make(data['u'], data['y'], file_fs if file_fs is not None else fs, source, t,
-                 data.get('y_true'), units, _names_key(data, 'inputs', source),
-                 _names_key(data, 'outputs', source))
+        raise DataError(f'{source}: no fs {kind} and no t; pass the sample rate with --fs')
+    return file_fs if file_fs is not None else fs
 
 
 def load_csv(path, fs: float | None = None, columns: dict | None = None,
@@ -251,6 +266,110 @@ def _channel_columns(names, inputs, outputs, source: str):
                         f'{", ".join(names)}); name the columns u1.., y1.. or pass --inputs and '
                         '--outputs')
     return iu, iy
+
+
+# ---------------------------------------------------------------------------- MATLAB files
+MAT_SUFFIX = '.mat'
+
+
+def load_mat(path, fs: float | None = None, columns: dict | None = None,
+             units: Units = SI, inputs=None, outputs=None) -> Record:
+    """
+    Record from a MATLAB .mat file (v4, v5/v6, v7; v7.3 is refused with how to save it).
+
+    Variables as the keys of an .npz, matched case-insensitively (Fs, U, Y): u, y and fs or t
+    (optional y_true); u (N,) or (N, n_in) V, y (N,) or (N, n_out) m, t s, fs Hz, a vector 1xN
+    or Nx1 alike. 1x1 structs are read as dotted names (`matfile.read_mat`). `columns` (as
+    `--columns u=rec.u,y=rec.y[,t=..,y_true=..]`) names the variables instead, or with 1-based
+    numbers picks columns of the file's one matrix (data = [t u y]: `--columns t=1,u=2,y=3`).
+    Several axes: `inputs` / `outputs` name one vector variable per channel, stacked in the order
+    given and named as given. The rate, as for .npz (given ones must agree): the fs variable (Hz)
+    and, by default or when named, the t variable (s) of u's struct when it has either, else the
+    top-level ones; `fs` fills a missing rate.
+    """
+    path = Path(path)
+    source = str(path)
+    mat = read_mat(path)
+    y_true = t = None
+    if inputs is not None or outputs is not None:
+        if not inputs or not outputs:
+            raise DataError(f'{source}: give both --inputs and --outputs (variable names)')
+        picked = [[mat.get(n, f'{opt} {n}') for n in wanted]
+                  for opt, wanted in (('--inputs', inputs), ('--outputs', outputs))]
+        found = [k for group in picked for k, _ in group]
+        if len(set(found)) != len(found):
+            raise DataError(f'{source}: a variable is named twice in --inputs/--outputs')
+        u, y = (_stack(group, source) for group in picked)
+        fs_hit, t = _clock(mat, found[0])
+        inputs, outputs = list(inputs), list(outputs)
+    else:
+        if columns:
+            chosen = {role: _mat_pick(mat, col, f'--columns {role}={col}')
+                      for role, col in columns.items()}
+            need = 'choose them with --columns u=NAME,y=NAME'
+        else:
+            chosen = {role: hit for role in COLUMN_ROLES if (hit := mat.find(role)) is not None}
+            need = 'need u, y and fs or t, or choose them with --columns u=NAME,y=NAME'
+        missing = [k for k in ('u', 'y') if k not in chosen]
+        if missing:
+            raise DataError(f'{source}: missing variable(s) {", ".join(missing)} (has '
+                            f'{mat.listing()}; {need})')
+        u, y = chosen['u'][1], chosen['y'][1]
+        # A t is read when found by default or named in --columns, as a table's t column.
+        fs_hit, _ = _clock(mat, chosen['u'][0])
+        t = chosen.get('t')
+        y_true = chosen['y_true'][1] if 'y_true' in chosen else None
+    if t is not None:
+        t = _vector(t[0], t[1], source) * units.t_factor
+    file_fs = _mat_fs(fs_hit, source)
+    return _make(u, y, _file_rate(file_fs, t, fs, source, units, 'variable'), source, t, y_true,
+                 units, inputs, outputs)
+
+
+def _stack(group, source: str) -> np.ndarray:
+    """Return the vector variables [(name, array)] of --inputs or --outputs as (N, k) channels."""
+    cols = [_vector(name, arr, source) for name, arr in group]
+    for (name, _), col in zip(group, cols):
+        if col.size != cols[0].size:
+            raise DataError(f'{source}: {name} has {col.size} samples but {group[0][0]} '
+                            f'{cols[0].size}')
+    return np.column_stack(cols)
+
+
+def _clock(mat, name: str):
+    """
+    Return the hits (name, array) or None of the fs and t variables that go with variable `name`.
+
+    Those of the struct holding `name` when it has either (a log of several rigs keeps one rate
+    per struct), else those at the top level.
+    """
+    prefix = name.rpartition('.')[0]
+    for scope in ([prefix + '.'] if prefix else []) + ['']:
+        fs_hit, t_hit = mat.find(scope + 'fs'), mat.find(scope + 't')
+        if fs_hit is not None or t_hit is not None:
+            break
+    return fs_hit, t_hit
+
+
+def _mat_fs(hit, source: str) -> float | None:
+    """Return the rate (Hz) of an fs variable hit (name, array), None for None."""
+    if hit is None:
+        return None
+    if hit[1].size != 1:
+        raise DataError(f'{source}: {hit[0]} must be one number (the sample rate in Hz), got '
+                        f'{"x".join(map(str, hit[1].shape))} values')
+    return _fs_value(hit[1], source)
+
+
+def _mat_pick(mat, col, what: str):
+    """Return (name, array) of a --columns entry: a variable name, or a column of the matrix."""
+    if isinstance(col, int):
+        name, arr = mat.matrix(what)
+        if not 1 <= col <= arr.shape[1]:
+            raise DataError(f'{mat.source}: {what}: {name} has {arr.shape[1]} column(s) '
+                            '(numbered from 1)')
+        return name, arr[:, col - 1]
+    return mat.get(col, what)
 
 
 # ------------------------------------------------------------------------------ text tables
@@ -510,11 +629,11 @@ def load_record(path, fs: float | None = None, command_topic: str = 'piezo/volta
                 units: Units = SI, axis: str | int | None = None, inputs=None,
                 outputs=None) -> Record:
     """
-    Load one Record from an .npz, a text table, an .mcap file or a rosbag2 directory.
+    Load one Record from an .npz, a text table, a .mat, an .mcap file or a rosbag2 directory.
 
     Dispatch on the path; text tables are .csv, .tsv, .txt and .dat. columns: `parse_columns`
-    result for text tables; units: how to read u, y and t (ident.units.Units: --u-unit,
-    --y-unit, --y-scale, --t-unit); axis: a bag's joint name.
+    result for text tables and .mat files; units: how to read u, y and t (ident.units.Units:
+    --u-unit, --y-unit, --y-scale, --t-unit); axis: a bag's joint name.
     """
     path = Path(path)
     if not path.exists():
@@ -528,19 +647,21 @@ def load_record(path, fs: float | None = None, command_topic: str = 'piezo/volta
         return load_npz(path, fs, units)
     if suffix in TABLE_SUFFIXES:
         return load_csv(path, fs, columns, units, inputs, outputs)
+    if suffix == MAT_SUFFIX:
+        return load_mat(path, fs, columns, units, inputs, outputs)
     raise DataError(f'{path}: unknown input type {suffix or "(no suffix)"}; '
-                    f'use .npz, {", ".join(TABLE_SUFFIXES)}, .mcap or a rosbag2 directory')
+                    f'use .npz, {", ".join(TABLE_SUFFIXES)}, .mat, .mcap or a rosbag2 directory')
 
 
-RECORDING_SUFFIXES = ('.npz', '.mcap') + TABLE_SUFFIXES
+RECORDING_SUFFIXES = ('.npz', '.mcap', MAT_SUFFIX) + TABLE_SUFFIXES
 
 
 def expand_inputs(paths) -> list[Path]:
     """
     Input paths with each folder of recordings replaced by the recordings in it, sorted by name.
 
-    rosbag2 bags (directories or .mcap files), .npz files and text tables. A folder that is
-    itself a bag stays one input; an .npz beside a .json of the same stem is a model's weights
+    rosbag2 bags (directories or .mcap files), .npz and .mat files and text tables. A folder that
+    is itself a bag stays one input; an .npz beside a .json of the same stem is a model's weights
     and is left out. DataError for a folder holding no recording.
     """
     if isinstance(paths, (str, Path)):
@@ -557,7 +678,7 @@ def expand_inputs(paths) -> list[Path]:
                  and not (p.suffix.lower() == '.npz' and p.with_suffix('.json').is_file())]
         if not found:
             raise DataError(f'{path}: a directory that is neither a rosbag2 bag nor a folder of '
-                            'recordings (no bag, .mcap, .npz or text table in it)')
+                            'recordings (no bag, .mcap, .npz, .mat or text table in it)')
         out += found
     return out
 
@@ -609,15 +730,18 @@ class RecordedSignal:
 def read_signal(path, column: str | int | None = None, key: str = 'u',
                 error=ConfigError) -> RecordedSignal:
     """
-    Read the input signal of a recording, for playback: an .npz key or a text table column.
+    Read the input signal of a recording, for playback: an .npz key, a .mat variable or a column.
 
-    .npz: key `key` (default u) with fs or t for the rate. Text tables: `column` (a header name
+    .npz: key `key` (default u) with fs or t for the rate. .mat: variable `column` (a name, or a
+    1-based column of the file's one matrix), else `key`, matched case-insensitively, with an fs
+    or t variable beside it for the rate (as `load_mat`). Text tables: `column` (a header name
     or a 1-based number), else the column `pick_columns` calls u (header u, or the 2nd of a
     headerless t,u,y, the 1st of u,y or of a single column); its t column gives the rate. Errors
     are `error` (ConfigError for a node parameter) naming the file.
     """
     path = Path(path)
     source = str(path)
+    kind = 'key'      # what the file calls its fs and t, for messages
     try:
         if path.suffix.lower() == '.npz':
             data = read_npz(path, error=error)
@@ -626,6 +750,15 @@ def read_signal(path, column: str | int | None = None, key: str = 'u',
             u = data[key]
             fs = _fs_value(data['fs'], source) if 'fs' in data else None
             t = data.get('t')
+        elif path.suffix.lower() == MAT_SUFFIX:
+            mat = read_mat(path)
+            by_key = column is None or column == ''
+            wanted = key if by_key else column
+            if isinstance(wanted, str) and wanted.strip().isdigit():
+                wanted = int(wanted)
+            name, u = _mat_pick(mat, wanted, f'{"key" if by_key else "column"} {wanted}')
+            fs_hit, t = _clock(mat, name)
+            fs, t, kind = _mat_fs(fs_hit, source), t[1] if t is not None else None, 'variable'
         elif path.suffix.lower() in TABLE_SUFFIXES:
             names, table = read_table(path)
             if isinstance(column, str) and column.strip().isdigit():
@@ -643,7 +776,7 @@ def read_signal(path, column: str | int | None = None, key: str = 'u',
             elif wanted and names and 't' in names:
                 t = table[:, names.index('t')]
         else:
-            raise error(f'playback file {path} must be .npz or a text table '
+            raise error(f'playback file {path} must be .npz, .mat or a text table '
                         f'({", ".join(TABLE_SUFFIXES)})')
         u = np.asarray(u)
         if u.dtype.kind not in 'fiu':
@@ -664,8 +797,8 @@ def read_signal(path, column: str | int | None = None, key: str = 'u',
             clock = time_clock(t, source, warn=False)
             issues = clock.issues(source)
             if fs is not None and not np.isclose(clock.fs, fs, rtol=TIME_RATE_RTOL):
-                raise DataError(f'{source}: its t column steps at {clock.fs:.6g} Hz but its fs '
-                                f'key says {fs:g} Hz')
+                raise DataError(f'{source}: its t {"column" if kind == "key" else kind} steps at '
+                                f'{clock.fs:.6g} Hz but its fs {kind} says {fs:g} Hz')
             fs = fs if fs is not None else clock.fs
     except DataError as exc:
         if error is DataError:

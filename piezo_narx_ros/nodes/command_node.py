@@ -89,11 +89,12 @@ class CommandNode(PiezoNode):
         ParamSpec('min_hold', 0.01, 'APRBS shortest hold, s', low=1e-6, high=3600.0,
                   read_only=True),
         ParamSpec('max_hold', 0.5, 'APRBS longest hold, s', low=1e-6, high=3600.0, read_only=True),
-        ParamSpec('path', '', 'playback: the recording to replay (.npz, or a text table read '
-                  'as fit reads it)', read_only=True),
-        ParamSpec('column', '', 'playback: the table column to play, a header name or 1-based '
-                  'number (empty: the u column)', read_only=True),
-        ParamSpec('key', 'u', 'playback: the .npz key to play', read_only=True),
+        ParamSpec('path', '', 'playback: the recording to replay (.npz, .mat, or a text table '
+                  'read as fit reads it)', read_only=True),
+        ParamSpec('column', '', 'playback: the table column (or .mat variable) to play, a name '
+                  'or 1-based number (empty: the u column)', read_only=True),
+        ParamSpec('key', 'u', 'playback: the .npz key (or .mat variable) to play',
+                  read_only=True),
         ParamSpec('resample', False, 'playback: resample a file recorded at another rate to fs '
                   '(linear); false plays it at its own rate', read_only=True),
         ParamSpec('playback_scale', 1.0, 'playback: factor on the recorded values (1: as '
