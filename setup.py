@@ -24,7 +24,7 @@ setup(
     # Runtime libraries. The ROS 2 client libraries are not listed: in a ROS install they come from
     # the distribution; on a bare machine requirements.txt brings the PyPI wheels.
     install_requires=[
-        'numpy', 'scipy', 'numba', 'pyyaml', 'matplotlib', 'tqdm',
+        'numpy', 'scipy', 'h5py', 'numba', 'pyyaml', 'matplotlib', 'tqdm',
         'rosbags', 'mcap', 'mcap-ros2-support',
     ],
     # 'test' is what makes `colcon test` run pytest (without it colcon falls back to unittest,

@@ -16,7 +16,8 @@ ROSDEP_KEY = {
     'trajectory_msgs': 'trajectory_msgs',
     'lifecycle_msgs': 'lifecycle_msgs', 'rosgraph_msgs': 'rosgraph_msgs',
     'ament_index_python': 'ament_index_python',
-    'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'numba': 'python3-numba',
+    'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'h5py': 'python3-h5py',
+    'numba': 'python3-numba',
     'yaml': 'python3-yaml', 'matplotlib': 'python3-matplotlib', 'tqdm': 'python3-tqdm',
     'rosbags': 'python3-rosbags-pip', 'mcap': 'mcap-ros2-support', 'torch': 'python3-torch',
 }

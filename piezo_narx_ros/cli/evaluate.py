@@ -29,7 +29,7 @@ def add_parser(subparsers):
         description='Score a model file on inputs in prediction and free-run simulation.')
     p.add_argument('model', metavar='MODEL', help='model .json written by piezo-narx fit')
     p.add_argument('inputs', nargs='+', metavar='INPUT',
-                   help='.npz, text table (.csv, .tsv, .txt, .dat), MATLAB .mat (v7 or older), '
+                   help='.npz, text table (.csv, .tsv, .txt, .dat), MATLAB .mat (v4-v7.3), '
                         '.mcap or rosbag2 directory')
     p.add_argument('--json', action='store_true', help='print one JSON object')
     p.add_argument('--init-samples', type=int, metavar='N',

@@ -45,8 +45,8 @@ def add_parser(subparsers):
                     'model and a report.')
     p.add_argument('inputs', nargs='+', metavar='INPUT',
                    help='.npz (u, y, fs), text table (.csv, .tsv, .txt, .dat: t,u,y or u,y, or '
-                        '--columns), MATLAB .mat (variables u, y, fs or t, or --columns; v7 or '
-                        'older), .mcap or rosbag2 directory, or a folder of these')
+                        '--columns), MATLAB .mat (variables u, y, fs or t, or --columns; v4 to '
+                        'v7.3), .mcap or rosbag2 directory, or a folder of these')
     p.add_argument('--out', required=True, metavar='DIR', help='output directory')
     p.add_argument('--validate', nargs='+', metavar='VAL',
                    help='validation recordings: the INPUTs then estimate whole and these only '

@@ -275,7 +275,7 @@ MAT_SUFFIX = '.mat'
 def load_mat(path, fs: float | None = None, columns: dict | None = None,
              units: Units = SI, inputs=None, outputs=None) -> Record:
     """
-    Record from a MATLAB .mat file (v4, v5/v6, v7; v7.3 is refused with how to save it).
+    Record from a MATLAB .mat file (v4, v5/v6, v7, or v7.3 through h5py).
 
     Variables as the keys of an .npz, matched case-insensitively (Fs, U, Y): u, y and fs or t
     (optional y_true); u (N,) or (N, n_in) V, y (N,) or (N, n_out) m, t s, fs Hz, a vector 1xN
