@@ -231,6 +231,8 @@ class ExperimentConfig:
 
     def validate(self) -> None:
         """Raise ConfigError naming the first bad setting."""
+        # First: the network structures below are built told init_past.
+        check_past(self.init_past, 'init_past', ConfigError)
         for name in ('ny', 'nu', 'arx_na', 'arx_nb'):
             vals = getattr(self, name)
             if any(int(v) != v or v < (0 if name in ('nu', 'arx_nb') else 1) for v in vals):
@@ -276,7 +278,6 @@ class ExperimentConfig:
         if not (isinstance(self.init_seconds, (int, float)) and 0.0 <= self.init_seconds <= 600):
             raise ConfigError(f'init_seconds must be a number of seconds in [0, 600], got '
                               f'{self.init_seconds!r}')
-        check_past(self.init_past, 'init_past', ConfigError)
         if self.residuals not in RESIDUAL_KINDS:
             raise ConfigError('residuals must be prediction or simulation, got '
                               f'{self.residuals!r}')
