@@ -134,6 +134,35 @@ def test_live_run_counts_losses_pairs_by_stamp_and_measures_latency(tmp_path):
     assert 0.999 < fig['r2'] < 1.0
     assert fig['latency_us']['p50'] == pytest.approx(300.0)
     assert fig['latency_us']['max'] == pytest.approx(300.0)
+    # The 2 skipped samples (the state's window) waited for the initialisation.
+    assert fig['init_latency_us']['n'] == 2 and fig['latency_us']['n'] == keep.size - 2
+
+
+def test_samples_held_back_by_the_initialisation_are_not_the_streaming_latency():
+    """
+    The estimator publishes its window and what came during its state estimate in one burst.
+
+    Their delay (window + computation) is reported as init_latency_us; latency_us is the delay of
+    the samples streamed after it (before: one p99 of 0.6-0.8 s in every demo).
+    """
+    from piezo_narx_ros.demo.analysis import LiveRun
+    n, step = 400, 500_000                          # 2 kHz, ns
+    cmd = np.arange(n, dtype=np.int64) * step
+    est = cmd + 300_000                             # 300 us per sample when streaming
+    est[:60] = cmd[59] + 100_000                    # the window (50) + 10 during the estimate
+    run = LiveRun(stamps_ns=cmd, t_s=cmd * 1e-9, u=np.zeros(n), y=np.sin(np.arange(n) / 9.0),
+                  y_hat=np.sin(np.arange(n) / 9.0) + 1e-3, log_command_ns=cmd,
+                  log_deflection_ns=cmd, log_estimate_ns=est, first_estimate=0, lost={},
+                  fs=2000.0)
+    fig = live_figures(run, skip=50)
+    assert fig['init_latency_us']['n'] == 60
+    assert fig['init_latency_us']['max'] == pytest.approx(59 * 500.0 + 100.0)
+    assert fig['latency_us']['n'] == n - 60
+    assert fig['latency_us']['max'] == pytest.approx(300.0)
+    # Without a window (init: auto) nothing waits: the first sample streams too.
+    est = cmd + 300_000
+    streamed = live_figures(LiveRun(**{**run.__dict__, 'log_estimate_ns': est}), skip=0)
+    assert streamed['init_latency_us']['n'] == 0 and streamed['latency_us']['n'] == n
 
 
 def test_samples_published_but_never_recorded_count_as_lost(tmp_path):
@@ -170,12 +199,13 @@ def test_earlier_demo_folder_is_refused(tmp_path):
 
 
 # --------------------------------------------------------------------------------- end to end
-def _bag_latency_us(bag: Path) -> np.ndarray:
+def _bag_latency_us(bag: Path, skip: int) -> np.ndarray:
     """
-    Return estimate minus command receive time (µs) of each stamp of a live bag.
+    Return estimate minus command receive time (µs) of each streamed stamp of a live bag.
 
     On all three streams, read with mcap + mcap_ros2 (independent of the project's reader); first
-    message per stamp.
+    message per stamp. Streamed: not among the first `skip` (the state's window) and received
+    after the first estimate arrived (else it waited for the initialisation).
     """
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
@@ -188,7 +218,9 @@ def _bag_latency_us(bag: Path) -> np.ndarray:
             first[channel.topic].setdefault(stamp, message.log_time)
     cmd, est, defl = first.values()
     both = sorted(set(cmd) & set(est) & set(defl))
-    return np.array([est[k] - cmd[k] for k in both], dtype=np.float64) / 1e3
+    first = min(est[k] for k in both)
+    return np.array([est[k] - cmd[k] for i, k in enumerate(both)
+                     if i >= skip and (i == 0 or cmd[k] >= first)], dtype=np.float64) / 1e3
 
 
 def test_quick_demo_end_to_end(tmp_path):
@@ -223,7 +255,7 @@ def test_quick_demo_end_to_end(tmp_path):
         assert math.isfinite(live['latency_us'][key]) and live['latency_us'][key] >= 0
     assert live['latency_us']['p50'] <= live['latency_us']['p99'] <= live['latency_us']['max']
     # The latency is what the bag says: recomputed with the mcap readers, not the project's.
-    latency = _bag_latency_us(Path(live['bag']))
+    latency = _bag_latency_us(Path(live['bag']), skip)
     assert live['latency_us']['n'] == latency.size
     assert [live['latency_us'][k] for k in ('p50', 'p99', 'max')] == pytest.approx(
         np.percentile(latency, [50, 99, 100]), abs=1e-3)

@@ -112,6 +112,20 @@ def percentiles_us(delays_ns: np.ndarray) -> dict:
     return {'p50': float(p50), 'p99': float(p99), 'max': float(mx), 'n': int(d.size)}
 
 
+def _streaming(run: LiveRun, skip: int) -> np.ndarray:
+    """
+    Mask (n,) of the samples the estimator streamed, not held back for its initialisation.
+
+    Held back: the measured window its state is set from (the first `skip` samples) and every
+    later sample whose command the recorder had received before the first estimate arrived (the
+    estimator computes the state, then publishes the waiting samples in one burst). Their delay
+    is the window plus that computation, a start-up cost and not the per-sample latency.
+    """
+    index = np.arange(run.log_command_ns.size)
+    waited = (index < skip) | ((index > 0) & (run.log_command_ns < run.log_estimate_ns.min()))
+    return ~waited
+
+
 def live_figures(run: LiveRun, skip: int = 0, input_range: tuple | None = None) -> dict:
     """
     Free-run accuracy and latency of a live run.
@@ -121,7 +135,9 @@ def live_figures(run: LiveRun, skip: int = 0, input_range: tuple | None = None) 
     rmse_m,
     rmse_nm, max_abs_error_nm, n_scored, latency_us (estimate receive time minus command receive
     time, same stamp, both at the recorder), lateness_us (estimate receive time minus the stamp,
-    i.e. including the command node's timer lateness), lost samples. With input_range (V, the
+    i.e. including the command node's timer lateness), both over the streamed samples
+    (`_streaming`), init_latency_us: the same for the samples that waited for the estimator's
+    initialisation, lost samples. With input_range (V, the
     model's training range): how many scored commands lie outside it and the R²/RMSE of the
     samples inside it (a fresh excitation can reach voltages the model never saw).
     """
@@ -129,6 +145,7 @@ def live_figures(run: LiveRun, skip: int = 0, input_range: tuple | None = None) 
         raise DataError(f'too few paired samples to score ({run.y.size}, skipping {skip})')
     y, y_hat = run.y[skip:], run.y_hat[skip:]
     err = y_hat - y
+    streaming = _streaming(run, skip)
     # Several axes: pooled over them (docs/mimo.md), and each axis in `per_axis`.
     sc = metrics.channel_scores(y, y_hat, names=run.axes or None)
     out = {
@@ -141,8 +158,9 @@ def live_figures(run: LiveRun, skip: int = 0, input_range: tuple | None = None) 
         'rmse_nm': sc['rmse'] * 1e9,
         'max_abs_error_nm': float(np.max(np.abs(err)) * 1e9),
         'y_span_um': float(np.ptp(y) * 1e6),
-        'latency_us': percentiles_us(run.log_estimate_ns - run.log_command_ns),
-        'lateness_us': percentiles_us(run.log_estimate_ns - run.stamps_ns),
+        'latency_us': percentiles_us((run.log_estimate_ns - run.log_command_ns)[streaming]),
+        'lateness_us': percentiles_us((run.log_estimate_ns - run.stamps_ns)[streaming]),
+        'init_latency_us': percentiles_us((run.log_estimate_ns - run.log_command_ns)[~streaming]),
         'lost': dict(run.lost),
         'fs': run.fs,
     }

@@ -163,6 +163,7 @@ def print_table(summary: dict) -> None:
     """Print the final summary table on stdout."""
     live, w = summary['live'], summary['wall_seconds']
     lat, late = live['latency_us'], live['lateness_us']
+    init = live.get('init_latency_us', {'n': 0, 'max': None})
     rows = [
         ('selected model', f'{summary["fit"]["selected"]} '
                            f'({"validated" if summary["fit"]["validated"] else "not validated"})'),
@@ -186,6 +187,8 @@ def print_table(summary: dict) -> None:
                                   f'max {_fmt(lat["max"], ".0f")} µs'),
         ('lateness stamp->estimate', f'p50 {_fmt(late["p50"], ".0f")} µs, p99 '
                                      f'{_fmt(late["p99"], ".0f")} µs'),
+        ('  waiting for the state', f'{init["n"]} samples, max {_fmt(init["max"], ".0f")} µs '
+                                    '(the measured window and the state estimate)'),
         ('lost samples (record)', ', '.join(f'{k} {v}' for k, v in
                                             summary['record']['lost'].items())),
         ('lost samples (live)', ', '.join(f'{k} {v}' for k, v in live['lost'].items())),
