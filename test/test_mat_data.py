@@ -175,10 +175,12 @@ def test_default_names_read_as_the_npz_of_the_same_data(tmp_path):
         load_record(tmp_path / 'c.mat', fs=1000.0)
 
 
-def test_struct_fields_by_dotted_columns_with_the_struct_rate(tmp_path):
+@pytest.mark.parametrize('save', ['v7', 'v7.3'])
+def test_struct_fields_by_dotted_columns_with_the_struct_rate(tmp_path, save):
     u, y = piezo()
-    savemat(tmp_path / 's.mat', {'log': {'rig': {'U': u, 'y': y, 'Fs': 1000.0},
-                                         'note': 'run 3'}, 'fs': 5.0})
+    write = {'v7': savemat, 'v7.3': savemat73}[save]
+    write(tmp_path / 's.mat', {'log': {'rig': {'U': u, 'y': y, 'Fs': 1000.0}, 'note': 'run 3'},
+                               'fs': 5.0})
     with pytest.raises(DataError) as err:
         load_record(tmp_path / 's.mat')
     assert 'missing variable(s) u, y' in one_line(err)
@@ -350,20 +352,6 @@ def test_v73_and_v7_of_the_same_data_give_identical_contents(tmp_path):
                            'empty 0x5, fs 1x1, gain 1x2, note (text), rec.y 1x600, rec.u 1x600, '
                            'rec.meta.fs 1x1, rec.meta.who (text), runs (a 1x2 struct array), '
                            'sp (a sparse matrix), ts (a MATLAB timeseries object)')
-
-
-def test_v73_struct_fields_by_dotted_columns_with_the_struct_rate(tmp_path):
-    u, y = piezo()
-    savemat73(tmp_path / 's.mat', {'fs': 5.0, 'log': {'rig': {'U': u, 'y': y, 'Fs': 1000.0},
-                                                      'note': 'run 3'}})
-    with pytest.raises(DataError) as err:
-        load_record(tmp_path / 's.mat')
-    assert 'missing variable(s) u, y' in one_line(err)
-    assert 'log.rig.U 1x600, log.rig.y 1x600, log.rig.Fs 1x1, log.note (text)' in str(err.value)
-    rec = load_record(tmp_path / 's.mat', columns=parse_columns('u=log.rig.u,y=LOG.rig.Y'))
-    assert rec.fs == 1000.0 and np.array_equal(rec.u[:, 0], u) and np.array_equal(rec.y[:, 0], y)
-    with pytest.raises(DataError, match='--columns y=log.note: log.note is text, which cannot'):
-        load_record(tmp_path / 's.mat', columns=parse_columns('u=log.rig.u,y=log.note'))
 
 
 def test_v73_text_objects_and_logicals_are_skipped_and_explained(tmp_path):
