@@ -16,7 +16,8 @@ from piezo_narx_ros.estimator.free_run import FreeRunEstimator
 from piezo_narx_ros.estimator.health import EstimatorHealth
 from piezo_narx_ros.ident import hysteresis_kernels as hk
 from piezo_narx_ros.ident.arx import ARXModel
-from piezo_narx_ros.ident.coverage import coverage_warnings, inner_reversals
+from piezo_narx_ros.ident.coverage import (coverage_warnings, inner_reversals, LATE_SWEEP,
+                                           late_sweep_warnings, unswept_share)
 from piezo_narx_ros.ident.experiment import ExperimentConfig, run_experiment
 from piezo_narx_ros.ident.hysteresis import HysteresisNARX
 from piezo_narx_ros.plant import PiezoCantilever, generate
@@ -87,6 +88,40 @@ def test_minor_loops_are_counted_and_noise_is_no_reversal():
     growing = generate('growing_sine', FS, 10.0, 100.0, freq=2.0, hold=1.0)
     assert inner_reversals([growing]) == 0
     assert inner_reversals([generate('protocol', FS, 10.0, 100.0, seed=1)]) > 100
+
+
+def test_unswept_share_counts_the_samples_before_both_ends_of_each_record():
+    # Held at 0, then the top, then the bottom: both ends reached at sample k + 1.
+    k, n = 300, 1000
+    step = np.r_[np.zeros(k), 10.0, -10.0, np.zeros(n - k - 2)]
+    assert unswept_share([step]) == pytest.approx((k + 1) / n)
+    # Each record against its own range, weighted by its samples; two channels: the later one.
+    early = np.r_[10.0, -10.0, np.zeros(n - 2)]
+    assert unswept_share([step, early]) == pytest.approx((k + 2) / (2 * n))
+    assert unswept_share([np.column_stack([early, step])]) == pytest.approx((k + 1) / n)
+    assert unswept_share([np.zeros(50)]) == 0.0
+    # A sine of growing amplitude reaches its ends late; a full-range sine and the protocol early.
+    growing = generate('growing_sine', FS, 10.0, 100.0, freq=2.0, hold=1.0)
+    assert unswept_share([growing]) > 0.5 > LATE_SWEEP
+    assert unswept_share([generate('sine', FS, 5.0, 100.0, freq=1.0)]) < LATE_SWEEP
+    assert unswept_share([generate('protocol', FS, 10.0, 100.0, seed=1)]) < 0.05
+    (line,) = late_sweep_warnings([growing])
+    assert 'only after 6' in line and 'one full-range cycle' in line
+    assert late_sweep_warnings([generate('multisine', FS, 10.0, 100.0, seed=1)]) == []
+
+
+def test_fit_warns_when_the_estimation_input_reaches_its_ends_late(tmp_path):
+    small = ('--ny', '1', '--nu', '0', '--hidden', '2', '--arx-na', '2', '--arx-nb', '2',
+             '--no-report', '--quiet')
+    for name, u in (('growing', generate('growing_sine', FS, 4.0, 100.0, freq=2.0, hold=0.5)),
+                    ('sine', generate('sine', FS, 4.0, 100.0, freq=2.0))):
+        r = record(u, seed=4)
+        np.savez(tmp_path / f'{name}.npz', u=r.u, y=r.y, fs=FS)
+        out = piezo_narx('fit', str(tmp_path / f'{name}.npz'), '--out', str(tmp_path / name),
+                         *small)
+        assert out.returncode == 0, out.stderr
+        late = [line for line in out.stderr.splitlines() if 'both ends of its range' in line]
+        assert (len(late) == 1) == (name == 'growing'), out.stderr
 
 
 def test_a_record_without_minor_loops_gets_a_network_rising_with_every_play():

@@ -277,6 +277,7 @@ def _run(args) -> int:
     with executor:
         result = run_experiment(records, config, executor, validation)
     _warn_without_minor_loops(records, config)
+    _warn_late_sweep(records)
     model_path, paths = _write_fit(out, result, records, config, settings, not args.no_report,
                                    validation)
     if not args.quiet:
@@ -351,6 +352,15 @@ def _warn_without_minor_loops(records, config) -> None:
                       'networks behave inside the loop, and their validation scores cannot tell '
                       '(on the micromanipulator of docs/real.md the selected one scored R² -0.22 '
                       'on its test record); --preset envelope keeps its network monotone there')
+
+
+def _warn_late_sweep(records) -> None:
+    """Warn when the estimation input reaches both ends of its range late (coverage.LATE_SWEEP)."""
+    import warnings
+
+    from piezo_narx_ros.ident.coverage import late_sweep_warnings
+    for line in late_sweep_warnings(records):
+        warnings.warn(line)
 
 
 def _resampled(records, args):

@@ -30,6 +30,14 @@ MOVING = 1e-6
 REVERSAL_DEPTH = 0.05
 #: ... and is "inner" (a minor loop) when this fraction of the range away from both extremes.
 INNER_MARGIN = 0.1
+#: A record's input has swept its range once it came within this share of its range of both ends
+#: (a random-phase multisine reaches its crests rarely, 80 % of them often).
+SWEEP_MARGIN = 0.2
+#: `fit` warns when more than this share of the estimation samples came before that (late_sweep):
+#: a sine of growing amplitude sweeps at about 64 % of its record, the identification protocol at
+#: 2 %, multisines at 0-14 % (the 5 kHz wideband record and the FSM's 18 records), the
+#: micromanipulator's file at 2 % (docs/real.md, "Records of the fit's own session").
+LATE_SWEEP = 0.25
 
 
 def inner_reversals(inputs) -> int:
@@ -75,6 +83,51 @@ def step_share(inputs) -> float:
         if steps.size and span > 0:
             share = max(share, float(np.quantile(steps, SLOW_QUANTILE)) / span)
     return share
+
+
+def unswept_share(inputs) -> float:
+    """
+    Return the share of the samples recorded before each record's input reached both its ends.
+
+    inputs: the records' input arrays (V), or Records; each record against its own range, an end
+    reached within SWEEP_MARGIN of that range. A record starts after a past nobody logged, and
+    until its input has been to both ends the operators' memory is partly that past's: the fit
+    learns it as the model's own rest (docs/real.md). Several input channels ((N, n_in)): the
+    latest channel. 0 for constant inputs.
+    """
+    inputs = [np.asarray(getattr(x, 'u', x), dtype=np.float64) for x in inputs]
+    cols = [u.reshape(len(u), -1) for u in inputs]
+    total = sum(len(c) for c in cols)
+    late = 0
+    for c in cols:
+        first = 0
+        for x in c.T:
+            lo, hi = float(np.min(x)), float(np.max(x))
+            if hi > lo:
+                margin = SWEEP_MARGIN * (hi - lo)
+                first = max(first, int(np.argmax(x >= hi - margin)),
+                            int(np.argmax(x <= lo + margin)))
+        late += first
+    return late / total if total else 0.0
+
+
+def late_sweep_warnings(estimation) -> list[str]:
+    """
+    One line when the estimation records reach both ends of their input range late (LATE_SWEEP).
+
+    Until then part of the operators' memory is the unlogged past before each record, and the fit
+    learns it as the model's rest: on the growing scenario such models free-ran records of the
+    same session better from rest than from a window's state estimate (docs/real.md).
+    """
+    share = unswept_share(estimation)
+    if share <= LATE_SWEEP:
+        return []
+    return [f'the estimation input reaches both ends of its range only after {share:.0%} of its '
+            'samples (e.g. a hold, then a growing amplitude): until then part of the operator '
+            'memory is the unlogged past before the record, which the fit learns as the '
+            "model's rest. Start such recordings with one full-range cycle. A model fitted on "
+            'them may free-run records of the same session better from rest than from a '
+            "measured window (docs/real.md, section \"Records of the fit's own session\")"]
 
 
 def _inner_reversals(inputs) -> int:
