@@ -25,7 +25,7 @@ FS = 2000.0
 
 def start_player(*params):
     args = [sys.executable, '-m', 'piezo_narx_ros.nodes.player_node', '--ros-args',
-            '-p', 'start_delay_s:=0.0', '-p', 'wait_for_subscribers:=1', *params]
+            '-p', 'start_delay_s:=0.3', '-p', 'wait_for_subscribers:=1', *params]
     return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=dict(os.environ, PYTHONUNBUFFERED='1'))
 
