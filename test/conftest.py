@@ -3,9 +3,7 @@ Shared pytest fixtures.
 
 DDS isolation: every test session gets its own ROS_DOMAIN_ID (claimed with a lock file, so that
 parallel runs on one machine do not see each other) and discovery limited to localhost. Child
-processes started by tests inherit these variables. Fast DDS reads
-fastdds_discovery_not_intraprocess.xml (discovery between the test process's own participants
-through the transport: intraprocess discovery deadlocked once on a participant's teardown).
+processes started by tests inherit these variables.
 """
 import os
 from pathlib import Path
@@ -43,8 +41,6 @@ def _claim_domain_id() -> str:
 if 'ROS_DOMAIN_ID' not in os.environ:
     os.environ['ROS_DOMAIN_ID'] = _claim_domain_id()
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-os.environ.setdefault('FASTDDS_DEFAULT_PROFILES_FILE',
-                      str(Path(__file__).with_name('fastdds_discovery_not_intraprocess.xml')))
 os.environ.setdefault('MPLBACKEND', 'Agg')
 # numpy's OpenBLAS spins one thread per core; on a busy 2-core box that made ARX fits 20x slower.
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
