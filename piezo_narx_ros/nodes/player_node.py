@@ -19,6 +19,7 @@ import threading
 import time
 
 from rclpy.clock import Clock, ClockType
+from rclpy.duration import Duration
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
 
@@ -50,6 +51,10 @@ class PlayerNode(PiezoNode):
                   'matched subscribers (reliable, volatile QoS loses what is published before)',
                   low=0, high=1000, read_only=True),
         ParamSpec('exit_when_done', True, 'shut the node down after the last message',
+                  read_only=True),
+        ParamSpec('wait_for_all_acked_s', 5.0, 'after the last message, wait up to this long '
+                  'until every reliable subscriber has acknowledged all of them (like ros2 bag '
+                  'play --wait-for-all-acked); 0 = do not wait, s', low=0.0, high=600.0,
                   read_only=True),
         ParamSpec('clock', False, 'publish the recorded time reached on /clock (like ros2 bag '
                   'play --clock)', read_only=True),
@@ -140,9 +145,23 @@ class PlayerNode(PiezoNode):
             self.error = str(exc)
             self.get_logger().error(f'playback stopped: {exc}')
         self.get_logger().info(f'played {self.published} message(s)')
+        self._wait_for_all_acked()
         if self.clock is not None:
             self.clock.finish()
         self.done = True
+
+    def _wait_for_all_acked(self) -> None:
+        # Exiting while a reliable writer still holds unacknowledged samples loses the tail: a
+        # sample dropped by the transport is only resent after the reader's next acknack.
+        timeout_s = self.params['wait_for_all_acked_s']
+        if timeout_s <= 0.0:
+            return
+        end = time.monotonic() + timeout_s
+        for topic, pub in self._pubs.items():
+            left = max(0.0, end - time.monotonic())
+            if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+                self.get_logger().warning(f'{topic}: not every subscriber acknowledged every '
+                                          f'message within {timeout_s:g} s')
 
     def _publish_clock(self) -> None:
         msg = ClockMsg()
