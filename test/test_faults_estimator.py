@@ -112,6 +112,51 @@ def test_two_interleaved_writers_keep_one_stream_and_are_reported(model):
     assert values['command_publishers'] == 2
 
 
+@pytest.mark.parametrize('burst', [3, 10, 40])
+def test_second_writer_arriving_in_bursts_does_not_restart_the_stream(model, burst):
+    """
+    DDS delivers two writers' samples in its own order: `burst` of the second one in a row.
+
+    Before, three in a row confirmed them as a new stream (a restart, then one back).
+    """
+    ua, ub = _u(2000, 4), _u(2000, 5)
+    a = [(T0 + k * P, ua[k]) for k in range(2000)]
+    b = [(T0 + P // 2 + k * P, ub[k]) for k in range(2000)]
+    mixed = a[:100]                        # the first writer's stream is running
+    for k0 in range(100, 2000, burst):     # then `burst` of b, then the same span of a
+        mixed += b[k0:k0 + burst] + a[k0:k0 + burst]
+    est = FreeRunEstimator(model, init='rest')
+    out = _run(est, mixed) + est.flush()
+    _check(out, [t for t, _ in a], model.simulate(ua))
+    assert est.stats.stream_restarts == 0 and est.stats.stamp_outliers == 1900
+
+
+def test_a_writer_taking_over_off_grid_is_a_new_stream_after_the_interleave_time(model):
+    """The first writer stops and another starts at once, half a period off its grid."""
+    from piezo_narx_ros.command.stamps import INTERLEAVE_S
+    ua, ub = _u(1000, 4), _u(1000, 5)
+    a = [(T0 + k * P, ua[k]) for k in range(1000)]
+    b = [(T0 + 1000 * P + P // 2 + k * P, ub[k]) for k in range(1000)]
+    est = FreeRunEstimator(model, init='rest')
+    out = _run(est, a)
+    held = int(INTERLEAVE_S * 1e9 / P) // 2
+    assert _run(est, b[:held]) == [] and est.holding == held   # still held: maybe interleaved
+    out += _run(est, b[held:])
+    _check(out, [t for t, _ in a + b], np.concatenate([model.simulate(ua), model.simulate(ub)]))
+    assert est.stats.stream_restarts == 1 and est.stats.stamp_outliers == 0
+
+
+def test_flush_starts_a_held_new_stream_that_stopped_inside_the_interleave_time(model):
+    ua, ub = _u(100, 4), _u(5, 5)
+    est = FreeRunEstimator(model, init='rest')
+    _run(est, [(T0 + k * P, ua[k]) for k in range(100)])
+    b = [(T0 + 100 * P + P // 2 + k * P, ub[k]) for k in range(5)]
+    assert _run(est, b) == []
+    out = est.flush()        # both writers silent: the five agreeing commands were a new stream
+    _check(out, [t for t, _ in b], model.simulate(ub))
+    assert est.stats.stream_restarts == 1
+
+
 def test_burst_of_nan_and_outlier_stamps(model):
     u = _u(3000, 6)
     stream = [(T0 + k * P, u[k]) for k in range(3000)]

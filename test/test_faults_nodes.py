@@ -287,8 +287,8 @@ def test_live_estimator_refuses_outliers_and_reports_a_second_writer(tmp_path):
             col.pub.publish(make_joint_state(t0 + k * p, ['x'], effort=[u[k]]))
             if k == 100:       # one command an hour in the future
                 col.pub.publish(make_joint_state(t0 + 3600 * 10**9, ['x'], effort=[0.0]))
-            if k >= 300:       # a second writer, off the first one's grid
-                second.publish(make_joint_state(t0 + 123_000 + k * p, ['x'], effort=[-u[k]]))
+            if k >= 300:       # a second writer, half a period off the first one's grid
+                second.publish(make_joint_state(t0 + p // 2 + k * p, ['x'], effort=[-u[k]]))
             time.sleep(0.0005)
         assert col.wait_for(lambda: len(col.data['deflection_estimate']) >= n, 20.0)
         # Every command counted, and the last second-writer stamp decided (held until the

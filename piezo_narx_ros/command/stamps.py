@@ -12,8 +12,13 @@ through. Any other stamp is held back until the following commands decide:
 - they continue from the held ones: a gap of at most `max_fill` samples is accepted after one
   confirming command; anything else (a loop back, a new run, a longer jump) is a new stream once
   `confirm` consecutive commands agree, announced by a RESTART event before its samples.
-So normal samples are never delayed, an abnormal one by at most `confirm` samples, and a single
-bad stamp can no longer make a receiver refuse every later, correct command.
+  A candidate off the running grid and within `INTERLEAVE_S` of its last stamp is, in addition,
+  held until it has moved beyond that: it is most likely a second writer whose commands arrived
+  in a burst (DDS delivers two writers' samples in its own order), and a burst of three must not
+  make the receiver restart on it.
+So normal samples are never delayed, an abnormal one by at most `confirm` samples (a new stream
+within INTERLEAVE_S of the old one by at most that long), and a single bad stamp can no longer
+make a receiver refuse every later, correct command.
 
 The gate's quarter-period tolerance lets a stream at another rate through sample by sample (a
 2.5 kHz stream on a 2 kHz grid); `RateMonitor` measures the rate of the accepted stamps and says
@@ -34,6 +39,10 @@ RESTART = 'restart'   # (RESTART, t_ns, [stamps]): a new stream starts at t_ns w
 
 # A stamp within this fraction of a period from a grid point is on the grid.
 GRID_TOLERANCE = 0.25
+# A candidate stream within this time of the running one's last stamp is not confirmed yet, s:
+# longer than a writer's samples are plausibly delayed behind another's on a loaded host, shorter
+# than any real restart (a command node or player starting again takes ~1 s).
+INTERLEAVE_S = 0.05
 
 
 class StampGate:
@@ -50,6 +59,7 @@ class StampGate:
         self.confirm = int(confirm)
         self.outliers = 0
         self.restarts = 0
+        self.interleave_ns = INTERLEAVE_S * 1e9
         self.last: int | None = None            # stamp of the last command passed through
         self._held: list[tuple[int, Any]] = []
 
@@ -107,13 +117,16 @@ class StampGate:
         """
         Decide now (no more commands are coming).
 
-        Held commands that are a gap within max_fill pass, others are outliers.
+        Held commands that are a gap within max_fill pass; `confirm` or more that agree are a
+        new stream (the running one has stopped too); others are outliers.
         """
         if not self._held:
             return []
         k = self.steps(self.last, self._held[0][0])
         if k is not None and k - 1 <= self.max_fill:
             return self._release([])
+        if len(self._held) >= self.confirm:
+            return self._restart()
         self._drop_held()
         return []
 
@@ -125,10 +138,19 @@ class StampGate:
         k = self.steps(self.last, self._held[0][0])
         if k is not None and k - 1 <= self.max_fill:
             return self._release([])         # a gap of the running stream
-        if len(self._held) >= self.confirm:
-            self.restarts += 1
-            return self._release([(RESTART, self._held[0][0], [t for t, _ in self._held])])
+        if len(self._held) >= self.confirm and not self._interleaved():
+            return self._restart()
         return []
+
+    def _interleaved(self) -> bool:
+        """Tell whether the held candidate is off the running grid and within INTERLEAVE_S."""
+        dt = self._held[-1][0] - self.last
+        d = dt / self.period_ns
+        return abs(dt) <= self.interleave_ns and abs(d - round(d)) > GRID_TOLERANCE
+
+    def _restart(self) -> list[tuple]:
+        self.restarts += 1
+        return self._release([(RESTART, self._held[0][0], [t for t, _ in self._held])])
 
     def _release(self, events: list) -> list[tuple]:
         held, self._held = self._held, []

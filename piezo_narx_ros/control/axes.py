@@ -316,8 +316,18 @@ class AxesController:
             return self._from_chains(self.chains.on_reference(t_ns, self._checked(r)))
         self.stats.references += 1
         self.rate.received()
+        return self._apply(self.gate.push(t_ns, r))
+
+    def flush(self) -> list[tuple[int, np.ndarray]]:
+        """Decide on held references once they stopped (StampGate.flush)."""
+        if self.chains:
+            return self._from_chains(self.chains.flush())
+        return self._apply(self.gate.flush())
+
+    def _apply(self, events) -> list[tuple[int, np.ndarray]]:
+        """Commands for the references the stamp gate let through; a new stream restarts."""
         out: list = []
-        for kind, t, item in self.gate.push(t_ns, r):
+        for kind, t, item in events:
             if kind == SAMPLE:
                 if self.rate.observe(t):
                     self.stats.rate_refused += 1
@@ -329,16 +339,6 @@ class AxesController:
                 self.rate.reset()
         self.stats.stamp_outliers = self.gate.outliers
         self.stats.stream_restarts = self.gate.restarts
-        return out
-
-    def flush(self) -> list[tuple[int, np.ndarray]]:
-        """Decide on held references once they stopped (StampGate.flush)."""
-        if self.chains:
-            return self._from_chains(self.chains.flush())
-        out: list = []
-        for kind, t, item in self.gate.flush():
-            if kind == SAMPLE:
-                self._accept(t, item, out)
         return out
 
     def _checked(self, r: np.ndarray) -> np.ndarray:
