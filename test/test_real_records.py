@@ -122,6 +122,21 @@ def test_fit_warns_when_the_estimation_input_reaches_its_ends_late(tmp_path):
     assert len(late) == 1 and late[0].startswith('piezo-narx: warning: '), out.stderr
 
 
+def test_fit_per_record_warns_for_the_recording_it_concerns(tmp_path):
+    fleet = tmp_path / 'fleet'
+    fleet.mkdir()
+    for name, kind, extra in (('growing', 'growing_sine', {'freq': 2.0, 'hold': 0.5}),
+                              ('protocol', 'protocol', {'seed': 1})):
+        r = record(generate(kind, FS, 3.0, 100.0, **extra), seed=4)
+        np.savez(fleet / f'{name}.npz', u=r.u, y=r.y, fs=FS)
+    out = piezo_narx('fit', str(fleet), '--per-record', '--out', str(tmp_path / 'o'), '--ny',
+                     '1', '--nu', '0', '--hidden', '2', '--arx-na', '2', '--arx-nb', '2',
+                     '--no-report', '--quiet')
+    assert out.returncode == 0, out.stderr
+    late = [line for line in out.stderr.splitlines() if 'both ends of its range' in line]
+    assert len(late) == 1 and late[0].startswith('piezo-narx: warning: growing: '), out.stderr
+
+
 def test_a_record_without_minor_loops_gets_a_network_rising_with_every_play():
     r = record(generate('sine', FS, 6.0, 100.0, freq=1.0), seed=2)
     m = HysteresisNARX(hidden=4, n_plays=6, max_iter=8, seed=1).fit(r.u, r.y, fs=FS)

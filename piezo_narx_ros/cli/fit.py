@@ -276,8 +276,7 @@ def _run(args) -> int:
     from piezo_narx_ros.ident.experiment import run_experiment
     with executor:
         result = run_experiment(records, config, executor, validation)
-    _warn_without_minor_loops(records, config)
-    _warn_late_sweep(records)
+    _warn_about_estimation(records, config)
     model_path, paths = _write_fit(out, result, records, config, settings, not args.no_report,
                                    validation)
     if not args.quiet:
@@ -340,27 +339,27 @@ def _load_validation(args, settings, records):
     return validation
 
 
-def _warn_without_minor_loops(records, config) -> None:
-    """Warn when the paper's networks are fitted on an input that never reverses in its range."""
+def _warn_about_estimation(records, config, name: str = '') -> None:
+    """
+    Warn where the estimation input itself limits the model (after the fit, beside its report).
+
+    The paper's networks fitted on an input that never reverses in its range; an input that
+    reaches both ends of its range late (coverage.LATE_SWEEP). `name` prefixes each line (fleet).
+    """
     import warnings
 
-    from piezo_narx_ros.ident.coverage import inner_reversals
+    from piezo_narx_ros.ident.coverage import inner_reversals, late_sweep_warnings
     from piezo_narx_ros.ident.hysteresis import MINOR_LOOPS
+    lines = []
     if config.narx and config.family == 'narx' and inner_reversals(records) < MINOR_LOOPS:
-        warnings.warn('the estimation input never reverses inside its range (no minor loops, '
-                      "e.g. one full-range sine): nothing in these data decides how the paper's "
-                      'networks behave inside the loop, and their validation scores cannot tell '
-                      '(on the micromanipulator of docs/real.md the selected one scored R² -0.22 '
-                      'on its test record); --preset envelope keeps its network monotone there')
-
-
-def _warn_late_sweep(records) -> None:
-    """Warn when the estimation input reaches both ends of its range late (coverage.LATE_SWEEP)."""
-    import warnings
-
-    from piezo_narx_ros.ident.coverage import late_sweep_warnings
-    for line in late_sweep_warnings(records):
-        warnings.warn(line)
+        lines.append('the estimation input never reverses inside its range (no minor loops, '
+                     "e.g. one full-range sine): nothing in these data decides how the paper's "
+                     'networks behave inside the loop, and their validation scores cannot tell '
+                     '(on the micromanipulator of docs/real.md the selected one scored R² -0.22 '
+                     'on its test record); --preset envelope keeps its network monotone there')
+    lines += late_sweep_warnings(records)
+    for line in lines:
+        warnings.warn(f'{name}: {line}' if name else line)
 
 
 def _resampled(records, args):
@@ -509,6 +508,7 @@ def _run_fleet(args, settings, config, inputs, executor, out) -> int:
     for (name, records), result in zip(loaded.items(), results):
         rows[name] = _fleet_row(name, records[0], result)
         if not isinstance(result, PiezoNarxError):
+            _warn_about_estimation(records, config, name)
             _write_fit(out / name, result, records, config, settings, not args.no_report)
     table = [rows[n] for n in names]
     out.mkdir(parents=True, exist_ok=True)

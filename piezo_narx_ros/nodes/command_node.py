@@ -121,6 +121,10 @@ class CommandNode(PiezoNode):
                   'stop, and a new one when it resumes)', read_only=True),
         ParamSpec('wait_for_subscribers', 0, 'start only when this many subscriptions are matched',
                   low=0, high=1000, read_only=True),
+        ParamSpec('start_delay_s', 0.5, 'with wait_for_subscribers: then wait this long before '
+                  'sample 0, since a subscription may match this writer a little after this '
+                  'writer matched it and a volatile reader drops what came before, s',
+                  low=0.0, high=60.0, read_only=True),
         ParamSpec('publish_period', 0.0, 'publishing period, s (0: one tick per sample; larger '
                   'values publish the due samples in batches)', low=0.0, high=1.0, read_only=True),
         ParamSpec('max_burst', 10000, 'most samples published in one tick (the rest follow on '
@@ -159,6 +163,7 @@ class CommandNode(PiezoNode):
         self.sim_time = bool(self.get_parameter('use_sim_time').value)
         self.clock_jumps = 0
         self._last_pace: int | None = None
+        self._matched_at: float | None = None   # monotonic s when wait_for_subscribers was met
         self.position = p['output'] == 'position'
         b = self.batch = p['batch']
         self.pub = self.sample_publisher(
@@ -264,7 +269,7 @@ class CommandNode(PiezoNode):
             self._publish_batches(flush=True)      # a pause or the end: nothing waits
             if not self.want_running or s.finished:
                 return
-            if self.pub.get_subscription_count() < self.params['wait_for_subscribers']:
+            if not self._listeners_ready():
                 return
             s.start(self.get_clock().now().nanoseconds, pace)
         stamps, volts = s.poll(pace)
@@ -281,6 +286,18 @@ class CommandNode(PiezoNode):
                 pub.publish(encode_joint_state(t, names, effort=u))   # CDR bytes: 2x cheaper
         if s.finished and stamps.size:
             self.get_logger().info(f'signal finished after {s.published} samples')
+
+    def _listeners_ready(self) -> bool:
+        """wait_for_subscribers subscriptions matched, start_delay_s ago (at once when 0)."""
+        need = self.params['wait_for_subscribers']
+        if need == 0:
+            return True
+        if self.pub.get_subscription_count() < need:
+            self._matched_at = None
+            return False
+        if self._matched_at is None:
+            self._matched_at = time.monotonic()
+        return time.monotonic() - self._matched_at >= self.params['start_delay_s']
 
     def _publish_batches(self, flush: bool) -> None:
         """Publish the held samples `batch` at a time (and the rest too when `flush`)."""
