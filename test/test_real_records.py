@@ -172,6 +172,12 @@ def test_evaluate_init_samples_scores_after_the_window_and_saves_the_run(tmp_pat
     e = (saved['y'] - saved['y_sim'])[1000:]
     assert float(np.sqrt(np.mean(e * e))) == pytest.approx(measured['simulation']['rmse'],
                                                            rel=1e-9)
+    # Beside it, the same samples from rest (this record started 2 um off and mid-history).
+    from_rest = measured['simulation_from_rest']
+    e = (rec.y[:, 0] - hnarx.simulate(rec.u[:, 0]))[1000:]
+    assert from_rest['rmse'] == pytest.approx(float(np.sqrt(np.mean(e * e))), rel=1e-9)
+    assert measured['simulation']['rmse'] < 0.2 * from_rest['rmse']
+    assert rest['simulation_from_rest'] is None
 
 
 def test_evaluate_past_fade_out_needs_a_window_and_is_reported(tmp_path, hnarx):

@@ -16,6 +16,8 @@ residuals themselves, and the JSON says so. Prints a short summary, or with --js
      "past": "any" | "fade-out" (--past),
      "state_windows": [{"source", "window_samples", "memory_spread_m", "determined",
                         "window_input_v"}] (one axis, with --init-samples N > 0),
+     "simulation_from_rest": {"r2", "rmse", ...} | null (with --init-samples N > 0: the same
+                             scored samples, the model started at rest),
      "warnings": [...]}
 
 Never imports torch.
@@ -180,7 +182,8 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
     import numpy as np
 
     from piezo_narx_ros.errors import ConfigError, DataError
-    from piezo_narx_ros.ident.experiment import evaluate_model, fit_noise_models, scored_from
+    from piezo_narx_ros.ident.experiment import (evaluate_model, fit_noise_models,
+                                                 from_rest_scores, scored_from)
 
     if init_samples is not None:
         if init_samples < 0:
@@ -256,6 +259,9 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
         'tests_raw': {k: v['passed'] for k, v in tests['raw'][residuals].get('tests', {}).items()},
         'tests_detail': tests,
         'state_windows': windows,
+        # With a state window: the same samples from rest, to choose the estimator's `init`.
+        'simulation_from_rest': (_with_per_output(from_rest_scores(model, records), model)
+                                 if init_samples else None),
         'warnings': notes,
     }
 
@@ -354,6 +360,10 @@ def _run(args) -> int:
         per = s.get('per_output') or []
         for o in per if len(per) > 1 else []:
             print(f'{o["name"]:>12}: R² {fmt(o["r2"], ".6f")}  RMSE {fmt(o["rmse"], ".4g")} m')
+    rest = result['simulation_from_rest']
+    if rest is not None:
+        print(f'{"from rest":>10}: R² {fmt(rest["r2"], ".6f")}  RMSE {fmt(rest["rmse"], ".4g")} m'
+              '  (the same samples; estimator init:=rest where this is the better one)')
     nm = result['tests_noise_model']
     how = describe_noise(nm.get('per_output', nm) if nm else None)
     print(f'correlation tests ({result["tests_residuals"]} residuals, {how}): '

@@ -545,6 +545,37 @@ def outputs_by_record(model, records: list[Record]) -> list[dict[str, np.ndarray
     return parts
 
 
+def from_rest_scores(model, records: list[Record]) -> dict:
+    """
+    Simulation scores of a free run from rest, on the samples each record's state window skips.
+
+    The comparison for a state set from measurement (`--init-samples N`): the same scored samples,
+    the model started at rest with its fitted zero. Records of the fit's own session may free-run
+    better so when the fit learned their usual past as its rest (docs/real.md).
+    """
+    ys, sims = [], []
+    for r in records:
+        with np.errstate(all='ignore'):
+            sim = as_columns(model.simulate(channels_arg(r.u)))
+        k = scored_from(model, r)
+        ys.append(r.y[k:])
+        sims.append(sim[k:])
+    names = records[0].outputs
+    result = _output_scores(np.concatenate(ys), np.concatenate(sims), names)
+    if len(records) > 1:
+        result['records'] = [{'source': r.source, 'samples': int(len(y)),
+                              **_output_scores(y, sim, names)}
+                             for r, y, sim in zip(records, ys, sims)]
+    return result
+
+
+def _output_scores(y: np.ndarray, y_sim: np.ndarray, names) -> dict:
+    """Scores of outputs y_sim (n, n_out) against y (m); all None when y_sim is not finite."""
+    if np.all(np.isfinite(y_sim)):
+        return metrics.channel_scores(y, y_sim, names)
+    return {'r2': None, 'rmse': None, 'nrmse': None, 'fit_percent': None, 'diverged': True}
+
+
 def model_outputs(model, records: list[Record]) -> dict[str, np.ndarray]:
     """
     Pooled samples k >= n0 of every record: 'u' (V), 'y' (m), 'prediction', 'simulation' (m).
@@ -594,15 +625,7 @@ def fit_noise_models(model, records: list[Record], max_order: int = 20,
 
 
 def _mode_scores(out: dict, names=None) -> dict:
-    result = {}
-    for mode in RESIDUAL_KINDS:
-        y_hat = out[mode]
-        if np.all(np.isfinite(y_hat)):
-            result[mode] = metrics.channel_scores(out['y'], y_hat, names)
-        else:
-            result[mode] = {'r2': None, 'rmse': None, 'nrmse': None, 'fit_percent': None,
-                            'diverged': True}
-    return result
+    return {mode: _output_scores(out['y'], out[mode], names) for mode in RESIDUAL_KINDS}
 
 
 def _scores(parts: list[dict], sources: list[str] | None = None, names=None) -> dict:
