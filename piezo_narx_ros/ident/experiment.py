@@ -547,7 +547,7 @@ def outputs_by_record(model, records: list[Record]) -> list[dict[str, np.ndarray
 
 def from_rest_scores(model, records: list[Record]) -> dict:
     """
-    Simulation scores of a free run from rest, on the samples each record's state window skips.
+    Score a free run from rest on the samples after each record's state window.
 
     The comparison for a state set from measurement (`--init-samples N`): the same scored samples,
     the model started at rest with its fitted zero. Records of the fit's own session may free-run
