@@ -216,6 +216,8 @@ def test_fsm_record_fits_and_evaluates_per_output_after_100_samples(tmp_path, ca
     rmse = [o['rmse'] for o in per]
     assert out['simulation']['rmse'] == pytest.approx(np.sqrt(np.mean(np.square(rmse))))
     assert all(0 < r < 2e-6 for r in rmse)          # a model, not a flat line (std ~1.3 µm)
+    rest = out['simulation_from_rest']                # the same samples from rest, per axis too
+    assert [o['name'] for o in rest['per_output']] == ['y1', 'y2', 'y3'] and rest['rmse'] > 0
 
 
 def test_a_committed_one_axis_model_file_is_rewritten_as_it_was(tmp_path):
