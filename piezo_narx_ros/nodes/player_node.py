@@ -158,10 +158,14 @@ class PlayerNode(PiezoNode):
             return
         end = time.monotonic() + timeout_s
         for topic, pub in self._pubs.items():
-            left = max(0.0, end - time.monotonic())
-            if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
-                self.get_logger().warning(f'{topic}: not every subscriber acknowledged every '
-                                          f'message within {timeout_s:g} s')
+            # In slices, so that a stop request (SIGINT) is not held up by the wait.
+            while not pub.wait_for_all_acked(Duration(nanoseconds=100_000_000)):
+                if self._stop.is_set():
+                    return
+                if time.monotonic() >= end:
+                    self.get_logger().warning(f'{topic}: not every subscriber acknowledged '
+                                              f'every message within {timeout_s:g} s')
+                    break
 
     def _publish_clock(self) -> None:
         msg = ClockMsg()
