@@ -125,6 +125,49 @@ def test_loop_repeats_until_stopped(tmp_path):
     assert got[N:2 * N] == got[:N]   # second pass identical to the first
 
 
+SILENT_SUBSCRIBER = """
+import time, rclpy
+from sensor_msgs.msg import JointState
+from piezo_narx_ros.nodes.qos import sample_qos
+rclpy.init()
+node = rclpy.create_node('silent_sink')
+sub = node.create_subscription(JointState, '/play4/voltage_command', lambda m: None,
+                               sample_qos(100))
+while sub.get_publisher_count() < 1:
+    time.sleep(0.02)
+print('matched', flush=True)
+while True:
+    time.sleep(1)
+"""
+
+
+def test_a_subscriber_that_stops_acknowledging_costs_the_wait_and_a_warning(tmp_path):
+    """A frozen reliable reader (SIGSTOP: its DDS threads stop too) never acknowledges."""
+    import signal
+    bag = _bag(tmp_path, 'b', '/play4')
+    sink = subprocess.Popen([sys.executable, '-c', SILENT_SUBSCRIBER], stdout=subprocess.PIPE,
+                            text=True)
+    proc = None
+    try:
+        # Matched on both sides, then frozen during the player's start delay.
+        proc = start_player('-p', f'bag:={bag}', '-p', 'rate:=4.0', '-p', 'start_delay_s:=3.0',
+                            '-p', 'wait_for_all_acked_s:=1.0',
+                            '-p', 'topics:=[/play4/voltage_command]')
+        assert sink.stdout.readline().strip() == 'matched'
+        time.sleep(0.5)
+        sink.send_signal(signal.SIGSTOP)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        sink.send_signal(signal.SIGCONT)
+        sink.kill()
+        sink.wait()
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    assert ('/play4/voltage_command: not every subscriber acknowledged every message within '
+            '1 s') in err
+
+
 def test_bad_bag_exits_2_with_one_line(tmp_path):
     proc = start_player('-p', f'bag:={tmp_path / "missing"}')
     _, err = proc.communicate(timeout=30)
