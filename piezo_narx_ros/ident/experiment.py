@@ -553,27 +553,18 @@ def from_rest_scores(model, records: list[Record]) -> dict:
     the model started at rest with its fitted zero. Records of the fit's own session may free-run
     better so when the fit learned their usual past as its rest (docs/real.md).
     """
-    ys, sims = [], []
+    parts = []
     for r in records:
         with np.errstate(all='ignore'):
             sim = as_columns(model.simulate(channels_arg(r.u)))
         k = scored_from(model, r)
-        ys.append(r.y[k:])
-        sims.append(sim[k:])
-    names = records[0].outputs
-    result = _output_scores(np.concatenate(ys), np.concatenate(sims), names)
-    if len(records) > 1:
-        result['records'] = [{'source': r.source, 'samples': int(len(y)),
-                              **_output_scores(y, sim, names)}
-                             for r, y, sim in zip(records, ys, sims)]
+        parts.append({'y': r.y[k:], 'simulation': sim[k:]})
+    scores = _scores(parts, [r.source for r in records], records[0].outputs, ('simulation',))
+    result = scores['simulation']
+    if 'records' in scores:
+        result['records'] = [{'source': e['source'], 'samples': e['samples'], **e['simulation']}
+                             for e in scores['records']]
     return result
-
-
-def _output_scores(y: np.ndarray, y_sim: np.ndarray, names) -> dict:
-    """Scores of outputs y_sim (n, n_out) against y (m); all None when y_sim is not finite."""
-    if np.all(np.isfinite(y_sim)):
-        return metrics.channel_scores(y, y_sim, names)
-    return {'r2': None, 'rmse': None, 'nrmse': None, 'fit_percent': None, 'diverged': True}
 
 
 def model_outputs(model, records: list[Record]) -> dict[str, np.ndarray]:
@@ -624,22 +615,32 @@ def fit_noise_models(model, records: list[Record], max_order: int = 20,
     return result
 
 
-def _mode_scores(out: dict, names=None) -> dict:
-    return {mode: _output_scores(out['y'], out[mode], names) for mode in RESIDUAL_KINDS}
+def _mode_scores(out: dict, names=None, modes=RESIDUAL_KINDS) -> dict:
+    result = {}
+    for mode in modes:
+        y_hat = out[mode]
+        if np.all(np.isfinite(y_hat)):
+            result[mode] = metrics.channel_scores(out['y'], y_hat, names)
+        else:
+            result[mode] = {'r2': None, 'rmse': None, 'nrmse': None, 'fit_percent': None,
+                            'diverged': True}
+    return result
 
 
-def _scores(parts: list[dict], sources: list[str] | None = None, names=None) -> dict:
+def _scores(parts: list[dict], sources: list[str] | None = None, names=None,
+            modes=RESIDUAL_KINDS) -> dict:
     """
     Scores pooled over the records (and over outputs: metrics.channel_scores).
 
     With several records also 'records': one entry each (source, samples, prediction and simulation
-    scores). names: the output names (several outputs also get 'per_output' scores).
+    scores). names: the output names (several outputs also get 'per_output' scores). modes: the
+    outputs of `parts` to score besides 'y'.
     """
     out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-    result = _mode_scores(out, names)
+    result = _mode_scores(out, names, modes)
     if sources is not None and len(parts) > 1:
         result['records'] = [{'source': src, 'samples': int(len(p['y'])),
-                              **_mode_scores(p, names)}
+                              **_mode_scores(p, names, modes)}
                              for src, p in zip(sources, parts)]
     return result
 
