@@ -59,7 +59,6 @@ class StampGate:
         self.confirm = int(confirm)
         self.outliers = 0
         self.restarts = 0
-        self.interleave_ns = INTERLEAVE_S * 1e9
         self.last: int | None = None            # stamp of the last command passed through
         self._held: list[tuple[int, Any]] = []
 
@@ -146,7 +145,7 @@ class StampGate:
         """Tell whether the held candidate is off the running grid and within INTERLEAVE_S."""
         dt = self._held[-1][0] - self.last
         d = dt / self.period_ns
-        return abs(dt) <= self.interleave_ns and abs(d - round(d)) > GRID_TOLERANCE
+        return abs(dt) <= INTERLEAVE_S * 1e9 and abs(d - round(d)) > GRID_TOLERANCE
 
     def _restart(self) -> list[tuple]:
         self.restarts += 1

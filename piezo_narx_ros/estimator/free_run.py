@@ -388,8 +388,8 @@ class FreeRunEstimator:
         Decide on held commands when no more commands come (the stream stopped).
 
         A gap within max_fill is estimated, `confirm` or more agreeing commands start a new
-        stream, anything else is refused as outliers. Returns the
-        estimates that became ready. The node calls it when commands have stopped for a while.
+        stream, anything else is refused as outliers. Returns the estimates that became ready.
+        The node calls it when commands have stopped for a while.
         """
         self._hand_over()
         out: list[tuple[int, float]] = []
