@@ -434,6 +434,41 @@ def test_increment_free_structure_only_where_the_estimation_input_moves_slowly()
         replace(cfg, without_increments='maybe').validate()
 
 
+def test_small_networks_only_where_the_estimation_input_closes_few_minor_loops():
+    """small_networks 'auto': every structure and seed also small, on one-axis loop-poor inputs."""
+    from piezo_narx_ros.ident.experiment import small
+    from piezo_narx_ros.plant import generate
+    cfg = ExperimentConfig(family='hysteresis_narx', hidden=6, n_seeds=2, small_networks='auto',
+                           small_hidden=2, hnarx_grid=({}, {'n_lags': 0}), arx_na=(2,),
+                           arx_nb=(2,))
+    cfg.validate()
+    specs = cfg.specs()
+    nets = [(dict(s.options).get('n_lags'), s.hidden, s.seed) for s in specs
+            if s.kind == 'hysteresis_narx']
+    assert nets == [(None, 6, 0), (None, 6, 1), (None, 2, 0), (None, 2, 1),
+                    (0, 6, 0), (0, 6, 1), (0, 2, 0), (0, 2, 1)]
+    assert len({s.label for s in specs}) == len(specs)   # the report tells them apart
+
+    def rec(u):
+        return Record(u=u, y=np.zeros_like(u), fs=2000.0, source='r')
+    one_loop = rec(generate('growing_sine', 2000.0, 4.0, 100.0, freq=1.0, hold=0.5))
+    loops = rec(generate('multisine', 2000.0, 4.0, 100.0, seed=1))
+    assert small(specs, cfg, [one_loop]) == specs
+    kept = small(specs, cfg, [loops])
+    assert [s.hidden for s in kept if s.kind == 'hysteresis_narx'] == [6] * 4
+    assert [s.kind for s in kept][-1] == 'arx'
+    axes = Record(u=np.c_[one_loop.u, one_loop.u], y=np.c_[one_loop.u, one_loop.u],
+                  fs=2000.0, source='a', inputs=('u1', 'u2'), outputs=('y1', 'y2'))
+    assert len(small(specs, cfg, [axes])) == len(kept)
+    assert small(specs, replace(cfg, small_networks='yes'), [loops]) == specs
+    assert len(replace(cfg, small_networks='no').specs()) == len(kept)
+    # Nothing to add when the small size is the size.
+    assert replace(cfg, small_hidden=6).specs() == kept
+    for bad in ({'small_networks': 'maybe'}, {'small_hidden': 0}, {'small_hidden': 2.5}):
+        with pytest.raises(ConfigError, match=next(iter(bad))):
+            replace(cfg, **bad).validate()
+
+
 def test_hnarx_grid_fits_every_structure_with_every_seed():
     """Each structure of hnarx_grid is its options over hnarx, fitted with every seed."""
     cfg = ExperimentConfig(family='hysteresis_narx', n_seeds=2, hidden=3, arx_na=(), arx_nb=(),

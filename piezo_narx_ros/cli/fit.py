@@ -25,7 +25,7 @@ import contextlib
 
 # Keys a --config YAML file may hold (config/fit.yaml lists them all with their defaults).
 CONFIG_KEYS = ('preset', 'family', 'ny', 'nu', 'hidden', 'seed', 'n_seeds', 'hnarx', 'hnarx_grid',
-               'narx_beside', 'without_increments',
+               'narx_beside', 'without_increments', 'small_networks', 'small_hidden',
                'arx_na', 'arx_nb', 'arx', 'split', 'max_lag', 'max_outside_fraction', 'residuals',
                'noise_model', 'noise_order', 'selection', 'jobs', 'training', 'final_training',
                'init_seconds', 'init_past', 'ensemble', 'ensemble_margin', 'command_topic',
@@ -209,6 +209,8 @@ def experiment_config(settings: dict, progress: bool):
             hnarx=dict(settings['hnarx']), hnarx_grid=tuple(settings['hnarx_grid']),
             narx_beside=str(settings['narx_beside']),
             without_increments=str(settings['without_increments']),
+            small_networks=str(settings['small_networks']),
+            small_hidden=int(settings['small_hidden']),
             selection=str(settings['selection']),
             arx_na=parse_range(settings['arx_na'], 'arx_na') if settings['arx'] else (),
             arx_nb=parse_range(settings['arx_nb'], 'arx_nb') if settings['arx'] else (),

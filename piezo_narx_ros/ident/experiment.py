@@ -156,6 +156,13 @@ class ExperimentConfig:
     # (docs/real.md, "Drive increments on slow records"); 'yes', 'no'. Not added when the grid
     # has an n_lags 0 structure already.
     without_increments: str = 'no'
+    # Family hysteresis_narx: also fit every structure and seed with `small_hidden` sigmoid units,
+    # and the validation records choose. 'auto': only on one-axis estimation inputs that close
+    # fewer than MINOR_LOOPS minor loops (one frequency, a full-range sine): there the ways the
+    # operator states combine inside the loop are not in the data, and a network of `hidden`
+    # units fills them in differently per seed (docs/real.md, "Smaller networks"); 'yes', 'no'.
+    small_networks: str = 'no'
+    small_hidden: int = 3
     selection: str = 'tests'            # 'tests' (paper) | 'worst_case' (see module docstring)
     arx_na: tuple = tuple(range(1, 11))  # empty = no ARX baseline
     arx_nb: tuple = tuple(range(1, 11))
@@ -203,8 +210,8 @@ class ExperimentConfig:
                 probe = HysteresisNARX(hidden=self.hidden, **structure)
                 options = tuple(sorted(structure.items()))
                 out += [CandidateSpec('hysteresis_narx', nu=probe.nu, ny=probe.ny,
-                                      hidden=self.hidden, seed=s, options=options)
-                        for s in self.seeds]
+                                      hidden=h, seed=s, options=options)
+                        for h in self.hidden_sizes for s in self.seeds]
             if self.narx_beside != 'no':
                 out += [CandidateSpec('narx', nu=nu, ny=ny, hidden=self.hidden, seed=self.seed)
                         for ny in self.ny for nu in self.nu]
@@ -213,6 +220,12 @@ class ExperimentConfig:
                     for ny in self.ny for nu in self.nu for s in self.seeds]
         out += [CandidateSpec('arx', nu=nb, ny=na) for na in self.arx_na for nb in self.arx_nb]
         return out
+
+    @property
+    def hidden_sizes(self) -> tuple:
+        """Sigmoid units of the hysteresis-operator networks: `hidden`, then the small ones."""
+        small = self.small_networks != 'no' and self.small_hidden != self.hidden
+        return (self.hidden, self.small_hidden) if small else (self.hidden,)
 
     def hnarx_structures(self) -> list[dict]:
         """Return the options of each HysteresisNARX structure (`hnarx_grid` over `hnarx`)."""
@@ -246,6 +259,12 @@ class ExperimentConfig:
         if self.without_increments not in NARX_BESIDE:
             raise ConfigError(f'without_increments must be one of {", ".join(NARX_BESIDE)}, got '
                               f'{self.without_increments!r}')
+        if self.small_networks not in NARX_BESIDE:
+            raise ConfigError(f'small_networks must be one of {", ".join(NARX_BESIDE)}, got '
+                              f'{self.small_networks!r}')
+        if int(self.small_hidden) != self.small_hidden or not 1 <= self.small_hidden <= 200:
+            raise ConfigError(f'small_hidden must be an integer in [1, 200], got '
+                              f'{self.small_hidden!r}')
         if self.selection not in SELECTIONS:
             raise ConfigError(f'selection must be one of {", ".join(SELECTIONS)}, got '
                               f'{self.selection!r}')
@@ -343,7 +362,7 @@ PRESETS = {
     # selected an ARX (validation R² 0.926, its networks 0.816-0.905); without increments 0.994.
     'envelope': {'family': 'hysteresis_narx', 'hidden': 10, 'n_seeds': 3, 'hnarx': {},
                  'hnarx_grid': ({}, {'n_lags': 6}), 'narx_beside': 'auto',
-                 'without_increments': 'auto',
+                 'without_increments': 'auto', 'small_networks': 'auto',
                  'arx_na': (2, 3, 4), 'arx_nb': (2, 3, 4), 'selection': 'worst_case',
                  'init_seconds': 0.5},
 }
@@ -938,6 +957,23 @@ def increments(specs: list, config: ExperimentConfig, est: list[Record]) -> list
     return [s for s in specs if not added(s)]
 
 
+def small(specs: list, config: ExperimentConfig, est: list[Record]) -> list:
+    """
+    Return specs without the small networks where they do not belong.
+
+    `small_networks` 'auto': kept only on records of one axis whose estimation input closes
+    fewer than MINOR_LOOPS minor loops (several axes: not measured, left out).
+    """
+    if len(config.hidden_sizes) == 1 or config.small_networks != 'auto':
+        return list(specs)
+    from .coverage import inner_reversals
+    from .hysteresis import MINOR_LOOPS
+    if _one_axis(est) and inner_reversals(est) < MINOR_LOOPS:
+        return list(specs)
+    return [s for s in specs if not (s.kind == 'hysteresis_narx'
+                                     and s.hidden == config.small_hidden)]
+
+
 def run_experiment(records: list[Record], config: ExperimentConfig | None = None,
                    executor: Executor | None = None,
                    validation: list[Record] | None = None) -> ExperimentResult:
@@ -998,7 +1034,8 @@ def run_experiments(groups: list[list[Record]], config: ExperimentConfig | None 
     if show is None:
         show = config.narx and len(specs) * len(data) > 20 and os.isatty(2)
     tasks = [(g, (spec, config)) for g in data for spec in
-             increments(beside(specs, config, data[g][0]), config, data[g][0])]
+             small(increments(beside(specs, config, data[g][0]), config, data[g][0]), config,
+                   data[g][0])]
     candidates = {g: [] for g in data}
     chosen = {}
     try:
