@@ -211,14 +211,15 @@ def test_envelope_preset_on_several_axes_adds_a_chain_per_axis_candidate(stage_d
     """The experiment fits both several-axes structures when inputs and outputs pair up."""
     from dataclasses import replace
 
-    from piezo_narx_ros.ident.experiment import (PRESETS, ExperimentConfig, distinct_specs,
-                                                 increments)
+    from piezo_narx_ros.ident.experiment import (PRESETS, ExperimentConfig, auto_grid,
+                                                 distinct_specs)
     from piezo_narx_ros.record import Record
     u, y = stage_data
     cfg = replace(ExperimentConfig(), **PRESETS['envelope'])
     square = [Record(u=u, y=y, fs=FS, source='s')]
-    # As run_experiment trims the grid: the structure without increments is for one axis only.
-    specs = increments(distinct_specs(cfg.specs(), square), cfg, square)
+    # As run_experiment trims the grid: the structure without increments and the small
+    # networks are for one axis only.
+    specs = auto_grid(distinct_specs(cfg.specs(), square), cfg, square)
     nets = [s for s in specs if s.kind == 'hysteresis_narx']
     chains = [s for s in nets if dict(s.options).get('structure') == 'chains']
     assert len(nets) == 1 + len(chains) == 1 + 6           # one common fit, 3 seeds x 2 lags

@@ -492,14 +492,15 @@ def test_several_axes_fit_the_envelope_family_once_not_once_per_seed_and_structu
     """The several-axes envelope fit uses neither seed nor drive increments: one candidate."""
     from dataclasses import replace
 
-    from piezo_narx_ros.ident.experiment import PRESETS, distinct_specs, increments
+    from piezo_narx_ros.ident.experiment import PRESETS, auto_grid, distinct_specs
     cfg = replace(ExperimentConfig(), **PRESETS['envelope'])
-    # 3 seeds x 2 structures; the third (without increments) is dropped on several axes.
-    specs = increments(cfg.specs(), cfg, [Record(u=np.zeros((50, 3)), y=np.zeros((50, 3)),
-                                                 fs=1e3, source='c', inputs=('u1', 'u2', 'u3'),
-                                                 outputs=('y1', 'y2', 'y3'))])
+    # 3 seeds x 2 structures; the third (without increments), the small networks of all three
+    # (3 x 3) and the paper's 16 networks beside are dropped on several axes.
+    specs = auto_grid(cfg.specs(), cfg, [Record(u=np.zeros((50, 3)), y=np.zeros((50, 3)),
+                                                fs=1e3, source='c', inputs=('u1', 'u2', 'u3'),
+                                                outputs=('y1', 'y2', 'y3'))])
     n_net = sum(s.kind == 'hysteresis_narx' for s in specs)
-    assert n_net == 6 and len(cfg.specs()) == len(specs) + 3
+    assert n_net == 6 and len(cfg.specs()) == len(specs) + 3 + 9 + 16
     one = Record(u=np.zeros((50, 1)), y=np.zeros((50, 1)), fs=1e3, source='a')
     three = Record(u=np.zeros((50, 3)), y=np.zeros((50, 3)), fs=1e3, source='b',
                    inputs=('u1', 'u2', 'u3'), outputs=('y1', 'y2', 'y3'))

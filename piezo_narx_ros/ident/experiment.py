@@ -974,6 +974,11 @@ def small(specs: list, config: ExperimentConfig, est: list[Record]) -> list:
                                      and s.hidden == config.small_hidden)]
 
 
+def auto_grid(specs: list, config: ExperimentConfig, est: list[Record]) -> list:
+    """Return the specs fitted on estimation records est: every 'auto' rule applied."""
+    return small(increments(beside(specs, config, est), config, est), config, est)
+
+
 def run_experiment(records: list[Record], config: ExperimentConfig | None = None,
                    executor: Executor | None = None,
                    validation: list[Record] | None = None) -> ExperimentResult:
@@ -1034,8 +1039,7 @@ def run_experiments(groups: list[list[Record]], config: ExperimentConfig | None 
     if show is None:
         show = config.narx and len(specs) * len(data) > 20 and os.isatty(2)
     tasks = [(g, (spec, config)) for g in data for spec in
-             small(increments(beside(specs, config, data[g][0]), config, data[g][0]), config,
-                   data[g][0])]
+             auto_grid(specs, config, data[g][0])]
     candidates = {g: [] for g in data}
     chosen = {}
     try:
