@@ -469,6 +469,28 @@ def test_small_networks_only_where_the_estimation_input_closes_few_minor_loops()
             replace(cfg, **bad).validate()
 
 
+def test_envelope_preset_on_a_growing_sine_fits_and_selects_among_small_networks_too():
+    from dataclasses import replace
+
+    from piezo_narx_ros.ident.experiment import PRESETS
+    from piezo_narx_ros.plant import PiezoCantilever, generate
+
+    def rec(freq, seed):
+        u = generate('growing_sine', 2000.0, 3.0, 100.0, freq=freq, hold=0.2)
+        return Record(u=u, y=PiezoCantilever(fs=2000.0, seed=seed).run(u).y, fs=2000.0,
+                      source=f'{freq} Hz')
+    cfg = replace(ExperimentConfig(), **{**PRESETS['envelope'], 'n_seeds': 1, 'hidden': 4,
+                                         'small_hidden': 2,
+                                         'hnarx': {'n_plays': 4, 'max_iter': 3}},
+                  jobs=1, progress=False)
+    res = run_experiment([rec(1.0, 1)], cfg, validation=[rec(5.0, 2)])
+    nets = [c for c in res.candidates if c.spec.kind == 'hysteresis_narx']
+    # Every structure (two of the grid, one without increments on this slow input) twice.
+    assert sorted(c.spec.hidden for c in nets) == [2, 2, 2, 4, 4, 4]
+    assert all(c.error is None and np.isfinite(c.free_run_r2()) for c in nets)
+    assert res.best.free_run_r2() == max(c.free_run_r2() for c in res.candidates)
+
+
 def test_hnarx_grid_fits_every_structure_with_every_seed():
     """Each structure of hnarx_grid is its options over hnarx, fitted with every seed."""
     cfg = ExperimentConfig(family='hysteresis_narx', n_seeds=2, hidden=3, arx_na=(), arx_nb=(),
