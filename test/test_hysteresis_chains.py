@@ -217,8 +217,7 @@ def test_envelope_preset_on_several_axes_adds_a_chain_per_axis_candidate(stage_d
     u, y = stage_data
     cfg = replace(ExperimentConfig(), **PRESETS['envelope'])
     square = [Record(u=u, y=y, fs=FS, source='s')]
-    # As run_experiment trims the grid: the structure without increments and the small
-    # networks are for one axis only.
+    # As run_experiment trims the grid: the structure without increments is for one axis only.
     specs = auto_grid(distinct_specs(cfg.specs(), square), cfg, square)
     nets = [s for s in specs if s.kind == 'hysteresis_narx']
     chains = [s for s in nets if dict(s.options).get('structure') == 'chains']

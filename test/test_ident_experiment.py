@@ -469,7 +469,7 @@ def test_small_networks_only_where_the_estimation_input_closes_few_minor_loops()
             replace(cfg, **bad).validate()
 
 
-def test_envelope_preset_on_a_growing_sine_fits_and_selects_among_small_networks_too():
+def test_small_networks_on_a_growing_sine_are_fitted_and_selected_among():
     from dataclasses import replace
 
     from piezo_narx_ros.ident.experiment import PRESETS
@@ -480,7 +480,7 @@ def test_envelope_preset_on_a_growing_sine_fits_and_selects_among_small_networks
         return Record(u=u, y=PiezoCantilever(fs=2000.0, seed=seed).run(u).y, fs=2000.0,
                       source=f'{freq} Hz')
     cfg = replace(ExperimentConfig(), **{**PRESETS['envelope'], 'n_seeds': 1, 'hidden': 4,
-                                         'small_hidden': 2,
+                                         'small_networks': 'auto', 'small_hidden': 2,
                                          'hnarx': {'n_plays': 4, 'max_iter': 3}},
                   jobs=1, progress=False)
     res = run_experiment([rec(1.0, 1)], cfg, validation=[rec(5.0, 2)])
@@ -516,13 +516,13 @@ def test_several_axes_fit_the_envelope_family_once_not_once_per_seed_and_structu
 
     from piezo_narx_ros.ident.experiment import PRESETS, auto_grid, distinct_specs
     cfg = replace(ExperimentConfig(), **PRESETS['envelope'])
-    # 3 seeds x 2 structures; the third (without increments), the small networks of all three
-    # (3 x 3) and the paper's 16 networks beside are dropped on several axes.
+    # 3 seeds x 2 structures; the third (without increments) and the paper's 16 networks
+    # beside are dropped on several axes.
     specs = auto_grid(cfg.specs(), cfg, [Record(u=np.zeros((50, 3)), y=np.zeros((50, 3)),
                                                 fs=1e3, source='c', inputs=('u1', 'u2', 'u3'),
                                                 outputs=('y1', 'y2', 'y3'))])
     n_net = sum(s.kind == 'hysteresis_narx' for s in specs)
-    assert n_net == 6 and len(cfg.specs()) == len(specs) + 3 + 9 + 16
+    assert n_net == 6 and len(cfg.specs()) == len(specs) + 3 + 16
     one = Record(u=np.zeros((50, 1)), y=np.zeros((50, 1)), fs=1e3, source='a')
     three = Record(u=np.zeros((50, 3)), y=np.zeros((50, 3)), fs=1e3, source='b',
                    inputs=('u1', 'u2', 'u3'), outputs=('y1', 'y2', 'y3'))
