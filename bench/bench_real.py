@@ -150,11 +150,13 @@ DEFAULT_SCENARIOS = tuple(s for s in ALL_SCENARIOS if s != 'growing10k')
 class Cli:
     """Runs `piezo-narx`; remembers which of the issue's options this install lacks."""
 
-    def __init__(self, jobs: int):
+    def __init__(self, jobs: int, fit_config: str | None = None):
         exe = Path(sys.executable).with_name('piezo-narx')
         module = [sys.executable, '-m', 'piezo_narx_ros.cli.main']
         self.cmd = [str(exe)] if exe.exists() else module
         self.jobs = jobs
+        # A settings file every fit reads over its preset (fit --config), to try an option.
+        self.fit_config = ['--config', fit_config] if fit_config else []
         self.missing = set()      # options the CLI rejected ('--validate', '--init-samples')
         self.tried = set()        # options the bench has passed at least once
         self.sim_force = None     # ['--force'] once simulate is known to take it
@@ -193,7 +195,7 @@ class Cli:
         reading: how to read the inputs (e.g. --columns u=1,y=5 --y-unit um).
         """
         common = ['--preset', preset, '--out', out, '--jobs', self.jobs, '--quiet',
-                  '--no-report', '--force', *reading]
+                  '--no-report', '--force', *self.fit_config, *reading]
         t0 = time.perf_counter()
         if val and '--validate' not in self.missing:
             proc = self.run('fit', *est, '--validate', *val, *common)
@@ -563,16 +565,20 @@ def main(argv=None):
     p.add_argument('--keep', metavar='DIR', help='work in DIR and keep it (default: a temporary '
                                                  'directory, removed)')
     p.add_argument('--json', metavar='FILE', help='write every row as JSON')
+    p.add_argument('--fit-config', metavar='FILE',
+                   help='settings every fit reads over its preset (piezo-narx fit --config '
+                        'FILE), e.g. to try an option of config/fit.yaml on every scenario')
     p.add_argument('--true-past', action='store_true',
                    help="also score each model run through the record's own (rebuilt) history: "
                         'the error a perfect state estimate would leave')
     args = p.parse_args(argv)
     if args.quick:
         args.plants, args.seeds = ['bouc_wen'], [0]
-    cli = Cli(args.jobs)
+    cli = Cli(args.jobs, args.fit_config)
     load = os.getloadavg()
+    extra = f'; fit --config {args.fit_config}' if args.fit_config else ''
     print(f'bench_real: scenarios {" ".join(args.scenarios)}; plants {" ".join(args.plants)}; '
-          f'seeds {" ".join(map(str, args.seeds))}; presets {" ".join(args.presets)}; '
+          f'seeds {" ".join(map(str, args.seeds))}; presets {" ".join(args.presets)}{extra}; '
           f'load average {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}', flush=True)
     root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix='bench_real_'))
     rows = []
