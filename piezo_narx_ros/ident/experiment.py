@@ -255,15 +255,10 @@ class ExperimentConfig:
                                   f'{0 if name in ("nu", "arx_nb") else 1}, got {list(vals)}')
         if self.family not in FAMILIES:
             raise ConfigError(f'family must be one of {", ".join(FAMILIES)}, got {self.family!r}')
-        if self.narx_beside not in NARX_BESIDE:
-            raise ConfigError(f'narx_beside must be one of {", ".join(NARX_BESIDE)}, got '
-                              f'{self.narx_beside!r}')
-        if self.without_increments not in NARX_BESIDE:
-            raise ConfigError(f'without_increments must be one of {", ".join(NARX_BESIDE)}, got '
-                              f'{self.without_increments!r}')
-        if self.small_networks not in NARX_BESIDE:
-            raise ConfigError(f'small_networks must be one of {", ".join(NARX_BESIDE)}, got '
-                              f'{self.small_networks!r}')
+        for name in ('narx_beside', 'without_increments', 'small_networks'):
+            if getattr(self, name) not in NARX_BESIDE:
+                raise ConfigError(f'{name} must be one of {", ".join(NARX_BESIDE)}, got '
+                                  f'{getattr(self, name)!r}')
         if int(self.small_hidden) != self.small_hidden or not 1 <= self.small_hidden <= 200:
             raise ConfigError(f'small_hidden must be an integer in [1, 200], got '
                               f'{self.small_hidden!r}')
