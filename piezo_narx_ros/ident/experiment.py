@@ -917,6 +917,19 @@ def _one_axis(records: list[Record]) -> bool:
     return all(getattr(r, 'n_in', 1) == 1 and getattr(r, 'n_out', 1) == 1 for r in records)
 
 
+def _loop_rich(est: list[Record]) -> bool | None:
+    """
+    Tell whether the estimation input closes MINOR_LOOPS minor loops (coverage.inner_reversals).
+
+    None on records of several axes, where neither 'auto' rule that asks was measured.
+    """
+    if not _one_axis(est):
+        return None
+    from .coverage import inner_reversals
+    from .hysteresis import MINOR_LOOPS
+    return inner_reversals(est) >= MINOR_LOOPS
+
+
 def beside(specs: list, config: ExperimentConfig, est: list[Record]) -> list:
     """
     Return specs without the paper's networks beside the envelope family where they do not belong.
@@ -926,9 +939,7 @@ def beside(specs: list, config: ExperimentConfig, est: list[Record]) -> list:
     """
     if config.family == 'narx' or config.narx_beside != 'auto':
         return list(specs)
-    from .coverage import inner_reversals
-    from .hysteresis import MINOR_LOOPS
-    if _one_axis(est) and inner_reversals(est) >= MINOR_LOOPS:
+    if _loop_rich(est):
         return list(specs)
     return [s for s in specs if s.kind != 'narx']
 
@@ -963,9 +974,7 @@ def small(specs: list, config: ExperimentConfig, est: list[Record]) -> list:
     """
     if len(config.hidden_sizes) == 1 or config.small_networks != 'auto':
         return list(specs)
-    from .coverage import inner_reversals
-    from .hysteresis import MINOR_LOOPS
-    if _one_axis(est) and inner_reversals(est) < MINOR_LOOPS:
+    if _loop_rich(est) is False:
         return list(specs)
     return [s for s in specs if not (s.kind == 'hysteresis_narx'
                                      and s.hidden == config.small_hidden)]
