@@ -593,3 +593,25 @@ def test_low_ones_sim_time_tilde_player_waiting_default_voltage_limits(tmp_path,
         rclpy.try_shutdown(context=ctx)
     model = toy_narx()                                  # trained on +-150 V
     assert input_limits(model, 0.05) == {'u_min': -165.0, 'u_max': 165.0}
+
+
+def test_a_node_aborted_while_it_spins_prints_its_threads_stacks():
+    """SIGABRT (what a supervisor sends a hung node) dumps where every thread is."""
+    env = dict(os.environ, PYTHONUNBUFFERED='1')
+    proc = subprocess.Popen([sys.executable, '-m', 'piezo_narx_ros.nodes.simulator_node',
+                             '--ros-args', '-r', '__ns:=/abrt'], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        for _ in range(10):   # its start-up log line: it spins by then
+            line = proc.stderr.readline()
+            if not line or 'simulating' in line:
+                break
+        assert 'simulating' in line
+        proc.send_signal(signal.SIGABRT)
+        _, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == -signal.SIGABRT, err
+    assert 'Fatal Python error: Aborted' in err and 'in run_node' in err, err

@@ -5,12 +5,14 @@ The recorded bytes come back on the selected topics, paced by the recorded timin
 repeats; a bad bag exits 2 with one line.
 """
 import os
+import signal
 import subprocess
 import sys
 import threading
 import time
 
 import numpy as np
+import pytest
 import rclpy
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
@@ -28,6 +30,16 @@ def start_player(*params):
             '-p', 'start_delay_s:=0.3', '-p', 'wait_for_subscribers:=1', *params]
     return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=dict(os.environ, PYTHONUNBUFFERED='1'))
+
+
+def communicate_or_dump(proc, timeout):
+    """proc.communicate(timeout); a hung node is aborted so that its stacks say where."""
+    try:
+        return proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGABRT)   # run_node's faulthandler prints every thread's stack
+        _, err = proc.communicate(timeout=20)
+        pytest.fail(f'the node did not exit within {timeout} s; its stderr:\n{err}')
 
 
 class RawCollector:
@@ -143,7 +155,6 @@ while True:
 
 def test_a_subscriber_that_stops_acknowledging_costs_the_wait_and_a_warning(tmp_path):
     """A frozen reliable reader (SIGSTOP: its DDS threads stop too) never acknowledges."""
-    import signal
     bag = _bag(tmp_path, 'b', '/play4')
     sink = subprocess.Popen([sys.executable, '-c', SILENT_SUBSCRIBER], stdout=subprocess.PIPE,
                             text=True)
@@ -156,7 +167,7 @@ def test_a_subscriber_that_stops_acknowledging_costs_the_wait_and_a_warning(tmp_
         assert sink.stdout.readline().strip() == 'matched'
         time.sleep(0.5)
         sink.send_signal(signal.SIGSTOP)
-        _, err = proc.communicate(timeout=30)
+        _, err = communicate_or_dump(proc, 30)
     finally:
         sink.send_signal(signal.SIGCONT)
         sink.kill()
@@ -170,7 +181,7 @@ def test_a_subscriber_that_stops_acknowledging_costs_the_wait_and_a_warning(tmp_
 
 def test_bad_bag_exits_2_with_one_line(tmp_path):
     proc = start_player('-p', f'bag:={tmp_path / "missing"}')
-    _, err = proc.communicate(timeout=30)
+    _, err = communicate_or_dump(proc, 30)
     assert proc.returncode == 2
     assert err.strip() == f'player_node: error: bag not found: {tmp_path / "missing"}'
 
@@ -180,7 +191,7 @@ def test_bag_without_a_playable_topic_exits_2_with_one_line(tmp_path):
     with BagWriter(tmp_path / 'empty'):
         pass                                           # a valid bag with no topic at all
     proc = start_player('-p', f'bag:={tmp_path / "empty"}')
-    _, err = proc.communicate(timeout=30)
+    _, err = communicate_or_dump(proc, 30)
     assert proc.returncode == 2
     assert err.strip() == f'player_node: error: no playable topic in {tmp_path / "empty"}'
 

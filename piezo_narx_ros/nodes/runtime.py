@@ -60,10 +60,18 @@ def run_node(node_cls: Callable[..., Node], args: list[str] | None = None,
     must close its bag then, not die); a node that refuses to start (ConfigError or any
     PiezoNarxError from its constructor) prints one line `NAME: error: reason` and exits 2; any
     other exception exits 1. The executor is EventsExecutor unless PIEZO_NARX_EXECUTOR=single or
-    `executor` says otherwise.
+    `executor` says otherwise. A crash in compiled code (SIGSEGV, SIGBUS, ...) or SIGABRT prints
+    every thread's Python stack to stderr first.
     """
+    import faulthandler
     import os
     import threading
+
+    # A node has died in DDS's or rclpy's C code on the way out (exit -11, seen twice in a
+    # suite of 1136 tests): the stacks say where, and a supervisor (or a test) that finds a node
+    # hung can send SIGABRT to get them. (Already on under pytest or PYTHONFAULTHANDLER.)
+    if not faulthandler.is_enabled():
+        faulthandler.enable()
 
     from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
