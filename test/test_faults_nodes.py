@@ -136,8 +136,12 @@ def test_standard_qos_override_changes_the_stream(ctx):
 
 @pytest.mark.parametrize('name', RETIRED_QOS_PARAMETERS)
 def test_retired_qos_parameter_is_refused_with_the_override_name(ctx, name):
-    node = _Listener(context=ctx, namespace='/qos4',
-                     parameter_overrides=[Parameter(name, value=True)])
+    overrides = [Parameter(name, value=True)]
+    # Our nodes refuse it while they are built, before they open anything...
+    with pytest.raises(ConfigError, match=f'{name} no longer exists.*qos_overrides'):
+        _Listener(context=ctx, namespace='/qos4', parameter_overrides=overrides)
+    # ...and run_node's check refuses it on any node.
+    node = Node('plain', context=ctx, namespace='/qos4', parameter_overrides=overrides)
     try:
         with pytest.raises(ConfigError, match=f'{name} no longer exists.*qos_overrides'):
             check_overrides(node)
@@ -203,6 +207,17 @@ def test_retired_parameter_refused_by_a_real_node():
     assert proc.returncode == 2 and len(errors) == 1, proc.stderr
     assert errors[0].startswith('simulator_node: error: parameter best_effort no longer exists')
     assert 'qos_overrides./piezo/deflection.publisher.reliability' in errors[0]
+
+
+def test_a_recorder_refused_for_a_retired_parameter_leaves_no_bag(tmp_path):
+    bag = tmp_path / 'never'
+    proc = subprocess.run([sys.executable, '-m', 'piezo_narx_ros.nodes.recorder_node',
+                           '--ros-args', '-p', 'qos_depth:=5', '-p', f'output:={bag}', '-r',
+                           '__ns:=/retired2'], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1].startswith(
+        'recorder_node: error: parameter qos_depth no longer exists'), proc.stderr
+    assert not bag.exists() and 'wrote' not in proc.stdout
 
 
 def test_sighup_closes_the_recording_like_sigterm(tmp_path):

@@ -140,6 +140,16 @@ def run_node(node_cls: Callable[..., Node], args: list[str] | None = None,
 RETIRED_QOS_PARAMETERS = ('best_effort', 'qos_depth', 'depth')
 
 
+def refuse_retired(node: Node) -> None:
+    """Raise ConfigError naming a retired QoS parameter given to `node` (and its replacement)."""
+    given = getattr(node, '_parameter_overrides', {})   # rclpy keeps no public copy
+    retired = sorted(n for n in given if n in RETIRED_QOS_PARAMETERS and not node.has_parameter(n))
+    if retired:
+        raise ConfigError(f'parameter {retired[0]} no longer exists: QoS is set with the standard '
+                          'overrides, e.g. -p qos_overrides./piezo/deflection.publisher.'
+                          'reliability:=best_effort or ...depth:=20000 (docs/nodes.md)')
+
+
 def check_overrides(node: Node) -> None:
     """
     Refuse retired QoS parameters with a hint.
@@ -147,16 +157,12 @@ def check_overrides(node: Node) -> None:
     Warn about other parameters that were given but that `node` does not declare (ROS 2 ignores
     them silently; a typo then looks like a setting that took effect).
     """
+    refuse_retired(node)
     given = set(getattr(node, '_parameter_overrides', {}))   # rclpy keeps no public copy
     declared = {name for name in given if node.has_parameter(name)}
     pending = node.pending_parameter_prefixes() if hasattr(
         node, 'pending_parameter_prefixes') else []
     unknown = sorted(n for n in given - declared if not any(n.startswith(p) for p in pending))
-    retired = [n for n in unknown if n in RETIRED_QOS_PARAMETERS]
-    if retired:
-        raise ConfigError(f'parameter {retired[0]} no longer exists: QoS is set with the standard '
-                          'overrides, e.g. -p qos_overrides./piezo/deflection.publisher.'
-                          'reliability:=best_effort or ...depth:=20000 (docs/nodes.md)')
     if unknown:
         node.get_logger().warning(f'ignoring unknown parameter(s): {", ".join(unknown)}')
 
@@ -210,6 +216,8 @@ class PiezoNode(Node):
         self._finished = None     # run_node's future: finish() completes it
         self.qos_watch = QosWatch(self)
         self.params = declare_parameters(self, self.PARAMS)
+        # Before the node opens anything: a refused recorder left an empty bag behind.
+        refuse_retired(self)
 
     def finish(self) -> None:
         """
