@@ -247,17 +247,26 @@ def test_sighup_closes_the_recording_like_sigterm(tmp_path):
     assert len(rec.u) == n
 
 
-def test_every_node_stops_on_sighup():
+def spinning_simulator(ns):
+    """Start simulator_node in its own process; return it once it has logged its start."""
     env = dict(os.environ, PYTHONUNBUFFERED='1')
     proc = subprocess.Popen([sys.executable, '-m', 'piezo_narx_ros.nodes.simulator_node',
-                             '--ros-args', '-r', '__ns:=/hup2'], stdout=subprocess.PIPE,
+                             '--ros-args', '-r', f'__ns:={ns}'], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env)
+    for _ in range(10):   # its start-up log line: the handlers are installed, it spins
+        line = proc.stderr.readline()
+        if not line or 'simulating' in line:
+            break
+    if 'simulating' not in line:
+        proc.kill()
+        proc.wait()
+    assert 'simulating' in line
+    return proc
+
+
+def test_every_node_stops_on_sighup():
+    proc = spinning_simulator('/hup2')
     try:
-        for _ in range(10):   # its start-up log line: the handlers are installed by then
-            line = proc.stderr.readline()
-            if not line or 'simulating' in line:
-                break
-        assert 'simulating' in line
         proc.send_signal(signal.SIGHUP)
         assert proc.wait(20) == 0
     finally:
@@ -612,16 +621,8 @@ def test_low_ones_sim_time_tilde_player_waiting_default_voltage_limits(tmp_path,
 
 def test_a_node_aborted_while_it_spins_prints_its_threads_stacks():
     """SIGABRT (what a supervisor sends a hung node) dumps where every thread is."""
-    env = dict(os.environ, PYTHONUNBUFFERED='1')
-    proc = subprocess.Popen([sys.executable, '-m', 'piezo_narx_ros.nodes.simulator_node',
-                             '--ros-args', '-r', '__ns:=/abrt'], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env)
+    proc = spinning_simulator('/abrt')
     try:
-        for _ in range(10):   # its start-up log line: it spins by then
-            line = proc.stderr.readline()
-            if not line or 'simulating' in line:
-                break
-        assert 'simulating' in line
         proc.send_signal(signal.SIGABRT)
         _, err = proc.communicate(timeout=20)
     finally:
