@@ -95,6 +95,12 @@ class HysteresisNARX(DynamicModel):
     moves smoothly and fast enough to slew (hysteresis_training.drive_slews), else 'no'.
     Measured in docs/real.md ("The amplifier's bandwidth"): on a 0.1-1500 Hz multisine at
     5 kHz it finds the simulated amplifier's slew and bandwidth.
+    creep: 'excited' keeps every creep weight >= 0 (a piezo creeps on in the direction it
+    moved) and holds at 0 the weight of a filter the estimation input hardly moves
+    (hysteresis_training.slow_creep: its weight would learn the output's slow drift, after an
+    unknown past the past's; training_info_['creep_fixed_s'] lists them); 'free' fits every
+    weight with either sign. Measured in docs/real.md ("Creep weights from what the records
+    excite").
 
     Fitted attributes: u_scale_ (V), y_scale_ (m), radii_ (normalised), theta_ (all parameters,
     normalised units), amplifier_ (bool: the drive has a learned bandwidth), training_info_;
@@ -125,18 +131,19 @@ class HysteresisNARX(DynamicModel):
         'mimo_order': Interval(int, 1, 60),
         'amplifier': Options(('auto', 'no', 'yes')),
         'past': Options(PASTS),
+        'creep': Options(('excited', 'free')),
     }
 
     def __init__(self, hidden=10, n_plays=12, n_duhem=1, n_lags=3, na=3, nb=3,
                  creep_taus=DEFAULT_CREEP_TAUS, seed=0, max_iter=60, val_fraction=0.0,
                  max_fail=8, hessian_stride=2, start='auto', monotone='auto', mimo_order=28,
-                 amplifier='auto', past='any'):
+                 amplifier='auto', past='any', creep='excited'):
         values = check_parameters(type(self), {
             'hidden': hidden, 'n_plays': n_plays, 'n_duhem': n_duhem, 'n_lags': n_lags,
             'na': na, 'nb': nb, 'creep_taus': creep_taus, 'seed': seed, 'max_iter': max_iter,
             'val_fraction': val_fraction, 'max_fail': max_fail, 'hessian_stride': hessian_stride,
             'start': start, 'monotone': monotone, 'mimo_order': mimo_order,
-            'amplifier': amplifier, 'past': past})
+            'amplifier': amplifier, 'past': past, 'creep': creep})
         for name, value in values.items():
             setattr(self, name, value)
         self.theta_ = None
@@ -219,6 +226,9 @@ class HysteresisNARX(DynamicModel):
         from .hysteresis_training import drive_slews
         self.amplifier_ = self.amplifier == 'yes' or (
             self.amplifier == 'auto' and drive_slews([x / u_scale for x in us]))
+        from .hysteresis_training import slow_creep
+        held = (slow_creep(self.creep_taus, [x / u_scale for x in us], fs)
+                if self.creep == 'excited' else [False] * len(self.creep_taus))
 
         def fit_on(prefixes, theta0):
             skip = [p.size for p in prefixes]
@@ -230,7 +240,8 @@ class HysteresisNARX(DynamicModel):
                 self.hessian_stride,
                 theta0=None if theta0 is None else self._signed(theta0, sign),
                 skip=skip, record_offsets=len(us) > 1,
-                monotone=monotone, amplifier=self.amplifier_)
+                monotone=monotone, amplifier=self.amplifier_, creep_fixed=held,
+                creep_nonneg=self.creep == 'excited')
             info['record_offsets'] = [sign * o for o in info['record_offsets']]
             return self._signed(theta, sign), info
 
@@ -253,7 +264,8 @@ class HysteresisNARX(DynamicModel):
         info['drive_starts'] = [{**d, 'rho': d['rho'] * u_scale * fs}
                                 for d in info['drive_starts']]
         info['record_offsets_m'] = [o * y_scale for o in info.pop('record_offsets')]
-        info.update(monotone=bool(monotone), inner_reversals=loops)
+        info.update(monotone=bool(monotone), inner_reversals=loops,
+                    creep_fixed_s=[t for t, h in zip(self.creep_taus, held) if h])
         if self.amplifier_:
             info['drive_bandwidth_hz'] = self.drive_bandwidth
         self.training_info_ = info
