@@ -54,12 +54,13 @@ def test_state_from_a_window_recovers_a_plant_history_and_offset(hnarx):
     known = hnarx.simulate(np.r_[u_hist, u])[u_hist.size:][n:] + 3e-6
     rest = hnarx.simulate(u)[n:]
     e_est, e_known, e_rest = (rms(y[n:] - x) for x in (est, known, rest))
-    # Measured: 0.30 um against 0.125 um told the whole history, 3.0 um from rest. What the
-    # window cannot see (the memory of the largest plays, slow creep) costs the difference:
-    # bench/bench_real.py measures it on the scenarios.
-    assert e_est <= 3.0 * e_known, (e_est, e_known)
+    # Measured: 0.24 um against 0.074 um told the whole history, 2.9 um from rest (creep='free':
+    # 0.20 against 0.095 um). What the window cannot see (the memory of the largest plays, the
+    # slow creep the history's steps left, which the model told the history now follows closer)
+    # costs the difference: bench/bench_real.py measures it on the scenarios.
+    assert e_est <= 3.5 * e_known and e_est < 0.3e-6, (e_est, e_known)
     assert e_rest > 5.0 * e_est, (e_rest, e_est)
-    # The offset is found to about a micrometre (measured 1.83 um for 3 um): the memory of the
+    # The offset is found to about a micrometre (measured 2.01 um for 3 um): the memory of the
     # largest plays, frozen over the window, looks like an offset there too.
     assert abs(state.offset - 3e-6) < 1.5e-6, state.offset
     assert state.info['window_samples'] == n
