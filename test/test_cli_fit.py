@@ -317,3 +317,20 @@ def test_fit_envelope_preset_from_two_records(tmp_path, capsys):
     code, _, err = cli(['fit', str(tmp_path / 'p0.npz'), '--preset', 'nope', '--out',
                         str(tmp_path / 'x')], capsys)
     assert code == 2 and 'nope' in err
+
+
+def test_fit_says_which_creep_filters_a_sine_leaves_at_zero(tmp_path, capsys):
+    from piezo_narx_ros.plant import PiezoCantilever, generate
+    u = generate('sine', 2000.0, 6.0, 100.0, freq=1.0)
+    np.savez(tmp_path / 's.npz', u=u, y=PiezoCantilever(seed=0).run(u).y, fs=2000.0)
+    (tmp_path / 'small.yaml').write_text(yaml.safe_dump(
+        {'hidden': 3, 'n_seeds': 1, 'hnarx': {'n_plays': 4, 'max_iter': 3}, 'hnarx_grid': [],
+         'without_increments': 'no', 'arx_na': [], 'arx_nb': []}))
+    code, out, err = cli(['fit', str(tmp_path / 's.npz'), '--preset', 'envelope', '--config',
+                          str(tmp_path / 'small.yaml'), '--jobs', '1', '--no-report', '--out',
+                          str(tmp_path / 'o')], capsys)
+    assert code == 0, err
+    # A 1 Hz sine around its start moves neither the 30 s nor the 100 s creep filter by 1 %.
+    assert 'creep held at 0 for the 30 s, 100 s filter(s)' in out
+    doc = json.loads((tmp_path / 'o' / 'model.json').read_text())
+    assert doc['training']['info']['creep_fixed_s'] == [30.0, 100.0]

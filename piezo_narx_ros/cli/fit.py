@@ -433,6 +433,11 @@ def _print_fit(result, config, executor, model_path, out, paths) -> None:
     print(f'selected {best.spec.label} ({best.n_params} parameters) of '
           f'{len(result.candidates)} candidates in {result.wall_seconds:.1f} s '
           f'({executor.describe()})')
+    held = (getattr(best.model, 'training_info_', None) or {}).get('creep_fixed_s')
+    if held:    # hysteresis_narx, creep='excited' (docs/real.md)
+        print('creep held at 0 for the ' + ', '.join(f'{t:g} s' for t in held)
+              + ' filter(s): the estimation input hardly moves them (hnarx: {creep: free} '
+                'fits them)')
     print(f'validation R²: prediction {val["prediction"]["r2"]:.6f}, simulation '
           f'{"diverged" if r2_sim is None else f"{r2_sim:.6f}"}')
     per = val['simulation'].get('per_output') or []
