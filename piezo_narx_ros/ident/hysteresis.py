@@ -223,11 +223,11 @@ class HysteresisNARX(DynamicModel):
         # The monotone network rises with the input; an actuator whose output falls with the
         # voltage is fitted on the negated output and the output layer negated after.
         sign = -1.0 if monotone and _gain_sign(us, ys) < 0 else 1.0
-        from .hysteresis_training import drive_slews
+        from .hysteresis_training import drive_slews, slow_creep
+        uns = [x / u_scale for x in us]
         self.amplifier_ = self.amplifier == 'yes' or (
-            self.amplifier == 'auto' and drive_slews([x / u_scale for x in us]))
-        from .hysteresis_training import slow_creep
-        held = (slow_creep(self.creep_taus, [x / u_scale for x in us], fs)
+            self.amplifier == 'auto' and drive_slews(uns))
+        held = (slow_creep(self.creep_taus, uns, fs)
                 if self.creep == 'excited' else [False] * len(self.creep_taus))
 
         def fit_on(prefixes, theta0):
