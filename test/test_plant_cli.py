@@ -68,9 +68,10 @@ def test_simulate_out_must_be_npz(tmp_path, capsys):
 
 
 def test_cli_signal_kinds_match_the_generator():
-    from piezo_narx_ros.cli.simulate import KINDS as CLI_KINDS
-    from piezo_narx_ros.plant.signals import KINDS
+    from piezo_narx_ros.cli.simulate import KINDS as CLI_KINDS, PREAMBLES as CLI_PREAMBLES
+    from piezo_narx_ros.plant.signals import KINDS, PREAMBLES
     assert set(CLI_KINDS) == set(KINDS)
+    assert set(CLI_PREAMBLES) == set(PREAMBLES)
 
 
 def test_simulate_protocol(tmp_path):
@@ -80,3 +81,28 @@ def test_simulate_protocol(tmp_path):
     with np.load(out, allow_pickle=False) as d:
         assert d['u'].size == 10000 and np.max(np.abs(d['u'])) <= 100.0
         assert json.loads(str(d['meta']))['options']['cycles'] == 1
+
+
+def test_simulate_preamble_wipes_what_the_unknown_past_left(tmp_path):
+    # Two random pasts leave the plant about 1 um apart at the record's start; a 2 s fade-out
+    # played before the record (part of it) brings them within a fifth of that (measured 13x).
+    def start_gap(preamble):
+        starts = []
+        for seed in (1, 2):
+            out = tmp_path / f'{preamble}_{seed}.npz'
+            assert run_cli(['simulate', '--signal', 'sine', '--seconds', '1', '--history', '20',
+                            '--history-seed', str(seed), '--preamble', preamble,
+                            '--out', str(out)]) == 0
+            with np.load(out, allow_pickle=False) as d:
+                meta = json.loads(str(d['meta']))
+                n = meta.get('preamble', {}).get('samples', 0)
+                assert d['u'].size == n + 2000
+                starts.append(float(d['y_true'][n]))
+        return abs(starts[0] - starts[1]), meta, n
+
+    gap_none, meta_none, n_none = start_gap('none')
+    gap_fade, meta_fade, n_fade = start_gap('fade-out')
+    assert n_none == 0 and 'preamble' not in meta_none
+    assert n_fade == 4000 and meta_fade['preamble']['kind'] == 'fade-out'
+    assert gap_none > 0.3e-6
+    assert gap_fade < 0.2 * gap_none

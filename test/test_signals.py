@@ -178,3 +178,18 @@ def test_protocol_seeds_and_options():
         generate('protocol', FS, 4.0, 1.0, cycles=0)
     with pytest.raises(ConfigError, match='slow_freq'):
         generate('protocol', FS, 4.0, 1.0, slow_freq=5000.0)
+
+
+def test_fade_out_preamble_fades_to_its_offset():
+    from piezo_narx_ros.plant import preamble
+    u = preamble('fade-out', 2000.0, 2.0, 80.0, offset=10.0, cycles=20)
+    assert u.shape == (4000,)
+    assert u[0] == pytest.approx(10.0) and abs(u[-1] - 10.0) < 0.1
+    # Full amplitude in its first cycle, a tenth of it in the last tenth.
+    assert np.max(np.abs(u[:200] - 10.0)) == pytest.approx(80.0, rel=0.02)
+    assert np.max(np.abs(u[-400:] - 10.0)) < 8.0 + 1e-9
+    assert preamble('none', 2000.0, 2.0, 80.0).size == 0
+    with pytest.raises(ConfigError, match='preamble'):
+        preamble('ramp', 2000.0, 2.0, 80.0)
+    with pytest.raises(ConfigError, match='cycles'):
+        preamble('fade-out', 2000.0, 2.0, 80.0, cycles=0)

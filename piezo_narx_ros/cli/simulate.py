@@ -9,6 +9,7 @@ import argparse
 # Literal (importing plant.signals would load numba here); test_plant_cli checks it against KINDS.
 KINDS = ('multisine', 'sine', 'triangle', 'chirp', 'aprbs', 'steps', 'playback', 'protocol',
          'growing_sine', 'holds')
+PREAMBLES = ('none', 'fade-out')     # likewise plant.signals.PREAMBLES
 # CLI flag -> generate() option name; None values are left to the generator's defaults.
 SIGNAL_FLAGS = {
     'freq': 'freq', 'phase': 'phase', 'f_min': 'f_min', 'f_max': 'f_max', 'f_res': 'f_res',
@@ -105,6 +106,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "replace the plant config's quantisation")
     r.add_argument('--sensor-span', type=float, metavar='M',
                    help='full scale of the --sensor-bits converter, m, centred on 0')
+    r.add_argument('--preamble', choices=PREAMBLES, default='none',
+                   help='moves played before the record, part of it (fade-out: sine cycles '
+                        'about --offset fading from --amplitude to 0, so the memory the past '
+                        'left is wiped; evaluate --init-samples over them sets the state)')
+    r.add_argument('--preamble-seconds', type=float, default=2.0, metavar='SECONDS',
+                   help='length of the preamble, s (2)')
+    r.add_argument('--preamble-cycles', type=float, default=20.0, metavar='N',
+                   help='sine cycles of the preamble (20)')
     return p
 
 
@@ -153,7 +162,7 @@ def run(args) -> int:
     import numpy as np
 
     from piezo_narx_ros.errors import ConfigError
-    from piezo_narx_ros.plant import PiezoCantilever, generate, load_plant_params
+    from piezo_narx_ros.plant import PiezoCantilever, generate, load_plant_params, preamble
 
     out = Path(args.out)
     if out.suffix != '.npz':
@@ -178,6 +187,10 @@ def run(args) -> int:
     params = load_plant_params(args.plant_config)
     u = generate(args.signal, args.fs, seconds, amplitude, offset=args.offset, seed=args.seed,
                  **options)
+    lead = preamble(args.preamble, args.fs, args.preamble_seconds,
+                    amplitude if amplitude is not None else float(np.max(np.abs(u - args.offset))),
+                    args.offset, args.preamble_cycles)
+    u = np.concatenate([lead, u])
     history, sensor, session_meta = session_settings(args, u, amplitude)
     plant = PiezoCantilever(params, fs=args.fs, seed=args.seed, **sensor)
     res = plant.run(u, history=history)
@@ -187,6 +200,9 @@ def run(args) -> int:
     session_on = history is not None or any(sensor.values())
     if session_on:
         meta.update(session_meta)   # only then: records without them keep their exact meta
+    if lead.size:
+        meta['preamble'] = {'kind': args.preamble, 'seconds': args.preamble_seconds,
+                            'cycles': args.preamble_cycles, 'samples': int(lead.size)}
     np.savez(out, u=u, u_applied=res.u_applied, y=res.y, y_true=res.y_true, fs=np.float64(args.fs),
              t=np.arange(u.size) / args.fs, meta=np.str_(json.dumps(meta)))
     print(f'wrote {out}: {u.size} samples at {args.fs:g} Hz, u {u.min():.1f}..{u.max():.1f} V, '

@@ -42,6 +42,11 @@ OPTIONS = {
     'holds': {'hold': 1.0, 'ramp': 0.01},
 }
 KINDS = tuple(OPTIONS)
+#: Moves played once before a record so that the actuator's memory is known when it starts
+#: (docs/real.md, "A fade-out before the record"): 'none', or 'fade-out': sine cycles about the
+#: offset whose amplitude falls linearly from the record's amplitude to 0, which wipes whatever
+#: the unlogged past left and lets a state window over it tell the memory from a moved zero.
+PREAMBLES = ('none', 'fade-out')
 SPECTRA = ('flat', 'pink', 'brown')
 CHIRP_METHODS = ('linear', 'logarithmic')
 GROWTHS = ('linear', 'exponential')
@@ -101,6 +106,26 @@ def generate(kind, fs, seconds, amplitude, offset=0.0, seed=0, **options) -> np.
         rng = np.random.Generator(np.random.PCG64(int(seed)))
         u = offset + amp * _SHAPES[kind](t, fs, opt, rng)
     return apply_limits(u, fs, opt['u_min'], opt['u_max'], opt['slew_rate'])
+
+
+def preamble(kind, fs, seconds, amplitude, offset=0.0, cycles=20) -> np.ndarray:
+    """
+    Return the moves (M,) V played once before a record, M = round(seconds*fs) (none: empty).
+
+    kind: one of PREAMBLES; 'fade-out': `cycles` sine cycles about offset (V) over `seconds` s,
+    their amplitude falling linearly from `amplitude` (V) to 0, so it ends at the offset with the
+    hysteresis memory demagnetised about it, whatever came before.
+    """
+    if kind not in PREAMBLES:
+        raise ConfigError(f'unknown preamble {kind!r}; choose one of {", ".join(PREAMBLES)}')
+    if kind == 'none':
+        return np.zeros(0)
+    fs = _num('fs', fs, 0.0, lo_open=True)
+    amp = _num('amplitude', amplitude, 0.0)
+    cycles = _num('preamble cycles', cycles, 0.0, lo_open=True)
+    n = _n_samples(seconds, fs)
+    frac = np.arange(n) / n
+    return _num('offset', offset) + amp * (1.0 - frac) * np.sin(2.0 * np.pi * cycles * frac)
 
 
 def apply_limits(u, fs, u_min=-200.0, u_max=200.0, slew_rate=math.inf) -> np.ndarray:
