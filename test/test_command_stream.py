@@ -106,3 +106,16 @@ def test_next_due_follows_the_polls_and_is_none_when_not_running():
     assert s.next_due_ns() == NS + 3_000_000
     s.poll(NS + 10**9)
     assert s.finished and s.next_due_ns() is None
+
+
+def test_preamble_streams_once_before_the_signal_and_the_loop_skips_it():
+    s = CommandStreamer([1.0, 2.0], fs=100.0, loop=True, lead=[-5.0, -6.0, -7.0])
+    s.start(0, 0)
+    _, v = s.poll(int(7.5e7))       # 8 samples due at t = 75 ms
+    assert v[:, 0].tolist() == [-5.0, -6.0, -7.0, 1.0, 2.0, 1.0, 2.0, 1.0]
+    once = CommandStreamer(np.zeros((2, 2)), fs=100.0, loop=False, lead=[3.0])
+    once.start(0, 0)
+    _, v = once.poll(int(1e9))
+    assert v.tolist() == [[3.0, 3.0], [0.0, 0.0], [0.0, 0.0]] and once.finished
+    with pytest.raises(ConfigError, match='preamble'):
+        CommandStreamer(np.zeros((2, 2)), fs=100.0, lead=np.zeros((3, 3)))

@@ -68,18 +68,26 @@ class CommandStreamer:
     (the next start re-anchors the clock and resumes the signal where it stopped); `hold()` pauses
     the signal but not the stream: the last command is repeated at every stamp of the same clock
     until `resume()` (an amplifier holds its output; every listener then sees the hold).
+    lead: (M,) or (M, n_axes) volts streamed once before the signal (a preamble, e.g. the fade-out
+    of plant.signals.preamble); never repeated by the loop.
     """
 
     def __init__(self, signal, fs: float, loop: bool = True, u_min: float = -200.0,
                  u_max: float = 200.0, slew_rate: float = math.inf, u_start: float = 0.0,
-                 max_burst: int = 10_000):
+                 max_burst: int = 10_000, lead=None):
         sig = np.asarray(signal, dtype=float)
         if sig.ndim == 1:
             sig = sig[:, None]
         if sig.ndim != 2 or sig.shape[0] < 1 or sig.shape[1] < 1:
             raise ConfigError(f'command signal must be (N,) or (N, axes) with N >= 1, got shape '
                               f'{np.shape(signal)}')
-        if not np.all(np.isfinite(sig)):
+        lead = np.zeros((0, sig.shape[1])) if lead is None else np.asarray(lead, dtype=float)
+        if lead.ndim == 1:
+            lead = np.repeat(lead[:, None], sig.shape[1], axis=1)
+        if lead.ndim != 2 or lead.shape[1] != sig.shape[1]:
+            raise ConfigError(f'command preamble must be (M,) or (M, {sig.shape[1]}), got shape '
+                              f'{lead.shape}')
+        if not (np.all(np.isfinite(sig)) and np.all(np.isfinite(lead))):
             raise ConfigError('command signal contains NaN or infinite values')
         if not u_min < u_max:
             raise ConfigError(f'u_min ({u_min:g} V) must be below u_max ({u_max:g} V)')
@@ -91,6 +99,7 @@ class CommandStreamer:
         self.fs = float(fs)
         self.loop = bool(loop)
         self.signal = np.clip(sig, u_min, u_max)
+        self.lead = np.clip(lead, u_min, u_max)
         self.n_axes = sig.shape[1]
         self.max_step = slew_rate / self.fs if math.isfinite(slew_rate) else math.inf
         self.max_burst = int(max_burst)
@@ -111,7 +120,7 @@ class CommandStreamer:
     @property
     def finished(self) -> bool:
         """Return True when a non-looping signal has been streamed entirely."""
-        return not self.loop and self.position >= self.signal.shape[0]
+        return not self.loop and self.position >= self.lead.shape[0] + self.signal.shape[0]
 
     def start(self, t0_ns: int, mono0_ns: int) -> None:
         """Anchor a new clock segment: the next sample gets stamp t0_ns and is due at mono0_ns."""
@@ -152,8 +161,9 @@ class CommandStreamer:
         if not self.running:
             return np.empty(0, dtype=np.int64), np.empty((0, self.n_axes))
         n = self.clock.due_count(now_mono_ns) - self._k
+        m = self.lead.shape[0]
         if not self.loop and not self.holding:
-            n = min(n, self.signal.shape[0] - self.position)
+            n = min(n, m + self.signal.shape[0] - self.position)
         n = max(0, min(n, self.max_burst))
         stamps = np.fromiter((self.clock.stamp_ns(self._k + i) for i in range(n)),
                              dtype=np.int64, count=n)
@@ -161,8 +171,14 @@ class CommandStreamer:
             self._k += n
             self.published += n
             return stamps, np.tile(self._last, (n, 1))
-        idx = (self.position + np.arange(n)) % self.signal.shape[0]
-        volts = self._slew(self.signal[idx])
+        pos = self.position + np.arange(n)
+        if pos.size and pos[0] < m:     # the preamble first, once
+            idx = (np.maximum(pos - m, 0)) % self.signal.shape[0]
+            volts = np.where((pos < m)[:, None], self.lead[np.minimum(pos, m - 1)],
+                             self.signal[idx])
+        else:
+            volts = self.signal[(pos - m) % self.signal.shape[0]]
+        volts = self._slew(volts)
         self._k += n
         self.position += n
         self.published += n

@@ -45,7 +45,7 @@ from piezo_narx_ros.nodes.graph import same_name_problem
 from piezo_narx_ros.nodes.params import ParamSpec
 from piezo_narx_ros.nodes.runtime import PiezoNode, main_for
 from piezo_narx_ros.nodes.topics import TOPIC_COMMAND, TOPIC_REFERENCE
-from piezo_narx_ros.plant.signals import KINDS
+from piezo_narx_ros.plant.signals import KINDS, PREAMBLES, preamble
 
 OUTPUTS = ('voltage', 'position')
 
@@ -115,6 +115,14 @@ class CommandNode(PiezoNode):
                   low=0.0, high=1e12, read_only=True),
         ParamSpec('loop', True, 'repeat the signal; false: stop after one period (playback: see '
                   'playback_loop)', read_only=True),
+        ParamSpec('preamble', 'none', 'moves streamed once before the signal: fade-out, sine '
+                  'cycles about the offset fading from the amplitude to 0, wipe the memory an '
+                  "unlogged past left, so an estimator's init_window over them sets its state "
+                  '(docs/real.md)', choices=PREAMBLES, read_only=True),
+        ParamSpec('preamble_seconds', 2.0, 'length of the preamble, s', low=1e-3, high=3600.0,
+                  read_only=True),
+        ParamSpec('preamble_cycles', 20.0, 'sine cycles of the preamble', low=1e-3, high=1e6,
+                  read_only=True),
         ParamSpec('running', True, 'stream now; set false to pause, true to resume'),
         ParamSpec('hold_while_paused', True, 'paused, publish the last command at every sample '
                   '(the amplifier holds it); false: publish nothing (listeners see the stream '
@@ -155,10 +163,15 @@ class CommandNode(PiezoNode):
             signal = make_signal(p['kind'], fs, p['seconds'], p['amplitude'], p['offset'],
                                  p['seed'], len(self.axes), **options)
         self.fs = fs
+        # About the signal's offset, at its peak deviation (a played file: about its mean).
+        centre = p['offset'] if p['kind'] != 'playback' else float(np.mean(signal))
+        lead = preamble(p['preamble'], fs, p['preamble_seconds'],
+                        float(np.max(np.abs(np.asarray(signal) - centre))), centre,
+                        p['preamble_cycles'])
         self.streamer = CommandStreamer(signal, fs, loop=loop, u_min=p['u_min'],
                                         u_max=p['u_max'],
                                         slew_rate=p['slew_rate'] or float('inf'),
-                                        max_burst=p['max_burst'])
+                                        max_burst=p['max_burst'], lead=lead)
         self.want_running = p['running']
         self.sim_time = bool(self.get_parameter('use_sim_time').value)
         self.clock_jumps = 0
@@ -182,7 +195,9 @@ class CommandNode(PiezoNode):
         unit = 'm' if self.position else 'V'
         self.get_logger().info(
             f"{p['kind']} {p['output']} on {self.axes} at {fs:g} Hz, {signal.shape[0]} "
-            f"samples per {'loop' if loop else 'run'}, limits [{p['u_min']:g}, "
+            f"samples per {'loop' if loop else 'run'}"
+            + (f" after a {p['preamble']} of {lead.size} samples"
+               if lead.size else '') + f", limits [{p['u_min']:g}, "
             f"{p['u_max']:g}] {unit}")
 
     def _keep_clock(self, params) -> SetParametersResult:
