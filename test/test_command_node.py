@@ -8,6 +8,7 @@ CASES = [
     ('command_node', ['-p', 'kind:=noise'], 'kind must be one of'),
     ('command_node', ['-p', 'u_min:=10.0', '-p', 'u_max:=5.0'], 'u_min (10.0 V) must be below'),
     ('command_node', ['-p', 'f_max:=5000.0'], 'f_max'),     # above fs/2: refused by the generator
+    ('command_node', ['-p', 'preamble:=ramp'], 'preamble must be one of'),
     ('simulator_node', ['-p', 'axes:=[""]'], 'axes must be a non-empty list'),
     ('simulator_node', ['-p', 'plant_params:=/nonexistent/plant.yaml'], 'plant.yaml'),
     ('estimator_node', [], 'model must name a model file'),
