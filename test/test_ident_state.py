@@ -265,7 +265,7 @@ def test_a_window_over_a_fade_out_preamble_tells_memory_from_a_moved_zero(hnarx)
     A rig that plays a fade-out before its record (command_node `preamble`) wipes the memory.
 
     Over it the window sees the output move through known memory, so a sensor zero that moved
-    is not taken for memory as on a hold (docs/real.md, "A fade-out before the record").
+    is not taken for memory as on a hold (docs/real.md, "... a fade-out before the record").
     Measured (+-3 um zeros, three pasts): after the hold 0.44-4.2 um, after the fade-out
     0.09-0.11 um.
     """

@@ -43,7 +43,7 @@ OPTIONS = {
 }
 KINDS = tuple(OPTIONS)
 #: Moves played once before a record so that the actuator's memory is known when it starts
-#: (docs/real.md, "A fade-out before the record"): 'none', or 'fade-out': sine cycles about the
+#: (docs/real.md, "... a fade-out before the record"): 'none', or 'fade-out': sine cycles about the
 #: offset whose amplitude falls linearly from the record's amplitude to 0, which wipes whatever
 #: the unlogged past left and lets a state window over it tell the memory from a moved zero.
 PREAMBLES = ('none', 'fade-out')
