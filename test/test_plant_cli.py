@@ -53,6 +53,7 @@ def test_simulate_playback_and_plant_config(tmp_path):
     (['--plant-config', 'nowhere.yaml'], 'nowhere.yaml'),
     (['--signal', 'playback'], 'path'),
     (['--seconds', '0'], 'seconds'),
+    (['--preamble', 'fade-out', '--preamble-seconds', '0'], 'preamble seconds'),
 ])
 def test_simulate_bad_input_exits_2_with_one_line(tmp_path, capsys, argv, words):
     code = run_cli(['simulate', '--out', str(tmp_path / 'x.npz'), '--seconds', '0.1'] + argv)

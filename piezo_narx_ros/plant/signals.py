@@ -123,7 +123,7 @@ def preamble(kind, fs, seconds, amplitude, offset=0.0, cycles=20) -> np.ndarray:
     fs = _num('fs', fs, 0.0, lo_open=True)
     amp = _num('amplitude', amplitude, 0.0)
     cycles = _num('preamble cycles', cycles, 0.0, lo_open=True)
-    n = _n_samples(seconds, fs)
+    n = _n_samples(_num('preamble seconds', seconds, 0.0, lo_open=True), fs)
     frac = np.arange(n) / n
     return _num('offset', offset) + amp * (1.0 - frac) * np.sin(2.0 * np.pi * cycles * frac)
 
