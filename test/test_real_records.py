@@ -240,6 +240,7 @@ def test_evaluate_says_when_the_state_window_leaves_the_memory_open(hnarx):
     assert windows[0]['window_input_v'] == [20.0, 20.0]
     assert len(notes) == 1
     assert notes[0].startswith("held: the first 1000 samples do not set the model's memory")
+    assert 'fade-out' in notes[0] and 'preamble' in notes[0]     # what to do about it
     assert memory_windows(hnarx, [held], 0) == ([], [])     # from rest: nothing to say
 
 

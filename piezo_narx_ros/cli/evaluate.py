@@ -162,7 +162,10 @@ def memory_windows(model, records, init_samples) -> tuple[list[dict], list[str]]
                          f'{bracket.spread * 1e6:.3g} um after them, so the score after them '
                          "carries the state estimate's guess"
                          + (' (if the last move before the record faded out, say so with '
-                            '--past fade-out)' if r.state_past == 'any' else ''))
+                            '--past fade-out)' if r.state_past == 'any' else '')
+                         + '; on a hold it cannot tell memory from a sensor zero that moved: '
+                         'open records with a fade-out (simulate and command_node preamble) '
+                         'and set the state over it (docs/real.md)')
     return out, notes
 
 
