@@ -121,10 +121,8 @@ def session_settings(args, u, amplitude):
     """
     Check the rig-session settings: (history volts or None, sensor kwargs, meta).
 
-    u: the record's commands (V); amplitude: its peak deviation (None: taken from u).
+    u: the record's commands (V); amplitude: its peak deviation from --offset (V).
     """
-    import numpy as np
-
     from piezo_narx_ros.errors import ConfigError
     from piezo_narx_ros.plant import random_history, session_offset
 
@@ -144,9 +142,7 @@ def session_settings(args, u, amplitude):
     history = None
     if args.history > 0.0:
         seed = args.seed if args.history_seed is None else args.history_seed
-        amp = args.history_amplitude
-        if amp is None:
-            amp = amplitude if amplitude is not None else float(np.max(np.abs(u - args.offset)))
+        amp = amplitude if args.history_amplitude is None else args.history_amplitude
         history = random_history(args.fs, args.history, amp, offset=args.offset, seed=seed,
                                  end=float(u[0]), hold=args.history_hold)
         meta['history'] = {'seconds': args.history, 'hold_s': args.history_hold,
@@ -187,11 +183,12 @@ def run(args) -> int:
     params = load_plant_params(args.plant_config)
     u = generate(args.signal, args.fs, seconds, amplitude, offset=args.offset, seed=args.seed,
                  **options)
-    lead = preamble(args.preamble, args.fs, args.preamble_seconds,
-                    amplitude if amplitude is not None else float(np.max(np.abs(u - args.offset))),
-                    args.offset, args.preamble_cycles)
+    # The record's peak deviation (a played file's as played): the preamble's and the history's.
+    peak = amplitude if amplitude is not None else float(np.max(np.abs(u - args.offset)))
+    lead = preamble(args.preamble, args.fs, args.preamble_seconds, peak, args.offset,
+                    args.preamble_cycles)
     u = np.concatenate([lead, u])
-    history, sensor, session_meta = session_settings(args, u, amplitude)
+    history, sensor, session_meta = session_settings(args, u, peak)
     plant = PiezoCantilever(params, fs=args.fs, seed=args.seed, **sensor)
     res = plant.run(u, history=history)
     meta = {'signal': args.signal, 'seconds': u.size / args.fs, 'amplitude_V': amplitude,

@@ -172,12 +172,9 @@ class CommandStreamer:
             self.published += n
             return stamps, np.tile(self._last, (n, 1))
         pos = self.position + np.arange(n)
-        if pos.size and pos[0] < m:     # the preamble first, once
-            idx = (np.maximum(pos - m, 0)) % self.signal.shape[0]
-            volts = np.where((pos < m)[:, None], self.lead[np.minimum(pos, m - 1)],
-                             self.signal[idx])
-        else:
-            volts = self.signal[(pos - m) % self.signal.shape[0]]
+        volts = self.signal[(pos - m) % self.signal.shape[0]]
+        if n and pos[0] < m:            # the preamble first, once
+            volts[pos < m] = self.lead[pos[pos < m]]
         volts = self._slew(volts)
         self._k += n
         self.position += n

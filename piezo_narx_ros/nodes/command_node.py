@@ -166,7 +166,7 @@ class CommandNode(PiezoNode):
         # About the signal's offset, at its peak deviation (a played file: about its mean).
         centre = p['offset'] if p['kind'] != 'playback' else float(np.mean(signal))
         lead = preamble(p['preamble'], fs, p['preamble_seconds'],
-                        float(np.max(np.abs(np.asarray(signal) - centre))), centre,
+                        float(np.max(np.abs(signal - centre))), centre,
                         p['preamble_cycles'])
         self.streamer = CommandStreamer(signal, fs, loop=loop, u_min=p['u_min'],
                                         u_max=p['u_max'],
