@@ -160,14 +160,31 @@ def test_a_subscriber_that_stops_acknowledging_costs_the_wait_and_a_warning(tmp_
                             text=True)
     proc = None
     try:
-        # Matched on both sides, then frozen during the player's start delay.
+        # Matched on both sides, then frozen during the player's start delay. Both sides: a sink
+        # frozen before the player has matched it is never seen (its discovery data is not
+        # resent), and the player waits for it until killed (a CI run did).
         proc = start_player('-p', f'bag:={bag}', '-p', 'rate:=4.0', '-p', 'start_delay_s:=3.0',
                             '-p', 'wait_for_all_acked_s:=1.0',
                             '-p', 'topics:=[/play4/voltage_command]')
         assert sink.stdout.readline().strip() == 'matched'
-        time.sleep(0.5)
+        lines, matched = [], threading.Event()
+
+        def read_stderr():
+            for line in proc.stderr:
+                lines.append(line)
+                if 'subscriber(s) on every topic; playing in' in line:
+                    matched.set()
+        reader = threading.Thread(target=read_stderr, daemon=True)
+        reader.start()
+        assert matched.wait(30), ''.join(lines)
         sink.send_signal(signal.SIGSTOP)
-        _, err = communicate_or_dump(proc, 30)
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGABRT)   # run_node's faulthandler prints every stack
+            proc.wait(20)
+        reader.join(20)
+        err = ''.join(lines)
     finally:
         sink.send_signal(signal.SIGCONT)
         sink.kill()

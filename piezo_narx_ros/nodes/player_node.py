@@ -121,6 +121,9 @@ class PlayerNode(PiezoNode):
         # have matched the writer yet, and a volatile reader drops what comes before (the likely
         # cause of a test that heard 0 of 2000 messages on a loaded machine, delay 0 s).
         self.state = 'starting'
+        if need:
+            self.get_logger().info(f'{need} subscriber(s) on every topic; playing in '
+                                   f'{self.params["start_delay_s"]:g} s')
         if self._stop.wait(self.params['start_delay_s']):
             return
         self.state = 'playing'
