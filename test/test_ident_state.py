@@ -185,13 +185,47 @@ def test_a_zero_moved_by_many_scales_does_not_outweigh_the_window():
     """
     from piezo_narx_ros.ident.state import TIE, _score
     sigma = np.array([1e-6])
-    a = _score(1.0, 1.0, 6e-6, sigma)
-    b = _score(1.0 + 10 * TIE, 1.0, 3e-6, sigma)
+    a = _score(1.0, 1.0, 1.0, 6e-6, sigma)
+    b = _score(1.0 + 10 * TIE, 1.0, 1.0, 3e-6, sigma)
     assert a < b
     # Where the window cannot tell (equal cost), the past needing the smaller zero still wins,
     # and a candidate 2 TIEs worse loses to an equal offset.
-    assert _score(1.0, 1.0, 0.5e-6, sigma) < _score(1.0, 1.0, 2e-6, sigma)
-    assert _score(1.0, 1.0, 2e-6, sigma) < _score(1.0 + 2 * TIE, 1.0, 2e-6, sigma)
+    assert _score(1.0, 1.0, 1.0, 0.5e-6, sigma) < _score(1.0, 1.0, 1.0, 2e-6, sigma)
+    assert _score(1.0, 1.0, 1.0, 2e-6, sigma) < _score(1.0 + 2 * TIE, 1.0, 1.0, 2e-6, sigma)
+
+
+def test_window_cost_below_the_models_own_error_does_not_choose_the_past(hnarx):
+    """
+    A TIE is a share of the best cost, but never of less than the model's own error.
+
+    Past A fits the window 5 TIEs better than past B but needs a zero moved by 4 prior scales:
+    judged by the best cost, A; when that best cost is a tenth of the model's own error (a
+    window the model fits better than it fits anything), B, the zero the model was fitted
+    with. ERROR_FLOOR x the free-run RMSE the fit measured sets the floor (a model file).
+    """
+    from piezo_narx_ros.ident.state import (ERROR_FLOOR, error_scale, estimate_state, TIE,
+                                            _score)
+    sigma = np.array([1e-6])
+    a = (1.0, 4e-6)
+    b = (1.0 + 5 * TIE, 0.5e-6)
+    assert _score(a[0], 1.0, 1.0, a[1], sigma) < _score(b[0], 1.0, 1.0, b[1], sigma)
+    assert _score(a[0], 10.0, 1.0, a[1], sigma) > _score(b[0], 10.0, 1.0, b[1], sigma)
+    # The scale comes from the model file's metrics; a model fitted in-process has none.
+    assert ERROR_FLOOR > 0
+    assert error_scale(hnarx) == 0.0
+    u_hist, u, y = session()
+    n = 1000
+    plain = estimate_state(hnarx, u[:n], y[:n])
+    try:
+        hnarx.metadata = {'metrics': {'validation': {'simulation': {'rmse': 0.4e-6}}}}
+        assert error_scale(hnarx) == 0.4e-6
+        told = estimate_state(hnarx, u[:n], y[:n])
+        assert np.array_equal(told.values, estimate_state(hnarx, u[:n], y[:n],
+                                                          error=0.4e-6).values)
+        off = estimate_state(hnarx, u[:n], y[:n], error=0.0)
+    finally:
+        del hnarx.metadata
+    assert np.array_equal(off.values, plain.values) and off.offset == plain.offset
 
 
 def fade_out_record(end=30.0, offset=1e-6):

@@ -32,6 +32,13 @@ best explains the measured window, for every family:
    issue's rig by 4.7 um), and a Gaussian's quadratic tail then outweighs clear differences in
    the window's cost and takes a past that explains part of the moved zero by memory (zeros
    moved by up to +-14 um: the worst moved record 62x -> 11x; within +-2.5 um the same choices).
+   The TIE is a share of the best cost, but never of less than the model's own error
+   (`ERROR_FLOOR` x the free-run RMSE its fit measured): a window the model fits better than
+   it fits anything, above all a small move like the start of a fade-in, must not choose a
+   past, and with it a zero micrometres away, by differences far below that error (the real
+   micromanipulator's second segment: a 0.5 s window on its fade-in chose an offset of
+   +4.4 um where the state carried through the record has -0.9 um; 5.0 um after the window,
+   0.18-1.3 um with the floor; docs/real.md, "A model's own error as the window's floor").
 5. **A hold after a fade-out** (`past='fade-out'`, opt-in). Some rigs end a move by fading
    its amplitude out (the real micromanipulator's test record fades each segment out, then
    holds), which leaves the memory demagnetised about the hold level: a past of many turning
@@ -68,6 +75,10 @@ HUBER = 1.345
 #: reported as indistinguishable. At 1 % a model's own error on the window already decided
 #: between pasts that fit it equally (costs 0.026 against 0.027 um, the wrong past chosen).
 TIE = 0.05
+#: Floor of the window-cost unit (step 4), in multiples of the model's own free-run RMSE
+#: (`error_scale`): a window fitted better than the model can be trusted does not decide between
+#: pasts by differences the model's own error could make. 0: no floor (the rule before).
+ERROR_FLOOR = 4.0
 #: Scale of the sensor offset's (Cauchy) prior, as a fraction of the trained output span
 #: (2.5 um on the simulators' 82 um; the issue's rig moved its zero by up to 4.7 um).
 OFFSET_PRIOR = 0.03
@@ -141,15 +152,32 @@ def offset_prior(model) -> np.ndarray:
     return np.where(span > 0, OFFSET_PRIOR * span, np.inf)
 
 
-def _score(cost: float, best: float, offset, sigma: np.ndarray) -> float:
+def error_scale(model) -> float:
+    """
+    Return the model's own free-run error (m): the RMSE its fit measured, else 0 (unknown).
+
+    From the model file's metrics (`fit` writes them): the validation records' free run, else
+    the estimation records'. A model fitted in-process carries none, and its windows are then
+    judged by their best cost alone (step 4 of the module docstring).
+    """
+    metrics = (getattr(model, 'metadata', None) or {}).get('metrics') or {}
+    for part in ('validation', 'estimation'):
+        rmse = ((metrics.get(part) or {}).get('simulation') or {}).get('rmse')
+        if isinstance(rmse, (int, float)) and math.isfinite(rmse) and rmse > 0:
+            return float(rmse)
+    return 0.0
+
+
+def _score(cost: float, unit: float, best: float, offset, sigma: np.ndarray) -> float:
     """
     Return a candidate's negative log-posterior, up to a constant.
 
-    Its window cost relative to the best, in TIEs, plus the offset's Cauchy prior (scale sigma m
-    per output, inf: none): quadratic within a scale, logarithmic beyond, so a zero that
-    moved by several scales costs little more than one that moved by a few.
+    Its window cost above the best, in TIEs of `unit` (m^2: the best cost, or the model's own
+    error floor if larger), plus the offset's Cauchy prior (scale sigma m per output, inf:
+    none): quadratic within a scale, logarithmic beyond, so a zero that moved by several
+    scales costs little more than one that moved by a few.
     """
-    fit = (cost / best - 1.0) / TIE if best > 0 else (0.0 if cost <= 0 else math.inf)
+    fit = (cost / unit - best / unit) / TIE if unit > 0 else (0.0 if cost <= 0 else math.inf)
     return fit + float(np.sum(np.log1p((np.ravel(offset) / sigma) ** 2)))
 
 
@@ -212,16 +240,18 @@ def _refine(model, values: np.ndarray, u: np.ndarray, y: np.ndarray, idx: np.nda
 
 
 def estimate_state(model, u, y, prior: ModelState | None = None,
-                   iterations: int = 5, past: str = 'any') -> ModelState:
+                   iterations: int = 5, past: str = 'any', error: float | None = None
+                   ) -> ModelState:
     """
     Return the ModelState at u[0] that best explains the window u (N,) V, y (N,) m.
 
     Several channels: u (N, n_in), y (N, n_out); the offset is then one per output (n_out,) m.
     See the module docstring. prior: the state the model is believed to be in (e.g. run through
     a known input history): the only candidate, refined on the window. past: how the record's
-    unlogged past ended, one of PASTS (step 5). N >= MIN_WINDOW; DataError otherwise. The
-    window's own samples are part of the run: simulate(u_window, state=s) reproduces y_window
-    as well as the model can.
+    unlogged past ended, one of PASTS (step 5). error: the model's own free-run error (m) that
+    sets the floor of step 4; None: `error_scale(model)`, 0: no floor. N >= MIN_WINDOW;
+    DataError otherwise. The window's own samples are part of the run: simulate(u_window,
+    state=s) reproduces y_window as well as the model can.
     """
     model._require_fitted()
     check_past(past)
@@ -249,19 +279,23 @@ def estimate_state(model, u, y, prior: ModelState | None = None,
             raise DataError('no initial state reproduces the window: the model diverges on it')
         ranked.sort(key=lambda r: (r[0], r[1]))   # (offsets may be vectors: never compared)
         best = ranked[0][0]
-        tied = [r for r in ranked if r[0] <= best * (1 + TIE)]
+        # Step 4's unit: the best cost, or the model's own error if larger (m^2).
+        floor = (ERROR_FLOOR * (error_scale(model) if error is None else float(error))) ** 2
+        unit = max(best, floor)
+        tied = [r for r in ranked if r[0] <= best + TIE * unit]
         sigma = offset_prior(model)
         # Step 4: the window's cost and the offset's prior, both in units of log-likelihood.
-        order = sorted(ranked, key=lambda r: (_score(r[0], best, r[2], sigma), r[1]))
+        order = sorted(ranked, key=lambda r: (_score(r[0], unit, best, r[2], sigma), r[1]))
         keep = order[:N_REFINE]
         keep += [r for r in order[N_REFINE:] if candidates[r[1]].info.get('demagnetised')][:1]
         refined = {r[1]: _refine(model, candidates[r[1]].values.astype(np.float64), u, y, idx,
                                  scale, iterations)
                    for r in keep}
     low = min(c for _, _, c in refined.values())
-    i = min(refined, key=lambda k: (_score(refined[k][2], low, refined[k][1], sigma), k))
+    unit = max(low, floor)
+    i = min(refined, key=lambda k: (_score(refined[k][2], unit, low, refined[k][1], sigma), k))
     if past == 'fade-out':
-        i = _after_fade_out(candidates, refined, i, low)
+        i = _after_fade_out(candidates, refined, i, unit, low)
     values, offset, cost = refined[i]
     info = {**candidates[i].info, 'window_samples': int(len(u)), 'rms_m': math.sqrt(cost),
             'candidates': len(candidates), 'indistinguishable': len(tied)}
@@ -276,18 +310,19 @@ def check_past(past, name: str = 'past', error: type[Exception] = DataError) -> 
     return past
 
 
-def _after_fade_out(candidates, refined: dict, i: int, low: float) -> int:
+def _after_fade_out(candidates, refined: dict, i: int, unit: float, low: float) -> int:
     """
     Return the demagnetised candidate's index unless the window rejects it (step 5), else i.
 
-    refined: index -> (values, offset m, cost m^2); low: the lowest refined cost (m^2).
+    refined: index -> (values, offset m, cost m^2); low: the lowest refined cost (m^2); unit:
+    the cost that is one TIE's worth (m^2, as in _score).
     """
     d = next((k for k in refined if candidates[k].info.get('demagnetised')), None)
     if d is None:
         return i
-    if low <= 0:
+    if unit <= 0:
         return d if refined[d][2] <= 0 else i
-    return d if (refined[d][2] / low - 1.0) / TIE <= DEMAG_MARGIN else i
+    return d if (refined[d][2] / unit - low / unit) / TIE <= DEMAG_MARGIN else i
 
 
 def fade_out(u0: float, lo: float, hi: float, cycles: int = FADE_CYCLES) -> tuple[float, ...]:
