@@ -252,26 +252,14 @@ def test_playback_clock_holds_then_follows_the_recorded_time():
     assert c.now(100.0) == 10**18 + 2000                 # held after the end
 
 
-def test_republishes_with_recorded_qos_and_publishes_clock(tmp_path):
+def _probe_clock_player(bag):
     """
-    Check that each topic is replayed with its recorded QoS, and /clock.
+    Play `bag` with clock:=true beside a /clock probe; return (exit code, stderr, QoS, clocks).
 
-    A bag whose command publisher offered reliable + transient_local and whose deflection publisher
-    offered best effort is replayed with exactly those; clock:=true publishes the recorded time on
-    /clock at clock_rate.
+    QoS: the offered profiles of the two played topics; clocks: (wall s, /clock ns) received.
     """
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rosgraph_msgs.msg import Clock
-
-    from piezo_narx_ros.bag.writer import JOINT_STATE, BagWriter, joint_state_cdr
-    t0, n = 1_700_000_000_000_000_000, 400
-    with BagWriter(tmp_path / 'q') as bag:
-        cmd = bag.add_topic('/play3/voltage_command', JOINT_STATE, offered=[_qos(1, 1)])
-        dfl = bag.add_topic('/play3/deflection', JOINT_STATE, offered=[_qos(2, 2)])
-        for k in range(n):
-            t = t0 + k * 500_000
-            bag.write(cmd, t, joint_state_cdr(t, effort=(1.0,)))
-            bag.write(dfl, t, joint_state_cdr(t, position=(1e-6,)))
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     node = Node('clock_probe', context=ctx)
@@ -284,7 +272,7 @@ def test_republishes_with_recorded_qos_and_publishes_clock(tmp_path):
     ex.add_node(node)
     proc = subprocess.Popen(
         [sys.executable, '-m', 'piezo_narx_ros.nodes.player_node', '--ros-args',
-         '-p', f'bag:={tmp_path / "q"}', '-p', 'loop:=true', '-p', 'rate:=0.25',
+         '-p', f'bag:={bag}', '-p', 'loop:=true', '-p', 'rate:=0.25',
          '-p', 'clock:=true', '-p', 'clock_rate:=50.0', '-p', 'start_delay_s:=0.0'],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -299,7 +287,36 @@ def test_republishes_with_recorded_qos_and_publishes_clock(tmp_path):
         code = proc.wait(20)
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
-    assert code == 0, proc.stderr.read()
+    return code, proc.stderr.read(), info, clocks
+
+
+def test_republishes_with_recorded_qos_and_publishes_clock(tmp_path):
+    """
+    Check that each topic is replayed with its recorded QoS, and /clock.
+
+    A bag whose command publisher offered reliable + transient_local and whose deflection publisher
+    offered best effort is replayed with exactly those; clock:=true publishes the recorded time on
+    /clock at clock_rate.
+    """
+    from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+
+    from piezo_narx_ros.bag.writer import JOINT_STATE, BagWriter, joint_state_cdr
+    t0, n = 1_700_000_000_000_000_000, 400
+    with BagWriter(tmp_path / 'q') as bag:
+        cmd = bag.add_topic('/play3/voltage_command', JOINT_STATE, offered=[_qos(1, 1)])
+        dfl = bag.add_topic('/play3/deflection', JOINT_STATE, offered=[_qos(2, 2)])
+        for k in range(n):
+            t = t0 + k * 500_000
+            bag.write(cmd, t, joint_state_cdr(t, effort=(1.0,)))
+            bag.write(dfl, t, joint_state_cdr(t, position=(1e-6,)))
+    code, err, info, clocks = _probe_clock_player(tmp_path / 'q')
+    if not clocks:
+        # Not one /clock sample in 30 s while the player's endpoints were discovered: a
+        # transport that lost the probe (seen once in a full suite run, never on its own), not
+        # the player; one more probe on a new participant.
+        code, err, info, clocks = _probe_clock_player(tmp_path / 'q')
+    assert clocks, err
+    assert code == 0, err
     cmd_qos, dfl_qos = info['/play3/voltage_command'], info['/play3/deflection']
     assert (cmd_qos.reliability, cmd_qos.durability) == (ReliabilityPolicy.RELIABLE,
                                                          DurabilityPolicy.TRANSIENT_LOCAL)
