@@ -5,13 +5,12 @@ Fitted as docs/real.md teaches (`fit Model_Vi_Do.dat --preset envelope`), the mo
 test record from windows at its start and wherever its segments begin: after a hold, and at the
 start of a fade-in (the input moving a few percent of its range). Skipped without ../shared.
 """
-import math
-
 import numpy as np
 import pytest
 
 from conftest import SHARED
 from piezo_narx_ros.cli.main import main
+from piezo_narx_ros.ident.metrics import r2, rmse
 from piezo_narx_ros.ident.model_io import load_model
 from piezo_narx_ros.ident.state import error_scale, estimate_state
 
@@ -33,19 +32,21 @@ def fitted(tmp_path_factory):
     return load_model(out / 'model.json'), d[:, 0], d[:, 4] * 1e-6
 
 
-def after_window_um(model, u, y, start, n, error=None):
-    """RMSE (um) of the free run after an n-sample window at `start` set its state."""
+def free_run(model, u, y, start, n, error=None):
+    """Free run (m) of the record from `start`, its state set by the n-sample window there."""
     state = estimate_state(model, u[start:start + n], y[start:start + n], error=error)
-    e = model.simulate(u[start:], state=state)[n:] - y[start + n:]
-    return 1e6 * math.sqrt(float(np.mean(e * e)))
+    return model.simulate(u[start:], state=state)
+
+
+def after_window_um(model, u, y, start, n, error=None):
+    """RMSE (um) of that free run after its window."""
+    return 1e6 * rmse(y[start:], free_run(model, u, y, start, n, error), start=n)
 
 
 def test_the_issues_target_on_the_whole_test_record(fitted):
     """Issue 18: R² >= 0.98 with the first 200 samples (1 s) setting the state."""
     model, u, y = fitted
-    e = after_window_um(model, u, y, 0, 200) * 1e-6
-    r2 = 1.0 - e * e * (y.size - 200) / float(np.sum((y[200:] - y[200:].mean()) ** 2))
-    assert r2 >= 0.98
+    assert r2(y, free_run(model, u, y, 0, 200), start=200) >= 0.98
 
 
 @pytest.mark.parametrize('n', [100, 200])

@@ -168,6 +168,11 @@ def error_scale(model) -> float:
     return 0.0
 
 
+def _ties(cost: float, unit: float, best: float) -> float:
+    """Window cost (m^2) above the best, in TIEs of `unit` (m^2: step 4's unit); inf if unit 0."""
+    return (cost / unit - best / unit) / TIE if unit > 0 else (0.0 if cost <= 0 else math.inf)
+
+
 def _score(cost: float, unit: float, best: float, offset, sigma: np.ndarray) -> float:
     """
     Return a candidate's negative log-posterior, up to a constant.
@@ -177,8 +182,7 @@ def _score(cost: float, unit: float, best: float, offset, sigma: np.ndarray) -> 
     none): quadratic within a scale, logarithmic beyond, so a zero that moved by several
     scales costs little more than one that moved by a few.
     """
-    fit = (cost / unit - best / unit) / TIE if unit > 0 else (0.0 if cost <= 0 else math.inf)
-    return fit + float(np.sum(np.log1p((np.ravel(offset) / sigma) ** 2)))
+    return _ties(cost, unit, best) + float(np.sum(np.log1p((np.ravel(offset) / sigma) ** 2)))
 
 
 def _refine(model, values: np.ndarray, u: np.ndarray, y: np.ndarray, idx: np.ndarray,
@@ -320,9 +324,7 @@ def _after_fade_out(candidates, refined: dict, i: int, unit: float, low: float) 
     d = next((k for k in refined if candidates[k].info.get('demagnetised')), None)
     if d is None:
         return i
-    if unit <= 0:
-        return d if refined[d][2] <= 0 else i
-    return d if (refined[d][2] / unit - low / unit) / TIE <= DEMAG_MARGIN else i
+    return d if _ties(refined[d][2], unit, low) <= DEMAG_MARGIN else i
 
 
 def fade_out(u0: float, lo: float, hi: float, cycles: int = FADE_CYCLES) -> tuple[float, ...]:
