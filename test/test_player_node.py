@@ -138,7 +138,7 @@ def test_loop_repeats_until_stopped(tmp_path):
 
 
 SILENT_SUBSCRIBER = """
-import time, rclpy
+import signal, threading, time, rclpy
 from sensor_msgs.msg import JointState
 from piezo_narx_ros.nodes.qos import sample_qos
 rclpy.init()
@@ -147,9 +147,12 @@ sub = node.create_subscription(JointState, '/play4/voltage_command', lambda m: N
                                sample_qos(100))
 while sub.get_publisher_count() < 1:
     time.sleep(0.02)
+stop = threading.Event()
+signal.signal(signal.SIGINT, lambda *_: stop.set())
 print('matched', flush=True)
-while True:
-    time.sleep(1)
+stop.wait()           # then a clean exit: the participant is destroyed, its port released
+node.destroy_node()
+rclpy.try_shutdown()
 """
 
 
@@ -186,9 +189,18 @@ def test_a_subscriber_that_stops_acknowledging_costs_the_wait_and_a_warning(tmp_
         reader.join(20)
         err = ''.join(lines)
     finally:
+        # Thawed, the sink drains what was sent to it and exits cleanly. It used to be killed
+        # right after SIGCONT, and twice in CI the next DDS test's probe then received nothing
+        # from a best-effort writer it had discovered; suspected: a participant killed with a
+        # full shared-memory port leaves that port to the next participant given its id.
         sink.send_signal(signal.SIGCONT)
-        sink.kill()
-        sink.wait()
+        time.sleep(0.5)
+        sink.send_signal(signal.SIGINT)
+        try:
+            sink.wait(20)
+        except subprocess.TimeoutExpired:
+            sink.kill()
+            sink.wait()
         if proc is not None and proc.poll() is None:
             proc.kill()
     assert proc.returncode == 0, err
@@ -282,12 +294,19 @@ def _probe_clock_player(bag):
             ex.spin_once(timeout_sec=0.05)
         info = {t: node.get_publishers_info_by_topic(t)[0].qos_profile
                 for t in ('/play3/voltage_command', '/play3/deflection')}
+        # What the probe saw, for a failure message: is the player alive, is its /clock writer
+        # discovered, with what QoS, and which nodes share the domain.
+        writers = [(i.node_name, i.qos_profile.reliability.name)
+                   for i in node.get_publishers_info_by_topic('/clock')]
+        shm = sum(1 for f in os.listdir('/dev/shm') if f.startswith('fastdds_'))
+        seen = (f'player exit {proc.poll()}; /clock writers {writers}; '
+                f'nodes {node.get_node_names()}; fastdds shm files {shm}')
     finally:
         proc.terminate()
         code = proc.wait(20)
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
-    return code, proc.stderr.read(), info, clocks
+    return code, seen + '\n' + proc.stderr.read(), info, clocks
 
 
 def test_republishes_with_recorded_qos_and_publishes_clock(tmp_path):
