@@ -347,3 +347,33 @@ def test_records_of_sessions_with_different_sensor_zeros_fit_together():
     assert got == pytest.approx(4e-6, abs=0.05e-6)
     for u in (a.u, b.u):
         assert np.max(np.abs(moved.simulate(u) - same.simulate(u))) < 0.05e-6
+
+
+def test_selection_judges_state_windows_with_the_candidates_own_error(hnarx, monkeypatch):
+    """
+    Selection scores a validation record's state window as evaluate judges the saved model's.
+
+    With the model's own free-run error as the window's floor (ident.state, step 4): during
+    selection that is its error on the estimation records, the only one known then.
+    """
+    import copy
+
+    from piezo_narx_ros.ident import state
+    from piezo_narx_ros.ident.experiment import CandidateResult, CandidateSpec, score_candidate
+    floors = []
+
+    def spy(model):
+        floors.append(real(model))
+        return floors[-1]
+    real = state.error_scale
+    monkeypatch.setattr(state, 'error_scale', spy)
+    est = [record(generate('multisine', FS, 2.0, 80.0, seed=1), seed=1, name='e')]
+    u = generate('multisine', FS, 2.0, 80.0, seed=2)
+    val = [replace(record(u, seed=2, offset=1e-6, before=30.0 * np.ones(500), name='v'),
+                   state_window=1000)]
+    model = copy.deepcopy(hnarx)
+    res = score_candidate(CandidateResult(spec=CandidateSpec('hysteresis_narx', 1, 1)), model,
+                          est, val, ExperimentConfig(family='hysteresis_narx'))
+    rmse = res.scores['estimation']['simulation']['rmse']
+    assert rmse > 0 and floors and all(f == rmse for f in floors)
+    assert np.isfinite(res.scores['validation']['simulation']['r2'])

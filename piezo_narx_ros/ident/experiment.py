@@ -773,6 +773,11 @@ def score_candidate(res: CandidateResult, model, est: list[Record], val: list[Re
     """Fill res with a fitted model's scores on both data sets and its tests; returns res."""
     res.n_params = int(model.n_params)
     res.scores['estimation'] = evaluate_model(model, est, with_tests=False)
+    # The validation records' state windows are then judged as evaluate and estimator_node
+    # judge the saved model's: with its own free-run error as the window's floor (ident.state,
+    # step 4). Here that is the estimation records' error; the file gets both after selection.
+    model.metadata = {**(getattr(model, 'metadata', None) or {}),
+                      'metrics': {'estimation': res.scores['estimation']}}
     noise = None
     if config.noise_model == 'ar':
         noise = fit_noise_models(model, est, config.noise_order, config.max_lag)

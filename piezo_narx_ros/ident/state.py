@@ -157,8 +157,10 @@ def error_scale(model) -> float:
     Return the model's own free-run error (m): the RMSE its fit measured, else 0 (unknown).
 
     From the model file's metrics (`fit` writes them): the validation records' free run, else
-    the estimation records'. A model fitted in-process carries none, and its windows are then
-    judged by their best cost alone (step 4 of the module docstring).
+    the estimation records'. fit's candidates get their estimation records' error before their
+    validation windows (experiment.score_candidate); any other model fitted in-process carries
+    none, and its windows are then judged by their best cost alone (step 4 of the module
+    docstring).
     """
     metrics = (getattr(model, 'metadata', None) or {}).get('metrics') or {}
     for part in ('validation', 'estimation'):
