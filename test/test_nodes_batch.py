@@ -126,13 +126,22 @@ def test_command_and_simulator_batches_carry_every_stamp_and_the_offline_plant(t
     assert np.array_equal(np.concatenate([b.position[:, 0] for b in dfl]), ref)
 
 
-def test_estimator_answers_batches_and_survives_nan_gap_and_bad_batches(toy_model_file):
-    from piezo_narx_ros.ident.model_io import load_model
-    model = load_model(toy_model_file)
+class LateMatch(Exception):
+    """Nothing but a tail of the answers arrived: the node's writer matched the probe late."""
+
+
+def _estimator_batches(toy_model_file, ns):
+    """
+    Run the estimator scenario below once in namespace `ns`; return (u, probe data, exit codes).
+
+    LateMatch when the answers that arrived are only the last ones (none included): the node's
+    writer matched the probe's reader after it had answered the first batches. The probe sees its
+    own side of that match only (wait_matched's settle covers the usual delay).
+    """
     period, batch = 50_000, 5
-    probe = BatchProbe('/best', ('deflection_estimate_batch',), 'voltage_command_batch')
+    probe = BatchProbe(ns, ('deflection_estimate_batch',), 'voltage_command_batch')
     est = start_node('estimator_node', '-p', f'model:={toy_model_file}', '-p', 'init:=rest',
-                     '-p', f'batch:={batch}', ns='/best')
+                     '-p', f'batch:={batch}', ns=ns)
     try:
         assert probe.wait_matched()
         u = np.random.default_rng(3).uniform(-100, 100, 400)
@@ -148,27 +157,44 @@ def test_estimator_answers_batches_and_survives_nan_gap_and_bad_batches(toy_mode
                                                           effort=np.ones((2, 2))))
                 probe.pub.publish(encode_joint_trajectory([T0], ['x'], effort=[[1.0]])[:30])
             time.sleep(0.002)
-        assert probe.wait_for(lambda: sum(map(len, probe.decoded('deflection_estimate_batch')))
-                              >= 400, 20.0)
-        assert probe.wait_for(lambda: probe.diag.get('/best/estimator_node', (0, {}))[1]
+        answered = probe.wait_for(
+            lambda: sum(map(len, probe.decoded('deflection_estimate_batch'))) >= 400, 20.0)
+        assert probe.wait_for(lambda: probe.diag.get(f'{ns}/estimator_node', (0, {}))[1]
                               .get('commands') == '395', 5.0)
         assert est.poll() is None                            # still running
         got = probe.decoded('deflection_estimate_batch')
         t, y_hat = probe.samples('deflection_estimate_batch', 'position')
-        assert t.tolist() == [T0 + k * period for k in range(400)]
-        # Before any anomaly, each batch is answered by one batch of the same stamps.
-        assert [b.t_ns.tolist() for b in got[:19]] == \
-            [[T0 + k * period for k in range(i, i + batch)] for i in range(0, 95, batch)]
-        held = u.copy()
-        for k in [100, 150, 151, *range(200, 205)]:
-            held[k] = held[k - 1]
-        assert np.max(np.abs(y_hat - model.simulate(held))) <= 1e-12
-        values = probe.diag['/best/estimator_node'][1]
-        assert values['rejected_nonfinite'] == str(2 + 2) and values['rejected_range'] == '1'
-        assert values['gaps'] == '1' and values['filled'] == '8'
+        values = probe.diag[f'{ns}/estimator_node'][1]
     finally:
         codes = stop([est])
         probe.close()
+    want = [T0 + k * period for k in range(400)]
+    if not answered and t.tolist() == want[len(want) - len(t):]:
+        raise LateMatch(f'{len(t)} of 400 answers, all at the end')
+    assert answered, f'{len(t)} of 400 answers; stamps from {t[:3].tolist()}'
+    return u, got, t, y_hat, values, codes
+
+
+def test_estimator_answers_batches_and_survives_nan_gap_and_bad_batches(toy_model_file):
+    from piezo_narx_ros.ident.model_io import load_model
+    model = load_model(toy_model_file)
+    period, batch = 50_000, 5
+    try:
+        u, got, t, y_hat, values, codes = _estimator_batches(toy_model_file, '/best')
+    except LateMatch:
+        # Once in a clean-clone suite run the probe heard fewer than 400 answers in 20 s; a
+        # match completed late on the node's side is retried once, anything else fails.
+        u, got, t, y_hat, values, codes = _estimator_batches(toy_model_file, '/best2')
+    assert t.tolist() == [T0 + k * period for k in range(400)]
+    # Before any anomaly, each batch is answered by one batch of the same stamps.
+    assert [b.t_ns.tolist() for b in got[:19]] == \
+        [[T0 + k * period for k in range(i, i + batch)] for i in range(0, 95, batch)]
+    held = u.copy()
+    for k in [100, 150, 151, *range(200, 205)]:
+        held[k] = held[k - 1]
+    assert np.max(np.abs(y_hat - model.simulate(held))) <= 1e-12
+    assert values['rejected_nonfinite'] == str(2 + 2) and values['rejected_range'] == '1'
+    assert values['gaps'] == '1' and values['filled'] == '8'
     assert codes == [0]
 
 
