@@ -126,6 +126,11 @@ def test_command_and_simulator_batches_carry_every_stamp_and_the_offline_plant(t
     assert np.array_equal(np.concatenate([b.position[:, 0] for b in dfl]), ref)
 
 
+# The estimator scenario: 400 commands 50 us apart in batches of 5, and the stamps answered.
+EST_PERIOD_NS, EST_BATCH = 50_000, 5
+EST_STAMPS = [T0 + k * EST_PERIOD_NS for k in range(400)]
+
+
 class LateMatch(Exception):
     """Nothing but a tail of the answers arrived: the node's writer matched the probe late."""
 
@@ -138,7 +143,7 @@ def _estimator_batches(toy_model_file, ns):
     writer matched the probe's reader after it had answered the first batches. The probe sees its
     own side of that match only (wait_matched's settle covers the usual delay).
     """
-    period, batch = 50_000, 5
+    period, batch = EST_PERIOD_NS, EST_BATCH
     probe = BatchProbe(ns, ('deflection_estimate_batch',), 'voltage_command_batch')
     est = start_node('estimator_node', '-p', f'model:={toy_model_file}', '-p', 'init:=rest',
                      '-p', f'batch:={batch}', ns=ns)
@@ -168,8 +173,7 @@ def _estimator_batches(toy_model_file, ns):
     finally:
         codes = stop([est])
         probe.close()
-    want = [T0 + k * period for k in range(400)]
-    if not answered and t.tolist() == want[len(want) - len(t):]:
+    if not answered and t.tolist() == EST_STAMPS[len(EST_STAMPS) - len(t):]:
         raise LateMatch(f'{len(t)} of 400 answers, all at the end')
     assert answered, f'{len(t)} of 400 answers; stamps from {t[:3].tolist()}'
     return u, got, t, y_hat, values, codes
@@ -178,14 +182,14 @@ def _estimator_batches(toy_model_file, ns):
 def test_estimator_answers_batches_and_survives_nan_gap_and_bad_batches(toy_model_file):
     from piezo_narx_ros.ident.model_io import load_model
     model = load_model(toy_model_file)
-    period, batch = 50_000, 5
+    period, batch = EST_PERIOD_NS, EST_BATCH
     try:
         u, got, t, y_hat, values, codes = _estimator_batches(toy_model_file, '/best')
     except LateMatch:
         # Once in a clean-clone suite run the probe heard fewer than 400 answers in 20 s; a
         # match completed late on the node's side is retried once, anything else fails.
         u, got, t, y_hat, values, codes = _estimator_batches(toy_model_file, '/best2')
-    assert t.tolist() == [T0 + k * period for k in range(400)]
+    assert t.tolist() == EST_STAMPS
     # Before any anomaly, each batch is answered by one batch of the same stamps.
     assert [b.t_ns.tolist() for b in got[:19]] == \
         [[T0 + k * period for k in range(i, i + batch)] for i in range(0, 95, batch)]

@@ -298,7 +298,8 @@ def _probe_clock_player(bag):
         # discovered, with what QoS, and which nodes share the domain.
         writers = [(i.node_name, i.qos_profile.reliability.name)
                    for i in node.get_publishers_info_by_topic('/clock')]
-        shm = sum(1 for f in os.listdir('/dev/shm') if f.startswith('fastdds_'))
+        shm = (sum(1 for f in os.listdir('/dev/shm') if f.startswith('fastdds_'))
+               if os.path.isdir('/dev/shm') else None)
         seen = (f'player exit {proc.poll()}; /clock writers {writers}; '
                 f'nodes {node.get_node_names()}; fastdds shm files {shm}')
     finally:
