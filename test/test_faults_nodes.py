@@ -199,6 +199,37 @@ def test_unexpected_error_in_a_node_exits_1_with_one_line(where):
     assert 'Traceback' not in done.stderr
 
 
+def test_a_refusing_constructor_has_its_half_built_node_destroyed_before_shutdown():
+    """
+    run_node, as a process: a node that refuses after Node.__init__ (its endpoints exist).
+
+    Its node is destroyed while the context is still up, then the one line and exit 2. Before,
+    rclpy.try_shutdown destroyed it while shutting the context down, and this destroy_node's
+    rclpy.ok() deadlocked there: the process never exited.
+    """
+    code = ('import sys\n'
+            'import rclpy\n'
+            'from std_msgs.msg import Float64\n'
+            'from piezo_narx_ros.errors import ConfigError\n'
+            'from piezo_narx_ros.nodes.runtime import PiezoNode, run_node\n'
+            'class Refuses(PiezoNode):\n'
+            '    NODE_NAME = "refuses_node"\n'
+            '    def __init__(self, **kwargs):\n'
+            '        super().__init__(**kwargs)\n'
+            '        self.pub = self.create_publisher(Float64, "out", 10)\n'
+            '        raise ConfigError("parameter gain must be > 0")\n'
+            '    def destroy_node(self):\n'
+            '        print("destroyed, context ok:", rclpy.ok(), flush=True)\n'
+            '        super().destroy_node()\n'
+            'sys.exit(run_node(Refuses, ["refuses", "--ros-args", "-r", '
+            f'"__ns:=/refuses{os.getpid()}"]))\n')
+    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          timeout=30)
+    assert done.returncode == 2, done.stderr
+    assert done.stdout.strip() == 'destroyed, context ok: True', done.stdout
+    assert done.stderr.strip() == 'refuses_node: error: parameter gain must be > 0'
+
+
 def test_retired_parameter_refused_by_a_real_node():
     proc = subprocess.run([sys.executable, '-m', 'piezo_narx_ros.nodes.simulator_node',
                            '--ros-args', '-p', 'best_effort:=true', '-r', '__ns:=/retired'],

@@ -91,7 +91,7 @@ def run_node(node_cls: Callable[..., Node], args: list[str] | None = None,
     ex = None
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
-        node = node_cls()
+        node = construct(node_cls)
         check_overrides(node)
         ex = make_executor(kind)
         ex.add_node(node)
@@ -183,6 +183,29 @@ def _drain(ex, node: PiezoNode) -> None:
         now, count = time.monotonic(), node.drain_count()
         if count != last:
             last, since = count, now
+
+
+def construct(node_cls: type[Node]) -> Node:
+    """
+    Return node_cls(); a constructor that raises has its half-built node destroyed first.
+
+    A node that refuses its parameters raises after Node.__init__ made its DDS participant and
+    endpoints. Left alone, that node is destroyed inside rclpy.try_shutdown, while the context
+    is shutting down; a teardown step that asks the context anything there deadlocks (measured:
+    rclpy.ok() in a node's destroy_node, and the process never exits). Destroyed here, before
+    the shutdown, it is torn down as a node that started is. (In CI a refusing node once
+    printed its line and did not exit for 120 s; whether this was why is not known.)
+    """
+    node = node_cls.__new__(node_cls)
+    try:
+        node.__init__()
+    except BaseException:
+        try:
+            node.destroy_node()
+        except Exception:  # noqa: BLE001 - raised before Node.__init__: nothing to destroy
+            pass
+        raise
+    return node
 
 
 def main_for(node_cls) -> Callable[[list[str] | None], None]:
