@@ -170,6 +170,24 @@ def test_empty_list_parameter_is_one_line_not_a_type_error():
     assert proc.stderr.startswith('command_node: error: parameter axes has no value')
 
 
+def run_node_script(cls: str, body: list[str], imports: str = '', timeout: float = 60.0):
+    """
+    Run a PiezoNode subclass `cls` (body: the lines under its class line) through run_node.
+
+    Its node name is `<cls lower>_node` in a namespace of its own; returns the CompletedProcess.
+    """
+    name = cls.lower()
+    code = (f'import sys\n{imports}'
+            'from piezo_narx_ros.nodes.runtime import PiezoNode, run_node\n'
+            f'class {cls}(PiezoNode):\n'
+            f'    NODE_NAME = "{name}_node"\n'
+            + ''.join(f'    {line}\n' for line in body)
+            + f'sys.exit(run_node({cls}, ["{name}", "--ros-args", "-r", '
+            f'"__ns:=/{name}{os.getpid()}"]))\n')
+    return subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          timeout=timeout)
+
+
 @pytest.mark.parametrize('where', ['constructor', 'callback'])
 def test_unexpected_error_in_a_node_exits_1_with_one_line(where):
     """
@@ -180,17 +198,9 @@ def test_unexpected_error_in_a_node_exits_1_with_one_line(where):
     """
     fault = ('raise KeyError("gain")' if where == 'constructor'
              else 'self.timer = self.create_timer(0.05, lambda: 1 / 0)')
-    code = ('import sys\n'
-            'from piezo_narx_ros.nodes.runtime import PiezoNode, run_node\n'
-            'class Boom(PiezoNode):\n'
-            '    NODE_NAME = "boom_node"\n'
-            '    def __init__(self, **kwargs):\n'
-            '        super().__init__(**kwargs)\n'
-            f'        {fault}\n'
-            'sys.exit(run_node(Boom, ["boom", "--ros-args", "-r", '
-            f'"__ns:=/boom{os.getpid()}"]))\n')
-    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
-                          timeout=60)
+    done = run_node_script('Boom', ['def __init__(self, **kwargs):',
+                                    '    super().__init__(**kwargs)',
+                                    f'    {fault}'])
     assert done.returncode == 1, done.stderr
     want = ("boom_node: error: KeyError: 'gain'" if where == 'constructor'
             else 'boom_node: error: ZeroDivisionError: division by zero')
@@ -207,24 +217,16 @@ def test_a_refusing_constructor_has_its_half_built_node_destroyed_before_shutdow
     rclpy.try_shutdown destroyed it while shutting the context down, and this destroy_node's
     rclpy.ok() deadlocked there: the process never exited.
     """
-    code = ('import sys\n'
-            'import rclpy\n'
-            'from std_msgs.msg import Float64\n'
-            'from piezo_narx_ros.errors import ConfigError\n'
-            'from piezo_narx_ros.nodes.runtime import PiezoNode, run_node\n'
-            'class Refuses(PiezoNode):\n'
-            '    NODE_NAME = "refuses_node"\n'
-            '    def __init__(self, **kwargs):\n'
-            '        super().__init__(**kwargs)\n'
-            '        self.pub = self.create_publisher(Float64, "out", 10)\n'
-            '        raise ConfigError("parameter gain must be > 0")\n'
-            '    def destroy_node(self):\n'
-            '        print("destroyed, context ok:", rclpy.ok(), flush=True)\n'
-            '        super().destroy_node()\n'
-            'sys.exit(run_node(Refuses, ["refuses", "--ros-args", "-r", '
-            f'"__ns:=/refuses{os.getpid()}"]))\n')
-    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
-                          timeout=30)
+    done = run_node_script(
+        'Refuses', ['def __init__(self, **kwargs):',
+                    '    super().__init__(**kwargs)',
+                    '    self.pub = self.create_publisher(Float64, "out", 10)',
+                    '    raise ConfigError("parameter gain must be > 0")',
+                    'def destroy_node(self):',
+                    '    print("destroyed, context ok:", rclpy.ok(), flush=True)',
+                    '    super().destroy_node()'],
+        imports=('import rclpy\nfrom std_msgs.msg import Float64\n'
+                 'from piezo_narx_ros.errors import ConfigError\n'), timeout=30)
     assert done.returncode == 2, done.stderr
     assert done.stdout.strip() == 'destroyed, context ok: True', done.stdout
     assert done.stderr.strip() == 'refuses_node: error: parameter gain must be > 0'
@@ -513,24 +515,17 @@ def test_malformed_bytes_reaching_a_running_simulator_and_estimator_are_counted_
 
 def test_run_node_paces_a_node_that_asks():
     """run_node, as a process: a node that takes the pacing gets pace() after every spin_once."""
-    code = ('import os, signal, sys, time\n'
-            'from piezo_narx_ros.nodes.runtime import PiezoNode, run_node\n'
-            'class Paced(PiezoNode):\n'
-            '    NODE_NAME = "paced_node"\n'
-            '    calls = 0\n'
-            '    def take_pacing(self):\n'
-            '        self.t0 = time.monotonic()\n'
-            '        return True\n'
-            '    def pace(self):\n'
-            '        self.calls += 1\n'
-            '        if self.calls == 50:\n'
-            '            print(time.monotonic() - self.t0, flush=True)\n'
-            '            os.kill(os.getpid(), signal.SIGINT)\n'
-            '        return 0.01\n'
-            'sys.exit(run_node(Paced, ["paced", "--ros-args", "-r", '
-            f'"__ns:=/paced{os.getpid()}"]))\n')
-    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
-                          timeout=60)
+    done = run_node_script('Paced', ['calls = 0',
+                                     'def take_pacing(self):',
+                                     '    self.t0 = time.monotonic()',
+                                     '    return True',
+                                     'def pace(self):',
+                                     '    self.calls += 1',
+                                     '    if self.calls == 50:',
+                                     '        print(time.monotonic() - self.t0, flush=True)',
+                                     '        os.kill(os.getpid(), signal.SIGINT)',
+                                     '    return 0.01'],
+                           imports='import os, signal, time\n')
     assert done.returncode == 0, done.stderr
     # 49 waits of 10 ms asked for (the first spin waits 0.1 s): not a busy loop, not 0.1 s each
     assert 0.25 < float(done.stdout.split()[-1]) < 5.0, done.stdout
