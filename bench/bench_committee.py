@@ -78,13 +78,17 @@ def pick(result, disagreement: dict, k: float) -> int:
     return min(eligible, key=disagreement.get) if eligible else result.selected
 
 
-def record_error(model, path, cell_name) -> float:
-    """RMSE (m) of a kept test record after its state window, as bench_real scores it."""
+def window_record(path, cell_name):
+    """Return a kept test record's (u V, y m, state window samples), as bench_real scores it."""
     with np.load(path, allow_pickle=False) as z:
         meta = json.loads(str(z['meta']))
         u, y, fs = z['u'].reshape(-1), z['y'].reshape(-1), float(z['fs'])
     seconds = 2.0 if meta.get('preamble') else (0.1 if 'wideband' in cell_name else 0.5)
-    n = int(round(seconds * fs))
+    return u, y, int(round(seconds * fs))
+
+
+def record_error(model, u, y, n) -> float:
+    """RMSE (m) of a free run after its state is set from the first n samples of u, y."""
     with np.errstate(all='ignore'):
         sim = np.asarray(model.simulate(u, state=state.estimate_state(model, u[:n], y[:n])))
     return math.sqrt(float(np.mean((y[n:] - sim.reshape(-1)[n:]) ** 2)))
@@ -99,10 +103,14 @@ def kept_cell(cell: Path, ks, jobs):
     lo = min(float(np.min(r.u)) for r in est)
     hi = max(float(np.max(r.u)) for r in est)
     dis = disagreements(result, probes(lo, hi, est[0].fs))
-    tests = [p for p in sorted(cell.glob('*_rig.npz')) if not p.name.startswith(('est_', 'val_'))]
+    tests = [window_record(p, cell.name) for p in sorted(cell.glob('*_rig.npz'))
+             if not p.name.startswith(('est_', 'val_'))]
+    totals = {}   # candidate index -> summed RMSE (several K often pick the same network)
 
     def total(i):
-        return sum(record_error(result.candidates[i].model, p, cell.name) for p in tests)
+        if i not in totals:
+            totals[i] = sum(record_error(result.candidates[i].model, *t) for t in tests)
+        return totals[i]
     return total(result.selected), {k: total(pick(result, dis, k)) for k in ks}
 
 
