@@ -232,6 +232,29 @@ def test_a_refusing_constructor_has_its_half_built_node_destroyed_before_shutdow
     assert done.stderr.strip() == 'refuses_node: error: parameter gain must be > 0'
 
 
+def test_a_teardown_that_hangs_ends_the_process_with_every_stack():
+    """
+    run_node, as a process: a node that finishes, then hangs in destroy_node.
+
+    Within TEARDOWN_S (1 s here) the watchdog prints every thread's stack, naming the hanging
+    call, and exits 1. Before, such a process never exited, and SIGTERM did not end it either.
+    """
+    done = run_node_script(
+        'Hangs', ['def __init__(self, **kwargs):',
+                  '    super().__init__(**kwargs)',
+                  '    self.timer = self.create_timer(0.05, self.finish)',
+                  'def destroy_node(self):',
+                  '    print("destroying", flush=True)',
+                  '    threading.Event().wait()',
+                  '    super().destroy_node()'],
+        imports=('import threading\nfrom piezo_narx_ros.nodes import runtime\n'
+                 'runtime.TEARDOWN_S = 1.0\n'), timeout=30)
+    assert done.returncode == 1, done.stderr
+    assert done.stdout.strip() == 'destroying'
+    assert 'Timeout (0:00:01)!' in done.stderr, done.stderr
+    assert 'in destroy_node' in done.stderr and 'in _teardown' in done.stderr, done.stderr
+
+
 def test_retired_parameter_refused_by_a_real_node():
     proc = subprocess.run([sys.executable, '-m', 'piezo_narx_ros.nodes.simulator_node',
                            '--ros-args', '-p', 'best_effort:=true', '-r', '__ns:=/retired'],

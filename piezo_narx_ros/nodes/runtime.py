@@ -7,6 +7,8 @@ nodes.codec, report health through nodes.diagnostics.Diagnostics, and start from
 """
 from __future__ import annotations
 
+import contextlib
+import faulthandler
 import signal
 import sys
 from typing import Callable, Sequence
@@ -33,6 +35,11 @@ STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 #: and the quiet time that ends the drain sooner (s).
 DRAIN_S = 2.0
 DRAIN_QUIET_S = 0.2
+#: Longest the teardown after the spin may take (s) before the process is ended, exit 1.
+#: rclpy's and DDS's C teardown has deadlocked (a node destroyed inside Context.shutdown), and a
+#: process hung there ignores SIGTERM and SIGINT: their handlers only set a flag that nothing
+#: reads any more. faulthandler's watchdog thread needs no GIL and prints every thread's stack.
+TEARDOWN_S = 20.0
 
 
 def make_executor(kind: str = 'events'):
@@ -61,9 +68,9 @@ def run_node(node_cls: Callable[..., Node], args: list[str] | None = None,
     PiezoNarxError from its constructor) prints one line `NAME: error: reason` and exits 2; any
     other exception exits 1. The executor is EventsExecutor unless PIEZO_NARX_EXECUTOR=single or
     `executor` says otherwise. A crash in compiled code (SIGSEGV, SIGBUS, ...) or SIGABRT prints
-    every thread's Python stack to stderr first.
+    every thread's Python stack to stderr first; so does a teardown step of rclpy or DDS that
+    runs over TEARDOWN_S, and the process then exits 1.
     """
-    import faulthandler
     import os
     import threading
 
@@ -123,16 +130,39 @@ def run_node(node_cls: Callable[..., Node], args: list[str] | None = None,
               flush=True)
         code = EXIT_FAILURE
     finally:
-        if ex is not None:
+        _teardown(ex, node)
+    return code
+
+
+@contextlib.contextmanager
+def _bounded(seconds: float):
+    """End the process (exit 1, every thread's stack on stderr) if the block runs over seconds."""
+    faulthandler.dump_traceback_later(seconds, exit=True)
+    try:
+        yield
+    finally:
+        faulthandler.cancel_dump_traceback_later()
+
+
+def _teardown(ex, node) -> None:
+    """
+    Shut the executor down, close and destroy the node, shut rclpy down.
+
+    rclpy's and DDS's steps are bounded by TEARDOWN_S each; the node's close() is not: a
+    recorder there writes its queue and its bag's summary, which a watchdog must not cut short.
+    """
+    if ex is not None:
+        with _bounded(TEARDOWN_S):
             ex.shutdown()
+    if node is not None:
+        try:
+            node.close()  # node-specific cleanup hook (see PiezoNode)
+        except Exception:  # noqa: BLE001 - never mask the real exit reason
+            pass
+    with _bounded(TEARDOWN_S):
         if node is not None:
-            try:
-                node.close()  # node-specific cleanup hook (see PiezoNode)
-            except Exception:  # noqa: BLE001 - never mask the real exit reason
-                pass
             node.destroy_node()
         rclpy.try_shutdown()
-    return code
 
 
 # Parameters replaced by the standard QoS overrides (issue 10): refused with the new name rather
