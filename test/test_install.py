@@ -139,15 +139,19 @@ def _every_console_script_starts_its_own_program(scripts, env, work):
     node the script started, not just any), the tools print their usage.
     """
     runs = {}
-    for name in NODES:   # in parallel: each start imports rclpy and numba (~1-3 s)
-        runs[name] = subprocess.Popen(
-            [str(scripts / name), '--ros-args', '-r', f'__ns:=/inst{os.getpid()}', '-p',
-             'qos_depth:=5'], env=env, cwd=work, stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE, text=True)
     for name in TOOLS:
         runs[name] = subprocess.Popen([str(scripts / name), '--help'], env=env, cwd=work,
                                       stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    for name, proc in runs.items():
+    for name in NODES + TOOLS:
+        if name in NODES:
+            # One node at a time: nodes started together discover each other, and Fast DDS 3.2
+            # has crashed tearing down a participant that peers were querying (about 1 start in
+            # 400, docs/nodes.md), a fault this test is not about.
+            runs[name] = subprocess.Popen(
+                [str(scripts / name), '--ros-args', '-r', f'__ns:=/inst{os.getpid()}', '-p',
+                 'qos_depth:=5'], env=env, cwd=work, stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE, text=True)
+        proc = runs[name]
         try:
             out, err = proc.communicate(timeout=120)
         finally:

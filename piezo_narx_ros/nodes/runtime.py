@@ -95,10 +95,13 @@ def run_node(node_cls: Callable[..., Node], args: list[str] | None = None,
         signal.signal(sig, lambda *_: stop.set())
     code = EXIT_OK
     node = None
+    started = None     # the node object, constructed or not (see _teardown)
     ex = None
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
-        node = construct(node_cls)
+        started = node_cls.__new__(node_cls)
+        started.__init__()
+        node = started
         check_overrides(node)
         ex = make_executor(kind)
         ex.add_node(node)
@@ -130,7 +133,7 @@ def run_node(node_cls: Callable[..., Node], args: list[str] | None = None,
               flush=True)
         code = EXIT_FAILURE
     finally:
-        _teardown(ex, node)
+        _teardown(ex, node, started)
     return code
 
 
@@ -144,12 +147,16 @@ def _bounded(seconds: float):
         faulthandler.cancel_dump_traceback_later()
 
 
-def _teardown(ex, node) -> None:
+def _teardown(ex, node, started=None) -> None:
     """
     Shut the executor down, close and destroy the node, shut rclpy down.
 
     rclpy's and DDS's steps are bounded by TEARDOWN_S each; the node's close() is not: a
     recorder there writes its queue and its bag's summary, which a watchdog must not cut short.
+    `started`: the node object whose constructor raised (node None), destroyed here, after its
+    refusal was printed and before rclpy's shutdown. Left to rclpy.try_shutdown, it would be
+    destroyed while the context shuts down, where a teardown step that asks the context
+    anything deadlocks (measured: rclpy.ok() in a node's destroy_node).
     """
     if ex is not None:
         with _bounded(TEARDOWN_S):
@@ -162,6 +169,11 @@ def _teardown(ex, node) -> None:
     with _bounded(TEARDOWN_S):
         if node is not None:
             node.destroy_node()
+        elif started is not None:
+            try:
+                started.destroy_node()
+            except Exception:  # noqa: BLE001 - raised before Node.__init__: nothing to destroy
+                pass
         rclpy.try_shutdown()
 
 
@@ -213,29 +225,6 @@ def _drain(ex, node: PiezoNode) -> None:
         now, count = time.monotonic(), node.drain_count()
         if count != last:
             last, since = count, now
-
-
-def construct(node_cls: type[Node]) -> Node:
-    """
-    Return node_cls(); a constructor that raises has its half-built node destroyed first.
-
-    A node that refuses its parameters raises after Node.__init__ made its DDS participant and
-    endpoints. Left alone, that node is destroyed inside rclpy.try_shutdown, while the context
-    is shutting down; a teardown step that asks the context anything there deadlocks (measured:
-    rclpy.ok() in a node's destroy_node, and the process never exits). Destroyed here, before
-    the shutdown, it is torn down as a node that started is. (In CI a refusing node once
-    printed its line and did not exit for 120 s; whether this was why is not known.)
-    """
-    node = node_cls.__new__(node_cls)
-    try:
-        node.__init__()
-    except BaseException:
-        try:
-            node.destroy_node()
-        except Exception:  # noqa: BLE001 - raised before Node.__init__: nothing to destroy
-            pass
-        raise
-    return node
 
 
 def main_for(node_cls) -> Callable[[list[str] | None], None]:
