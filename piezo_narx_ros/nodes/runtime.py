@@ -74,9 +74,10 @@ def run_node(node_cls: Callable[..., Node], args: list[str] | None = None,
     import os
     import threading
 
-    # A node has died in DDS's or rclpy's C code on the way out (exit -11, once in a suite run
-    # that also saw a player hang): the stacks say where, and a supervisor (or a test) that finds
-    # a node hung can send SIGABRT to get them. (Already on under pytest or PYTHONFAULTHANDLER.)
+    # A node has died in DDS's C code on the way out (exit -11: Fast DDS's TypeLookup thread
+    # during the participant's teardown, docs/nodes.md): the stacks say where, and a supervisor
+    # (or a test) that finds a node hung can send SIGABRT to get them. (Already on under pytest
+    # or PYTHONFAULTHANDLER.)
     if not faulthandler.is_enabled():
         faulthandler.enable()
 
