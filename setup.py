@@ -17,7 +17,7 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
-        ('share/' + package_name + '/config', glob('config/*.yaml')),
+        ('share/' + package_name + '/config', glob('config/*.yaml') + ['config/fastdds.xml']),
         ('share/' + package_name + '/launch', glob('launch/*.launch.yaml')),
     ],
     include_package_data=True,

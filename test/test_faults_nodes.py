@@ -257,6 +257,42 @@ def test_a_teardown_that_hangs_ends_the_process_with_every_stack():
     assert 'in destroy_node' in done.stderr and 'in _teardown' in done.stderr, done.stderr
 
 
+def test_fastdds_profile_is_set_only_where_the_user_did_not_configure_fast_dds(tmp_path):
+    """fastdds_profile: config/fastdds.xml unless an env variable or a cwd file says otherwise."""
+    import xml.etree.ElementTree as ET
+
+    from piezo_narx_ros.nodes.runtime import fastdds_profile
+    env = {}
+    path = fastdds_profile(env, cwd=str(tmp_path))
+    assert env == {'FASTDDS_DEFAULT_PROFILES_FILE': path} and path.endswith('config/fastdds.xml')
+    # The profile keeps type information out of discovery (docs/nodes.md), and is the default.
+    ns = {'d': 'http://www.eprosima.com'}
+    root = ET.parse(path).getroot()
+    participant = root.find('d:profiles/d:participant', ns)
+    assert participant.get('is_default_profile') == 'true'
+    props = {p.findtext('d:name', namespaces=ns): p.findtext('d:value', namespaces=ns)
+             for p in participant.iterfind('.//d:property', ns)}
+    assert props == {'fastdds.type_propagation': 'registration_only'}
+    for own in ({'FASTDDS_DEFAULT_PROFILES_FILE': '/mine.xml'}, {'SKIP_DEFAULT_XML': '1'}):
+        env = dict(own)
+        assert fastdds_profile(env, cwd=str(tmp_path)) is None and env == own
+    (tmp_path / 'DEFAULT_FASTDDS_PROFILES.xml').write_text('<dds/>')
+    env = {}
+    assert fastdds_profile(env, cwd=str(tmp_path)) is None and env == {}
+
+
+def test_a_node_process_starts_with_the_fastdds_profile():
+    """run_node sets FASTDDS_DEFAULT_PROFILES_FILE before rclpy.init (seen in the constructor)."""
+    done = run_node_script(
+        'Profile', ['def __init__(self, **kwargs):',
+                    '    super().__init__(**kwargs)',
+                    '    print(os.environ.get("FASTDDS_DEFAULT_PROFILES_FILE"), flush=True)',
+                    '    raise ConfigError("done")'],
+        imports='import os\nfrom piezo_narx_ros.errors import ConfigError\n', timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert done.stdout.strip().endswith('config/fastdds.xml'), done.stdout
+
+
 def test_retired_parameter_refused_by_a_real_node():
     proc = subprocess.run([sys.executable, '-m', 'piezo_narx_ros.nodes.simulator_node',
                            '--ros-args', '-p', 'best_effort:=true', '-r', '__ns:=/retired'],

@@ -92,6 +92,7 @@ def test_installed_copy_finds_its_config_and_runs_simulator_and_fake_rig(tmp_pat
     assert launch.stdout.strip() == str(prefix / 'share' / 'piezo_narx_ros' / 'config' /
                                         'simulator_node.yaml')
     assert (prefix / 'share' / 'piezo_narx_ros' / 'launch' / 'rig.launch.yaml').is_file()
+    assert (prefix / 'share' / 'piezo_narx_ros' / 'config' / 'fastdds.xml').is_file()
 
     code, out = _run_until([str(scripts / 'simulator_node'), '--ros-args', '-r',
                             f'__ns:=/install{os.getpid()}'], env, work, 'simulating')

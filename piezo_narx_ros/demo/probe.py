@@ -19,6 +19,9 @@ class DiagnosticsProbe:
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.signals import SignalHandlerOptions
 
+        from piezo_narx_ros.nodes.runtime import fastdds_profile
+
+        fastdds_profile()     # the nodes' Fast DDS settings (docs/nodes.md), here and inherited
         self.latest: dict[str, tuple[str, dict[str, str], float]] = {}
         self._rclpy = rclpy
         self.context = rclpy.Context()

@@ -42,6 +42,38 @@ DRAIN_QUIET_S = 0.2
 TEARDOWN_S = 20.0
 
 
+#: Environment and files by which a user configures Fast DDS; any of them: fastdds_profile
+#: leaves Fast DDS alone.
+FASTDDS_USER_SETTINGS = ('FASTDDS_DEFAULT_PROFILES_FILE', 'SKIP_DEFAULT_XML')
+FASTDDS_CWD_PROFILE = 'DEFAULT_FASTDDS_PROFILES.xml'
+
+
+def fastdds_profile(environ=None, cwd: str | None = None) -> str | None:
+    """
+    Point Fast DDS at config/fastdds.xml unless the user configured Fast DDS; return that path.
+
+    Sets FASTDDS_DEFAULT_PROFILES_FILE in `environ` (default os.environ), before rclpy.init, and
+    returns None without a change when one of FASTDDS_USER_SETTINGS is set, when `cwd` (default
+    the working directory) holds DEFAULT_FASTDDS_PROFILES.xml, or when the file is not found. The
+    profile keeps type information out of discovery: a participant destroyed while peers asked
+    for it crashed in Fast DDS 3.2 (docs/nodes.md).
+    """
+    import os
+    from pathlib import Path
+    environ = os.environ if environ is None else environ
+    if any(name in environ for name in FASTDDS_USER_SETTINGS):
+        return None
+    if (Path(cwd or os.getcwd()) / FASTDDS_CWD_PROFILE).is_file():
+        return None
+    from piezo_narx_ros.share import config_path
+    try:
+        path = str(config_path('fastdds.xml'))
+    except ConfigError:
+        return None
+    environ['FASTDDS_DEFAULT_PROFILES_FILE'] = path
+    return path
+
+
 def make_executor(kind: str = 'events'):
     """
     Return the executor of a name.
@@ -98,6 +130,7 @@ def run_node(node_cls: Callable[..., Node], args: list[str] | None = None,
     node = None
     started = None     # the node object, constructed or not (see _teardown)
     ex = None
+    fastdds_profile()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
         started = node_cls.__new__(node_cls)
