@@ -140,19 +140,18 @@ def _every_console_script_starts_its_own_program(scripts, env, work):
     node the script started, not just any), the tools print their usage.
     """
     runs = {}
+    # In parallel: each start imports rclpy and numba (~1-3 s). The nodes discover each other
+    # while they refuse; the installed config/fastdds.xml keeps Fast DDS 3.2 from crashing in
+    # that teardown (docs/nodes.md).
+    for name in NODES:
+        runs[name] = subprocess.Popen(
+            [str(scripts / name), '--ros-args', '-r', f'__ns:=/inst{os.getpid()}', '-p',
+             'qos_depth:=5'], env=env, cwd=work, stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE, text=True)
     for name in TOOLS:
         runs[name] = subprocess.Popen([str(scripts / name), '--help'], env=env, cwd=work,
                                       stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    for name in NODES + TOOLS:
-        if name in NODES:
-            # One node at a time: nodes started together discover each other, and Fast DDS 3.2
-            # has crashed tearing down a participant that peers were querying (about 1 start in
-            # 400, docs/nodes.md), a fault this test is not about.
-            runs[name] = subprocess.Popen(
-                [str(scripts / name), '--ros-args', '-r', f'__ns:=/inst{os.getpid()}', '-p',
-                 'qos_depth:=5'], env=env, cwd=work, stdout=subprocess.PIPE,
-                stderr=subprocess.PIPE, text=True)
-        proc = runs[name]
+    for name, proc in runs.items():
         try:
             out, err = proc.communicate(timeout=120)
         finally:
