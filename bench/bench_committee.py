@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_envelope import FS, PLANTS, battery, preset_config  # noqa: E402
+from bench_envelope import BATTERY, FS, PLANTS, battery, preset_config  # noqa: E402
 from bench_excitation import score  # noqa: E402
 
 from piezo_narx_ros.ident import state  # noqa: E402
@@ -37,7 +37,7 @@ from piezo_narx_ros.ident.experiment import PRESETS, ExperimentConfig, run_exper
 from piezo_narx_ros.plant import PiezoCantilever, generate, load_plant_params  # noqa: E402
 from piezo_narx_ros.record import Record  # noqa: E402
 
-STEPS = (0.0, 1.0, 0.5, -1.0, -0.5, 0.0, 1.0, -1.0)
+STEPS = BATTERY['steps'][2]['levels']   # the battery's steps, as fractions of the span
 
 
 def probes(lo, hi, fs):
