@@ -377,3 +377,49 @@ def test_selection_judges_state_windows_with_the_candidates_own_error(hnarx, mon
     rmse = res.scores['estimation']['simulation']['rmse']
     assert rmse > 0 and floors and all(f == rmse for f in floors)
     assert np.isfinite(res.scores['validation']['simulation']['r2'])
+
+
+def test_an_output_at_the_sensors_full_scale_is_found_where_the_input_moves_on():
+    from piezo_narx_ros.ident.saturation import clipped_runs, saturation_warnings
+    u = generate('sine', FS, 2.0, 100.0, freq=2.0)
+    # A 16-bit sensor over 40 um on a sine of about 80 um peak to peak clips both crests.
+    clipped = PiezoCantilever(fs=FS, seed=1, sensor_bits=16, sensor_span=40e-6).run(u).y
+    runs = clipped_runs(u, clipped)
+    assert {side for _, _, side in runs} == {'maximum', 'minimum'} and len(runs) >= 6
+    for start, stop, side in runs:
+        assert np.all(clipped[start:stop] == (clipped.max() if side == 'maximum'
+                                              else clipped.min()))
+    # Over 400 um the same converter never clips: no run, noise or not.
+    assert clipped_runs(u, PiezoCantilever(fs=FS, seed=1, sensor_bits=16,
+                                           sensor_span=400e-6).run(u).y) == []
+    # A hold at the top reads one code while the input holds: not clipping; nor is a coarse
+    # sensor that stays on its top code while a crest moves by less than three codes' worth.
+    ramp = np.r_[np.linspace(0.0, 100.0, 1000), np.full(1000, 100.0)]
+    assert clipped_runs(ramp, np.round(ramp * 0.4e-6 / 1e-8) * 1e-8) == []
+    coarse = np.round(np.sin(np.linspace(0, 6 * np.pi, 3000)) * 10.0) / 10.0
+    assert clipped_runs(100.0 * np.sin(np.linspace(0, 6 * np.pi, 3000)), coarse) == []
+    # Several outputs: one line for the clipped one, named.
+    two = Record(u=u, y=np.column_stack([clipped, 0.5 * clipped + 1e-9 * np.arange(u.size)]),
+                 fs=FS, source='two.npz', outputs=('x', 'z'))
+    (line,) = saturation_warnings([two])
+    assert line.startswith('two.npz: the output x sits at its maximum') and 'end of its range' \
+        in line
+
+
+def test_fit_and_evaluate_warn_when_the_output_sits_at_the_sensors_full_scale(tmp_path):
+    u = generate('multisine', FS, 3.0, 100.0, seed=1)
+    plant = PiezoCantilever(fs=FS, seed=1, sensor_bits=16, sensor_span=50e-6)
+    np.savez(tmp_path / 'clipped.npz', u=u, y=plant.run(u).y, fs=FS)
+    clean = record(generate('multisine', FS, 3.0, 100.0, seed=2), seed=2)
+    np.savez(tmp_path / 'clean.npz', u=clean.u, y=clean.y, fs=FS)
+    out = piezo_narx('fit', str(tmp_path / 'clipped.npz'), '--out', str(tmp_path / 'o'), '--ny',
+                     '1', '--nu', '0', '--hidden', '2', '--arx-na', '2', '--arx-nb', '2',
+                     '--no-report', '--quiet')
+    assert out.returncode == 0, out.stderr
+    lines = [line for line in out.stderr.splitlines() if 'end of its range' in line]
+    assert len(lines) == 1 and 'clipped.npz: the output sits at its ' in lines[0], out.stderr
+    model = str(tmp_path / 'o' / 'model.json')
+    for name, warned in (('clipped.npz', 1), ('clean.npz', 0)):
+        out = piezo_narx('evaluate', model, str(tmp_path / name), '--json')
+        assert out.returncode == 0, out.stderr
+        assert out.stderr.count('end of its range') == warned, out.stderr

@@ -187,6 +187,7 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
     from piezo_narx_ros.errors import ConfigError, DataError
     from piezo_narx_ros.ident.experiment import (evaluate_model, fit_noise_models,
                                                  from_rest_scores, scored_from)
+    from piezo_narx_ros.ident.saturation import saturation_warnings
 
     if init_samples is not None:
         if init_samples < 0:
@@ -229,7 +230,7 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
         # In-sample: slightly favourable to the model, hence said in the output.
         noise = fit_noise_models(model, records, noise_order, max_lag)
         source = 'fitted on the evaluated residuals'
-    notes = range_warnings(model, records)
+    notes = range_warnings(model, records) + saturation_warnings(records)
     windows, memory = memory_windows(model, records, init_samples)
     notes += memory
     for line in notes:

@@ -313,7 +313,8 @@ def _load_validation(args, settings, records):
     With --resample they are resampled as the estimation records were, before the rates are
     compared (records given at the rig's rate validate a model fitted at the slower one).
 
-    Warns in words where the estimation data cover less than the validation data (coverage).
+    Warns in words where the estimation data cover less than the validation data (coverage),
+    and where a validation record's output sits at its sensor's full scale (saturation).
     """
     import warnings
 
@@ -321,6 +322,7 @@ def _load_validation(args, settings, records):
     from piezo_narx_ros.errors import ConfigError, DataError
     from piezo_narx_ros.ident.coverage import coverage_warnings
     from piezo_narx_ros.ident.data import expand_inputs, load_records
+    from piezo_narx_ros.ident.saturation import saturation_warnings
     val_paths = expand_inputs(args.validate)
     est_paths = {p.resolve() for p in expand_inputs(args.inputs)}
     shared = [str(p) for p in val_paths if p.resolve() in est_paths]
@@ -336,7 +338,7 @@ def _load_validation(args, settings, records):
         if abs(r.fs - fs) > 1e-6 * fs:
             raise DataError(f'{r.source}: sampled at {r.fs:g} Hz but the estimation records at '
                             f'{fs:g} Hz')
-    for line in coverage_warnings(records, validation):
+    for line in coverage_warnings(records, validation) + saturation_warnings(validation):
         warnings.warn(line)
     return validation
 
@@ -346,12 +348,14 @@ def _warn_about_estimation(records, config, name: str = '') -> None:
     Warn where the estimation input itself limits the model (after the fit, beside its report).
 
     The paper's networks fitted on an input that never reverses in its range; an input that
-    reaches both ends of its range late (coverage.LATE_SWEEP). `name` prefixes each line (fleet).
+    reaches both ends of its range late (coverage.LATE_SWEEP); an output at its sensor's full
+    scale (saturation). `name` prefixes each line (fleet).
     """
     import warnings
 
     from piezo_narx_ros.ident.coverage import inner_reversals, late_sweep_warnings
     from piezo_narx_ros.ident.hysteresis import MINOR_LOOPS
+    from piezo_narx_ros.ident.saturation import saturation_warnings
     lines = []
     if config.narx and config.family == 'narx' and inner_reversals(records) < MINOR_LOOPS:
         lines.append('the estimation input never reverses inside its range (no minor loops, '
@@ -359,7 +363,7 @@ def _warn_about_estimation(records, config, name: str = '') -> None:
                      'networks behave inside the loop, and their validation scores cannot tell '
                      '(on the micromanipulator of docs/real.md the selected one scored R² -0.22 '
                      'on its test record); --preset envelope keeps its network monotone there')
-    lines += late_sweep_warnings(records)
+    lines += late_sweep_warnings(records) + saturation_warnings(records)
     for line in lines:
         warnings.warn(f'{name}: {line}' if name else line)
 
