@@ -39,6 +39,12 @@ def piezo_narx(*args):
                           capture_output=True, text=True, timeout=300)
 
 
+def fit_small(*args):
+    """Run `piezo-narx fit ARGS` with one small network and one ARX(2, 2), quietly."""
+    return piezo_narx('fit', *args, '--ny', '1', '--nu', '0', '--hidden', '2', '--arx-na', '2',
+                      '--arx-nb', '2', '--no-report', '--quiet')
+
+
 @pytest.fixture(scope='module')
 def hnarx():
     """Return a small HysteresisNARX fitted on 8 s of the identification protocol."""
@@ -114,9 +120,7 @@ def test_fit_warns_when_the_estimation_input_reaches_its_ends_late(tmp_path):
     # One fit: the warning's wiring (which inputs warn is the test above).
     r = record(generate('growing_sine', FS, 3.0, 100.0, freq=2.0, hold=0.5), seed=4)
     np.savez(tmp_path / 'growing.npz', u=r.u, y=r.y, fs=FS)
-    out = piezo_narx('fit', str(tmp_path / 'growing.npz'), '--out', str(tmp_path / 'o'), '--ny',
-                     '1', '--nu', '0', '--hidden', '2', '--arx-na', '2', '--arx-nb', '2',
-                     '--no-report', '--quiet')
+    out = fit_small(str(tmp_path / 'growing.npz'), '--out', str(tmp_path / 'o'))
     assert out.returncode == 0, out.stderr
     late = [line for line in out.stderr.splitlines() if 'both ends of its range' in line]
     assert len(late) == 1 and late[0].startswith('piezo-narx: warning: '), out.stderr
@@ -129,9 +133,7 @@ def test_fit_per_record_warns_for_the_recording_it_concerns(tmp_path):
                               ('protocol', 'protocol', {'seed': 1})):
         r = record(generate(kind, FS, 3.0, 100.0, **extra), seed=4)
         np.savez(fleet / f'{name}.npz', u=r.u, y=r.y, fs=FS)
-    out = piezo_narx('fit', str(fleet), '--per-record', '--out', str(tmp_path / 'o'), '--ny',
-                     '1', '--nu', '0', '--hidden', '2', '--arx-na', '2', '--arx-nb', '2',
-                     '--no-report', '--quiet')
+    out = fit_small(str(fleet), '--per-record', '--out', str(tmp_path / 'o'))
     assert out.returncode == 0, out.stderr
     late = [line for line in out.stderr.splitlines() if 'both ends of its range' in line]
     assert len(late) == 1 and late[0].startswith('piezo-narx: warning: growing: '), out.stderr
@@ -310,9 +312,7 @@ def test_resample_is_anti_aliased_and_only_slower():
 def test_fit_and_evaluate_at_a_resampled_rate(tmp_path):
     r = record(generate('multisine', FS, 3.0, 80.0, seed=1), seed=1)
     np.savez(tmp_path / 'a.npz', u=r.u, y=r.y, fs=FS)
-    out = piezo_narx('fit', str(tmp_path / 'a.npz'), '--resample', '1000', '--ny', '1',
-                     '--nu', '0', '--hidden', '2', '--arx-na', '2', '--arx-nb', '2', '--out',
-                     str(tmp_path / 'o'), '--no-report', '--quiet')
+    out = fit_small(str(tmp_path / 'a.npz'), '--resample', '1000', '--out', str(tmp_path / 'o'))
     assert out.returncode == 0, out.stderr
     doc = json.loads((tmp_path / 'o' / 'model.json').read_text())
     assert doc['fs'] == 1000.0
@@ -326,10 +326,8 @@ def test_fit_and_evaluate_at_a_resampled_rate(tmp_path):
     # compared with the resampled rate first, and every --resample --validate fit was refused).
     v = record(generate('multisine', FS, 3.0, 80.0, seed=2), seed=2)
     np.savez(tmp_path / 'v.npz', u=v.u, y=v.y, fs=FS)
-    out = piezo_narx('fit', str(tmp_path / 'a.npz'), '--validate', str(tmp_path / 'v.npz'),
-                     '--resample', '1000', '--ny', '1', '--nu', '0', '--hidden', '2', '--arx-na',
-                     '2', '--arx-nb', '2', '--out', str(tmp_path / 'ov'), '--no-report',
-                     '--quiet')
+    out = fit_small(str(tmp_path / 'a.npz'), '--validate', str(tmp_path / 'v.npz'),
+                    '--resample', '1000', '--out', str(tmp_path / 'ov'))
     assert out.returncode == 0, out.stderr
     assert json.loads((tmp_path / 'ov' / 'model.json').read_text())['fs'] == 1000.0
 
@@ -413,9 +411,7 @@ def test_fit_and_evaluate_warn_when_the_output_sits_at_the_sensors_full_scale(tm
     np.savez(tmp_path / 'clipped.npz', u=u, y=plant.run(u).y, fs=FS)
     clean = record(generate('multisine', FS, 3.0, 100.0, seed=2), seed=2)
     np.savez(tmp_path / 'clean.npz', u=clean.u, y=clean.y, fs=FS)
-    out = piezo_narx('fit', str(tmp_path / 'clipped.npz'), '--out', str(tmp_path / 'o'), '--ny',
-                     '1', '--nu', '0', '--hidden', '2', '--arx-na', '2', '--arx-nb', '2',
-                     '--no-report', '--quiet')
+    out = fit_small(str(tmp_path / 'clipped.npz'), '--out', str(tmp_path / 'o'))
     assert out.returncode == 0, out.stderr
     lines = [line for line in out.stderr.splitlines() if 'end of its range' in line]
     assert len(lines) == 1 and 'clipped.npz: the output sits at its ' in lines[0], out.stderr
