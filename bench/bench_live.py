@@ -17,17 +17,28 @@ With `--batch N` (N > 1) every node runs with batch:=N: the streams are the `<to
 JointTrajectory topics, N samples per message (DESIGN.md "High-rate streams"); the probe reads
 every sample's stamp out of the batches, so latency, lateness and loss stay per sample.
 
-Targets: 2 kHz with p99 <= 1 ms and zero loss; estimator compute p99 <= 10 us; 20 kHz batch 20:
-zero loss, each node <= 30 % of a core; 10 kHz batch 10: zero loss, p99 <= 3 ms.
+With `--floor` each run is followed by the same streams between bare stand-ins of the three
+nodes (floor_nodes.py: same names, topics, QoS, executor, spin loop, batch and message sizes and
+codec, computing nothing), and their CPU and latency are printed beside the nodes':
+`floor CPU (% of one core): simulator_node A, estimator_node B, command_node C`, and each node's
+CPU over its floor's (CPU time per sample, the same samples streamed). The machine's load moves
+both alike within one run; `--repeat N` runs N such pairs and prints their medians.
+
+Targets (issue 43; ratios from one run): 20 kHz batch 20: zero loss, each node <= 1.15 x its
+floor's CPU + 2 points; 10 kHz batch 10: p99 <= 3 ms; 2 kHz batch 1: p99 <= 1 ms with --rt and
+<= 1.5 x the floor's p99 without, each node <= 1.15 x its floor's CPU; estimator compute p99
+<= 5 us.
 
     python bench/bench_live.py                       # 60 s at 2, 5, 10 kHz
     python bench/bench_live.py --seconds 10 --rates 2000
     python bench/bench_live.py --publish-period 0.001   # batch the command timer at 1 kHz
     python bench/bench_live.py --rates 20000 --batch 20
+    python bench/bench_live.py --rates 20000 --batch 20 --seconds 20 --floor --repeat 3
 """
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import signal
 import struct
@@ -40,6 +51,7 @@ from pathlib import Path
 import numpy as np
 
 NODES = 'piezo_narx_ros.nodes'
+FLOOR_NODES = Path(__file__).resolve().parent / 'floor_nodes.py'
 
 
 def cpu_seconds(pid: int) -> float:
@@ -150,9 +162,17 @@ class Probe:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
 
 
-def start(module: str, ns: str, *params: str, prefix: tuple = ()) -> subprocess.Popen:
-    """Start a node process (`prefix`: a command it runs under, e.g. ('chrt', '-f', '20'))."""
-    args = [*prefix, sys.executable, '-m', f'{NODES}.{module}', '--ros-args', '-r', f'__ns:={ns}']
+def start(module: str, ns: str, *params: str, prefix: tuple = (),
+          floor: bool = False) -> subprocess.Popen:
+    """
+    Start a node process (`prefix`: a command it runs under, e.g. ('chrt', '-f', '20')).
+
+    floor: the node's bare stand-in from floor_nodes.py instead (module 'simulator_node' ->
+    role 'simulator'), which takes fs, batch, axes and the command's stream parameters.
+    """
+    entry = [str(FLOOR_NODES), module.replace('_node', '')] if floor else \
+        ['-m', f'{NODES}.{module}']
+    args = [*prefix, sys.executable, *entry, '--ros-args', '-r', f'__ns:={ns}']
     for p in params:
         args += ['-p', p]
     return subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -219,21 +239,28 @@ def axes_model(axes: list, fs: float, seconds: float = 4.0):
 
 def run_rate(fs: float, seconds: float, model_path: Path, publish_period: float,
              executor: str, rt: int = 0, batch: int = 1, axes=('x',),
-             amplitude: float = 100.0) -> dict:
+             amplitude: float = 100.0, floor: bool = False) -> dict:
     """
     Run command -> simulator -> estimator for `seconds` at `fs` Hz and observe it.
 
     rt > 0: the estimator under SCHED_FIFO at that priority, the probe 10 below (`realtime`).
+    floor: the same streams between the nodes' bare stand-ins (floor_nodes.py), on a namespace
+    of their own.
     """
-    ns = f'/bench{int(fs)}'
+    ns = f'/{"floor" if floor else "bench"}{int(fs)}'
     n = int(round(seconds * fs))
     os.environ['PIEZO_NARX_EXECUTOR'] = executor
     probe = Probe(ns, node_priority=rt, batch=batch)
     names = '[' + ','.join(f"'{a}'" for a in axes) + ']'
-    procs = {'simulator': start('simulator_node', ns, f'fs:={fs}', f'batch:={batch}',
-                                f'axes:={names}'),
-             'estimator': start('estimator_node', ns, f'model:={model_path}', f'fs:={fs}',
-                                'init:=rest', f'batch:={batch}', prefix=realtime(rt))}
+    common = (f'fs:={fs}', f'batch:={batch}', f'axes:={names}')
+    if floor:
+        procs = {'simulator': start('simulator_node', ns, *common, floor=True),
+                 'estimator': start('estimator_node', ns, *common, prefix=realtime(rt),
+                                    floor=True)}
+    else:
+        procs = {'simulator': start('simulator_node', ns, *common),
+                 'estimator': start('estimator_node', ns, f'model:={model_path}', f'fs:={fs}',
+                                    'init:=rest', f'batch:={batch}', prefix=realtime(rt))}
     result = {'fs': fs, 'n': n}
     try:
         ok = probe.spin_until(lambda: all(probe.subs[t].get_publisher_count() >= 1 for t in
@@ -241,11 +268,16 @@ def run_rate(fs: float, seconds: float, model_path: Path, publish_period: float,
         if not ok:
             raise not_up('simulator/estimator', procs)
         probe.spin_until(lambda: False, 0.5)
-        procs['command'] = start('command_node', ns, f'fs:={fs}', 'loop:=false',
-                                 f'seconds:={seconds}', 'wait_for_subscribers:=3',
-                                 f'publish_period:={publish_period}', 'kind:=multisine',
-                                 f'amplitude:={amplitude}', f'batch:={batch}',
-                                 f'axes:={names}')
+        if floor:
+            procs['command'] = start('command_node', ns, *common, f'seconds:={seconds}',
+                                     'wait_for_subscribers:=3', f'amplitude:={amplitude}',
+                                     floor=True)
+        else:
+            procs['command'] = start('command_node', ns, f'fs:={fs}', 'loop:=false',
+                                     f'seconds:={seconds}', 'wait_for_subscribers:=3',
+                                     f'publish_period:={publish_period}', 'kind:=multisine',
+                                     f'amplitude:={amplitude}', f'batch:={batch}',
+                                     f'axes:={names}')
         cmd = probe.recv['voltage_command']
         probe.spin_until(lambda: len(cmd) > 0, 60.0)
         cpu0 = {k: cpu_seconds(p.pid) for k, p in procs.items()}
@@ -273,6 +305,79 @@ def run_rate(fs: float, seconds: float, model_path: Path, publish_period: float,
     return result
 
 
+ORDER = ('simulator', 'estimator', 'command')
+
+
+def report(fs: float, seconds: float, r: dict, f: dict | None) -> None:
+    """Print one rate's run `r` and, beside it, the floor's run `f` (None: no floor)."""
+    print(f'\n--- {fs:g} Hz, {seconds:g} s, {r["n"]} samples '
+          f'(exit codes {r["codes"]}{"; floor " + str(f["codes"]) if f else ""}; '
+          f'load average now {os.getloadavg()[0]:.1f}) ---')
+    for what, run in (('', r), ('floor ', f)):
+        for k, lines in (run or {}).get('errors', {}).items():
+            print(f'{what}{k} failed: ' + ' | '.join(lines))
+    print('                                 p50      p99      max  (us)')
+    print(f'latency command -> estimate  {pct(r["latency_us"])}')
+    if f:
+        print(f'floor latency                {pct(f["latency_us"])}')
+    print(f'lateness stamp -> estimate   {pct(r["lateness_us"])}')
+    print('lost samples: ' + ', '.join(f'{t} {v}' for t, v in r['lost'].items()))
+    if f:
+        print('floor lost samples: ' + ', '.join(f'{t} {v}' for t, v in f['lost'].items()))
+    print('CPU (% of one core): ' + ', '.join(f'{k} {r["cpu"][k]:.0f}' for k in ORDER))
+    if f:
+        print('floor CPU (% of one core): ' + ', '.join(
+            f'{k}_node {f["cpu"][k]:.0f}' for k in ORDER))
+        print('CPU / floor: ' + ', '.join(f'{k} {ratio(r, f, k):.2f}' for k in ORDER)
+              + '; within 1.15 x floor + 2 points: ' + ', '.join(
+                  f'{k} {"yes" if r["cpu"][k] <= 1.15 * f["cpu"][k] + 2 else "no"}'
+                  for k in ORDER))
+    print('CPU per sample (us): ' + ', '.join(f'{k} {r["cpu_us_per_sample"][k]:.2f}'
+                                              for k in ORDER))
+    d = r['diag']
+    if 'command_node' in d:
+        c = d['command_node']
+        print(f"command node: late ticks {c.get('late_ticks')}, largest batch "
+              f"{c.get('max_batch')}")
+    if 'estimator_node' in d:
+        e = d['estimator_node']
+        print(f"estimator: gaps {e.get('gaps')}, filled {e.get('filled')}, "
+              f"rejected {e.get('rejected_nonfinite')}/{e.get('rejected_range')}")
+    if 'simulator_node' in d:
+        print(f"simulator: gaps {d['simulator_node'].get('gaps')}")
+
+
+def ratio(r: dict, f: dict, node: str) -> float:
+    """Return a node's CPU over its floor's: CPU time per sample (the same samples streamed)."""
+    floor = f['cpu_us_per_sample'][node]
+    return r['cpu_us_per_sample'][node] / floor if floor > 0 else math.nan
+
+
+def summary(fs: float, runs: list) -> None:
+    """Print the medians over repeated (run, floor run) pairs of one rate."""
+    def med(values):
+        return float(np.median(values))
+    print(f'\n=== {fs:g} Hz: medians of {len(runs)} runs ===')
+    print('CPU (% of one core): ' + ', '.join(
+        f'{k} {med([r["cpu"][k] for r, _ in runs]):.1f}' for k in ORDER))
+    lat = [np.percentile(r['latency_us'], [50, 99]) for r, _ in runs if len(r['latency_us'])]
+    if lat:
+        print(f'latency p50 / p99 (us): {med([a[0] for a in lat]):.0f} / '
+              f'{med([a[1] for a in lat]):.0f}')
+    print('lost (largest): ' + ', '.join(f'{t} {max(r["lost"][t] for r, _ in runs)}'
+                                         for t in runs[0][0]['lost']))
+    if runs[0][1] is None:
+        return
+    print('floor CPU (% of one core): ' + ', '.join(
+        f'{k}_node {med([f["cpu"][k] for _, f in runs]):.1f}' for k in ORDER))
+    lat = [np.percentile(f['latency_us'], [50, 99]) for _, f in runs if len(f['latency_us'])]
+    if lat:
+        print(f'floor latency p50 / p99 (us): {med([a[0] for a in lat]):.0f} / '
+              f'{med([a[1] for a in lat]):.0f}')
+    print("CPU / floor (median of the runs' ratios): " + ', '.join(
+        f'{k} {med([ratio(r, f, k) for r, f in runs]):.2f}' for k in ORDER))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.strip().split('\n\n')[0])
     ap.add_argument('--seconds', type=float, default=60.0, help='stream length per rate, s')
@@ -291,6 +396,11 @@ def main(argv=None) -> int:
     ap.add_argument('--axes', type=int, default=1, metavar='N',
                     help='axes per sample (N > 1: N independent cantilevers and an N x N ARX '
                     'model named x, y, z, a4...; every message carries every axis)')
+    ap.add_argument('--floor', action='store_true',
+                    help='after each run, the same streams between bare stand-ins of the nodes '
+                    "(floor_nodes.py): their CPU and latency printed beside the nodes'")
+    ap.add_argument('--repeat', type=int, default=1, metavar='N',
+                    help='runs per rate (each followed by its floor run), then their medians')
     args = ap.parse_args(argv)
     axes = ['x', 'y', 'z'][:args.axes] + [f'a{i + 1}' for i in range(3, args.axes)]
     os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 100))
@@ -322,7 +432,7 @@ def main(argv=None) -> int:
           f'{os.cpu_count()} CPUs, '
           f'load average {os.getloadavg()[0]:.1f}')
     print(f'estimator compute per sample (FreeRunEstimator.on_command): p50 {p50:.2f} us, '
-          f'p99 {p99:.2f} us (target p99 <= 10 us)')
+          f'p99 {p99:.2f} us (target p99 <= 5 us)')
     for fs in [float(r) for r in args.rates.split(',')]:
         if not args.model:   # a model runs only at its own rate: the toy model made for this one
             if len(axes) > 1:
@@ -330,30 +440,16 @@ def main(argv=None) -> int:
             else:
                 model.fs = fs
             model_path = save_model(model, Path(tmp.name) / f'toy{fs:g}.json')
-        r = run_rate(fs, args.seconds, model_path, args.publish_period, args.executor, args.rt,
-                     args.batch, axes, amplitude)
-        print(f'\n--- {fs:g} Hz, {args.seconds:g} s, {r["n"]} samples '
-              f'(exit codes {r["codes"]}; load average now {os.getloadavg()[0]:.1f}) ---')
-        for k, lines in r['errors'].items():
-            print(f'{k} failed: ' + ' | '.join(lines))
-        print('                                 p50      p99      max  (us)')
-        print(f'latency command -> estimate  {pct(r["latency_us"])}')
-        print(f'lateness stamp -> estimate   {pct(r["lateness_us"])}')
-        print('lost samples: ' + ', '.join(f'{t} {v}' for t, v in r['lost'].items()))
-        print('CPU (% of one core): ' + ', '.join(f'{k} {v:.0f}' for k, v in r['cpu'].items()))
-        print('CPU per sample (us): ' + ', '.join(f'{k} {v:.2f}'
-                                                  for k, v in r['cpu_us_per_sample'].items()))
-        d = r['diag']
-        if 'command_node' in d:
-            c = d['command_node']
-            print(f"command node: late ticks {c.get('late_ticks')}, largest batch "
-                  f"{c.get('max_batch')}")
-        if 'estimator_node' in d:
-            e = d['estimator_node']
-            print(f"estimator: gaps {e.get('gaps')}, filled {e.get('filled')}, "
-                  f"rejected {e.get('rejected_nonfinite')}/{e.get('rejected_range')}")
-        if 'simulator_node' in d:
-            print(f"simulator: gaps {d['simulator_node'].get('gaps')}")
+        runs = []
+        for _ in range(args.repeat):
+            r = run_rate(fs, args.seconds, model_path, args.publish_period, args.executor,
+                         args.rt, args.batch, axes, amplitude)
+            f = run_rate(fs, args.seconds, model_path, args.publish_period, args.executor,
+                         args.rt, args.batch, axes, amplitude, floor=True) if args.floor else None
+            report(fs, args.seconds, r, f)
+            runs.append((r, f))
+        if args.repeat > 1:
+            summary(fs, runs)
     tmp.cleanup()
     return 0
 
