@@ -38,6 +38,7 @@ from numba import njit
 
 # Smallest Duhem decay rate (normalised): keeps every Duhem state bounded, |s| <= |alpha|/BETA_MIN.
 BETA_MIN = 0.01
+TINY = np.finfo(np.float64).tiny
 
 
 def layout(hidden, d, n_duhem, n_creep, na, nb, n_drive=1):
@@ -571,6 +572,8 @@ def jacobian(F, S, JD, DF, SR, rho, DFK, SRK, kap, W1, b1, w2, c, g, lam, a, b, 
             Xl = X[il]
             for p in range(o_g):
                 v = lm * Xl[p] + (1.0 - lm) * r[p]
+                if abs(v) < TINY:
+                    v = 0.0
                 Xl[p] = v
                 zr[p] += gl * v
         for il in range(nl):
@@ -603,5 +606,8 @@ def jacobian(F, S, JD, DF, SR, rho, DFK, SRK, kap, W1, b1, w2, c, g, lam, a, b, 
                 prev = J[k - j]
                 for p in range(o_y):
                     row[p] -= aj * prev[p]
+        for p in range(o_y):
+            if abs(row[p]) < TINY:
+                row[p] = 0.0
         row[o_y] = 1.0
     return y

@@ -58,15 +58,25 @@ def operator_features(un, radii, n_lags, duhem, drive, with_jac=False):
     for the Jacobian kernel (DFK, SRK: derivatives w.r.t. kap, computed only with_jac and an
     amplifier bandwidth).
     """
+    parts = _operator_parts(un, radii, n_lags, duhem, drive, with_jac, with_jac)
+    return np.hstack(parts[:2]), parts
+
+
+def _operator_parts(un, radii, n_lags, duhem, drive, with_jac, with_kap):
+    """operator_features' parts; the kap derivatives only when with_kap (and a bandwidth)."""
     rho, kap = drive
     v, dv, dk = hk.drive(un, rho, kap)
     F, DF = hk.features(v, radii, n_lags, dv)
     S, JD, SR = hk.duhem_states(v, duhem, with_jac, dv)
     DFK, SRK = DF[:0], SR[:0]
-    if with_jac and kap != np.inf:
-        DFK = hk.features(v, radii, n_lags, dk)[1]
-        SRK = hk.duhem_states(v, duhem, True, dk)[2]
-    return np.hstack([F, S]), (F, S, JD, DF, SR, DFK, SRK)
+    if with_kap and kap != np.inf:
+        DFK, SRK = _kap_parts(v, dk, radii, n_lags, duhem)
+    return F, S, JD, DF, SR, DFK, SRK
+
+
+def _kap_parts(v, dk, radii, n_lags, duhem):
+    """(DFK, SRK): the features' and Duhem states' derivatives w.r.t. kap, given dk = dv/dkap."""
+    return hk.features(v, radii, n_lags, dk)[1], hk.duhem_states(v, duhem, True, dk)[2]
 
 
 def _stable(a):
@@ -324,9 +334,31 @@ def train(uns, yns, radii, n_lags, hidden, n_duhem, lam, na, nb, seed, max_iter=
         return th
     n_train = sum(s - k for s, k in zip(splits, skip))
     n_hold = sum(un.size for un in uns) - sum(splits)
+    # Per record, the operator features of the last drive and Duhem parameters errors() ran:
+    # the accepted step's, which the next normal_equations needs (its derivatives included).
+    feats = [None] * len(uns)
+    scored = {}                 # theta bytes -> errors(theta) of the latest evaluations
+    J_buf = np.empty((max(un.size for un in uns), P))    # one Jacobian buffer, reused
+
+    def record_parts(r, dh, dr, with_kap):
+        key = (dh.tobytes(), dr)
+        if feats[r] is None or feats[r][0] != key:
+            feats[r] = (key, _operator_parts(uns[r], radii, n_lags, dh, dr, True, with_kap))
+        elif with_kap and dr[1] != np.inf and feats[r][1][5].shape[0] == 0:
+            v, _, dk = hk.drive(uns[r], *dr)
+            feats[r] = (key, feats[r][1][:5] + _kap_parts(v, dk, radii, n_lags, dh))
+        return feats[r][1]
 
     def errors(r):
         """(train SSE, holdout MSE) of the free run; inf when not finite or unstable."""
+        key = r.tobytes()
+        if key not in scored:
+            if len(scored) > 8:
+                scored.clear()
+            scored[key] = _errors(r)
+        return scored[key]
+
+    def _errors(r):
         with np.errstate(over='ignore'):
             th = actual(r)
         if not np.all(np.isfinite(th)):
@@ -336,7 +368,7 @@ def train(uns, yns, radii, n_lags, hidden, n_duhem, lam, na, nb, seed, max_iter=
             return np.inf, np.inf
         sse, hold = 0.0, 0.0
         for r, (un, yn, s, k) in enumerate(zip(uns, yns, splits, skip)):
-            _, (F, S, _, _, _, _, _) = operator_features(un, radii, n_lags, dh, dr)
+            F, S = record_parts(r, dh, dr, False)[:2]
             with np.errstate(all='ignore'):   # a diverging trial step is refused below
                 e = yn - hk.forward(F, S, W1, b1, w2, c, g, lam, a, b, y_off)
             if r and n_off:
@@ -356,9 +388,8 @@ def train(uns, yns, radii, n_lags, hidden, n_duhem, lam, na, nb, seed, max_iter=
         JtJ = np.zeros((n, n))
         Jte = np.zeros(n)
         for r, (un, yn, s, k) in enumerate(zip(uns, yns, splits, skip)):
-            _, (F, S, JD, DF, SR, DFK, SRK) = operator_features(un, radii, n_lags, dh, dr,
-                                                                with_jac=True)
-            J = np.empty((un.size, P))
+            F, S, JD, DF, SR, DFK, SRK = record_parts(r, dh, dr, amplifier)
+            J = J_buf[:un.size]
             y = hk.jacobian(F, S, JD, DF, SR, dr[0], DFK, SRK, dr[1], W1, b1, w2, c, g, lam, a,
                             b, y_off, J)
             if monotone:
