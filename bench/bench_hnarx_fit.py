@@ -40,7 +40,8 @@ from piezo_narx_ros.ident.hysteresis import HysteresisNARX
 z = np.load(sys.argv[1])
 u, y, fs = z['u'], z['y'], float(z['fs'])
 options = json.loads(sys.argv[2])
-HysteresisNARX(hidden=2, n_plays=3, max_iter=2, seed=1, **options).fit(u[:3000], y[:3000], fs=fs)
+HysteresisNARX(**{**options, 'hidden': 2, 'n_plays': 3, 'max_iter': 2}).fit(u[:3000], y[:3000],
+                                                                           fs=fs)
 m = HysteresisNARX(seed=1, **options)
 t0, c0 = time.perf_counter(), time.process_time()
 m.fit(u, y, fs=fs)
@@ -66,8 +67,10 @@ def fit_once(tree, record, options, theta_out):
                PYTHONPATH=os.pathsep.join([str(tree)] + [p for p in [os.environ.get(
                    'PYTHONPATH')] if p]))
     done = subprocess.run([sys.executable, '-c', WORKER, str(record), json.dumps(options),
-                           str(theta_out)], env=env, check=True, capture_output=True, text=True,
+                           str(theta_out)], env=env, capture_output=True, text=True,
                           cwd=tempfile.gettempdir())
+    if done.returncode:
+        sys.exit(f'the fit with {tree} failed:\n{done.stderr}')
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
