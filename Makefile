@@ -42,8 +42,9 @@ soak: setup
 # about an hour on the shared 2-core box); the tool comes from requirements-dev.txt, not from
 # requirements.txt, so neither `make test` nor CI installs it. Settings: [mutmut] in setup.cfg;
 # results in mutants/ (a second run only retests what changed); figures: docs/testing.md.
-MUTATE := ident.regressors ident.checks ident.correlation ident.metrics ident.noise_model \
-	ident.narx ident.model_io estimator.free_run bag.pairing nodes.codec.x_decode_joint_state \
+MUTATE := ident.narx.regressors ident.data.checks ident.validation.correlation \
+	ident.validation.metrics ident.validation.noise_model ident.narx.model ident.model_io \
+	estimator.free_run bag.pairing nodes.codec.x_decode_joint_state \
 	nodes.codec.x_encode_joint_state
 
 mutate: setup

@@ -5,8 +5,8 @@ One PlantParams field (or a small named group) is changed at a time from config/
 each variant the paper's experiment is rerun on 25 s of the default identification multisine
 (2 kHz, 100 V peak, fit on the first half, free run on the second) with the project's own tools
 and defaults: NARXNetwork(4, 4, 10) and ARXModel(4, 4), an AR noise model fitted on the
-estimation half (experiment.fit_noise_models) and the five tests on the whitened free-run
-residuals of the validation half under the chance-rate rule (experiment.residual_correlations).
+estimation half (scoring.fit_noise_models) and the five tests on the whitened free-run
+residuals of the validation half under the chance-rate rule (scoring.residual_correlations).
 
 Printed per fit: free-run error against the noise-free sensor output (nm RMS, and its RMS in the
 lowest / highest quartile of |u|), std of the whitened validation residuals (nm), free-run R²
@@ -28,13 +28,13 @@ import time
 
 import numpy as np
 
-from piezo_narx_ros.ident.arx import ARXModel
-from piezo_narx_ros.ident.correlation import TEST_NAMES
-from piezo_narx_ros.ident.data import Record
-from piezo_narx_ros.ident.experiment import (evaluate_model, fit_noise_models, outputs_by_record,
-                                             residual_correlations)
-from piezo_narx_ros.ident.narx import NARXNetwork
-from piezo_narx_ros.ident.noise_model import fit_ar_noise_model
+from piezo_narx_ros.ident.arx.model import ARXModel
+from piezo_narx_ros.ident.validation.correlation import TEST_NAMES
+from piezo_narx_ros.record import Record
+from piezo_narx_ros.ident.selection.scoring import (evaluate_model, fit_noise_models,
+                                                    outputs_by_record, residual_correlations)
+from piezo_narx_ros.ident.narx.model import NARXNetwork
+from piezo_narx_ros.ident.validation.noise_model import fit_ar_noise_model
 from piezo_narx_ros.plant import PiezoCantilever, generate, load_plant_params
 from piezo_narx_ros.plant.figures import loop_width, sine_period
 
@@ -261,7 +261,7 @@ def capacity_probe(params, record_seed: int) -> list[tuple[str, float]]:
 
     On noise-free data: is the 4/4 regressor enough to determine y(k), or is state missing?
     """
-    from piezo_narx_ros.ident.regressors import lagged_regressors
+    from piezo_narx_ros.ident.narx.regressors import lagged_regressors
     u, y, states = states_and_output(params, record_seed)
     half = u.size // 2
     out = []
@@ -281,7 +281,7 @@ def white_noise_pass_rate(record_seed: int = 0, draws: int = 200) -> tuple[int, 
 
     (all five passed, {test: passes}) over `draws` seeded draws (chance-rate rule, L = 20).
     """
-    from piezo_narx_ros.ident.correlation import correlation_tests
+    from piezo_narx_ros.ident.validation.correlation import correlation_tests
     u = generate('multisine', FS, SECONDS, AMPLITUDE, seed=record_seed)[int(SECONDS * FS) // 2:]
     rng = np.random.default_rng(123)
     all_five, per_test = 0, dict.fromkeys(TEST_NAMES, 0)

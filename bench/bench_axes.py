@@ -44,7 +44,7 @@ from bench_envelope import BATTERY, RUNAWAY_R2, SLOW, TEST_SECONDS, preset_confi
 
 from piezo_narx_ros.command.stream import make_signal  # noqa: E402
 from piezo_narx_ros.control.axes import AxesController  # noqa: E402
-from piezo_narx_ros.ident.experiment import PRESETS, run_experiment  # noqa: E402
+from piezo_narx_ros.ident.selection.experiment import PRESETS, run_experiment  # noqa: E402
 from piezo_narx_ros.ident.model_io import load_model, save_model  # noqa: E402
 from piezo_narx_ros.plant.axes import AxisPlants, make_axis_plants  # noqa: E402
 from piezo_narx_ros.plant.signals import generate  # noqa: E402

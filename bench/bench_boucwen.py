@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from piezo_narx_ros.ident.model_io import save_model
-from piezo_narx_ros.ident.narx import NARXNetwork
+from piezo_narx_ros.ident.narx.model import NARXNetwork
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO.parent / 'shared' / 'data' / 'boucwen'

@@ -31,9 +31,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_envelope import BATTERY, FS, PLANTS, battery, preset_config  # noqa: E402
 from bench_excitation import score  # noqa: E402
 
-from piezo_narx_ros.ident import state  # noqa: E402
-from piezo_narx_ros.ident.data import load_record  # noqa: E402
-from piezo_narx_ros.ident.experiment import PRESETS, ExperimentConfig, run_experiment  # noqa: E402
+from piezo_narx_ros.ident.state import estimate  # noqa: E402
+from piezo_narx_ros.ident.data.loaders import load_record  # noqa: E402
+from piezo_narx_ros.ident.selection.experiment import (PRESETS, ExperimentConfig,  # noqa: E402
+                                                       run_experiment)
 from piezo_narx_ros.plant import PiezoCantilever, generate, load_plant_params  # noqa: E402
 from piezo_narx_ros.record import Record  # noqa: E402
 
@@ -90,7 +91,7 @@ def window_record(path, cell_name):
 def record_error(model, u, y, n) -> float:
     """RMSE (m) of a free run after its state is set from the first n samples of u, y."""
     with np.errstate(all='ignore'):
-        sim = np.asarray(model.simulate(u, state=state.estimate_state(model, u[:n], y[:n])))
+        sim = np.asarray(model.simulate(u, state=estimate.estimate_state(model, u[:n], y[:n])))
     return math.sqrt(float(np.mean((y[n:] - sim.reshape(-1)[n:]) ** 2)))
 
 

@@ -1,13 +1,14 @@
 """
 Issue 18.4 / 20: the mean of the best candidates' free runs against the selected model.
 
-The experiment (ident/experiment.py) fits several candidates (network seeds x increments, ARX)
-and selects one by the worst case of its free-run R² over the validation records and outputs.
+The experiment (ident/selection/experiment.py) fits several candidates (network seeds x
+increments, ARX) and selects one by the worst case of its free-run R² over the validation
+records and outputs.
 Here, after the same experiment, the candidates that fitted are ranked by that worst case and
 these models are compared on the same moves:
 
   single   the selected model (the product today);
-  top-K    EnsembleModel (ident/ensemble.py) of the K best candidates, K = 2, 3, 5;
+  top-K    EnsembleModel (ident/ensemble/model.py) of the K best candidates, K = 2, 3, 5;
   seeds    the selected structure over every network seed the grid fitted (the same options).
 
 For each, its own validation worst case (what the experiment would see: `score_candidate` on the
@@ -37,11 +38,12 @@ import bench_axes  # noqa: E402
 import bench_envelope  # noqa: E402
 from bench_excitation import score  # noqa: E402
 
-from piezo_narx_ros.ident import metrics  # noqa: E402
-from piezo_narx_ros.ident.ensemble import EnsembleModel  # noqa: E402
-from piezo_narx_ros.ident.experiment import (CandidateResult, free_run,  # noqa: E402
-                                             run_experiment, score_candidate, split_records,
-                                             with_state_window)
+from piezo_narx_ros.ident.validation import metrics  # noqa: E402
+from piezo_narx_ros.ident.ensemble.model import EnsembleModel  # noqa: E402
+from piezo_narx_ros.ident.selection.experiment import (CandidateResult,  # noqa: E402
+                                                       run_experiment, score_candidate,
+                                                       split_records, with_state_window)
+from piezo_narx_ros.ident.selection.scoring import free_run  # noqa: E402
 from piezo_narx_ros.plant import load_plant_params  # noqa: E402
 from piezo_narx_ros.record import Record  # noqa: E402
 
@@ -148,8 +150,8 @@ def stepper_costs(steps=20000):
     Timed one call at a time, as estimator_node's loop runs it, all in one run.
     """
     from bench_mimo_stepper import time_steps
-    from piezo_narx_ros.ident.hysteresis import HysteresisNARX
-    from piezo_narx_ros.ident.hysteresis_chains import HysteresisChains
+    from piezo_narx_ros.ident.hysteresis.model import HysteresisNARX
+    from piezo_narx_ros.ident.hysteresis.chains import HysteresisChains
     u1 = bench_envelope.generate('protocol', 2000.0, 3.0, 100.0, seed=0)
     y1 = bench_envelope.PiezoCantilever(load_plant_params(bench_envelope.PLANTS['default']),
                                         2000.0, seed=0).run(u1).y

@@ -32,7 +32,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from bench_excitation import score   # {name: (R², RMSE nm)} of the free run from y[:n0]
-from piezo_narx_ros.ident.experiment import PRESETS, ExperimentConfig, run_experiment
+from piezo_narx_ros.ident.selection.experiment import PRESETS, ExperimentConfig, run_experiment
 from piezo_narx_ros.plant import PiezoCantilever, generate, load_plant_params
 from piezo_narx_ros.record import Record
 

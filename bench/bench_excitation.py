@@ -26,9 +26,9 @@ import time
 
 import numpy as np
 
-from piezo_narx_ros.ident import metrics
-from piezo_narx_ros.ident.data import Record
-from piezo_narx_ros.ident.experiment import ExperimentConfig, run_experiment
+from piezo_narx_ros.ident.validation import metrics
+from piezo_narx_ros.record import Record
+from piezo_narx_ros.ident.selection.experiment import ExperimentConfig, run_experiment
 from piezo_narx_ros.plant.piezo import PiezoCantilever
 from piezo_narx_ros.plant.signals import generate
 

@@ -44,7 +44,7 @@ from bench_control import SLEW, TASKS, identify, reference
 from bench_envelope import BATTERY, TEST_SECONDS
 from piezo_narx_ros.control.controller import PositionController
 from piezo_narx_ros.export.writer import write_c
-from piezo_narx_ros.ident.arx import ARXModel
+from piezo_narx_ros.ident.arx.model import ARXModel
 from piezo_narx_ros.ident.model_io import load_model
 from piezo_narx_ros.npzfile import read_npz
 from piezo_narx_ros.plant import generate

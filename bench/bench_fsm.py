@@ -45,8 +45,8 @@ from pathlib import Path
 
 import numpy as np
 
-from piezo_narx_ros.ident.data import load_record
-from piezo_narx_ros.ident.experiment import free_run
+from piezo_narx_ros.ident.data.loaders import load_record
+from piezo_narx_ros.ident.selection.scoring import free_run
 from piezo_narx_ros.record import as_columns, channels_arg
 
 REPO = Path(__file__).resolve().parents[1]
@@ -127,7 +127,7 @@ def register_family(name: str, builder) -> None:
 
 
 def _arx(args):
-    from piezo_narx_ros.ident.arx import ARXModel
+    from piezo_narx_ros.ident.arx.model import ARXModel
 
     def fitter(order):
         def fit(records):
@@ -139,7 +139,7 @@ def _arx(args):
 
 
 def _narx(args):
-    from piezo_narx_ros.ident.narx import NARXNetwork
+    from piezo_narx_ros.ident.narx.model import NARXNetwork
     options = json.loads(args.training) if args.training else {}
 
     def fit(records):
@@ -152,7 +152,8 @@ def _narx(args):
 
 def _preset(name):
     def build(args):
-        from piezo_narx_ros.ident.experiment import PRESETS, ExperimentConfig, run_experiment
+        from piezo_narx_ros.ident.selection.experiment import (PRESETS, ExperimentConfig,
+                                                               run_experiment)
 
         def fit(records):
             settings = {**PRESETS[name], 'jobs': args.jobs, 'progress': False}

@@ -22,7 +22,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_fsm import DEFAULT_DATA, LEVELS, PUBLISHED, load, parse_list, scores  # noqa: E402
 
-from piezo_narx_ros.ident.hysteresis import HysteresisNARX  # noqa: E402
+from piezo_narx_ros.ident.hysteresis.model import HysteresisNARX  # noqa: E402
 
 
 def step_times(stepper, inputs) -> np.ndarray:

@@ -20,8 +20,9 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from bench_simulate import piezo_data  # noqa: E402
 
-from piezo_narx_ros.ident.data import Record  # noqa: E402
-from piezo_narx_ros.ident.experiment import ExperimentConfig, run_experiment  # noqa: E402
+from piezo_narx_ros.record import Record  # noqa: E402
+from piezo_narx_ros.ident.selection.experiment import (ExperimentConfig,  # noqa: E402
+                                                       run_experiment)
 
 FS = 2000.0
 

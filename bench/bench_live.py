@@ -226,7 +226,7 @@ def axes_model(axes: list, fs: float, seconds: float = 4.0):
     One cantilever per axis (independent), each driven by its own multisine: a model of the right
     shape and size for the live bench, not a model to judge.
     """
-    from piezo_narx_ros.ident.arx import ARXModel
+    from piezo_narx_ros.ident.arx.model import ARXModel
     from piezo_narx_ros.plant.axes import make_axis_plants
     from piezo_narx_ros.plant.signals import generate
     u = np.column_stack([generate('multisine', fs, seconds, 100.0, seed=i)

@@ -15,8 +15,8 @@ import time
 
 import numpy as np
 
-from piezo_narx_ros.ident.arx import ARXModel
-from piezo_narx_ros.ident.narx import NARXNetwork
+from piezo_narx_ros.ident.arx.model import ARXModel
+from piezo_narx_ros.ident.narx.model import NARXNetwork
 
 
 def narx(n_in, n_out, lags, hidden, rng):

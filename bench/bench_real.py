@@ -244,9 +244,9 @@ def best_arx(fit_dir, estimation, how, out):
     as the fit's worst-case selection ranks), read from DIR/candidates.json. Least squares is
     deterministic, so on the same estimation data this is the candidate the fit scored.
     """
-    from piezo_narx_ros.ident.arx import ARXModel
-    from piezo_narx_ros.ident.data import load_records
-    from piezo_narx_ros.ident.experiment import split_records
+    from piezo_narx_ros.ident.arx.model import ARXModel
+    from piezo_narx_ros.ident.data.loaders import load_records
+    from piezo_narx_ros.ident.selection.experiment import split_records
     from piezo_narx_ros.ident.model_io import save_model
 
     doc = json.loads((Path(fit_dir) / 'candidates.json').read_text())

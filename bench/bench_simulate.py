@@ -20,9 +20,9 @@ import time
 import numpy as np
 from scipy import signal
 
-from piezo_narx_ros.ident.arx import ARXModel
-from piezo_narx_ros.ident.metrics import r2
-from piezo_narx_ros.ident.narx import NARXNetwork
+from piezo_narx_ros.ident.arx.model import ARXModel
+from piezo_narx_ros.ident.validation.metrics import r2
+from piezo_narx_ros.ident.narx.model import NARXNetwork
 
 FS = 2000.0
 
@@ -87,7 +87,7 @@ def step_latency(model, u, n_calls):
 
 def hnarx_section(reps, n_calls, u_long):
     """Fit time, simulate() throughput and Stepper latency of the hysteresis-operator NARX."""
-    from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+    from piezo_narx_ros.ident.hysteresis.model import HysteresisNARX
     from piezo_narx_ros.plant import PiezoCantilever, generate
     u = generate('protocol', FS, 25.0, 100.0, seed=0)
     y = PiezoCantilever(fs=FS, seed=0).run(u).y

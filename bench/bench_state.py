@@ -1,5 +1,5 @@
 """
-The state set from a short measured window, over many random pasts (ident/state.py, issue 18).
+The state set from a short measured window, over many random pasts (ident/state/, issue 18).
 
 bench_real.py scores each model on a few test records; this bench asks the state estimator
 alone, on many: for each model fitted by bench_real (`--keep DIR`), K test records of its own
@@ -11,7 +11,7 @@ record's first `--window` seconds set the state (`model.estimate_state`), the re
 `--pasts`: `random` (the default) ends each past with a ramp from above or below; `fade` ends it
 with a fade-out about the record's first command (how the real micromanipulator's test record
 ends each segment before its hold); `both` alternates them every len(SIGNALS) records.
-`--state-past fade-out` tells the estimate that each past faded out (ident/state.py step 5).
+`--state-past fade-out` tells the estimate that each past faded out (ident/state/ step 5).
 
 
     ratio = RMSE(free run from the estimated state) / RMSE(the same model from rest, on the
@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from piezo_narx_ros.ident.model_io import load_model
-from piezo_narx_ros.ident.state import PASTS
+from piezo_narx_ros.ident.state.estimate import PASTS
 from piezo_narx_ros.plant import PiezoCantilever, generate, load_plant_params, random_history
 from piezo_narx_ros.share import config_path
 

@@ -27,8 +27,8 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from bench_simulate import piezo_data  # noqa: E402
 
-from piezo_narx_ros.ident import metrics  # noqa: E402
-from piezo_narx_ros.ident.narx import NARXNetwork  # noqa: E402
+from piezo_narx_ros.ident.validation import metrics  # noqa: E402
+from piezo_narx_ros.ident.narx.model import NARXNetwork  # noqa: E402
 
 LAGS, HIDDEN = 4, 10
 

@@ -19,11 +19,11 @@ REPO = Path(__file__).resolve().parents[1]
 
 # module -> prefixes of the mutant names that count (mutmut names them module.x_function...).
 MODULES = {
-    'ident/regressors.py': ('',),
-    'ident/correlation.py': ('',),
-    'ident/metrics.py': ('',),
-    'ident/noise_model.py': ('',),
-    'ident/narx.py': ('',),
+    'ident/narx/regressors.py': ('',),
+    'ident/validation/correlation.py': ('',),
+    'ident/validation/metrics.py': ('',),
+    'ident/validation/noise_model.py': ('',),
+    'ident/narx/model.py': ('',),
     'ident/model_io.py': ('',),
     'estimator/free_run.py': ('',),
     'bag/pairing.py': ('',),

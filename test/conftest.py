@@ -71,7 +71,7 @@ def stage_data():
 @pytest.fixture(scope='session')
 def arx2(stage_data):
     """Identify a 2 x 2 ARX (na = nb = 2) on `stage_data`: a small model of several axes."""
-    from piezo_narx_ros.ident.arx import ARXModel
+    from piezo_narx_ros.ident.arx.model import ARXModel
     u, y = stage_data
     return ARXModel(na=2, nb=2).fit(u, y, fs=2000.0)
 
@@ -79,7 +79,7 @@ def arx2(stage_data):
 @pytest.fixture(scope='session')
 def chains2(stage_data):
     """Fit a small 2 x 2 envelope model of one chain per axis on `stage_data`."""
-    from piezo_narx_ros.ident.hysteresis_chains import HysteresisChains
+    from piezo_narx_ros.ident.hysteresis.chains import HysteresisChains
     u, y = stage_data
     model = HysteresisChains(hidden=4, n_plays=6, max_iter=15, seed=0).fit(u, y, fs=2000.0)
     model.inputs = model.outputs = ('x', 'y')

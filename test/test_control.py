@@ -15,10 +15,10 @@ from piezo_narx_ros.control.inverse import (NOT_INVERTIBLE, REACHED, SLEW, VOLTA
                                             ModelInverse, static_gain)
 from piezo_narx_ros.errors import ConfigError
 from piezo_narx_ros.estimator.toy import toy_narx
-from piezo_narx_ros.ident import hysteresis_kernels as hk
-from piezo_narx_ros.ident.arx import ARXModel
-from piezo_narx_ros.ident.hysteresis import HysteresisNARX
-from piezo_narx_ros.ident.narx import NARXNetwork
+from piezo_narx_ros.ident.hysteresis import kernels as hk
+from piezo_narx_ros.ident.arx.model import ARXModel
+from piezo_narx_ros.ident.hysteresis.model import HysteresisNARX
+from piezo_narx_ros.ident.narx.model import NARXNetwork
 from piezo_narx_ros.plant import PiezoCantilever, generate
 
 FS = 2000.0

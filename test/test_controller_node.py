@@ -28,7 +28,7 @@ P = 500_000  # ns
 @pytest.fixture(scope='module')
 def model_file(tmp_path_factory):
     """Return a small HysteresisNARX fitted on 8 s of the identification protocol, saved."""
-    from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+    from piezo_narx_ros.ident.hysteresis.model import HysteresisNARX
     from piezo_narx_ros.ident.model_io import save_model
     from piezo_narx_ros.plant import PiezoCantilever, generate
     u = generate('protocol', FS, 8.0, 100.0, seed=3)

@@ -93,7 +93,7 @@ def test_control_demo_one_mode_end_to_end(tmp_path):
 
     Every reference answered, tracked, figures and summary written, no process left.
     """
-    from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+    from piezo_narx_ros.ident.hysteresis.model import HysteresisNARX
     from piezo_narx_ros.ident.model_io import save_model
     from piezo_narx_ros.plant import PiezoCantilever, generate
     u = generate('protocol', FS, 8.0, 100.0, seed=3)

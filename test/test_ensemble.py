@@ -1,4 +1,4 @@
-"""The ensemble model (ident/ensemble.py): the mean of its members, file, C, selection."""
+"""The ensemble model (ident/ensemble/model.py): the mean of its members, file, C, selection."""
 import shutil
 import subprocess
 from dataclasses import replace
@@ -8,10 +8,10 @@ import pytest
 
 from piezo_narx_ros.errors import ModelFileError
 from piezo_narx_ros.export import ExportError
-from piezo_narx_ros.ident.ensemble import EnsembleModel
-from piezo_narx_ros.ident.experiment import (PRESETS, ExperimentConfig, consider_ensemble,
-                                             run_experiment)
-from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+from piezo_narx_ros.ident.ensemble.model import EnsembleModel
+from piezo_narx_ros.ident.selection.experiment import (PRESETS, ExperimentConfig,
+                                                       consider_ensemble, run_experiment)
+from piezo_narx_ros.ident.hysteresis.model import HysteresisNARX
 from piezo_narx_ros.ident.model_io import load_model, save_model
 from piezo_narx_ros.plant import PiezoCantilever, generate, load_plant_params
 from piezo_narx_ros.record import Record
@@ -178,7 +178,7 @@ def test_selection_keeps_the_single_model_unless_the_ensemble_is_better(one_axis
 
 
 def _halves(u, y, cfg):
-    from piezo_narx_ros.ident.experiment import split_records, with_state_window
+    from piezo_narx_ros.ident.selection.experiment import split_records, with_state_window
     return split_records(with_state_window([Record(u=u, y=y, fs=FS, source='p')], cfg),
                          cfg.split)
 

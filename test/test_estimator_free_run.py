@@ -140,7 +140,7 @@ def test_stale_stamps_refused_and_long_jump_restarts_once_confirmed(model):
 
 
 def test_estimate_outside_trained_range_is_flagged():
-    from piezo_narx_ros.ident.arx import ARXModel
+    from piezo_narx_ros.ident.arx.model import ARXModel
     m = ARXModel(na=1, nb=0).set_coefficients(a=[-0.5], b=[1e-8])      # 2e-8 m/V static gain
     m.fs, m.output_range = 2000.0, (-1e-6, 1e-6)                        # trained on +-50 V
     est = FreeRunEstimator(m, init='rest', range_margin=0.1)
@@ -165,7 +165,7 @@ def test_running_error_rms_and_r2_over_window(model):
 
 
 def test_reanchoring_removes_a_wrong_initial_state():
-    from piezo_narx_ros.ident.arx import ARXModel
+    from piezo_narx_ros.ident.arx.model import ARXModel
     slow = ARXModel(na=1, nb=0).set_coefficients(a=[-0.995], b=[1e-9])   # long memory
     slow.fs, slow.output_range = 2000.0, (-1e-3, 1e-3)
     u = _u(2000, 7)
@@ -471,7 +471,7 @@ def test_reanchoring_schedule_and_state_equal_an_offline_free_run(first_measured
     # Every `reanchor_every` estimates (retrying at every sample while the measured outputs are
     # not there), the recursion restarts from the measured outputs before the newest sample and
     # re-steps that sample: later estimates are the offline free run from those measurements.
-    from piezo_narx_ros.ident.arx import ARXModel
+    from piezo_narx_ros.ident.arx.model import ARXModel
     m = ARXModel(na=2, nb=2).set_coefficients(a=[-1.2, 0.5], b=[1e-8, 5e-9, -2e-9])
     m.fs, m.output_range = 2000.0, (-1e-3, 1e-3)
     n, every = 80, 7

@@ -22,10 +22,10 @@ import pytest
 
 from piezo_narx_ros.cli.main import main
 from piezo_narx_ros.errors import ConfigError
-from piezo_narx_ros.ident.data import Record
-from piezo_narx_ros.ident.executor import (LocalExecutor, RayExecutor, TaskFailure,
-                                           make_executor)
-from piezo_narx_ros.ident.experiment import ExperimentConfig, fit_task, run_experiment
+from piezo_narx_ros.record import Record
+from piezo_narx_ros.ident.selection.executor import (LocalExecutor, RayExecutor, TaskFailure,
+                                                     make_executor)
+from piezo_narx_ros.ident.selection.experiment import ExperimentConfig, fit_task, run_experiment
 from piezo_narx_ros.ident.model_io import save_model, weights_sha256
 
 # Few iterations: these tests check where and how fits run, not the optimiser.
@@ -236,7 +236,7 @@ def test_fit_task_is_what_every_executor_runs():
     # The Ray and pool paths call the one task function; its payload is (spec, config).
     config = ExperimentConfig(narx=False, arx_na=(2,), arx_nb=(1,), jobs=1)
     record = hysteretic_record(seed=8)
-    from piezo_narx_ros.ident.experiment import split_records
+    from piezo_narx_ros.ident.selection.experiment import split_records
     direct = fit_task((config.specs()[0], config), split_records([record]))
     assert direct.error is None
     assert direct.scores == run_experiment([record], config).best.scores
@@ -441,7 +441,7 @@ def test_without_address_a_local_ray_is_started_and_stopped(tmp_path):
 
 def test_an_ignored_sigint_stays_ignored_by_the_ray_search():
     """A fit started with SIGINT ignored (nohup, a background job) is not stopped by one."""
-    from piezo_narx_ros.ident import executor
+    from piezo_narx_ros.ident.selection import executor
     caught = []
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:

@@ -20,10 +20,10 @@ import pytest
 from piezo_narx_ros.cli.main import main as cli_main
 from piezo_narx_ros.export import ExportError
 from piezo_narx_ros.export.writer import render
-from piezo_narx_ros.ident.arx import ARXModel
-from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+from piezo_narx_ros.ident.arx.model import ARXModel
+from piezo_narx_ros.ident.hysteresis.model import HysteresisNARX
 from piezo_narx_ros.ident.model_io import load_model, save_model
-from piezo_narx_ros.ident.narx import NARXNetwork
+from piezo_narx_ros.ident.narx.model import NARXNetwork
 from piezo_narx_ros.plant import PiezoCantilever, generate, load_plant_params
 
 REPO = Path(__file__).resolve().parents[1]
@@ -538,7 +538,7 @@ def test_sample_rate_and_channel_problems_are_one_line_errors(tmp_path, capsys):
     assert export(path, tmp_path / 'file') == 2
     err = capsys.readouterr().err
     assert 'cannot write the C files' in err and err.count('\n') == 1
-    from piezo_narx_ros.ident.arx_export import ARXEmitter
+    from piezo_narx_ros.ident.arx.export import ARXEmitter
     arx.n_in = 2             # several axes: a family's emitter says what it supports
     with pytest.raises(ExportError, match='supports 1 input.*this model has 2'):
         ARXEmitter(arx)      # (a MIMO ARX gets ARXChannelEmitter: test_mimo_models)

@@ -149,7 +149,7 @@ def test_export_writes_the_file_it_names(tmp_path, capsys):
     code, out, _ = cli(['bag', 'export', str(bag), '--out', str(tmp_path / 'e.csv')], capsys)
     assert code == 0 and out.startswith(f'wrote {tmp_path / "e.csv"}:')
     assert (tmp_path / 'e.csv').is_file() and not (tmp_path / 'e.csv.npz').exists()
-    from piezo_narx_ros.ident.data import load_record
+    from piezo_narx_ros.ident.data.loaders import load_record
     rec = load_record(tmp_path / 'e.csv')
     assert rec.fs == pytest.approx(2000.0)
     assert np.array_equal(rec.u[:, 0], np.sin(np.arange(400.0)))

@@ -136,7 +136,7 @@ def test_object_arrays_are_refused_without_unpickling(tmp_path):
 
 # ------------------------------------------------------------------------------------ CSV
 def test_utf8_bom_csv_reads_its_t_column(tmp_path):
-    from piezo_narx_ros.ident.data import load_record
+    from piezo_narx_ros.ident.data.loaders import load_record
     u, y = record()
     t = np.arange(u.size) / 2000.0
     rows = zip(t.tolist(), u.tolist(), y.tolist())
@@ -174,7 +174,8 @@ def test_idle_estimation_half_is_refused_with_the_fix(tmp_path, capsys):
 
 
 def test_weak_estimation_half_warns():
-    from piezo_narx_ros.ident.data import Record, check_identifiable
+    from piezo_narx_ros.ident.data.records import check_identifiable
+    from piezo_narx_ros.record import Record
     u, y = record(4000)
     u[:2000] *= 0.01
     warns = check_identifiable(Record(u, y, 2000.0, 'weak.npz'), 0.5)
@@ -231,7 +232,7 @@ def test_evaluate_warns_on_inputs_outside_the_trained_range(toy_model, tmp_path,
 
 
 def test_evaluate_refuses_non_finite_scores(tmp_path, capsys):
-    from piezo_narx_ros.ident.arx import ARXModel
+    from piezo_narx_ros.ident.arx.model import ARXModel
     from piezo_narx_ros.ident.model_io import save_model
     u, y = record()
     model = ARXModel(2, 2).fit(u, y)

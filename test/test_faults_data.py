@@ -15,8 +15,9 @@ import pytest
 from conftest import SHARED
 from piezo_narx_ros.cli.main import main
 from piezo_narx_ros.errors import BagError, ConfigError, DataError
-from piezo_narx_ros.ident.data import load_record, load_records, parse_columns, time_clock
-from piezo_narx_ros.ident.units import Units, check_consistent, model_unit_problem
+from piezo_narx_ros.ident.data.loaders import load_record, load_records, parse_columns
+from piezo_narx_ros.ident.data.records import time_clock
+from piezo_narx_ros.ident.data.units import Units, check_consistent, model_unit_problem
 
 FS = 2000.0
 YAN9A = SHARED / 'data' / 'piezo_yan9a' / 'Model_Vi_Do.dat'

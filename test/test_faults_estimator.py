@@ -190,7 +190,7 @@ def test_runaway_between_ticks_is_a_warn_tick_even_if_the_last_sample_is_fine():
     Thousands of flagged estimates between two ticks used to leave the level OK when the sample at
     the tick was back in range.
     """
-    from piezo_narx_ros.ident.arx import ARXModel
+    from piezo_narx_ros.ident.arx.model import ARXModel
     m = ARXModel(na=1, nb=0).set_coefficients(a=[-0.5], b=[1e-8])   # 2e-8 m/V static gain
     m.fs, m.output_range = 2000.0, (-1e-6, 1e-6)
     est = FreeRunEstimator(m, init='rest', u_min=-300, u_max=300)

@@ -22,7 +22,7 @@ from piezo_narx_ros.errors import ConfigError
 from piezo_narx_ros.estimator.free_run import FreeRunEstimator
 from piezo_narx_ros.estimator.health import EstimatorHealth
 from piezo_narx_ros.estimator.toy import toy_narx
-from piezo_narx_ros.ident.arx import ARXModel
+from piezo_narx_ros.ident.arx.model import ARXModel
 
 P = 500_000            # ns, 2 kHz
 T0 = 1_700_000_000_000_000_000

@@ -19,10 +19,11 @@ from test_ident_experiment import arx_record
 
 from piezo_narx_ros.demo.analysis import load_live_run, percentiles_us, write_figures
 from piezo_narx_ros.demo.control import load_control_run, write_control_figures
-from piezo_narx_ros.ident.correlation import TEST_NAMES
-from piezo_narx_ros.ident.experiment import (ExperimentConfig, free_run, run_experiment,
-                                             split_records)
-from piezo_narx_ros.ident.report import write_report
+from piezo_narx_ros.ident.validation.correlation import TEST_NAMES
+from piezo_narx_ros.ident.selection.experiment import (ExperimentConfig, run_experiment,
+                                                       split_records)
+from piezo_narx_ros.ident.selection.scoring import free_run
+from piezo_narx_ros.ident.validation.report import write_report
 
 
 def _capture(monkeypatch) -> dict:

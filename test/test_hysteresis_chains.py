@@ -1,5 +1,5 @@
 """
-The envelope family on several axes as one chain per axis, mixed (ident/hysteresis_chains.py).
+The envelope family on several axes as one chain per axis, mixed (ident/hysteresis/chains.py).
 
 The coupling of the two-axis cantilever (config/plant_2axis.yaml: y moves by 0.12 of x's chain,
 x by 0.05 of y's) is found before any chain is fitted; the outputs of a stage whose axes share
@@ -14,7 +14,7 @@ import pytest
 from scipy.signal import lfilter
 
 from piezo_narx_ros.errors import DataError
-from piezo_narx_ros.ident.hysteresis_chains import (HysteresisChains, check_coupling,
+from piezo_narx_ros.ident.hysteresis.chains import (HysteresisChains, check_coupling,
                                                     coupling_matrix)
 from piezo_narx_ros.ident.model_io import load_model, save_model
 
@@ -128,7 +128,7 @@ int main(void)
 def test_c_export_equals_the_python_stepper(chains2, stage_data, tmp_path, capsys):
     """`piezo-narx export` of a 2-axis chains model file: C free run and state equal Python's."""
     from piezo_narx_ros.cli.main import main
-    from piezo_narx_ros.ident.state import ModelState
+    from piezo_narx_ros.ident.state.estimate import ModelState
     u, _ = stage_data
     path = save_model(chains2, tmp_path / 'chains.json')
     with pytest.raises(SystemExit) as stop:
@@ -211,8 +211,8 @@ def test_envelope_preset_on_several_axes_adds_a_chain_per_axis_candidate(stage_d
     """The experiment fits both several-axes structures when inputs and outputs pair up."""
     from dataclasses import replace
 
-    from piezo_narx_ros.ident.experiment import (PRESETS, ExperimentConfig, auto_grid,
-                                                 distinct_specs)
+    from piezo_narx_ros.ident.selection.experiment import PRESETS, ExperimentConfig
+    from piezo_narx_ros.ident.selection.grid import auto_grid, distinct_specs
     from piezo_narx_ros.record import Record
     u, y = stage_data
     cfg = replace(ExperimentConfig(), **PRESETS['envelope'])

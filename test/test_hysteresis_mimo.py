@@ -1,4 +1,4 @@
-"""The envelope family on several axes (hysteresis_mimo, issue 20): fit, run, state, file, C."""
+"""The envelope family on several axes (hysteresis.mimo, issue 20): fit, run, state, file, C."""
 import json
 import shutil
 import subprocess
@@ -8,10 +8,10 @@ import pytest
 from scipy.signal import lfilter
 
 from piezo_narx_ros.errors import DataError
-from piezo_narx_ros.ident import hysteresis_mimo as hm
-from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+from piezo_narx_ros.ident.hysteresis import mimo as hm
+from piezo_narx_ros.ident.hysteresis.model import HysteresisNARX
 from piezo_narx_ros.ident.model_io import load_model, save_model
-from piezo_narx_ros.ident.state import estimate_state
+from piezo_narx_ros.ident.state.estimate import estimate_state
 
 FS = 1000.0
 
@@ -262,5 +262,5 @@ def test_c_export_equals_python(which, request, tmp_path):
     for row in v:
         stepper.step(row)
     # The state (normalised, order 1): C sums the numerators in order, the kernel in vector
-    # lanes (hysteresis_mimo.dot), equal to rounding over 600 steps.
+    # lanes (hysteresis.mimo_kernels.dot), equal to rounding over 600 steps.
     assert np.max(np.abs(state_c - model.c_emitter().state_vector(stepper))) <= 1e-10

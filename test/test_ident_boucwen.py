@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from piezo_narx_ros.ident.arx import ARXModel
+from piezo_narx_ros.ident.arx.model import ARXModel
 from piezo_narx_ros.ident.model_io import load_model
-from piezo_narx_ros.ident.narx import NARXNetwork
+from piezo_narx_ros.ident.narx.model import NARXNetwork
 
 COMMITTED_MODEL = Path(__file__).resolve().parents[1] / 'bench' / 'boucwen_model.json'
 

@@ -12,9 +12,10 @@ from scipy import stats
 from scipy.signal import lfilter
 
 from piezo_narx_ros.errors import DataError
-from piezo_narx_ros.ident.arx import ARXModel
-from piezo_narx_ros.ident.correlation import TEST_NAMES, correlation_tests, cross_correlation
-from piezo_narx_ros.ident.noise_model import ARNoiseModel, fit_ar_noise_model
+from piezo_narx_ros.ident.arx.model import ARXModel
+from piezo_narx_ros.ident.validation.correlation import (TEST_NAMES, correlation_tests,
+                                                         cross_correlation)
+from piezo_narx_ros.ident.validation.noise_model import ARNoiseModel, fit_ar_noise_model
 
 
 def chance_pass_probability(n_tested, fraction=0.05):

@@ -8,10 +8,11 @@ from scipy import stats
 from scipy.signal import lfilter
 
 from piezo_narx_ros.errors import ConfigError, DataError
-from piezo_narx_ros.ident.data import Record
-from piezo_narx_ros.ident.experiment import (CandidateResult, CandidateSpec, ExperimentConfig,
-                                             run_experiment, select, split_records)
-from piezo_narx_ros.ident.report import write_report
+from piezo_narx_ros.record import Record
+from piezo_narx_ros.ident.selection.experiment import (CandidateResult, CandidateSpec,
+                                                       ExperimentConfig, run_experiment, select,
+                                                       split_records)
+from piezo_narx_ros.ident.validation.report import write_report
 
 # Few iterations: these tests check the plumbing, not the optimiser.
 FAST_TRAINING = {'restarts': 1, 'restart_iter': 2, 'max_iter': 5, 'refine_iter': 2,
@@ -223,7 +224,7 @@ def test_bad_config_raises(kwargs, match):
 def test_boucwen_benchmark_arx_baseline(boucwen_dir):
     # Public hysteresis benchmark (u in N, y in m, 750 Hz): a linear ARX captures most of the
     # response in free run but leaves the hysteresis, which the tests must see.
-    from piezo_narx_ros.ident.data import load_records
+    from piezo_narx_ros.ident.data.loaders import load_records
     records = load_records([boucwen_dir / 'train.npz'])
     assert records[0].fs == 750.0 and len(records[0]) == 40960
     cfg = ExperimentConfig(narx=False, arx_na=(2, 4), arx_nb=(2, 4), jobs=1)
@@ -271,8 +272,8 @@ def test_free_run_start_up_transient_is_not_taken_for_noise():
     Its free-run residual is the white sensor noise plus a start-up transient (the lags start from
     noisy measurements). The noise model must see white residuals, not fit the transient.
     """
-    from piezo_narx_ros.ident.arx import ARXModel
-    from piezo_narx_ros.ident.experiment import fit_noise_models
+    from piezo_narx_ros.ident.arx.model import ARXModel
+    from piezo_narx_ros.ident.selection.scoring import fit_noise_models
     rng = np.random.default_rng(3)
     n, a, b = 6000, [-1.6, 0.8], [0.0, 0.5, 0.3]
     true = ARXModel(2, 2, fit_intercept=False).set_coefficients(a, b)
@@ -291,7 +292,7 @@ def test_arx_regressors_never_cross_records():
     # list, every row comes from one record and the coefficients are exact; joined into one
     # array, the rows straddling the junction (record 1's end as the past of record 2's start)
     # are wrong equations and pull the estimate off.
-    from piezo_narx_ros.ident.arx import ARXModel
+    from piezo_narx_ros.ident.arx.model import ARXModel
     r1, r2 = arx_record(3000, seed=1, noise=0.0), arx_record(3000, seed=2, noise=0.0)
     m = ARXModel(na=2, nb=1, fit_intercept=False).fit([r1.u, r2.u], [r1.y, r2.y])
     np.testing.assert_allclose(m.a, [-1.2, 0.5], rtol=0, atol=1e-10)
@@ -317,8 +318,8 @@ def test_several_records_are_scored_each_and_the_worst_selects():
 
 
 def test_stateful_model_is_scored_from_its_recording_start():
-    from piezo_narx_ros.ident.experiment import free_run
-    from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+    from piezo_narx_ros.ident.selection.scoring import free_run
+    from piezo_narx_ros.ident.hysteresis.model import HysteresisNARX
     from piezo_narx_ros.plant import PiezoCantilever, generate
     u = generate('protocol', 2000.0, 4.0, 100.0, seed=1, cycles=1)
     y = PiezoCantilever(fs=2000.0, seed=1).run(u).y
@@ -330,7 +331,7 @@ def test_stateful_model_is_scored_from_its_recording_start():
     # free_run gives (N, n_out) columns; the one-axis model's own output is (N,).
     assert np.array_equal(sim[:, 0], m.simulate(u, y[:m.n0])[len(est):])
     # The paper's networks keep the paper's protocol: from the validation half's own outputs.
-    from piezo_narx_ros.ident.arx import ARXModel
+    from piezo_narx_ros.ident.arx.model import ARXModel
     a = ARXModel(2, 2).fit(est.u, est.y)
     assert np.array_equal(free_run(a, val)[1], a.simulate(val.u, val.y[:a.n0]))   # (N, 1) each
 
@@ -338,8 +339,8 @@ def test_stateful_model_is_scored_from_its_recording_start():
 def test_envelope_preset_fits_hysteresis_networks_over_seeds(tmp_path):
     from dataclasses import replace
 
-    from piezo_narx_ros.ident.experiment import PRESETS
-    from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+    from piezo_narx_ros.ident.selection.experiment import PRESETS
+    from piezo_narx_ros.ident.hysteresis.model import HysteresisNARX
     from piezo_narx_ros.plant import PiezoCantilever, generate
     u = generate('protocol', 2000.0, 4.0, 100.0, seed=2)
     rec = Record(u=u, y=PiezoCantilever(fs=2000.0, seed=2).run(u).y, fs=2000.0, source='p')
@@ -366,7 +367,7 @@ def test_envelope_preset_fits_hysteresis_networks_over_seeds(tmp_path):
 
 def test_paper_networks_beside_the_envelope_family_only_where_minor_loops_shape_them():
     """narx_beside 'auto': the NARX grid only on one-axis data closing >= 20 minor loops."""
-    from piezo_narx_ros.ident.experiment import beside
+    from piezo_narx_ros.ident.selection.grid import beside
     from piezo_narx_ros.plant import generate
     cfg = ExperimentConfig(family='hysteresis_narx', hidden=3, narx_beside='auto',
                            arx_na=(2,), arx_nb=(2,))
@@ -394,8 +395,8 @@ def test_paper_networks_beside_the_envelope_family_only_where_minor_loops_shape_
 
 def test_increment_free_structure_only_where_the_estimation_input_moves_slowly():
     """without_increments 'auto': every seed also without increments on slow one-axis inputs."""
-    from piezo_narx_ros.ident.coverage import SLOW_STEP, step_share
-    from piezo_narx_ros.ident.experiment import increments
+    from piezo_narx_ros.ident.data.coverage import SLOW_STEP, step_share
+    from piezo_narx_ros.ident.selection.grid import increments
     from piezo_narx_ros.plant import generate
     cfg = ExperimentConfig(family='hysteresis_narx', hidden=3, n_seeds=2,
                            without_increments='auto', hnarx_grid=({}, {'n_lags': 6}),
@@ -436,7 +437,7 @@ def test_increment_free_structure_only_where_the_estimation_input_moves_slowly()
 
 def test_small_networks_only_where_the_estimation_input_closes_few_minor_loops():
     """small_networks 'auto': every structure and seed also small, on one-axis loop-poor inputs."""
-    from piezo_narx_ros.ident.experiment import small
+    from piezo_narx_ros.ident.selection.grid import small
     from piezo_narx_ros.plant import generate
     cfg = ExperimentConfig(family='hysteresis_narx', hidden=6, n_seeds=2, small_networks='auto',
                            small_hidden=2, hnarx_grid=({}, {'n_lags': 0}), arx_na=(2,),
@@ -472,7 +473,7 @@ def test_small_networks_only_where_the_estimation_input_closes_few_minor_loops()
 def test_small_networks_on_a_growing_sine_are_fitted_and_selected_among():
     from dataclasses import replace
 
-    from piezo_narx_ros.ident.experiment import PRESETS
+    from piezo_narx_ros.ident.selection.experiment import PRESETS
     from piezo_narx_ros.plant import PiezoCantilever, generate
 
     def rec(freq, seed):
@@ -514,7 +515,8 @@ def test_several_axes_fit_the_envelope_family_once_not_once_per_seed_and_structu
     """The several-axes envelope fit uses neither seed nor drive increments: one candidate."""
     from dataclasses import replace
 
-    from piezo_narx_ros.ident.experiment import PRESETS, auto_grid, distinct_specs
+    from piezo_narx_ros.ident.selection.experiment import PRESETS
+    from piezo_narx_ros.ident.selection.grid import auto_grid, distinct_specs
     cfg = replace(ExperimentConfig(), **PRESETS['envelope'])
     # 3 seeds x 2 structures; the third (without increments) and the paper's 16 networks
     # beside are dropped on several axes.
@@ -531,14 +533,14 @@ def test_several_axes_fit_the_envelope_family_once_not_once_per_seed_and_structu
     common = [s for s in kept
               if s.kind == 'hysteresis_narx' and 'structure' not in dict(s.options)]
     assert common == [specs[0]]                 # the common-denominator structure: fitted once
-    # One chain per axis (ident/hysteresis_chains.py) uses seeds and increments: each kept.
+    # One chain per axis (ident/hysteresis/chains.py) uses seeds and increments: each kept.
     assert len(kept) == 1 + n_net + (len(specs) - n_net)
     assert [s.kind for s in kept].count('arx') == [s.kind for s in specs].count('arx')
 
 
 def test_init_past_reaches_every_network_candidate_and_not_through_hnarx():
     """init_past 'fade-out' builds every HysteresisNARX told so; 'past' inside hnarx is refused."""
-    from piezo_narx_ros.ident.experiment import PRESETS
+    from piezo_narx_ros.ident.selection.experiment import PRESETS
     cfg = replace(ExperimentConfig(), **{**PRESETS['envelope'], 'n_seeds': 1}, jobs=1)
     told = replace(cfg, init_past='fade-out')
     nets = [s for s in told.specs() if s.kind == 'hysteresis_narx']

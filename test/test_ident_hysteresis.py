@@ -1,5 +1,5 @@
 """
-The hysteresis-operator NARX (ident/hysteresis.py).
+The hysteresis-operator NARX (ident/hysteresis/model.py).
 
 Exact derivatives, free run = Stepper, frozen operators and a bounded free run, identification of
 the plant, several records, the parameter table, and its model file.
@@ -13,10 +13,10 @@ import pytest
 
 from piezo_narx_ros.errors import ConfigError, DataError, ModelFileError
 from piezo_narx_ros.estimator.free_run import FreeRunEstimator
-from piezo_narx_ros.ident import hysteresis_kernels as hk
-from piezo_narx_ros.ident.hysteresis import HysteresisNARX
-from piezo_narx_ros.ident import hysteresis_training
-from piezo_narx_ros.ident.hysteresis_training import (_split_theta, drive_limit_candidates,
+from piezo_narx_ros.ident.hysteresis import kernels as hk
+from piezo_narx_ros.ident.hysteresis.model import HysteresisNARX
+from piezo_narx_ros.ident.hysteresis import training
+from piezo_narx_ros.ident.hysteresis.training import (_split_theta, drive_limit_candidates,
                                                       initial_theta, operator_features)
 from piezo_narx_ros.ident.model_io import load_model, save_model
 from piezo_narx_ros.plant import PiezoCantilever, generate
@@ -295,8 +295,8 @@ def test_creep_the_estimation_input_does_not_excite_keeps_weight_zero(fitted):
     # weight would learn the output's slow drift (after an unknown past, the past's). The
     # protocol's holds at random levels move it.
     sine = generate('sine', FS, 6.0, 100.0, freq=1.0)
-    assert hysteresis_training.slow_creep(taus, [sine / 100.0], FS) == [False, False, True]
-    assert hysteresis_training.slow_creep(taus, [u / 100.0], FS) == [False, False, False]
+    assert training.slow_creep(taus, [sine / 100.0], FS) == [False, False, True]
+    assert training.slow_creep(taus, [u / 100.0], FS) == [False, False, False]
     plant = PiezoCantilever(fs=FS, seed=3).run(sine).y
     fits = {creep: HysteresisNARX(hidden=3, n_plays=4, max_iter=3, seed=1, creep_taus=taus,
                                   creep=creep).fit(sine, plant, fs=FS)
@@ -421,7 +421,7 @@ def test_drive_limit_starts_only_where_the_input_moves_smoothly_and_fast():
 def test_the_drive_gets_a_bandwidth_only_where_the_command_slews():
     # amplifier='auto': a command that moves far in most samples (a wideband multisine), not
     # the protocol (jumps, but few), a slow sine or the default multisine (4.7 % of its range).
-    slews = hysteresis_training.drive_slews
+    slews = training.drive_slews
     assert slews([generate('multisine', 5000.0, 1.0, 60.0, seed=1, f_max=1500.0)])
     assert slews([generate('multisine', FS, 1.0, 100.0, seed=1, f_max=800.0)])
     assert not slews([generate('protocol', FS, 10.0, 100.0, seed=1)])
@@ -453,7 +453,7 @@ def test_a_slew_the_smooth_data_show_is_learned(slewing, monkeypatch):
     kept = [d for d in m.training_info_['drive_starts'] if d.get('kept')]
     assert len(kept) == 1 and kept[0] is not m.training_info_['drive_starts'][0]
     assert 0.7e5 < m.drive_slew_rate < 1.4e5
-    monkeypatch.setattr(hysteresis_training, 'DRIVE_LIMIT_QUANTILES', ())
+    monkeypatch.setattr(training, 'DRIVE_LIMIT_QUANTILES', ())
     m_rule, rmse_rule = _slewing_fit(slewing)
     assert len(m_rule.training_info_['drive_starts']) == 1
     assert m_rule.drive_slew_rate > 2.0 * np.max(np.abs(np.diff(slewing[0]))) * FS * 0.99

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from piezo_narx_ros.errors import DataError
-from piezo_narx_ros.ident import metrics
+from piezo_narx_ros.ident.validation import metrics
 
 
 def test_known_values_by_hand():

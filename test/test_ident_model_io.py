@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from piezo_narx_ros.errors import ModelFileError
-from piezo_narx_ros.ident.arx import ARXModel
+from piezo_narx_ros.ident.arx.model import ARXModel
 from piezo_narx_ros.ident.model_io import FORMAT_VERSION, load_model, save_model
-from piezo_narx_ros.ident.narx import NARXNetwork
+from piezo_narx_ros.ident.narx.model import NARXNetwork
 
 
 def make_narx():
@@ -261,7 +261,7 @@ def test_each_kinds_document_holds_what_its_loader_and_readers_need(tmp_path, sa
 
 
 def test_hnarx_round_trip_is_exact(saved_hnarx):
-    from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+    from piezo_narx_ros.ident.hysteresis.model import HysteresisNARX
     m = _random_hnarx(seed=11)
     back = load_model(saved_hnarx)
     assert isinstance(back, HysteresisNARX)

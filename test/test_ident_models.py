@@ -4,10 +4,10 @@ import pytest
 from scipy import signal
 
 from piezo_narx_ros.errors import ConfigError, DataError
-from piezo_narx_ros.ident.arx import ARXModel
-from piezo_narx_ros.ident.metrics import r2
-from piezo_narx_ros.ident.narx import NARXNetwork
-from piezo_narx_ros.ident.regressors import lagged_regressors
+from piezo_narx_ros.ident.arx.model import ARXModel
+from piezo_narx_ros.ident.validation.metrics import r2
+from piezo_narx_ros.ident.narx.model import NARXNetwork
+from piezo_narx_ros.ident.narx.regressors import lagged_regressors
 
 # Light training budget: enough for the behaviours asserted here, a few seconds in all.
 FAST = {'restarts': 2, 'restart_iter': 5, 'max_iter': 15, 'refine_iter': 10, 'n_segments': 20}
@@ -407,7 +407,7 @@ def test_simulation_refinement_is_selected_where_one_step_training_is_biased(see
 
 def test_training_jacobians_match_finite_differences():
     """The one-step Jacobian and the recursive free-run sensitivity used by LM are exact."""
-    from piezo_narx_ros.ident import training
+    from piezo_narx_ros.ident.narx import training
 
     rng = np.random.default_rng(0)
     nu, ny, H = 2, 3, 4

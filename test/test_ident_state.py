@@ -1,5 +1,5 @@
 """
-A model's free-run state from a short measured window (ident/state.py), for every family.
+A model's free-run state from a short measured window (ident/state/estimate.py), for every family.
 
 Records that do not start at rest: the state found in the first samples must make the free run
 after them as good as if the model had seen the whole history, and much better than from rest.
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from piezo_narx_ros.errors import DataError
-from piezo_narx_ros.ident.arx import ARXModel
-from piezo_narx_ros.ident.hysteresis import HysteresisNARX
-from piezo_narx_ros.ident.state import ModelState, ramp, turning_point_histories
+from piezo_narx_ros.ident.arx.model import ARXModel
+from piezo_narx_ros.ident.hysteresis.model import HysteresisNARX
+from piezo_narx_ros.ident.state.estimate import ModelState, ramp, turning_point_histories
 from piezo_narx_ros.plant import PiezoCantilever, generate
 
 FS = 2000.0
@@ -148,7 +148,7 @@ def test_a_hold_window_explains_its_level_by_the_memory_not_by_a_moved_zero(hnar
     The offset's prior then takes the past that needs the least (the zero the model was fitted
     with); the median of those offsets, the rule before, moved the zero by micrometres.
     """
-    from piezo_narx_ros.ident.state import TIE, _offset_only
+    from piezo_narx_ros.ident.state.estimate import TIE, _offset_only
     u_hist, _, _ = session()
     n = 1000
     t = np.arange(4000) / FS
@@ -183,7 +183,7 @@ def test_a_zero_moved_by_many_scales_does_not_outweigh_the_window():
     A Gaussian prior took B (18 against 14.5 units); on records with zeros moved by up to +-14 um
     that cost 62x the start from rest (docs/real.md).
     """
-    from piezo_narx_ros.ident.state import TIE, _score
+    from piezo_narx_ros.ident.state.estimate import TIE, _score
     sigma = np.array([1e-6])
     a = _score(1.0, 1.0, 1.0, 6e-6, sigma)
     b = _score(1.0 + 10 * TIE, 1.0, 1.0, 3e-6, sigma)
@@ -203,8 +203,8 @@ def test_window_cost_below_the_models_own_error_does_not_choose_the_past(hnarx):
     window the model fits better than it fits anything), B, the zero the model was fitted
     with. ERROR_FLOOR x the free-run RMSE the fit measured sets the floor (a model file).
     """
-    from piezo_narx_ros.ident.state import (ERROR_FLOOR, error_scale, estimate_state, TIE,
-                                            _score)
+    from piezo_narx_ros.ident.state.estimate import (ERROR_FLOOR, error_scale, estimate_state, TIE,
+                                                     _score)
     sigma = np.array([1e-6])
     a = (1.0, 4e-6)
     b = (1.0 + 5 * TIE, 0.5e-6)
@@ -265,7 +265,7 @@ def test_told_the_past_faded_out_a_hold_takes_the_demagnetised_memory(hnarx):
 
 
 def test_the_fade_out_stays_in_the_input_range_and_ends_about_its_centre():
-    from piezo_narx_ros.ident.state import fade_out
+    from piezo_narx_ros.ident.state.estimate import fade_out
     pts = np.array(fade_out(30.0, -100.0, 100.0, cycles=10))
     assert pts.size == 20 and pts.max() <= 100.0 and pts.min() >= -100.0
     assert pts[0] == 100.0 and abs(pts[-1] - 30.0) < 15.0    # last swing: a tenth of 130 V
@@ -282,7 +282,7 @@ def test_a_fit_told_its_records_pasts_faded_out_starts_them_demagnetised(hnarx):
     """
     import copy
 
-    from piezo_narx_ros.ident.state import FADE_CYCLES
+    from piezo_narx_ros.ident.state.estimate import FADE_CYCLES
     u, y = fade_out_record()
     told = copy.deepcopy(hnarx)
     told.past = 'fade-out'

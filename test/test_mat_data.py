@@ -19,9 +19,9 @@ from scipy.sparse import csc_matrix
 
 from piezo_narx_ros.cli.main import main
 from piezo_narx_ros.errors import ConfigError, DataError
-from piezo_narx_ros.ident.data import (expand_inputs, load_record, load_records, parse_columns,
-                                       read_signal)
-from piezo_narx_ros.ident.units import Units
+from piezo_narx_ros.ident.data.loaders import (expand_inputs, load_record, load_records,
+                                               parse_columns, read_signal)
+from piezo_narx_ros.ident.data.units import Units
 from piezo_narx_ros.matfile import read_mat
 
 FS = 2000.0
@@ -477,7 +477,7 @@ def test_read_signal_plays_a_mat_variable(tmp_path):
 
 
 def test_evaluate_reads_a_mat_as_the_npz_of_the_same_data(tmp_path, capsys):
-    from piezo_narx_ros.ident.arx import ARXModel
+    from piezo_narx_ros.ident.arx.model import ARXModel
     from piezo_narx_ros.ident.model_io import save_model
     u, y = piezo(2000, seed=3)
     model = save_model(ARXModel(na=2, nb=2).fit(u, y, fs=FS), tmp_path / 'm.json')

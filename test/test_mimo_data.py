@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from piezo_narx_ros.errors import BagError, DataError
-from piezo_narx_ros.ident.data import load_record, load_records
+from piezo_narx_ros.ident.data.loaders import load_record, load_records
 from piezo_narx_ros.record import Record
 
 FS = 1000.0

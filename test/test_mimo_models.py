@@ -8,10 +8,10 @@ import pytest
 
 from conftest import SHARED
 from piezo_narx_ros.errors import DataError
-from piezo_narx_ros.ident.arx import ARXModel
+from piezo_narx_ros.ident.arx.model import ARXModel
 from piezo_narx_ros.ident.model_io import load_model, save_model
-from piezo_narx_ros.ident.narx import NARXNetwork
-from piezo_narx_ros.ident.regressors import lagged_regressors
+from piezo_narx_ros.ident.narx.model import NARXNetwork
+from piezo_narx_ros.ident.narx.regressors import lagged_regressors
 
 FS = 1000.0
 
@@ -118,7 +118,7 @@ def test_mimo_narx_free_run_steps_and_file_round_trip(narx_2x3, tmp_path):
 
 
 def test_mimo_segment_sensitivities_match_finite_differences():
-    from piezo_narx_ros.ident import training
+    from piezo_narx_ros.ident.narx import training
     rng = np.random.default_rng(0)
     u, y = rng.standard_normal((60, 2)), rng.standard_normal((60, 3))
     H, nu, ny = 3, 1, 2
@@ -238,8 +238,8 @@ def test_a_committed_one_axis_model_file_is_rewritten_as_it_was(tmp_path):
 
 
 def test_experiment_selects_on_the_worst_output_and_reports_each_axis(tmp_path):
-    from piezo_narx_ros.ident.experiment import ExperimentConfig, run_experiment
-    from piezo_narx_ros.ident.report import write_report
+    from piezo_narx_ros.ident.selection.experiment import ExperimentConfig, run_experiment
+    from piezo_narx_ros.ident.validation.report import write_report
     from piezo_narx_ros.record import Record
     recs = []
     for seed in (1, 2):

@@ -12,7 +12,7 @@ import pytest
 from test_estimator_node import start_node, stop
 from test_nodes_batch import BatchProbe
 
-from piezo_narx_ros.ident.arx import ARXModel
+from piezo_narx_ros.ident.arx.model import ARXModel
 from piezo_narx_ros.ident.model_io import save_model
 from piezo_narx_ros.nodes.codec import encode_joint_trajectory
 from piezo_narx_ros.plant.axes import make_axis_plants

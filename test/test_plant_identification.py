@@ -16,13 +16,13 @@ What holds, measured (docs/validation.md "The plant"):
 """
 import pytest
 
-from piezo_narx_ros.ident.data import Record
+from piezo_narx_ros.record import Record
 from piezo_narx_ros.plant import PiezoCantilever, generate, load_plant_params
 
-narx = pytest.importorskip('piezo_narx_ros.ident.narx')
-from piezo_narx_ros.ident.arx import ARXModel  # noqa: E402
-from piezo_narx_ros.ident.experiment import evaluate_model, fit_noise_models  # noqa: E402
-from piezo_narx_ros.ident.metrics import r2, rmse  # noqa: E402
+narx = pytest.importorskip('piezo_narx_ros.ident.narx.model')
+from piezo_narx_ros.ident.arx.model import ARXModel  # noqa: E402
+from piezo_narx_ros.ident.selection.scoring import evaluate_model, fit_noise_models  # noqa: E402
+from piezo_narx_ros.ident.validation.metrics import r2, rmse  # noqa: E402
 
 FS = 2000.0
 

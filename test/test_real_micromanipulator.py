@@ -10,9 +10,9 @@ import pytest
 
 from conftest import SHARED
 from piezo_narx_ros.cli.main import main
-from piezo_narx_ros.ident.metrics import r2, rmse
+from piezo_narx_ros.ident.validation.metrics import r2, rmse
 from piezo_narx_ros.ident.model_io import load_model
-from piezo_narx_ros.ident.state import error_scale, estimate_state
+from piezo_narx_ros.ident.state.estimate import error_scale, estimate_state
 
 DATA = SHARED / 'data' / 'piezo_yan9a'
 READING = ['--fs', '200', '--columns', 'u=1,y=5', '--y-unit', 'um']

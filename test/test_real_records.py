@@ -14,12 +14,12 @@ import pytest
 
 from piezo_narx_ros.estimator.free_run import FreeRunEstimator
 from piezo_narx_ros.estimator.health import EstimatorHealth
-from piezo_narx_ros.ident import hysteresis_kernels as hk
-from piezo_narx_ros.ident.arx import ARXModel
-from piezo_narx_ros.ident.coverage import (coverage_warnings, inner_reversals, LATE_SWEEP,
-                                           late_sweep_warnings, unswept_share)
-from piezo_narx_ros.ident.experiment import ExperimentConfig, run_experiment
-from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+from piezo_narx_ros.ident.hysteresis import kernels as hk
+from piezo_narx_ros.ident.arx.model import ARXModel
+from piezo_narx_ros.ident.data.coverage import (coverage_warnings, inner_reversals, LATE_SWEEP,
+                                                late_sweep_warnings, unswept_share)
+from piezo_narx_ros.ident.selection.experiment import ExperimentConfig, run_experiment
+from piezo_narx_ros.ident.hysteresis.model import HysteresisNARX
 from piezo_narx_ros.plant import PiezoCantilever, generate
 from piezo_narx_ros.record import Record
 
@@ -211,7 +211,7 @@ def test_fit_past_reaches_every_scored_state_window():
 
     from piezo_narx_ros.cli.fit import experiment_config, load_settings
     from piezo_narx_ros.errors import ConfigError
-    from piezo_narx_ros.ident.experiment import with_state_window
+    from piezo_narx_ros.ident.selection.experiment import with_state_window
     args = SimpleNamespace(**dict.fromkeys(
         ('config', 'ny', 'nu', 'hidden', 'seed', 'n_seeds', 'split', 'arx_na', 'arx_nb',
          'max_lag', 'max_outside_fraction', 'residuals', 'noise_model', 'noise_order', 'jobs',
@@ -293,7 +293,7 @@ def test_estimator_starts_from_the_measured_state_of_a_plant_not_at_rest(hnarx):
 
 def test_resample_is_anti_aliased_and_only_slower():
     from piezo_narx_ros.errors import DataError
-    from piezo_narx_ros.ident.resample import resample_record
+    from piezo_narx_ros.ident.data.resample import resample_record
     t = np.arange(20000) / 10000.0
     slow, fast = np.sin(2 * np.pi * 5.0 * t), 0.5 * np.sin(2 * np.pi * 1700.0 * t)
     rec = Record(u=slow + fast, y=2.0 * slow + fast, fs=10000.0, source='r',
@@ -356,15 +356,16 @@ def test_selection_judges_state_windows_with_the_candidates_own_error(hnarx, mon
     """
     import copy
 
-    from piezo_narx_ros.ident import state
-    from piezo_narx_ros.ident.experiment import CandidateResult, CandidateSpec, score_candidate
+    from piezo_narx_ros.ident.state import estimate
+    from piezo_narx_ros.ident.selection.experiment import (CandidateResult, CandidateSpec,
+                                                           score_candidate)
     floors = []
 
     def spy(model):
         floors.append(real(model))
         return floors[-1]
-    real = state.error_scale
-    monkeypatch.setattr(state, 'error_scale', spy)
+    real = estimate.error_scale
+    monkeypatch.setattr(estimate, 'error_scale', spy)
     est = [record(generate('multisine', FS, 2.0, 80.0, seed=1), seed=1, name='e')]
     u = generate('multisine', FS, 2.0, 80.0, seed=2)
     val = [replace(record(u, seed=2, offset=1e-6, before=30.0 * np.ones(500), name='v'),
@@ -378,7 +379,7 @@ def test_selection_judges_state_windows_with_the_candidates_own_error(hnarx, mon
 
 
 def test_an_output_at_the_sensors_full_scale_is_found_where_the_input_moves_on():
-    from piezo_narx_ros.ident.saturation import clipped_runs, saturation_warnings
+    from piezo_narx_ros.ident.data.saturation import clipped_runs, saturation_warnings
     u = generate('sine', FS, 2.0, 100.0, freq=2.0)
     # A 16-bit sensor over 40 um on a sine of about 80 um peak to peak clips every crest: 4
     # cycles, 8 runs, each while the crest passes.

@@ -90,7 +90,7 @@ def _export(args) -> int:
     from piezo_narx_ros.bag.reader import read_uy_report
     from piezo_narx_ros.cli.reading import reading_options
     from piezo_narx_ros.errors import ConfigError
-    from piezo_narx_ros.ident.data import checked
+    from piezo_narx_ros.ident.data.records import checked
     out = Path(args.out)
     # np.savez appends .npz to any other name: 'e.csv' became 'e.csv.npz' while we said 'e.csv'.
     if out.suffix.lower() not in ('.npz', '.csv'):

@@ -39,7 +39,7 @@ def add_parser(subparsers):
                         'creep, output dynamics, sensor offset); scores on the samples after '
                         'them; 0: free run from rest (default: the first n0 measured outputs, '
                         "the paper's convention)")
-    from piezo_narx_ros.ident.state import PASTS
+    from piezo_narx_ros.ident.state.estimate import PASTS
     p.add_argument('--past', choices=PASTS, default=PASTS[0],
                    help='with --init-samples: how the unlogged past before the record ended. '
                         'any (default): histories of up to two turning points, the zero the '
@@ -81,7 +81,7 @@ def stored_noise_models(model) -> dict:
     Only numbers are read (coefficients as a float list); anything malformed is a ModelFileError.
     """
     from piezo_narx_ros.errors import DataError, ModelFileError
-    from piezo_narx_ros.ident.noise_model import noise_models_from_doc
+    from piezo_narx_ros.ident.validation.noise_model import noise_models_from_doc
 
     tests = (getattr(model, 'metadata', None) or {}).get('tests') or {}
     if not isinstance(tests, dict):
@@ -185,9 +185,9 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
     import numpy as np
 
     from piezo_narx_ros.errors import ConfigError, DataError
-    from piezo_narx_ros.ident.experiment import (evaluate_model, fit_noise_models,
-                                                 from_rest_scores, scored_from)
-    from piezo_narx_ros.ident.saturation import saturation_warnings
+    from piezo_narx_ros.ident.selection.scoring import (evaluate_model, fit_noise_models,
+                                                        from_rest_scores, scored_from)
+    from piezo_narx_ros.ident.data.saturation import saturation_warnings
 
     if init_samples is not None:
         if init_samples < 0:
@@ -293,7 +293,7 @@ def save_output(model, records, init_samples, path) -> None:
     import numpy as np
 
     from piezo_narx_ros.errors import ConfigError
-    from piezo_narx_ros.ident.experiment import free_run, scored_from
+    from piezo_narx_ros.ident.selection.scoring import free_run, scored_from
     path = Path(path)
     if path.suffix != '.npz':
         raise ConfigError(f'--save-output must name an .npz file, got {path}')
@@ -325,17 +325,17 @@ def run(args) -> int:
 def _run(args) -> int:
     import json
 
-    from piezo_narx_ros.ident.noise_model import describe as describe_noise
+    from piezo_narx_ros.ident.validation.noise_model import describe as describe_noise
     from piezo_narx_ros.cli.reading import reading_options
-    from piezo_narx_ros.ident.data import load_records
+    from piezo_narx_ros.ident.data.loaders import load_records
     from piezo_narx_ros.ident.model_io import load_model
-    from piezo_narx_ros.ident.report import json_safe
+    from piezo_narx_ros.ident.validation.report import json_safe
 
     model = load_model(args.model)
     records = load_records(args.inputs, fs=args.fs, command_topic=args.command_topic,
                            deflection_topic=args.deflection_topic, **reading_options(args))
     if args.resample is not None:
-        from piezo_narx_ros.ident.resample import resample_record
+        from piezo_narx_ros.ident.data.resample import resample_record
         records = [resample_record(r, args.resample) for r in records]
     if args.past != 'any':
         if not args.init_samples:

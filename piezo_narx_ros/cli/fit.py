@@ -5,7 +5,7 @@
 
 `--preset paper` (the default) is the paper's lag grid; `--preset envelope` fits the
 hysteresis-operator NARX over several network seeds and selects on the worst case over records
-(piezo_narx_ros.ident.experiment.PRESETS, docs/envelope.md). Several INPUTs are fitted together:
+(ident.selection.experiment.PRESETS, docs/envelope.md). Several INPUTs are fitted together:
 no regressor or state crosses from one record to the next, each is split, and the report gives
 each record's scores.
 
@@ -16,7 +16,7 @@ INPUT stands for the recordings in it. `--per-record` fits each recording on its
 
 `--executor ray [--ray-address ADDR]` runs the candidate fits as Ray tasks (a local Ray of
 --jobs CPUs without an address); the selected model, its weights and the report are the same
-as with the default `--executor local` (piezo_narx_ros.ident.executor).
+as with the default `--executor local` (piezo_narx_ros.ident.selection.executor).
 Settings come from, in increasing precedence: the preset's built-in values (ExperimentConfig's
 defaults with the preset's changes; config/fit.yaml spells out the paper preset), `--config FILE`,
 then the command-line options.
@@ -57,7 +57,7 @@ def add_parser(subparsers):
                         'state (hysteresis memory, creep, sensor offset) before its free run is '
                         'scored: for recordings that do not start at rest (default: the '
                         "preset's init_seconds; 0: from rest)")
-    from piezo_narx_ros.ident.state import PASTS
+    from piezo_narx_ros.ident.state.estimate import PASTS
     p.add_argument('--past', dest='init_past', choices=PASTS,
                    help="how the recordings' unlogged pasts ended, for their state windows "
                         "(--init-samples, the envelope preset's 0.5 s) and the fit's estimated "
@@ -157,7 +157,7 @@ def preset_settings(preset: str) -> dict:
     from dataclasses import fields
 
     from piezo_narx_ros.errors import ConfigError
-    from piezo_narx_ros.ident.experiment import PRESETS, ExperimentConfig
+    from piezo_narx_ros.ident.selection.experiment import PRESETS, ExperimentConfig
     if preset not in PRESETS:
         raise ConfigError(f'preset must be one of {", ".join(PRESETS)}, got {preset!r}')
     base = ExperimentConfig()
@@ -200,7 +200,7 @@ def load_settings(args) -> dict:
 def experiment_config(settings: dict, progress: bool):
     """Build the ExperimentConfig from merged settings (ConfigError on bad values)."""
     from piezo_narx_ros.errors import ConfigError
-    from piezo_narx_ros.ident.experiment import ExperimentConfig
+    from piezo_narx_ros.ident.selection.experiment import ExperimentConfig
     try:
         cfg = ExperimentConfig(
             ny=parse_range(settings['ny'], 'ny'), nu=parse_range(settings['nu'], 'nu'),
@@ -251,8 +251,8 @@ def _run(args) -> int:
     from pathlib import Path
 
     from piezo_narx_ros.errors import ConfigError
-    from piezo_narx_ros.ident.data import expand_inputs
-    from piezo_narx_ros.ident.executor import make_executor
+    from piezo_narx_ros.ident.data.loaders import expand_inputs
+    from piezo_narx_ros.ident.selection.executor import make_executor
 
     settings = load_settings(args)
     config = experiment_config(settings, progress=not args.quiet)
@@ -275,7 +275,7 @@ def _run(args) -> int:
     validation = (_load_validation(args, settings, records) if args.validate
                   else None)
     config = _with_init_samples(config, args.init_samples, records[0].fs)
-    from piezo_narx_ros.ident.experiment import run_experiment
+    from piezo_narx_ros.ident.selection.experiment import run_experiment
     with executor:
         result = run_experiment(records, config, executor, validation)
     _warn_about_estimation(records, config)
@@ -295,7 +295,8 @@ def _load(args, settings, config, inputs, whole=False):
     import warnings
 
     from piezo_narx_ros.cli.reading import reading_options
-    from piezo_narx_ros.ident.data import check_identifiable, load_records
+    from piezo_narx_ros.ident.data.loaders import load_records
+    from piezo_narx_ros.ident.data.records import check_identifiable
     records = load_records(inputs, fs=args.fs, command_topic=settings['command_topic'],
                            deflection_topic=settings['deflection_topic'],
                            **reading_options(args))
@@ -320,9 +321,9 @@ def _load_validation(args, settings, records):
 
     from piezo_narx_ros.cli.reading import reading_options
     from piezo_narx_ros.errors import ConfigError, DataError
-    from piezo_narx_ros.ident.coverage import coverage_warnings
-    from piezo_narx_ros.ident.data import expand_inputs, load_records
-    from piezo_narx_ros.ident.saturation import saturation_warnings
+    from piezo_narx_ros.ident.data.coverage import coverage_warnings
+    from piezo_narx_ros.ident.data.loaders import expand_inputs, load_records
+    from piezo_narx_ros.ident.data.saturation import saturation_warnings
     val_paths = expand_inputs(args.validate)
     est_paths = {p.resolve() for p in expand_inputs(args.inputs)}
     shared = [str(p) for p in val_paths if p.resolve() in est_paths]
@@ -353,9 +354,9 @@ def _warn_about_estimation(records, config, name: str = '') -> None:
     """
     import warnings
 
-    from piezo_narx_ros.ident.coverage import inner_reversals, late_sweep_warnings
-    from piezo_narx_ros.ident.hysteresis import MINOR_LOOPS
-    from piezo_narx_ros.ident.saturation import saturation_warnings
+    from piezo_narx_ros.ident.data.coverage import inner_reversals, late_sweep_warnings
+    from piezo_narx_ros.ident.hysteresis.model import MINOR_LOOPS
+    from piezo_narx_ros.ident.data.saturation import saturation_warnings
     lines = []
     if config.narx and config.family == 'narx' and inner_reversals(records) < MINOR_LOOPS:
         lines.append('the estimation input never reverses inside its range (no minor loops, '
@@ -372,7 +373,7 @@ def _resampled(records, args):
     """Return the records at --resample HZ (anti-aliased), or as they are."""
     if args.resample is None:
         return records
-    from piezo_narx_ros.ident.resample import resample_record
+    from piezo_narx_ros.ident.data.resample import resample_record
     return [resample_record(r, args.resample) for r in records]
 
 
@@ -396,9 +397,9 @@ def _write_fit(out, result, records, config, settings, report: bool, validation=
     Returns (model path, report paths).
     """
     from piezo_narx_ros.control.gain_check import data_line
-    from piezo_narx_ros.ident.experiment import split_records
+    from piezo_narx_ros.ident.selection.experiment import split_records
     from piezo_narx_ros.ident.model_io import save_model
-    from piezo_narx_ros.ident.report import write_json, write_report
+    from piezo_narx_ros.ident.validation.report import write_json, write_report
     out.mkdir(parents=True, exist_ok=True)
     best = result.best
     data_info = {'sources': result.sources, 'fs': result.fs,
@@ -416,7 +417,7 @@ def _write_fit(out, result, records, config, settings, report: bool, validation=
     write_json(result.to_dict(), out / 'candidates.json')
     paths = {}
     if report:
-        from piezo_narx_ros.ident.experiment import with_state_window
+        from piezo_narx_ros.ident.selection.experiment import with_state_window
         scored = (with_state_window(validation, config) if validation else
                   split_records(with_state_window(records, config), config.split)[1])
         paths = write_report(result, scored, out / 'report')
@@ -430,7 +431,7 @@ def _failed_line(failed) -> str:
 
 
 def _print_fit(result, config, executor, model_path, out, paths) -> None:
-    from piezo_narx_ros.ident.noise_model import describe as describe_noise
+    from piezo_narx_ros.ident.validation.noise_model import describe as describe_noise
     best = result.best
     val = best.scores['validation']
     r2_sim = val['simulation']['r2']
@@ -498,7 +499,7 @@ def _run_fleet(args, settings, config, inputs, executor, out) -> int:
     (exit 2).
     """
     from piezo_narx_ros.errors import ConfigError, DataError, PiezoNarxError
-    from piezo_narx_ros.ident.experiment import run_experiments
+    from piezo_narx_ros.ident.selection.experiment import run_experiments
     names = recording_names(inputs)
     taken = [out / 'summary.csv'] + [out / n / 'model.json' for n in names]
     if any(p.exists() for p in taken) and not args.force:

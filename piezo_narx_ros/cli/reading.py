@@ -11,7 +11,7 @@ The options that say how to read a recording, shared by `fit`, `evaluate` and `b
     --inputs A,B --outputs C,D  the input and output columns (or .mat variables) of several axes
 
 Everything is converted to volts, metres and seconds on reading; an implausible magnitude with no
-unit stated is refused with the option that fixes it (ident.units).
+unit stated is refused with the option that fixes it (ident.data.units).
 """
 from __future__ import annotations
 
@@ -53,9 +53,9 @@ def add_reading_options(parser, table: bool = True, bag: bool = True) -> None:
 
 
 def reading_options(args) -> dict:
-    """Keyword arguments for ident.data.load_records from parsed options (absent ones: None)."""
-    from piezo_narx_ros.ident.data import parse_columns
-    from piezo_narx_ros.ident.units import Units
+    """Keyword arguments for ident.data.loaders.load_records from parsed options (absent: None)."""
+    from piezo_narx_ros.ident.data.loaders import parse_columns
+    from piezo_narx_ros.ident.data.units import Units
     units = Units.from_options(getattr(args, 'u_unit', None), getattr(args, 'y_unit', None),
                                getattr(args, 't_unit', None), getattr(args, 'y_scale', None))
     names = {key: [n.strip() for n in value.split(',') if n.strip()]

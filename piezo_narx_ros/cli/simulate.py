@@ -174,7 +174,7 @@ def run(args) -> int:
     if args.fs is None:    # a recording plays at its own rate unless another is asked for
         args.fs = 2000.0
         if playback and args.file and args.file_fs is None:
-            from piezo_narx_ros.ident.data import read_signal
+            from piezo_narx_ros.ident.data.loaders import read_signal
             args.fs = read_signal(args.file, args.column, args.key or 'u').fs or 2000.0
     seconds = args.seconds if args.seconds is not None or playback else 25.0
     amplitude = args.amplitude if args.amplitude is not None or playback else 100.0

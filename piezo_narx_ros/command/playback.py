@@ -2,7 +2,7 @@
 A recorded voltage file replayed by command_node, ROS-free: as recorded unless asked otherwise.
 
 A replay is the recording: its volts, at its own rate, once. `playback_signal` reads the file with
-the column rules `fit` uses (ident.data.read_signal: a headerless t,u,y table plays its u column,
+the column rules `fit` uses (ident/data read_signal: a headerless t,u,y table plays its u column,
 never its time column) and changes it only where a playback parameter explicitly asks: `scale`
 and `offset` (u * scale + offset), `loop`, and `resample` (linear, to `fs`). The node's `fs` is
 used only for a file that records no rate, or as the target of `resample`; a file at another rate
@@ -41,7 +41,7 @@ def playback_signal(path: str, n_axes: int = 1, fs: float = 2000.0, column: str 
     in position mode): applied as u * scale + offset; u_min, u_max: the node's clamp (samples
     beyond it are counted in a note). Every axis plays the same file.
     """
-    from piezo_narx_ros.ident.data import read_signal
+    from piezo_narx_ros.ident.data.loaders import read_signal
     from piezo_narx_ros.plant.signals import generate
     if not path:
         raise ConfigError('kind playback needs path (the .npz or text table to replay)')

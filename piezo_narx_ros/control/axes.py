@@ -15,7 +15,7 @@ ranges and limits, and two modes: 'inverse' (sensorless) and 'linear', the per-a
 (each axis's own static line u_i = (r_i - offset_i) / gain_i, coupling ignored: what a user does
 axis by axis without a model of the stage).
 
-A model of one actuator chain per axis (ident/hysteresis_chains.py, y = M z) is inverted in two
+A model of one actuator chain per axis (ident/hysteresis/chains.py, y = M z) is inverted in two
 exact steps instead: the coupling by z* = M^-1 r (what each chain must do so that every axis is
 where asked), then each chain by its own one-axis PositionController (`ChainAxes`): the
 quasi-static inverse of its hysteresis and creep (docs/control.md), its limits, its static-gain

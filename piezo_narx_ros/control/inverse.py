@@ -24,8 +24,8 @@ import numpy as np
 from piezo_narx_ros.command.stamps import model_rate
 from piezo_narx_ros.control import kernels as ck
 from piezo_narx_ros.errors import ConfigError
-from piezo_narx_ros.ident import hysteresis_kernels as hk
-from piezo_narx_ros.ident.kernels import arx_step, narx_step
+from piezo_narx_ros.ident.hysteresis import kernels as hk
+from piezo_narx_ros.ident.narx.kernels import arx_step, narx_step
 
 TARGETS = ('output', 'quasi_static')
 

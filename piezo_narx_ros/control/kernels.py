@@ -26,8 +26,8 @@ import math
 import numpy as np
 from numba import njit
 
-from piezo_narx_ros.ident import hysteresis_kernels as hk
-from piezo_narx_ros.ident.kernels import arx_peek, narx_peek
+from piezo_narx_ros.ident.hysteresis import kernels as hk
+from piezo_narx_ros.ident.narx.kernels import arx_peek, narx_peek
 
 # Solver state (sv) layout: inputs, the bracket and the best input seen so far. _SLOPE survives
 # between solves (begin leaves it): the last bracket's slope, for the next sample's first guess.

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from piezo_narx_ros.errors import DataError
-from piezo_narx_ros.ident import metrics
+from piezo_narx_ros.ident.validation import metrics
 
 COMMAND = 'piezo/voltage_command'
 DEFLECTION = 'piezo/deflection'

@@ -326,7 +326,7 @@ def run_control_demo(settings: dict, out: Path, model: Path | None = None) -> in
         base = figures['linear']['tracking_rmse_nm']
         summary['rmse_ratio_to_linear'] = {m: f['tracking_rmse_nm'] / base
                                            for m, f in figures.items() if m != 'linear'}
-    from piezo_narx_ros.ident.report import write_json
+    from piezo_narx_ros.ident.validation.report import write_json
     write_json(summary, out / 'summary.json')
     print_control_table(summary)
     _say(f'\nreport: {out}  (summary.json, figures/, control/<mode> bags)')

@@ -108,7 +108,7 @@ def run_demo(settings: dict, out: Path) -> int:
                 'offline_validation': val},
         **summary,
     }
-    from piezo_narx_ros.ident.report import write_json
+    from piezo_narx_ros.ident.validation.report import write_json
     write_json(summary, out / 'summary.json')
     print_table(summary)
     _say(f'\nreport: {out}  (summary.json, figures/, fit/report/)')

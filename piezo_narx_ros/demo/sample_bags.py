@@ -79,7 +79,7 @@ def evaluate(model_path: Path, bag: Path) -> dict:
     Whole record, free run from the first n0 measured outputs.
     """
     from piezo_narx_ros.cli.evaluate import evaluate as evaluate_model
-    from piezo_narx_ros.ident.data import load_records
+    from piezo_narx_ros.ident.data.loaders import load_records
     from piezo_narx_ros.ident.model_io import load_model
     return json.loads(json.dumps(evaluate_model(load_model(model_path),
                                                 load_records([bag])), default=float))

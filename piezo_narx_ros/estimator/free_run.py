@@ -39,7 +39,7 @@ from piezo_narx_ros.command.stamps import (RATE_TOLERANCE, SAMPLE, RateMonitor, 
                                            model_rate)
 from piezo_narx_ros.errors import ConfigError, DataError
 from piezo_narx_ros.estimator.memory import memory_bracket
-from piezo_narx_ros.ident.state import MIN_WINDOW
+from piezo_narx_ros.ident.state.estimate import MIN_WINDOW
 
 INIT_MODES = ('auto', 'rest', 'measurement')
 
@@ -90,7 +90,7 @@ class FreeRunEstimator:
     rate_tolerance: relative difference between the stream's stamp rate and fs beyond which the
     estimates are withheld (RateMonitor). fs must be the model's own rate when the model has one.
     init_past: how the unlogged past before the measured window ended ('any' or 'fade-out',
-    ident.state step 5).
+    ident.state.estimate step 5).
     """
 
     def __init__(self, model, fs: float | None = None, init: str = 'auto', u_min: float = -200.0,
@@ -110,7 +110,7 @@ class FreeRunEstimator:
                 or not 0 < rate_tolerance < 1:
             raise ConfigError('max_fill, reanchor_every, init_timeout must be >= 0, window >= 2, '
                               'confirm >= 1 and rate_tolerance in (0, 1)')
-        from piezo_narx_ros.ident.state import PASTS
+        from piezo_narx_ros.ident.state.estimate import PASTS
         if init_past not in PASTS:
             raise ConfigError(f'init_past must be one of {list(PASTS)}, got {init_past!r}')
         self.init_past = init_past

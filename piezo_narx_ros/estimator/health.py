@@ -12,7 +12,7 @@ move it, estimator.memory) is a WARN with that bound, until it is.
 from __future__ import annotations
 
 from piezo_narx_ros.counters import ERROR, OK, WARN, Since
-from piezo_narx_ros.ident.units import model_unit_problem
+from piezo_narx_ros.ident.data.units import model_unit_problem
 
 # Counters whose growth since the last tick makes the tick a WARN, with the phrase that says so.
 _WARN_ON = (

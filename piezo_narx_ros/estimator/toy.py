@@ -16,7 +16,7 @@ def toy_narx(nu: int = 4, ny: int = 4, hidden: int = 10, fs: float = 2000.0, see
     Normalisation: u 0 ± 100 V, y 0 ± 1e-6 m. input_range ±150 V; output_range is set from a
     free run on a ±150 V random input, so a ±150 V command stays in range.
     """
-    from piezo_narx_ros.ident.narx import NARXNetwork
+    from piezo_narx_ros.ident.narx.model import NARXNetwork
     rng = np.random.default_rng(seed)
     d = nu + 1 + ny
     W1 = rng.normal(0.0, 1.0, (hidden, d))

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..errors import ConfigError, DataError
 from ..record import default_names
-from .checks import as_channels, as_signal
+from .data.checks import as_channels, as_signal
 
 
 @dataclass(frozen=True)
@@ -200,11 +200,11 @@ class DynamicModel:
         """
         raise NotImplementedError
 
-    # Initial state from measurement (ident/state.py): every family implements these three.
+    # Initial state from measurement (ident/state/): every family implements these three.
     state_size = 0   # length of the state vector
     #: True when the free run is affine in the states `_adjustable_state` names (the output
     #: dynamics' and creep histories of a linear output part): the window's Gauss-Newton then
-    #: reuses one Jacobian (ident/state.py). False (a network fed its own outputs): recomputed.
+    #: reuses one Jacobian (ident/state/). False (a network fed its own outputs): recomputed.
     adjustable_state_linear = False
 
     def _run_from(self, values, u):   # pragma: no cover - interface
@@ -215,7 +215,7 @@ class DynamicModel:
         """
         Return the ModelStates the model reaches through input histories ending at u[0].
 
-        past: how the history ended (ident.state.PASTS); a family adds what it can represent.
+        past: how the history ended (state.estimate.PASTS); a family adds what it can represent.
         """
         raise NotImplementedError
 
@@ -231,11 +231,11 @@ class DynamicModel:
         """
         Return the ModelState at u[0] that best explains a window u (N,) V, y (N,) m.
 
-        Hysteresis memory, creep, output dynamics and sensor offset (ident/state.py); prior: a
+        Hysteresis memory, creep, output dynamics and sensor offset (ident/state/); prior: a
         ModelState believed to hold (its memory is kept, the rest refined on the window); past:
-        how the record's unlogged past ended ('any' or 'fade-out', ident/state.py step 5).
+        how the record's unlogged past ended ('any' or 'fade-out', ident/state/estimate.py step 5).
         """
-        from .state import estimate_state
+        from .state.estimate import estimate_state
         return estimate_state(self, u, y, prior, past=past)
 
     def _check_state(self, state):

@@ -6,7 +6,11 @@ module imports the package's family modules, so that model_io and the C export c
 without naming any family. A new family: a module with a registered DynamicModel subclass (its
 math, file document, Stepper and C emitter) and its import below.
 """
-from . import narx, arx, hysteresis, hysteresis_chains, ensemble  # noqa: F401 - registration
+# Importing a family's module registers it; the order here is the registration order.
+from .narx import model as _narx  # noqa: F401
+from .arx import model as _arx  # noqa: F401
+from .hysteresis import model as _hysteresis, chains as _chains  # noqa: F401
+from .ensemble import model as _ensemble  # noqa: F401
 from .base import registered_families
 
 __all__ = ['family', 'kinds', 'registered_families']

@@ -339,12 +339,12 @@ def _playback(fs, n, opt):
     """
     Return the signal of a file as recorded: volts untouched, at its own rate.
 
-    The same column rules as `fit` (ident.data.read_signal). A file whose rate (fs key or time
-    column, or the file_fs option) is not `fs` is refused unless the `resample` option asks for
-    linear resampling; n samples (seconds given) shorter than the file cut it, longer ones need
+    The same column rules as `fit` (ident.data.loaders.read_signal). A file whose rate (fs key or
+    time column, or the file_fs option) is not `fs` is refused unless the `resample` option asks
+    for linear resampling; n samples (seconds given) shorter than the file cut it, longer ones need
     the `loop` option (the file repeated, with whatever jump its ends make).
     """
-    from piezo_narx_ros.ident.data import read_signal
+    from piezo_narx_ros.ident.data.loaders import read_signal
     path = opt['path']
     if not path:
         raise ConfigError('signal parameter path (the file to play back) is required for playback')

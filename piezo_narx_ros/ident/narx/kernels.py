@@ -15,8 +15,8 @@ import math
 import numpy as np
 from numba import njit
 
-from ..errors import DataError
-from .checks import input_vector
+from ...errors import DataError
+from ..data.checks import input_vector
 
 
 @njit(cache=True)
@@ -213,7 +213,7 @@ class Stepper:
     @property
     def state(self):
         """Return the current ModelState (past inputs V and outputs m, and the offset)."""
-        from .state import ModelState
+        from ..state.estimate import ModelState
         return ModelState(np.r_[self._ubuf[1:], self._ybuf], self.offset)
 
     @property
@@ -552,7 +552,7 @@ class VectorStepper:
     @property
     def state(self):
         """Return the current ModelState (past input rows V and output rows m, the offset)."""
-        from .state import ModelState
+        from ..state.estimate import ModelState
         return ModelState(np.r_[self._ubuf[1:].ravel(), self._ybuf.ravel()], self.offset)
 
     @property

@@ -13,10 +13,10 @@ entries; for one input and one output it is the row above.
 """
 import numpy as np
 
-from ..errors import DataError
-from ..record import as_columns
-from .base import DynamicModel, as_channel_lists
-from .checks import as_channels, as_signal
+from ...errors import DataError
+from ...record import as_columns
+from ..base import DynamicModel, as_channel_lists
+from ..data.checks import as_channels, as_signal
 
 
 def check_orders(nu, ny):
@@ -231,7 +231,7 @@ class LaggedModel(DynamicModel):
 
     def _state_candidates(self, u, past='any'):
         """One candidate (any past): the input held at u[0] (V) until the output settles."""
-        from .state import ModelState
+        from ..state.estimate import ModelState
         u0 = u[0] if self._scalar_io else np.asarray(u[0], dtype=np.float64)
         label = (f'{float(u0):.6g} V' if self._scalar_io
                  else '(' + ', '.join(f'{v:.6g}' for v in u0) + ') V')
@@ -247,7 +247,7 @@ class LaggedModel(DynamicModel):
 
     def _bracket_states(self, u0):
         """Rest, and the input held at u0 (V; (n_in,) for several inputs) (estimator.memory)."""
-        from .state import ModelState
+        from ..state.estimate import ModelState
         u0 = np.asarray(u0, dtype=np.float64)
         return [ModelState(np.zeros(self.state_size), self._zero_offset(), {'history': 'rest'}),
                 self._state_candidates(u0.reshape(1) if self._scalar_io
@@ -255,7 +255,7 @@ class LaggedModel(DynamicModel):
 
     def _adjustable_state(self, n_window):
         """Return the output history's indices, on the scale of each output's trained span (m)."""
-        from .base import channel_ranges
+        from ..base import channel_ranges
         _, out = channel_ranges(self)
         if out is None:
             out = np.tile([0.0, 1.0], (self.n_out, 1))

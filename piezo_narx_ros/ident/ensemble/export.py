@@ -1,5 +1,5 @@
 """
-C emitter of an ensemble (ident/ensemble.py; piezo-narx export): the mean of its members' C.
+C emitter of an ensemble (ident/ensemble/model.py; piezo-narx export): the mean of its members' C.
 
 Each member is written by its family's emitter under its own prefix (e0_, e1_, ...; a chains
 member e0c0_, ...), as the chains model writes its chains: the envelope family's members only
@@ -9,9 +9,9 @@ keeps apart as every family's). No C inverse (PNR_HAS_INVERSE 0).
 """
 import numpy as np
 
-from ..export.c_code import Emitter, ExportError
-from .hysteresis_chains_export import ChainsEmitter
-from .hysteresis_export import HysteresisEmitter
+from ...export.c_code import Emitter, ExportError
+from ..hysteresis.chains_export import ChainsEmitter
+from ..hysteresis.export import HysteresisEmitter
 
 
 def member_emitter(model, prefix: str):

@@ -50,26 +50,20 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from piezo_narx_ros.errors import ConfigError, DataError, PiezoNarxError
-from piezo_narx_ros.ident import metrics
-from piezo_narx_ros.ident.correlation import correlation_tests
-from piezo_narx_ros.ident.data import Record, check_length
-from piezo_narx_ros.ident.executor import Executor, LocalExecutor, TaskFailure, in_worker
-from piezo_narx_ros.ident.state import check_past
-from piezo_narx_ros.ident.noise_model import NOISE_MODELS, ARNoiseModel, fit_ar_noise_model
-from piezo_narx_ros.record import as_columns, channels_arg, check_same_channels
+from piezo_narx_ros.ident.data.records import check_length
+from piezo_narx_ros.ident.selection.executor import Executor, LocalExecutor, TaskFailure, in_worker
+from piezo_narx_ros.ident.selection.grid import auto_grid, distinct_specs
+from piezo_narx_ros.ident.selection.scoring import RESIDUAL_KINDS, evaluate_model, fit_noise_models
+from piezo_narx_ros.ident.state.estimate import check_past
+from piezo_narx_ros.ident.validation.noise_model import NOISE_MODELS
+from piezo_narx_ros.record import Record, channels_arg, check_same_channels
 
-RESIDUAL_KINDS = ('prediction', 'simulation')
 # Final training of the selected network (over the grid's `training`): a longer simulation-error
 # refinement, early-stopped on the held-out free run. Measured on a 25 s plant record: NARX(4,3,10)
 # validation free-run R² 0.99993 -> 0.99997, and 0.99989 -> 0.99995 live on a fresh multisine.
 # The one-step stage is left as screened: 4x longer one-step training gave a network that fell into
 # a limit cycle when the excitation switched on (R² -94 on its own estimation record).
 FINAL_TRAINING = {'refine_iter': 300, 'refine_max_fail': 25}
-# Samples at the start of each free run left out of the noise model and the tests: the start-up
-# transient (the model's lag states start from measured, noisy outputs) is not noise. Measured on a
-# linear plant: with it, the exact ARX(4,4) got an AR(18-20) noise model from the transient alone
-# and failed the tests in 6 of 6 records; without it, AR(0) and the white-noise pass rate.
-SIMULATION_BURN_IN = 200
 
 
 FAMILIES = ('narx', 'hysteresis_narx')
@@ -113,17 +107,17 @@ class CandidateSpec:
     def build(self, training_options: dict | None = None):
         """Return an unfitted model for this spec (imports the model classes lazily)."""
         if self.kind == 'arx':
-            from piezo_narx_ros.ident.arx import ARXModel
+            from piezo_narx_ros.ident.arx.model import ARXModel
             return ARXModel(na=self.ny, nb=self.nu)
         if self.kind == 'hysteresis_narx':
-            from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+            from piezo_narx_ros.ident.hysteresis.model import HysteresisNARX
             options = dict(self.options)
             if options.pop('structure', None) == 'chains':     # several axes, see distinct_specs
-                from piezo_narx_ros.ident.hysteresis_chains import HysteresisChains
+                from piezo_narx_ros.ident.hysteresis.chains import HysteresisChains
                 return HysteresisChains(hidden=self.hidden, seed=self.seed, **options)
             return HysteresisNARX(hidden=self.hidden, seed=self.seed, **options)
         if self.kind == 'narx':
-            from piezo_narx_ros.ident.narx import NARXNetwork
+            from piezo_narx_ros.ident.narx.model import NARXNetwork
             return NARXNetwork(nu=self.nu, ny=self.ny, hidden=self.hidden, seed=self.seed,
                                **(training_options or {}))
         raise ConfigError(f'unknown model kind {self.kind!r} (use narx, arx or '
@@ -174,7 +168,7 @@ class ExperimentConfig:
     # before its free run is scored (recordings that do not start at rest); 0: from rest.
     init_seconds: float = 0.0
     # How the recordings' unlogged pasts ended, for those states: 'any' or 'fade-out'
-    # (ident/state.py PASTS, step 5).
+    # (ident/state/estimate.py PASTS, step 5).
     init_past: str = 'any'
     max_lag: int = 20                   # correlation test lags
     max_outside_fraction: float = 0.05  # chance-rate tolerance (docs/validation.md); 0 = strict
@@ -187,7 +181,7 @@ class ExperimentConfig:
     # The selected network is trained again with these options over `training` (empty: no final
     # fit). The grid screens 16 networks with fast settings; only the winner needs convergence.
     final_training: dict = field(default_factory=lambda: dict(FINAL_TRAINING))
-    # The mean of the `ensemble` best candidates (ident/ensemble.py; 0: none) is one more
+    # The mean of the `ensemble` best candidates (ident/ensemble/model.py; 0: none) is one more
     # candidate, scored on the same validation records and kept only when its worst-case
     # free-run R² beats the selected model's by more than `ensemble_margin` (< 0: also when it
     # is that much worse; -1: always). docs/envelope.md "Ensembles": the mean of 5 lowers the
@@ -205,7 +199,7 @@ class ExperimentConfig:
         """Every candidate, networks first (the long fits start first on the pool)."""
         out = []
         if self.narx and self.family == 'hysteresis_narx':
-            from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+            from piezo_narx_ros.ident.hysteresis.model import HysteresisNARX
             for structure in self.hnarx_structures():
                 if self.init_past != 'any':   # the fit's own record starts are told it too
                     structure = {**structure, 'past': self.init_past}
@@ -275,7 +269,7 @@ class ExperimentConfig:
                 not all(isinstance(g, dict) for g in self.hnarx_grid):
             raise ConfigError('hnarx_grid must be a list of mappings of HysteresisNARX options')
         if self.narx and self.family == 'hysteresis_narx':
-            from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+            from piezo_narx_ros.ident.hysteresis.model import HysteresisNARX
             for structure in self.hnarx_structures():
                 bad = {'hidden', 'seed', 'past'} & set(structure)
                 if bad:
@@ -474,274 +468,6 @@ def split_records(records: list[Record],
     return [h[0] for h in halves], [h[1] for h in halves]
 
 
-def free_run(model, record: Record) -> tuple[np.ndarray, np.ndarray]:
-    """
-    (one-step prediction, free run), (N, n_out) m each, of a model on a record.
-
-    The model gets the record's channels in its own form (`channels_arg`: 1-D for one channel,
-    as before several axes); its outputs come back as (N, n_out) columns.
-
-    The free run starts from the record's first n0 measured outputs, as the paper does. A model
-    whose state is a function of the whole input history (`state_from_input`) is instead run
-    from the start of the recording the record was cut from (its u_before / y_before), with the
-    recording's first n0 outputs, as it would have run live; the record's samples are returned.
-
-    A record with a `state_window` N > 0 starts every family from a measured state, as a rig's
-    estimator does (`--init-samples`): model.estimate_state on the record's first N samples. When
-    the record continues a recording (a validation half), its input history is known: the state
-    found at the recording's start is run through that history and then refined (offset, creep,
-    output dynamics) on the record's first N samples; `state_past` says how the unlogged past
-    ended (ident.state, step 5). A free run of NaN when no state is found.
-    """
-    pred, sim = _free_run(model, record)
-    return as_columns(pred), as_columns(sim)
-
-
-def _free_run(model, record: Record):
-    """free_run in the model's own shapes ((N,) for one output)."""
-    u, y, skip = channels_arg(record.u), channels_arg(record.y), 0
-    u_before, y_before = channels_arg(record.u_before), channels_arg(record.y_before)
-    window = record.state_window
-    before = u_before is not None and y_before is not None
-    with np.errstate(all='ignore'):   # a diverging network must not spam warnings
-        if window:
-            if before:
-                pred = model.predict(np.r_[u_before, u],
-                                     np.r_[y_before, y])[len(u_before):]
-            else:
-                pred = model.predict(u, y)
-            n = min(int(window), len(u))
-            try:
-                prior = None
-                if before:
-                    m = min(n, len(u_before))
-                    start = model.estimate_state(u_before[:m], y_before[:m],
-                                                 past=record.state_past)
-                    stepper = model.stepper(state=start)
-                    for value in u_before:
-                        stepper.step(value)
-                    prior = stepper.state
-                state = model.estimate_state(u[:n], y[:n], prior=prior,
-                                             past=record.state_past)
-                sim = model.simulate(u, state=state)
-            except DataError:
-                sim = np.full(np.shape(pred), np.nan)
-            return pred, sim
-        if (window is not None or getattr(model, 'state_from_input', False)) and before:
-            skip = len(u_before)
-            u, y = np.concatenate([u_before, u]), np.concatenate([y_before, y])
-        pred = model.predict(u, y)
-        sim = model.simulate(u) if window == 0 else model.simulate(u, y[:model.n0])
-    return pred[skip:], sim[skip:]
-
-
-def scored_from(model, record: Record) -> int:
-    """
-    First sample of `record` that is scored.
-
-    n0 (the paper's convention), 0 from rest, or the first after the record's state window.
-    """
-    if record.state_window is None:
-        return int(model.n0)
-    return int(record.state_window)
-
-
-def outputs_by_record(model, records: list[Record]) -> list[dict[str, np.ndarray]]:
-    """
-    Per record, the scored samples (`scored_from`): u (V), y, prediction, simulation (m).
-
-    Each (n, channels): u (n, n_in), the others (n, n_out).
-    """
-    parts = []
-    for r in records:
-        pred, sim = free_run(model, r)
-        k = scored_from(model, r)
-        parts.append({'u': r.u[k:], 'y': r.y[k:], 'prediction': pred[k:],
-                      'simulation': sim[k:]})
-    return parts
-
-
-def from_rest_scores(model, records: list[Record]) -> dict:
-    """
-    Score a free run from rest on the samples after each record's state window.
-
-    The comparison for a state set from measurement (`--init-samples N`): the same scored samples,
-    the model started at rest with its fitted zero. Records of the fit's own session may free-run
-    better so when the fit learned their usual past as its rest (docs/real.md).
-    """
-    parts = []
-    for r in records:
-        with np.errstate(all='ignore'):
-            sim = as_columns(model.simulate(channels_arg(r.u)))
-        k = scored_from(model, r)
-        parts.append({'y': r.y[k:], 'simulation': sim[k:]})
-    scores = _scores(parts, [r.source for r in records], records[0].outputs, ('simulation',))
-    result = scores['simulation']
-    if 'records' in scores:
-        result['records'] = [{'source': e['source'], 'samples': e['samples'], **e['simulation']}
-                             for e in scores['records']]
-    return result
-
-
-def model_outputs(model, records: list[Record]) -> dict[str, np.ndarray]:
-    """
-    Pooled samples k >= n0 of every record: 'u' (V), 'y' (m), 'prediction', 'simulation' (m).
-
-    (n, channels) each, as outputs_by_record.
-
-    Each record is predicted from its measured past and simulated from its first n0 outputs.
-    """
-    parts = outputs_by_record(model, records)
-    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-
-
-def _residual(part: dict, mode: str) -> np.ndarray:
-    """
-    Return the residual y - ŷ of one record (m).
-
-    A free run without its start-up transient (SIMULATION_BURN_IN), kept whole when the record is
-    too short to spare it. (n, n_out).
-    """
-    e = part['y'] - part[mode]
-    skip = SIMULATION_BURN_IN if mode == 'simulation' else 0
-    return e[skip:] if len(e) > 10 * skip else e
-
-
-def fit_noise_models(model, records: list[Record], max_order: int = 20,
-                     max_lag: int = 20) -> dict[str, ARNoiseModel | None]:
-    """
-    AR noise model of the model's residuals on (estimation) records, per residual kind.
-
-    The order is capped by `max_order` and by what the data allow (10 samples per coefficient,
-    and 4 * max_lag samples left per record after whitening). None for a kind whose output is not
-    finite (a diverged free run). Several outputs: a list of noise models, one per output (each
-    output's residual is whitened on its own).
-    """
-    parts = outputs_by_record(model, records)
-    shortest = min(len(p['y']) for p in parts)
-    result = {}
-    for mode in RESIDUAL_KINDS:
-        resid = np.concatenate([_residual(p, mode) for p in parts])
-        if not np.all(np.isfinite(resid)):
-            result[mode] = None
-            continue
-        cap = max(0, min(int(max_order), len(resid) // 10 - 1, shortest - 4 * int(max_lag)))
-        fitted = [fit_ar_noise_model(resid[:, j], cap) for j in range(resid.shape[1])]
-        result[mode] = fitted[0] if len(fitted) == 1 else fitted
-    return result
-
-
-def _mode_scores(out: dict, names=None, modes=RESIDUAL_KINDS) -> dict:
-    result = {}
-    for mode in modes:
-        y_hat = out[mode]
-        if np.all(np.isfinite(y_hat)):
-            result[mode] = metrics.channel_scores(out['y'], y_hat, names)
-        else:
-            result[mode] = {'r2': None, 'rmse': None, 'nrmse': None, 'fit_percent': None,
-                            'diverged': True}
-    return result
-
-
-def _scores(parts: list[dict], sources: list[str] | None = None, names=None,
-            modes=RESIDUAL_KINDS) -> dict:
-    """
-    Scores pooled over the records (and over outputs: metrics.channel_scores).
-
-    With several records also 'records': one entry each (source, samples, prediction and simulation
-    scores). names: the output names (several outputs also get 'per_output' scores). modes: the
-    outputs of `parts` to score besides 'y'.
-    """
-    out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-    result = _mode_scores(out, names, modes)
-    if sources is not None and len(parts) > 1:
-        result['records'] = [{'source': src, 'samples': int(len(p['y'])),
-                              **_mode_scores(p, names, modes)}
-                             for src, p in zip(sources, parts)]
-    return result
-
-
-def _failed_tests(reason: str) -> dict:
-    return {'passed': False, reason: True, 'tests': {}}
-
-
-def residual_correlations(parts: list[dict], mode: str, max_lag: int,
-                          max_outside_fraction: float, noise_model: ARNoiseModel | None = None):
-    """
-    Test the residuals of `mode` pooled over records: a CorrelationResult, None when not finite.
-
-    Each record is whitened on its own by `noise_model`, its first `order` samples dropped.
-    Several channels: the tests run on each output's residual (whitened by its own noise model,
-    `noise_model` a list) against each input; the result is the pair that fails most (fewest
-    tests passed, then most lags outside), with 'output' and 'input' indices in its `pair`.
-    """
-    n_out, n_in = parts[0]['y'].shape[1], parts[0]['u'].shape[1]
-    models = noise_model if isinstance(noise_model, (list, tuple)) else [noise_model] * n_out
-    worst = None
-    for j in range(n_out):
-        resid, u = [], []
-        for p in parts:
-            e = _residual(p, mode)[:, j]
-            if not np.all(np.isfinite(e)):
-                return None
-            if models[j] is not None and models[j].order:
-                e = models[j].whiten(e)
-            resid.append(e)
-            u.append(p['u'][len(p['u']) - e.size:])
-        e_all, u_all = np.concatenate(resid), np.concatenate(u)
-        for i in range(n_in):
-            corr = correlation_tests(e_all, u_all[:, i], max_lag, max_outside_fraction)
-            if n_out == 1 and n_in == 1:
-                return corr
-            corr.pair = {'output': j, 'input': i}
-            key = (sum(corr.verdicts().values()),
-                   -sum(t.n_outside for t in corr.tests.values()))
-            if worst is None or key < worst[0]:
-                worst = (key, corr)
-    return worst[1]
-
-
-def evaluate_model(model, records: list[Record], max_lag: int = 20,
-                   max_outside_fraction: float = 0.05, with_tests: bool = True,
-                   noise_models: dict | None = None) -> dict:
-    """
-    Scores of a fitted model on records.
-
-    {'prediction': scores, 'simulation': scores, 'tests': {...}} (tests omitted when with_tests is
-    False).
-
-    `noise_models` ({'prediction'|'simulation': ARNoiseModel | None}) whitens the residuals before
-    the tests; then tests[mode] holds the verdicts on the innovations with the noise model that
-    produced them under 'noise_model', and tests['raw'][mode] the verdicts on the raw residuals.
-    Without noise models, tests[mode] are the raw verdicts (and tests['raw'] repeats them).
-    A non-finite simulation (diverged network) gets scores of None and failing tests.
-    """
-    parts = outputs_by_record(model, records)
-    result = _scores(parts, [r.source for r in records], records[0].outputs)
-    if not with_tests:
-        return result
-    tests = {'raw': {}}
-    for mode in RESIDUAL_KINDS:
-        raw = residual_correlations(parts, mode, max_lag, max_outside_fraction)
-        tests['raw'][mode] = (_failed_tests('diverged') if raw is None
-                              else raw.to_dict(with_values=False))
-        if noise_models is None:
-            tests[mode] = tests['raw'][mode]
-            continue
-        nm = noise_models.get(mode)
-        if raw is None:
-            tests[mode] = _failed_tests('diverged')
-        elif nm is None:   # its free run diverged on the estimation data
-            tests[mode] = _failed_tests('no_noise_model')
-        else:
-            corr = residual_correlations(parts, mode, max_lag, max_outside_fraction, nm)
-            tests[mode] = {**corr.to_dict(with_values=False),
-                           'noise_model': ([m.to_dict() for m in nm]
-                                           if isinstance(nm, (list, tuple)) else nm.to_dict())}
-    result['tests'] = tests
-    return result
-
-
 def fit_candidate(spec: CandidateSpec, est: list[Record], val: list[Record],
                   config: ExperimentConfig) -> CandidateResult:
     """
@@ -774,8 +500,9 @@ def score_candidate(res: CandidateResult, model, est: list[Record], val: list[Re
     res.n_params = int(model.n_params)
     res.scores['estimation'] = evaluate_model(model, est, with_tests=False)
     # The validation records' state windows are then judged as evaluate and estimator_node
-    # judge the saved model's: with its own free-run error as the window's floor (ident.state,
-    # step 4). Here that is the estimation records' error; the file gets both after selection.
+    # judge the saved model's: with its own free-run error as the window's floor
+    # (ident.state.estimate, step 4). Here that is the estimation records' error; the file gets
+    # both after selection.
     model.metadata = {**(getattr(model, 'metadata', None) or {}),
                       'metrics': {'estimation': res.scores['estimation']}}
     noise = None
@@ -834,7 +561,7 @@ def consider_ensemble(candidates: list[CandidateResult], chosen: tuple, data: tu
     """
     Add the mean of the `config.ensemble` best candidates; return the (index, validated) kept.
 
-    The ensemble (ident/ensemble.py) is scored on the same estimation and validation records as
+    The ensemble (ident/ensemble/) is scored on the same estimation and validation records as
     every candidate and replaces the selected model only when its worst-case free-run R² is
     higher by more than `config.ensemble_margin`; it is listed among the candidates either way.
     """
@@ -842,7 +569,7 @@ def consider_ensemble(candidates: list[CandidateResult], chosen: tuple, data: tu
                     key=lambda c: -c.free_run_r2())[:config.ensemble]
     if config.ensemble < 2 or len(ranked) < 2:
         return chosen
-    from .ensemble import EnsembleModel
+    from ..ensemble.model import EnsembleModel
     model = EnsembleModel([c.model for c in ranked])
     spec = CandidateSpec('ensemble', nu=model.nu, ny=model.ny,
                          options=tuple(c.spec.label for c in ranked))
@@ -897,97 +624,6 @@ def final_fit(screened: CandidateResult, est: list[Record], val: list[Record],
     """
     final = fit_candidate(screened.spec, est, val, _final_config(config))
     return keep_final(screened, final, config)
-
-
-def distinct_specs(specs: list, records: list) -> list:
-    """
-    Return the candidates that differ as fits on these records.
-
-    On records of several axes the envelope family fits a deterministic structure that uses
-    neither the network seed nor the drive increments (ident/hysteresis_mimo.py): its candidates
-    would be the same fit several times (six with the envelope preset), so one is kept. With as
-    many inputs as outputs every candidate is also fitted as one chain per axis
-    (ident/hysteresis_chains.py: there seeds and increments matter, as for one axis).
-    """
-    if _one_axis(records):
-        return list(specs)
-    nets = [s for s in specs if s.kind == 'hysteresis_narx']
-    square = all(getattr(r, 'n_in', 1) == getattr(r, 'n_out', 1) for r in records)
-    chains = [replace(s, options=tuple(sorted(dict(s.options, structure='chains').items())))
-              for s in nets] if square else []
-    return nets[:1] + chains + [s for s in specs if s.kind != 'hysteresis_narx']
-
-
-def _one_axis(records: list[Record]) -> bool:
-    return all(getattr(r, 'n_in', 1) == 1 and getattr(r, 'n_out', 1) == 1 for r in records)
-
-
-def _loop_rich(est: list[Record]) -> bool | None:
-    """
-    Tell whether the estimation input closes MINOR_LOOPS minor loops (coverage.inner_reversals).
-
-    None on records of several axes, where neither 'auto' rule that asks was measured.
-    """
-    if not _one_axis(est):
-        return None
-    from .coverage import inner_reversals
-    from .hysteresis import MINOR_LOOPS
-    return inner_reversals(est) >= MINOR_LOOPS
-
-
-def beside(specs: list, config: ExperimentConfig, est: list[Record]) -> list:
-    """
-    Return specs without the paper's networks beside the envelope family where they do not belong.
-
-    `narx_beside` 'auto': kept only on records of one axis whose estimation input closes
-    MINOR_LOOPS minor loops (several axes: not measured, left as they were).
-    """
-    if config.family == 'narx' or config.narx_beside != 'auto':
-        return list(specs)
-    if _loop_rich(est):
-        return list(specs)
-    return [s for s in specs if s.kind != 'narx']
-
-
-def increments(specs: list, config: ExperimentConfig, est: list[Record]) -> list:
-    """
-    Return specs without the increment-free structure where it does not belong.
-
-    `without_increments` 'auto': kept only on records of one axis whose estimation input moves
-    slowly (coverage.SLOW_STEP; several axes: not measured, left as they were).
-    """
-    extra = config.increment_free()
-    if extra is None or config.without_increments != 'auto':
-        return list(specs)
-    from .coverage import SLOW_STEP, step_share
-    if _one_axis(est) and step_share(est) < SLOW_STEP:
-        return list(specs)
-
-    def added(spec):
-        options = {k: v for k, v in spec.options if k != 'structure'}
-        return spec.kind == 'hysteresis_narx' and options == extra
-
-    return [s for s in specs if not added(s)]
-
-
-def small(specs: list, config: ExperimentConfig, est: list[Record]) -> list:
-    """
-    Return specs without the small networks where they do not belong.
-
-    `small_networks` 'auto': kept only on records of one axis whose estimation input closes
-    fewer than MINOR_LOOPS minor loops (several axes: not measured, left out).
-    """
-    if len(config.hidden_sizes) == 1 or config.small_networks != 'auto':
-        return list(specs)
-    if _loop_rich(est) is False:
-        return list(specs)
-    return [s for s in specs if not (s.kind == 'hysteresis_narx'
-                                     and s.hidden == config.small_hidden)]
-
-
-def auto_grid(specs: list, config: ExperimentConfig, est: list[Record]) -> list:
-    """Return the specs fitted on estimation records est: every 'auto' rule applied."""
-    return small(increments(beside(specs, config, est), config, est), config, est)
 
 
 def run_experiment(records: list[Record], config: ExperimentConfig | None = None,

@@ -1,13 +1,13 @@
 """
 C emitter of the paper's NARX network (piezo-narx export; docs/export.md).
 
-pnr_step copies narx_step (ident/kernels.py) operation for operation, with the weights folded
+pnr_step copies narx_step (ident/narx/kernels.py) operation for operation, with the weights folded
 into raw units as the Python kernels use them, on the state [u(k-nu) .. u(k-1), y(k-ny) ..
 y(k-1)]:
 
     y(k) = b2 + sum_h w2[h] / (1 + exp(-(b1[h] + Wu[h] . u[k-nu .. k] + Wy[h] . y[k-ny .. k-1])))
 """
-from ..export.c_code import ChannelHistoryEmitter, HistoryEmitter, c_array, c_scalar
+from ...export.c_code import ChannelHistoryEmitter, HistoryEmitter, c_array, c_scalar
 
 
 class NARXEmitter(HistoryEmitter):

@@ -5,7 +5,7 @@ A bad array raises DataError with one line naming the argument and the problem.
 """
 import numpy as np
 
-from ..errors import DataError
+from ...errors import DataError
 
 
 def as_signal(x, name, n=None, min_len=1):

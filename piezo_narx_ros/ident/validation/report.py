@@ -19,12 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-from piezo_narx_ros.ident.correlation import TEST_LABELS, TEST_NAMES
-from piezo_narx_ros.ident.data import Record
-from piezo_narx_ros.ident.experiment import (ExperimentResult, free_run,
-                                             outputs_by_record, residual_correlations,
-                                             scored_from)
-from piezo_narx_ros.ident.noise_model import noise_models_from_doc
+from piezo_narx_ros.ident.validation.correlation import TEST_LABELS, TEST_NAMES
+from piezo_narx_ros.record import Record
+from piezo_narx_ros.ident.selection.experiment import ExperimentResult
+from piezo_narx_ros.ident.selection.scoring import (free_run, outputs_by_record,
+                                                    residual_correlations, scored_from)
+from piezo_narx_ros.ident.validation.noise_model import noise_models_from_doc
 
 UM = 1e6  # metres -> micrometres for plots
 

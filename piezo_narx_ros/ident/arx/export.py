@@ -1,12 +1,12 @@
 """
 C emitter of the ARX family (piezo-narx export; docs/export.md).
 
-pnr_step copies arx_step (ident/kernels.py) operation for operation, on the state
+pnr_step copies arx_step (ident/narx/kernels.py) operation for operation, on the state
 [u(k-nu) .. u(k-1), y(k-ny) .. y(k-1)]:
 
     y(k) = c + bu . [u(k-nu) .. u(k)] + ay . [y(k-ny) .. y(k-1)]     (time order)
 """
-from ..export.c_code import ChannelHistoryEmitter, HistoryEmitter, c_array, c_scalar
+from ...export.c_code import ChannelHistoryEmitter, HistoryEmitter, c_array, c_scalar
 
 
 class ARXEmitter(HistoryEmitter):

@@ -1,13 +1,13 @@
 """
-C emitter of the envelope family on several axes (hysteresis_mimo; piezo-narx export).
+C emitter of the envelope family on several axes (hysteresis.mimo; piezo-narx export).
 
-pnr_step_ copies hysteresis_mimo.step operation for operation on the kernel's own state array,
-whose layout (hysteresis_mimo.state_layout) is the exported state vector; u and y are vectors of
-PNR_N_INPUTS volts and PNR_N_OUTPUTS metres.
+pnr_step_ copies hysteresis.mimo_kernels.step operation for operation on the kernel's own state
+array, whose layout (hysteresis.mimo.state_layout) is the exported state vector; u and y are
+vectors of PNR_N_INPUTS volts and PNR_N_OUTPUTS metres.
 """
 import numpy as np
 
-from ..export.c_code import Emitter, ExportError, c_array, c_scalar
+from ...export.c_code import Emitter, ExportError, c_array, c_scalar
 
 
 class MimoEmitter(Emitter):
@@ -163,7 +163,7 @@ class MimoEmitter(Emitter):
         return '\n'.join(L)
 
     def _products(self) -> list:
-        """Return the C lines of the stage-1 outputs' product features (hysteresis_mimo.CROSS)."""
+        """Return the C lines of the stage-1 outputs' product features (hysteresis.mimo.CROSS)."""
         no = self.n_out
         out = []
         if self.p.cross >= 1:

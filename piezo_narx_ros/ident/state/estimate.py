@@ -61,7 +61,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from piezo_narx_ros.errors import DataError
-from piezo_narx_ros.ident.checks import as_channels, as_signal
+from piezo_narx_ros.ident.data.checks import as_channels, as_signal
 
 #: Fewest samples a window may have to set a state.
 MIN_WINDOW = 10

@@ -5,7 +5,7 @@ A stage whose axes each have their own actuator (amplifier, piezo stack or bende
 hysteresis, creep and bending mode) and whose mechanics mix the actuators' motions: a two-axis
 bender (plant/axes.py CoupledCantilever), an XY stage, a tip-tilt mount. Then
 
-    z_j(k) = chain_j(u_j(0..k))      one one-axis HysteresisNARX per input (ident/hysteresis.py)
+    z_j(k) = chain_j(u_j(0..k))      one one-axis HysteresisNARX per input (hysteresis/model.py)
     y(k)   = M z(k)                  M (n x n, 1 on its diagonal): the coupling
 
 so y_i = z_i + sum_{j != i} M_ij z_j: driving axis j moves axis i by M_ij of chain j's motion, with
@@ -37,10 +37,11 @@ import numpy as np
 from numba import njit
 from scipy.signal import lfilter
 
-from ..errors import DataError, ModelFileError
-from .checks import as_channels, input_vector
-from .kernels import step_rows
-from .hysteresis import LAYOUTS, HysteresisNARX
+from ...errors import DataError, ModelFileError
+from ..data.checks import as_channels, input_vector
+from ..narx.kernels import step_rows
+from .model import HysteresisNARX
+from .model_file import LAYOUTS
 
 #: Structure name in the model file (structure.layout) and the experiment (option 'structure').
 CHAINS_LAYOUT = 'one-axis chain per input, mixed by a coupling matrix'
@@ -332,7 +333,7 @@ class ChainsStepper:
     @property
     def state(self):
         """Return the current ModelState (the chains' state vectors end to end; offsets, m)."""
-        from .state import ModelState
+        from ..state.estimate import ModelState
         return ModelState(np.concatenate([s.state.values for s in self._chains]),
                           self.offset.copy())
 
@@ -348,7 +349,7 @@ class ChainsStepper:
 
 
 def _state(values, offset, info=None):
-    from .state import ModelState
+    from ..state.estimate import ModelState
     return ModelState(np.asarray(values, dtype=np.float64), offset, info or {})
 
 
@@ -423,7 +424,7 @@ class HysteresisChains(HysteresisNARX):
     `coupling_` (n, n) M, `chains_` (n one-axis HysteresisNARX, chain j driven by input j;
     each with its input/output range and its training data's line in `metadata`). simulate /
     predict / stepper / estimate_state take and return (N, n) arrays; the state vector is the
-    chains' end to end (each chain's layout in hysteresis_kernels); a ModelState's offset is
+    chains' end to end (each chain's layout in hysteresis.kernels); a ModelState's offset is
     one per output (m).
     """
 
@@ -483,7 +484,7 @@ class HysteresisChains(HysteresisNARX):
         The coupling M, then chain j on (u_j, (M^-1 y)_j) as a one-axis model (module
         docstring). fs (Hz) is required. Returns self.
         """
-        from .base import as_channel_lists
+        from ..base import as_channel_lists
         us, ys, _ = as_channel_lists(u, y, min_len=max(self.n0, 1) + 20)
         if fs is None:
             raise DataError('HysteresisChains.fit needs the sample rate fs (Hz)')
@@ -561,7 +562,7 @@ class HysteresisChains(HysteresisNARX):
         Each chain's own estimate (HysteresisNARX.estimate_state, past as there) on its input and
         its decoupled output; offsets per output = M times the chains' offsets.
         """
-        from .state import MIN_WINDOW, ModelState
+        from ..state.estimate import MIN_WINDOW, ModelState
         self._require_fitted()
         u = self._signal2(u, 'u (state window)', min_len=MIN_WINDOW)
         z = decouple(self._signal2(y, 'y (state window)', n=len(u)), self.coupling_)
@@ -601,8 +602,8 @@ class HysteresisChains(HysteresisNARX):
         return chains_from_document(cls, doc, arrays, name, wpath, fs)
 
     def c_emitter(self):
-        """Return the C emitter of this model (hysteresis_chains_export.ChainsEmitter)."""
-        from .hysteresis_chains_export import ChainsEmitter
+        """Return the C emitter of this model (hysteresis.chains_export.ChainsEmitter)."""
+        from .chains_export import ChainsEmitter
         return ChainsEmitter(self)
 
     def __repr__(self):

@@ -11,7 +11,7 @@ linear output dynamics (the `--preset envelope` family).
               learned Duhem states of v (n_duhem)]
     v(k) = v(k-1) + clip(u(k) - v(k-1), -rho, rho)   the drive, rho learned (amplifier slew)
     (with `amplifier`: the sampled output of a slew-limited first-order amplifier, its
-    bandwidth learned too: hysteresis_kernels.amplifier)
+    bandwidth learned too: hysteresis.kernels.amplifier)
 
 Why this structure (docs/envelope.md has the measurements): the paper's network feeds its own
 output back through a sigmoid layer. A rate-independent plant holding its input has a continuum of
@@ -26,18 +26,17 @@ input, Duhem states by |alpha|/BETA_MIN, sigmoids by 1, and the output dynamics 
 Inference is numpy + numba only; fitting too (no torch).
 """
 import math
-from collections import deque
 
 import numpy as np
 
-from ..errors import ConfigError, DataError, ModelFileError
-from . import document
-from . import hysteresis_kernels as hk
-from . import hysteresis_mimo as hm
-from .base import (DynamicModel, Interval, Options, Tuple, as_channel_lists, as_record_list,
-                   check_parameters, register_family)
-from .kernels import _finite_input, _history, finite_inputs
-from .state import PASTS
+from ...errors import DataError
+from . import kernels as hk
+from . import mimo as hm
+from ..base import (DynamicModel, Interval, Options, Tuple, as_channel_lists, as_record_list,
+                    check_parameters, register_family)
+from ..state.estimate import PASTS
+from .model_file import HysteresisFile
+from .stepper import HysteresisStepper
 
 #: Minor loops of the estimation input (reversals inside the previous loop) from which
 #: monotone='auto' trusts the data to show the network its minor loops (coverage.inner_reversals):
@@ -55,19 +54,10 @@ START_HOLD_S = 1.0
 
 #: Creep time constants (s): log-spaced from the mode's scale to the longest drift a record shows.
 DEFAULT_CREEP_TAUS = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
-# Weight arrays of the model file, in the order of the parameter vector theta_.
-_FILE_PARTS = ('W1', 'b1', 'w2', 'c', 'duhem', 'drive', 'g', 'a', 'b', 'y_off')
-#: structure.layout of a several-axes model file (hysteresis_mimo).
-MIMO_LAYOUT = 'operators per input, common-denominator MIMO dynamics'
-#: Other structure.layout values of this kind -> their class, registered by their own modules
-#: (ident/hysteresis_chains.py; ident/families.py imports it).
-LAYOUTS: dict = {}
-# Structure keys that are constructor arguments.
-_FILE_STRUCTURE = ('hidden', 'n_plays', 'n_duhem', 'n_lags', 'na', 'nb', 'creep_taus')
 
 
 @register_family
-class HysteresisNARX(DynamicModel):
+class HysteresisNARX(HysteresisFile, DynamicModel):
     """
     Sigmoid network over hysteresis-operator states + creep + linear output dynamics.
 
@@ -77,7 +67,7 @@ class HysteresisNARX(DynamicModel):
     amplifier's slew limit); na, nb : output dynamics orders; creep_taus : creep time constants, s;
     seed : initial hidden-layer seed. Training: max_iter LM iterations, val_fraction of each
     record held out for early stopping (0: none), max_fail, hessian_stride (see
-    hysteresis_training). Several records each get their own output offset after the first's
+    hysteresis.training). Several records each get their own output offset after the first's
     (sensor zeros differ between sessions; training_info_['record_offsets_m']). start: how each
     estimation record starts: 'rest', or 'estimate' (a record that does not start at rest: after
     a fit from rest, each record's starting memory is estimated from its first seconds, prepended
@@ -91,13 +81,13 @@ class HysteresisNARX(DynamicModel):
     its previous loop: then the data show the network its minor loops, and the free network fits
     them better). amplifier: the drive also learns a first-order amplifier bandwidth beside its
     slew limit (the exact sampled output of a slew-limited first-order amplifier fed the held
-    command: hysteresis_kernels.amplifier): 'yes', 'no', or 'auto': 'yes' when the command
-    moves smoothly and fast enough to slew (hysteresis_training.drive_slews), else 'no'.
+    command: hysteresis.kernels.amplifier): 'yes', 'no', or 'auto': 'yes' when the command
+    moves smoothly and fast enough to slew (hysteresis.training.drive_slews), else 'no'.
     Measured in docs/real.md ("The amplifier's bandwidth"): on a 0.1-1500 Hz multisine at
     5 kHz it finds the simulated amplifier's slew and bandwidth.
     creep: 'excited' keeps every creep weight >= 0 (a piezo creeps on in the direction it
     moved) and holds at 0 the weight of a filter the estimation input hardly moves
-    (hysteresis_training.slow_creep: its weight would learn the output's slow drift, after an
+    (hysteresis.training.slow_creep: its weight would learn the output's slow drift, after an
     unknown past the past's; training_info_['creep_fixed_s'] lists them); 'free' fits every
     weight with either sign. Measured in docs/real.md ("Creep weights from what the records
     excite").
@@ -111,7 +101,7 @@ class HysteresisNARX(DynamicModel):
     file_format_version = 2     # the kind was added in format version 2
     activation = 'logistic'
     state_from_input = True
-    # Creep and output histories feed linear filters only (ident/state.py reuses one Jacobian).
+    # Creep and output histories feed linear filters only (ident/state/ reuses one Jacobian).
     adjustable_state_linear = True
     _parameter_constraints = {
         'hidden': Interval(int, 1, 200),
@@ -147,7 +137,7 @@ class HysteresisNARX(DynamicModel):
         for name, value in values.items():
             setattr(self, name, value)
         self.theta_ = None
-        self.mimo_ = None       # hysteresis_mimo.MimoParts when fitted on several axes
+        self.mimo_ = None       # hysteresis.mimo.MimoParts when fitted on several axes
         self.amplifier_ = amplifier == 'yes'   # set by fit (auto) or the model file
         self.training_info_ = {}
 
@@ -175,7 +165,7 @@ class HysteresisNARX(DynamicModel):
         return self._layout()[1]
 
     def _layout(self):
-        """Return hysteresis_kernels.layout of this structure (offsets, size)."""
+        """Return hysteresis.kernels.layout of this structure (offsets, size)."""
         return hk.layout(self.hidden, self.n_inputs, self.n_duhem, len(self.creep_taus),
                          self.na, self.nb, 2 if self.amplifier_ else 1)
 
@@ -200,7 +190,7 @@ class HysteresisNARX(DynamicModel):
         record that does not start at rest is fitted from an estimated start (`start`). Returns
         self.
         """
-        from .hysteresis_training import train
+        from .training import train
         if _several_axes(u, y):
             return self._fit_mimo(u, y, fs)
         us, ys = as_record_list(u, y, min_len=max(self.n0, 1) + 20)
@@ -217,13 +207,13 @@ class HysteresisNARX(DynamicModel):
         self.u_scale_, self.y_scale_ = u_scale, y_scale
         self.radii_ = (np.arange(self.n_plays) / self.n_plays) ** 2
         self.fs = fs
-        from .coverage import inner_reversals
+        from ..data.coverage import inner_reversals
         loops = inner_reversals(us)
         monotone = self.monotone == 'yes' or (self.monotone == 'auto' and loops < MINOR_LOOPS)
         # The monotone network rises with the input; an actuator whose output falls with the
         # voltage is fitted on the negated output and the output layer negated after.
         sign = -1.0 if monotone and _gain_sign(us, ys) < 0 else 1.0
-        from .hysteresis_training import drive_slews, slow_creep
+        from .training import drive_slews, slow_creep
         uns = [x / u_scale for x in us]
         self.amplifier_ = self.amplifier == 'yes' or (
             self.amplifier == 'auto' and drive_slews(uns))
@@ -272,7 +262,7 @@ class HysteresisNARX(DynamicModel):
         return self
 
     def _fit_mimo(self, u, y, fs):
-        """Fit the several-axes structure (hysteresis_mimo) on (N, n_in) / (N, n_out) records."""
+        """Fit the several-axes structure (hysteresis.mimo) on (N, n_in) / (N, n_out) records."""
         us, ys, flat = as_channel_lists(u, y, min_len=4 * self.mimo_order + 20)
         if fs is None:
             raise DataError('HysteresisNARX.fit needs the sample rate fs (Hz)')
@@ -294,7 +284,7 @@ class HysteresisNARX(DynamicModel):
 
     def _mimo_signal(self, x, name, width, n=None, min_len=1):
         """Return a user array as (N, width) (several axes)."""
-        from .checks import as_channels
+        from ..data.checks import as_channels
         return as_channels(x, name, n=n, width=width, min_len=min_len)
 
     # state.estimate_state reads windows of a several-axes model through _signal.
@@ -332,7 +322,7 @@ class HysteresisNARX(DynamicModel):
         START_HOLD_S.
         Returns (histories, [{'turning_points_v', 'offset_m'}, ...]).
         """
-        from .state import ramp
+        from ..state.estimate import ramp
         out, starts = [], []
         step = self.u_scale_ * min(0.02, 0.5 * self._kernel_args[3])
         for u, y in zip(us, ys):
@@ -354,7 +344,7 @@ class HysteresisNARX(DynamicModel):
         """
         Set every parameter from the flat vector theta (normalised units).
 
-        Layout in hysteresis_kernels; optionally also the scales (V, m), radii and fs (Hz).
+        Layout in hysteresis.kernels; optionally also the scales (V, m), radii and fs (Hz).
         """
         if u_scale is not None:
             self.u_scale_, self.y_scale_ = float(u_scale), float(y_scale)
@@ -436,7 +426,7 @@ class HysteresisNARX(DynamicModel):
         from n0 outputs). state: a ModelState at u[0] (estimate_state: memory, creep, output
         dynamics and sensor offset set from a measured window) instead of y0.
         """
-        from .regressors import as_signal
+        from ..narx.regressors import as_signal
         self._require_fitted()
         if self.mimo_ is not None:
             return self._mimo_simulate(u, y0, state)
@@ -463,7 +453,7 @@ class HysteresisNARX(DynamicModel):
 
         Returns (N,) m with [:n0] = y[:n0].
         """
-        from .regressors import as_signal
+        from ..narx.regressors import as_signal
         self._require_fitted()
         if self.mimo_ is not None:
             u = self._mimo_signal(u, 'u', self.n_in, min_len=self.n0 + 1)
@@ -516,12 +506,12 @@ class HysteresisNARX(DynamicModel):
 
         Several axes: the input held at u[0] (or prior's state), then the stage-1 and output
         histories and the offsets by their posterior mean given the window and the histories'
-        distribution over the estimation records (hysteresis_mimo.estimate_state); past is
+        distribution over the estimation records (hysteresis.mimo.estimate_state); past is
         checked but has no candidates to choose among there.
         """
         if self.mimo_ is None:
             return super().estimate_state(u, y, prior, past)
-        from .state import MIN_WINDOW, ModelState, check_past
+        from ..state.estimate import MIN_WINDOW, ModelState, check_past
         check_past(past)
         self._require_fitted()
         u = self._mimo_signal(u, 'u (state window)', self.n_in, min_len=MIN_WINDOW)
@@ -537,7 +527,7 @@ class HysteresisNARX(DynamicModel):
 
     @property
     def state_size(self):
-        """Length of the state vector (layout in hysteresis_kernels or hysteresis_mimo)."""
+        """Length of the state vector (layout in hysteresis.kernels or hysteresis.mimo)."""
         return self.mimo_.state_size if self.mimo_ is not None else self._state_size()
 
     def _mimo_simulate(self, u, y0, state):
@@ -594,7 +584,7 @@ class HysteresisNARX(DynamicModel):
         turning points to u[0] (V) slower than the learned drive limit, so the operators see its
         path.
         """
-        from .state import ModelState, fade_out, ramp, turning_point_histories
+        from ..state.estimate import ModelState, fade_out, ramp, turning_point_histories
         if self.mimo_ is not None:
             return [self._mimo_held_state(u)]
         lo, hi = self.input_range if self.input_range is not None \
@@ -623,7 +613,7 @@ class HysteresisNARX(DynamicModel):
         They differ only in the operators' memory: their creep and output states are cleared
         (as the estimate's from rest), so the spread bounds what the memory can change.
         """
-        from .state import ModelState, ramp
+        from ..state.estimate import ModelState, ramp
         if self.mimo_ is not None:
             u0 = np.asarray(u0, dtype=np.float64).reshape(1, self.n_in)
             return [ModelState(np.zeros(self.state_size), np.zeros(self.n_out),
@@ -642,7 +632,7 @@ class HysteresisNARX(DynamicModel):
 
     def _mimo_held_state(self, u):
         """Return the ModelState of the input held at u[0] (V), amplitude from the window."""
-        from .state import ModelState
+        from ..state.estimate import ModelState
         u = self._mimo_signal(u, 'u (state window)', self.n_in)
         return ModelState(hm.held_state(self.mimo_, u), np.zeros(self.n_out),
                           {'history': 'input held at (' + ', '.join(f'{v:.6g}' for v in u[0])
@@ -674,159 +664,12 @@ class HysteresisNARX(DynamicModel):
             idx = np.r_[idx, np.arange(i_x + len(self.creep_taus), self._state_size())]
         return idx.astype(int), np.ones(idx.size)
 
-    # ------------------------------------------------------------------ model file and export
-    def file_document(self):
-        """Return the envelope family's blocks of the model file (structure, scales, training)."""
-        if self.mimo_ is not None:
-            return self._mimo_document()
-        return {'structure': {'kind': self.kind, 'hidden': self.hidden, 'n_plays': self.n_plays,
-                              'n_duhem': self.n_duhem, 'n_lags': self.n_lags, 'na': self.na,
-                              'nb': self.nb, 'creep_taus': list(self.creep_taus),
-                              'activation': self.activation, 'nu': self.nu, 'ny': self.ny,
-                              'n_params': self.n_params,
-                              **({'amplifier': True} if self.amplifier_ else {})},
-                'normalisation': {'u_scale': self.u_scale_, 'y_scale': self.y_scale_},
-                'training': {'seed': self.seed, 'options': self.params_dict(),
-                             'info': self.training_info_,
-                             'method': 'output-error Levenberg-Marquardt'}}
-
-    def _file_shapes(self):
-        """Return {weight array name: shape} of the model file (theta_ split by its layout)."""
-        lay, _ = self._layout()
-        shapes = {k: (hi - lo,) for k, (lo, hi) in lay.items()}
-        shapes['W1'] = (self.hidden, self.n_inputs)
-        shapes['duhem'] = (self.n_duhem, 6)
-        return lay, shapes
-
-    def file_weights(self):
-        """Return theta_ split into its named parts (shapes as in the layout) and radii_."""
-        if self.mimo_ is not None:
-            return self.mimo_.arrays()
-        lay, shapes = self._file_shapes()
-        out = {k: self.theta_[lo:hi].reshape(shapes[k]) for k, (lo, hi) in lay.items()}
-        out['radii'] = self.radii_
-        return out
-
-    @classmethod
-    def from_file_document(cls, doc, arrays, name, wpath, fs):
-        """Return the HysteresisNARX of a model file (see DynamicModel.from_file_document)."""
-        struct = document.get(doc, 'structure', name, (dict,))
-        if struct.get('layout') == MIMO_LAYOUT:
-            return cls._mimo_from_document(doc, arrays, name, wpath, fs)
-        other = LAYOUTS.get(struct.get('layout'))
-        if other is not None:      # a structure of its own module (hysteresis_chains)
-            return other.from_file_document(doc, arrays, name, wpath, fs)
-        missing = [k for k in _FILE_STRUCTURE if k not in struct]
-        if missing:
-            raise ModelFileError(f'{name}: missing key {"structure." + missing[0]!r}')
-        try:
-            values = check_parameters(cls, {k: struct[k] for k in _FILE_STRUCTURE})
-        except ConfigError as exc:
-            raise ModelFileError(f'{name}: structure.{exc}') from None
-        act = document.get(doc, 'structure.activation', name, (str,))
-        if act != cls.activation:
-            raise ModelFileError(f'{name}: unsupported activation {act!r} (only logistic)')
-        if fs is None or not math.isfinite(fs):
-            raise ModelFileError(f'{name}: a hysteresis_narx model needs a finite fs (its creep '
-                                 f'time constants are in seconds), got {fs!r}')
-        u_scale = document.get(doc, 'normalisation.u_scale', name, (int, float))
-        y_scale = document.get(doc, 'normalisation.y_scale', name, (int, float))
-        if not (math.isfinite(u_scale) and math.isfinite(y_scale) and u_scale > 0
-                and y_scale > 0):
-            raise ModelFileError(f'{name}: normalisation u_scale and y_scale must be finite '
-                                 'and > 0')
-        training = document.training_block(doc)
-        seed = training.get('seed', 0)
-        model = cls(**values, seed=seed if isinstance(seed, int) and seed >= 0 else 0)
-        # Written only by a model whose drive has a bandwidth (older files: a slew limit alone).
-        amplifier = struct.get('amplifier', False)
-        if not isinstance(amplifier, bool):
-            raise ModelFileError(f'{name}: structure.amplifier must be true or false, got '
-                                 f'{amplifier!r}')
-        model.amplifier_ = amplifier
-        _, shapes = model._file_shapes()
-        theta = np.concatenate([document.weight_array(arrays, k, shapes[k], wpath).ravel()
-                                for k in _FILE_PARTS])
-        radii = document.weight_array(arrays, 'radii', (model.n_plays,), wpath)
-        model.set_theta(theta, u_scale, y_scale, radii, fs)
-        if np.any(np.abs(model.output_poles) >= 1.0):
-            raise ModelFileError(f'{wpath}: the output dynamics are unstable (a root of A(q) '
-                                 f'has modulus {np.max(np.abs(model.output_poles)):.4f} >= 1)')
-        model.training_info_ = training.get('info') or {}
-        return model
-
-    def _mimo_document(self):
-        p = self.mimo_
-        return {'structure': {'kind': self.kind, 'layout': MIMO_LAYOUT,
-                              'mimo_order': self.mimo_order, 'n_features': p.n_features,
-                              'local_models': p.n_local,
-                              'u_radii': list(hm.U_RADII), 'y_radii': list(hm.Y_RADII),
-                              'env_tau_s': hm.ENV_TAU_S, 'nu': self.nu, 'ny': self.ny,
-                              'n_params': self.n_params},
-                'normalisation': {'u_scale': [float(v) for v in p.u_scale],
-                                  'y_scale': [float(v) for v in p.y_scale]},
-                'training': {'seed': self.seed, 'options': self.params_dict(),
-                             'info': self.training_info_,
-                             'method': 'frequency-domain denominator, output-error least '
-                                       'squares numerators'}}
-
-    @classmethod
-    def _mimo_from_document(cls, doc, arrays, name, wpath, fs):
-        """Return the several-axes HysteresisNARX of a model file (layout MIMO_LAYOUT)."""
-        struct = doc['structure']
-        order = struct.get('mimo_order')
-        try:
-            values = check_parameters(cls, {'mimo_order': order})
-        except ConfigError as exc:
-            raise ModelFileError(f'{name}: structure.{exc}') from None
-        if (list(struct.get('u_radii', ())) != list(hm.U_RADII)
-                or list(struct.get('y_radii', ())) != list(hm.Y_RADII)
-                or struct.get('env_tau_s') != hm.ENV_TAU_S):
-            raise ModelFileError(f'{name}: the several-axes operators (u_radii, y_radii, '
-                                 "env_tau_s) differ from this reader's")
-        if fs is None or not math.isfinite(fs) or fs <= 0:
-            raise ModelFileError(f'{name}: a hysteresis_narx model needs a finite fs, got {fs!r}')
-        n = values['mimo_order']
-        shapes = {'mimo_a': (n,), 'mimo_u_scale': None, 'mimo_y_scale': None,
-                  'mimo_env_w': None, 'mimo_B1': None, 'mimo_B': None, 'mimo_state_mean': None,
-                  'mimo_state_cov': None, 'mimo_resid_rms': None}
-        got = {}
-        for key, shape in shapes.items():
-            if key not in arrays:
-                raise ModelFileError(f'{wpath}: missing weight array {key!r}')
-            got[key] = np.asarray(arrays[key], dtype=np.float64)
-            if shape is not None and got[key].shape != shape:
-                raise ModelFileError(f'{wpath}: {key} must have shape {shape}, got '
-                                     f'{got[key].shape}')
-            if not np.all(np.isfinite(got[key])):
-                raise ModelFileError(f'{wpath}: {key} holds non-finite values')
-        # Local output models (several amplitudes): optional, checked by from_arrays.
-        got.update({key: np.asarray(arrays[key], dtype=np.float64) for key in hm.LOCAL_ARRAYS
-                    if key in arrays})
-        try:
-            parts = hm.MimoParts.from_arrays(got, math.exp(-1.0 / (hm.ENV_TAU_S * fs)))
-        except (DataError, IndexError, ValueError) as exc:
-            raise ModelFileError(f'{wpath}: {exc}') from None
-        if np.any(np.abs(parts.poles()) >= 1.0):
-            raise ModelFileError(f'{wpath}: the output dynamics are unstable (a root of A(q) '
-                                 f'has modulus {np.max(np.abs(parts.poles())):.4f} >= 1)')
-        training = document.training_block(doc)
-        model = cls(mimo_order=n)
-        model.mimo_ = parts
-        model.n_in_, model.n_out_ = parts.n_in, parts.n_out
-        model.output_2d_ = True
-        model.fs = float(fs)
-        model.u_scale_ = float(np.max(parts.u_scale))
-        model.y_scale_ = float(np.max(parts.y_scale))
-        model.training_info_ = training.get('info') or {}
-        return model
-
     def c_emitter(self):
-        """Return the C emitter of this model (piezo_narx_ros.ident.hysteresis_export)."""
+        """Return the C emitter of this model (piezo_narx_ros.ident.hysteresis.export)."""
         if self.mimo_ is not None:
-            from .hysteresis_mimo_export import MimoEmitter
+            from .mimo_export import MimoEmitter
             return MimoEmitter(self)
-        from .hysteresis_export import HysteresisEmitter
+        from .export import HysteresisEmitter
         return HysteresisEmitter(self)
 
     def __repr__(self):
@@ -840,104 +683,6 @@ def _gain_sign(us, ys) -> float:
     u = np.concatenate([x - x.mean() for x in us])
     y = np.concatenate([x - x.mean() for x in ys])
     return -1.0 if float(u @ y) < 0 else 1.0
-
-
-class HysteresisStepper:
-    """
-    Stepper of a HysteresisNARX: step(u_k V) -> y_k m, reset(u_past, y_past).
-
-    One compiled call per step on a preallocated state.
-    """
-
-    def __init__(self, model, u_past=None, y_past=None):
-        self._model = model
-        self.nu, self.ny = model.nu, model.ny
-        self._args = model._kernel_args
-        self._u_scale, self._y_scale = model.u_scale_, model.y_scale_
-        self.reset(u_past, y_past)
-        self._scratch = np.zeros(self._st.size)
-
-    #: Added to every output (m): the sensor offset of a ModelState (estimate_state).
-    offset = 0.0
-
-    def set_state(self, state):
-        """Continue from a ModelState (estimate_state): its state vector and offset (m)."""
-        values = self._model._check_state(state)
-        self._st = values
-        self.offset = float(state.offset)
-        m = self._model
-        lh = max(m.n_lags, 1)
-        v = values[:lh][::-1] * self._u_scale                   # drive, oldest first
-        yl = values[values.size - m.na:][::-1] if m.na else np.zeros(0)
-        y = (yl + self._args[-1]) * self._y_scale + self.offset
-        self._u_hist = deque(v[v.size - self.nu:], maxlen=self.nu)   # nu = n_lags <= lh
-        self._y_hist = deque(y[-self.ny:] if self.ny else [], maxlen=self.ny)
-
-    @property
-    def state(self):
-        """Return the current ModelState (the kernel state vector, normalised; the offset)."""
-        from .state import ModelState
-        return ModelState(self._st.copy(), self.offset)
-
-    def reset(self, u_past=None, y_past=None):
-        """Restart from rest, then u_past (V, nu samples); y_past (m) as in stepper()."""
-        up = _history(u_past, self.nu, 'u_past') if u_past is not None else None
-        yp = _history(y_past, self.ny, 'y_past') if y_past is not None else None
-        self._st = self._model._initial_state(up, yp)
-        self._u_hist = deque(np.zeros(self.nu) if up is None else up, maxlen=self.nu)
-        self._y_hist = deque(np.zeros(self.ny) if yp is None else yp, maxlen=self.ny)
-
-    def step(self, u_k):
-        """
-        Feed one input sample u_k (V); returns the free-run output y(k) (m).
-
-        A non-finite u_k raises DataError and leaves the state untouched.
-        """
-        u = _finite_input(u_k)
-        y = hk.step(u / self._u_scale, self._st, *self._args) * self._y_scale + self.offset
-        self._u_hist.append(u)
-        self._y_hist.append(y)
-        return y
-
-    def step_many(self, u):
-        """
-        Feed the inputs u (n,) V in order; returns the free-run outputs y (n,) m.
-
-        The same numbers as n step() calls, in one compiled call. A non-finite input raises
-        DataError before any step: the state stays untouched.
-        """
-        u = finite_inputs(u)
-        yn = np.empty(u.size)
-        hk.step_many(u / self._u_scale, yn, self._st, *self._args)
-        y = yn * self._y_scale + self.offset
-        self._u_hist.extend(u[u.size - self.nu:].tolist() if self.nu else ())
-        self._y_hist.extend(y[y.size - self.ny:].tolist() if self.ny else ())
-        return y
-
-    def peek(self, u_k):
-        """Return the output step(u_k) would return (m), without changing the state."""
-        return hk.peek(_finite_input(u_k) / self._u_scale, self._st, self._scratch,
-                       *self._args) * self._y_scale + self.offset
-
-    @property
-    def kernel_state(self):
-        """
-        Return the live state array the compiled step advances and the kernel parameters.
-
-        Normalised units, layout in hysteresis_kernels; for compiled code that evaluates candidate
-        inputs without committing them (control/kernels.py). Read, never write.
-        """
-        return (self._st,), self._args
-
-    @property
-    def u_past(self):
-        """Copy of the last nu inputs [u(k-nu) ... u(k-1)], V."""
-        return np.array(self._u_hist, dtype=np.float64)
-
-    @property
-    def y_past(self):
-        """Copy of the last ny outputs [y(k-ny) ... y(k-1)], m."""
-        return np.array(self._y_hist, dtype=np.float64)
 
 
 def _several_axes(u, y) -> bool:

@@ -15,9 +15,9 @@ import time
 
 import numpy as np
 
-from ..errors import ConfigError, DataError, ModelFileError
-from . import document
-from .base import register_family
+from ...errors import ConfigError, DataError, ModelFileError
+from .. import document
+from ..base import register_family
 from .kernels import (NARXStepper, NARXVectorStepper, channel_lag_weights, narx_predict,
                       narx_predict_mimo, narx_simulate, narx_simulate_mimo)
 from .regressors import LaggedModel, check_orders
@@ -325,8 +325,8 @@ class NARXNetwork(LaggedModel):
         return model
 
     def c_emitter(self):
-        """Return the C emitter of this model (piezo_narx_ros.ident.narx_export)."""
-        from .narx_export import NARXChannelEmitter, NARXEmitter
+        """Return the C emitter of this model (piezo_narx_ros.ident.narx.export)."""
+        from .export import NARXChannelEmitter, NARXEmitter
         return NARXEmitter(self) if self._scalar_io else NARXChannelEmitter(self)
 
     def __repr__(self):

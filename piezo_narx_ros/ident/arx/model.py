@@ -14,12 +14,12 @@ sides:
 """
 import numpy as np
 
-from ..errors import DataError
-from . import document
-from .kernels import (ARXStepper, ARXVectorStepper, arx_predict, arx_predict_mimo,
-                      arx_simulate, arx_simulate_mimo, channel_lag_weights)
-from .base import register_family
-from .regressors import LaggedModel, check_orders, lagged_regressors
+from ...errors import DataError
+from .. import document
+from ..narx.kernels import (ARXStepper, ARXVectorStepper, arx_predict, arx_predict_mimo,
+                            arx_simulate, arx_simulate_mimo, channel_lag_weights)
+from ..base import register_family
+from ..narx.regressors import LaggedModel, check_orders, lagged_regressors
 
 
 @register_family
@@ -31,7 +31,7 @@ class ARXModel(LaggedModel):
     fit_intercept : estimate the constant c (absorbs sensor/voltage offsets); False forces c = 0.
     """
 
-    adjustable_state_linear = True   # output lags enter linearly (ident/state.py)
+    adjustable_state_linear = True   # output lags enter linearly (ident/state/estimate.py)
     kind = 'arx'
 
     def __init__(self, na=2, nb=2, fit_intercept=True):
@@ -185,8 +185,8 @@ class ARXModel(LaggedModel):
             document.weight_array(arrays, 'c', (n_out,), wpath))
 
     def c_emitter(self):
-        """Return the C emitter of this model (piezo_narx_ros.ident.arx_export)."""
-        from .arx_export import ARXChannelEmitter, ARXEmitter
+        """Return the C emitter of this model (piezo_narx_ros.ident.arx.export)."""
+        from .export import ARXChannelEmitter, ARXEmitter
         return ARXEmitter(self) if self._scalar_io else ARXChannelEmitter(self)
 
     def __repr__(self):

@@ -1,8 +1,8 @@
 """
-C emitter of the envelope family's chains model (hysteresis_chains; piezo-narx export).
+C emitter of the envelope family's chains model (hysteresis.chains; piezo-narx export).
 
 One one-axis envelope chain per input, each written by the one-axis emitter
-(hysteresis_export.HysteresisEmitter) under its own prefix (hc0_, hc1_, ...: constants HC0_...),
+(hysteresis.export.HysteresisEmitter) under its own prefix (hc0_, hc1_, ...: constants HC0_...),
 mixed by the coupling: y = M z, z_j = chain_j(u_j). The state vector is the chains' kernel states
 end to end, as ChainsStepper.state; u and y are vectors of PNR_N_INPUTS volts and PNR_N_OUTPUTS
 metres. The inverse stays one-axis (the writer leaves it out); control/axes.py inverts the chains
@@ -10,8 +10,8 @@ one by one after M^-1 in Python.
 """
 import numpy as np
 
-from ..export.c_code import Emitter, ExportError, c_array
-from .hysteresis_export import HysteresisEmitter, input_history
+from ...export.c_code import Emitter, ExportError, c_array
+from .export import HysteresisEmitter, input_history
 
 
 class ChainsEmitter(Emitter):

@@ -1,8 +1,8 @@
 """
 C emitter of the envelope family, HysteresisNARX (piezo-narx export; docs/export.md).
 
-pnr_step copies hysteresis_kernels.step operation for operation (normalised units inside: un = u
-/ u_scale, y = yn * y_scale) on the kernel's own state array, whose layout (hysteresis_kernels'
+pnr_step copies hysteresis.kernels.step operation for operation (normalised units inside: un = u
+/ u_scale, y = yn * y_scale) on the kernel's own state array, whose layout (hysteresis.kernels'
 docstring) is the exported state vector:
 
     [v(k-1) .. v(k-Lh) (Lh = max(n_lags, 1)), plays (n_plays), Duhem states (n_duhem),
@@ -18,8 +18,8 @@ import re
 
 import numpy as np
 
-from ..export.c_code import Emitter, c_array, c_scalar
-from . import hysteresis_kernels as hk
+from ...export.c_code import Emitter, c_array, c_scalar
+from . import kernels as hk
 
 
 class HysteresisEmitter(Emitter):
@@ -43,7 +43,7 @@ class HysteresisEmitter(Emitter):
         (self.radii, self.n_lags, self.duhem, self.rho, self.kap, self.W1, self.b1, self.w2,
          self.c, self.w_rest, self.g, self.lam, self.a, self.b, self.y_off) = model._kernel_args
         self.m, self.q, self.nl = self.radii.size, self.duhem.shape[0], self.lam.size
-        # A drive with an amplifier bandwidth (hysteresis_kernels.amplifier); without one the C
+        # A drive with an amplifier bandwidth (hysteresis.kernels.amplifier); without one the C
         # is the slew-limited drive's, as before it existed.
         self.amp = bool(np.isfinite(self.kap))
         self.na, self.nb = self.a.size, self.b.size - 1

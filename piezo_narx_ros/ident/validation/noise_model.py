@@ -143,7 +143,7 @@ def noise_models_from_doc(doc):
     """
     Return an ARNoiseModel from its description, or a list of them (one per output) from a list.
 
-    Several outputs store one noise model per output (experiment.fit_noise_models); DataError
+    Several outputs store one noise model per output (scoring.fit_noise_models); DataError
     when malformed.
     """
     if isinstance(doc, list):

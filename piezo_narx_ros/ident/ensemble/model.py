@@ -8,7 +8,7 @@ fitted itself.
 
     y(k) = (1/K) sum_i member_i(u(0..k))
 
-State (ident/state.py ModelState): the members' state vectors end to end, and one offset, the mean
+State (ident/state/ ModelState): the members' state vectors end to end, and one offset, the mean
 of the members' offsets (the mean of member outputs with offsets o_i is the mean without them plus
 mean(o_i): exact).
 """
@@ -16,9 +16,9 @@ import math
 
 import numpy as np
 
-from ..errors import DataError, ModelFileError
-from .base import DynamicModel, register_family, registered_families
-from .state import ModelState
+from ...errors import DataError, ModelFileError
+from ..base import DynamicModel, register_family, registered_families
+from ..state.estimate import ModelState
 
 #: The model-file format version whose readers know the kind (members nest their own documents).
 ENSEMBLE_FORMAT_VERSION = 3
@@ -115,7 +115,7 @@ class EnsembleModel(DynamicModel):
                               'ny': self.ny, 'n_params': self.n_params},
                 'normalisation': None,
                 'training': {'method': "mean of the members' outputs (members fitted on their "
-                                       'own; ident/ensemble.py)'}}
+                                       'own; ident/ensemble/model.py)'}}
 
     def file_weights(self):
         """Return every member's weight arrays, named member<i>.<name>."""
@@ -155,8 +155,8 @@ class EnsembleModel(DynamicModel):
         return cls(members)
 
     def c_emitter(self):
-        """Return the C emitter of this model (ensemble_export.EnsembleEmitter)."""
-        from .ensemble_export import EnsembleEmitter
+        """Return the C emitter of this model (ensemble.export.EnsembleEmitter)."""
+        from .export import EnsembleEmitter
         return EnsembleEmitter(self)
 
     def __repr__(self):

@@ -4,7 +4,7 @@ Training of the hysteresis-operator NARX (HysteresisNARX.fit): output-error Leve
 The loss is the free-run (simulation) error of every estimation record, each simulated from rest
 on its own: no state and no regressor crosses from one record to the next. Because the model's
 output feedback is linear, the exact derivative of the whole free run is cheap
-(hysteresis_kernels.jacobian), so the training needs no segments or truncation: it fits the slow
+(hysteresis.kernels.jacobian), so the training needs no segments or truncation: it fits the slow
 states (creep, hysteresis memory) over the full length of each record.
 
 Start: the drive's rate limit at half the largest input step when the input jumps (so that the
@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from . import hysteresis_kernels as hk
+from . import kernels as hk
 
 _MU_MAX = 1e12
 #: A creep filter's weight is fitted only where the estimation input moves the filter by at least

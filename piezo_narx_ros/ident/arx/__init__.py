@@ -1,0 +1,1 @@
+"""ARX baseline family: the linear model (model.py) and its C emitter (export.py)."""

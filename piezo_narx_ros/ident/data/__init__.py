@@ -1,0 +1,1 @@
+"""Records for identification: loaders, checks, units, coverage, saturation, resampling."""

@@ -1,0 +1,1 @@
+"""The paper's NARX network: model, kernels, torch training, regressors, C emitter."""

@@ -1,0 +1,1 @@
+"""Choosing a model: the identification experiment (grid, scoring, rules) and its executors."""
