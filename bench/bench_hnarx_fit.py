@@ -36,7 +36,10 @@ FS = 10000.0
 WORKER = r"""
 import json, sys, time
 import numpy as np
-from piezo_narx_ros.ident.hysteresis import HysteresisNARX
+try:
+    from piezo_narx_ros.ident.hysteresis.model import HysteresisNARX
+except ImportError:   # a checkout from before ident/ was grouped by concern
+    from piezo_narx_ros.ident.hysteresis import HysteresisNARX
 z = np.load(sys.argv[1])
 u, y, fs = z['u'], z['y'], float(z['fs'])
 options = json.loads(sys.argv[2])

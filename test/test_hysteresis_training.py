@@ -1,8 +1,8 @@
-"""How the hysteresis-operator NARX's training spends its work (hysteresis_training.train)."""
+"""How the hysteresis-operator NARX's training spends its work (hysteresis.training.train)."""
 import numpy as np
 
-from piezo_narx_ros.ident import hysteresis_kernels as hk
-from piezo_narx_ros.ident import hysteresis_training as ht
+from piezo_narx_ros.ident.hysteresis import kernels as hk
+from piezo_narx_ros.ident.hysteresis import training as ht
 
 FS = 2000.0
 
