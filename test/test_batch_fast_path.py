@@ -213,6 +213,23 @@ def test_plant_responder_batch_path_equals_one_sample_path(coupled):
     assert one.rejected and one.gaps and one.stream_restarts
 
 
+@pytest.mark.parametrize('axes', [1, 2, 'coupled'])
+def test_run_checked_equals_run(axes):
+    # The simulator's batch path (commands known finite) gives run()'s numbers and state.
+    from piezo_narx_ros.plant.axes import make_axis_plants
+
+    def plants():
+        return _stage(seed=2) if axes == 'coupled' else make_axis_plants(
+            ['x', 'y'][:axes], fs=2000.0, seed=2)
+    a, b = plants(), plants()
+    u = np.random.default_rng(1).uniform(-150.0, 150.0, (3000, 1 if axes == 1 else 2))
+    for k in range(0, 3000, 20):
+        y_a, ua_a = a.run(u[k:k + 20])
+        y_b, ua_b = b.run_checked(u[k:k + 20])
+        assert y_b.tolist() == y_a.tolist() and ua_b.tolist() == ua_a.tolist()
+    assert a.step(u[0])[0] == b.step(u[0])[0]
+
+
 def test_coupled_cantilever_run_equals_steps_and_couples_the_axes():
     a, b = _stage(seed=4), _stage(seed=4)
     u = np.column_stack([100.0 * np.sin(np.arange(3000) / 40.0), np.zeros(3000)])

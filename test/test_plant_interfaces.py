@@ -43,6 +43,29 @@ def test_mixed_run_and_step_continue_one_state(params, u_aprbs):
     assert np.array_equal(np.concatenate([first.y, middle, last.y]), whole.y)
 
 
+def test_batches_of_any_size_continue_one_state(params, u_aprbs):
+    # A node's batches (run_into, the simulator's fast path) cut the noise stream anywhere: small
+    # draws refill the noise block, long ones take what they need, steps come in between.
+    whole = PiezoCantilever(params, FS, seed=4).run(u_aprbs)
+    p = PiezoCantilever(params, FS, seed=4)
+    rng = np.random.default_rng(0)
+    got, k = [], 0
+    while k < u_aprbs.size:
+        n = int(rng.choice([1, 7, 20, 4095, 4097]))
+        part = np.ascontiguousarray(u_aprbs[k:k + n])
+        kind = rng.integers(3)
+        if kind == 0:
+            got += p.run(part).y.tolist()
+        elif kind == 1:
+            y, ua = np.empty(part.size), np.empty(part.size)
+            p.run_into(part, y, ua)
+            got += y.tolist()
+        else:
+            got += [p.step(v)[0] for v in part]
+        k += part.size
+    assert np.array_equal(got, whole.y)
+
+
 def test_seed_reproduces_and_changes_only_noise(params, u_aprbs):
     a = PiezoCantilever(params, FS, seed=1).run(u_aprbs)
     b = PiezoCantilever(params, FS, seed=1).run(u_aprbs)

@@ -106,7 +106,7 @@ class PlantResponder:
                 and self.gate.pass_run(t):
             self.received += t.shape[0]
             off = self.rate.observe_run(t)
-            y, ua = self.plants.run(v)
+            y, ua = self.plants.run_checked(v)
             self.last_u = v[-1].tolist()
             self.last_t = int(t[-1])
             withheld = int(np.count_nonzero(off))
@@ -214,6 +214,9 @@ class SimulatorNode(PiezoNode):
             batch_topic(TOPIC_COMMAND, b), self.on_command_batch if b > 1 else self.on_command,
             sample_type(b))
         self._names = list(self.responder.axes)
+        # A stream's batch layout (names, effort width) -> its columns, and whether they are
+        # the axes in order (then the effort array is used as it is, not copied by a fancy index).
+        self._layout = (None, -1, None, False)
         self._seen = 0
         self.flush_timer = self.create_timer(0.2, self.on_idle_check)
         r = self.responder
@@ -254,14 +257,20 @@ class SimulatorNode(PiezoNode):
             self.responder.rejected += 1
             self.get_logger().warning(f'command batch refused: {exc}', throttle_duration_sec=1.0)
             return
-        names, axes, r = batch.names, self.responder.axes, self.responder
-        columns = _columns(names, axes, batch.effort.shape[1])
+        names, r = batch.names, self.responder
+        width = batch.effort.shape[1]
+        if self._layout[0] != names or self._layout[1] != width:   # a stream's first batch
+            columns = _columns(names, r.axes, width)
+            self._layout = (names, width, columns,
+                            columns is not None and columns == list(range(width)))
+        columns, in_order = self._layout[2:]
         if columns is None:     # an axis is missing: every command refused, as one by one
             self.publish([a for t, u in zip(batch.t_ns.tolist(), batch.effort.tolist())
                           for a in self._command(t, names, u)])
             return
         rejected = r.rejected
-        t, y, ua = r.on_commands(batch.t_ns, batch.effort[:, columns])
+        t, y, ua = r.on_commands(batch.t_ns, batch.effort if in_order else
+                                 batch.effort[:, columns])
         if r.rejected > rejected:
             self.get_logger().warning(f'command batch: {r.rejected - rejected} command(s) '
                                       'refused (not finite)', throttle_duration_sec=1.0)

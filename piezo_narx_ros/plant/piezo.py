@@ -171,6 +171,7 @@ class PiezoCantilever:
         self._y1 = np.zeros(1)
         self._yt1 = np.zeros(1)
         self._ua1 = np.zeros(1)
+        self._y_true = np.zeros(0)   # run_into's scratch
         self.reset()
 
     def _setup_preisach(self, p: PlantParams, h: float, consts: np.ndarray) -> None:
@@ -235,15 +236,37 @@ class PiezoCantilever:
         return u
 
     def _draw(self, n: int) -> np.ndarray:
-        """Next n standard normals of the noise stream (buffered block first)."""
+        """
+        Next n standard normals of the noise stream (buffered block first).
+
+        A short draw (a node's batch) refills the block, a long one takes what it needs: the
+        stream is drawn in order either way, so the numbers do not depend on how it is cut.
+        """
         left = self._noise[self._noise_pos:]
         if n <= left.size:
             self._noise_pos += n
             return left[:n]
-        fresh = self._rng.standard_normal(n - left.size)
-        self._noise = np.empty(0)
-        self._noise_pos = 0
-        return np.concatenate([left, fresh])
+        if n - left.size > _NOISE_BLOCK:
+            fresh = self._rng.standard_normal(n - left.size)
+            self._noise = np.empty(0)
+            self._noise_pos = 0
+            return np.concatenate([left, fresh])
+        self._noise = np.concatenate([left, self._rng.standard_normal(_NOISE_BLOCK)])
+        self._noise_pos = n
+        return self._noise[:n]
+
+    def run_into(self, u: np.ndarray, y: np.ndarray, u_applied: np.ndarray) -> None:
+        """
+        run() for commands already checked: u (N,) C-contiguous float64 V, all finite.
+
+        Writes the measured y (N,) m and u_applied (N,) V in place (C-contiguous, float64); the
+        tip deflection is not kept. The same numbers and state as run(u), without its checks and
+        allocations: the batch path of a node that has checked its commands.
+        """
+        n = u.shape[0]
+        if self._y_true.shape[0] < n:
+            self._y_true = np.empty(n)
+        self._advance(u, self._draw(n), y, self._y_true[:n], u_applied)
 
     def step(self, u_cmd: float) -> tuple[float, float, float]:
         """
