@@ -159,6 +159,71 @@ def test_measurements_held_back_while_steady_change_nothing(init):
     assert late.handover is hand_over  # restored after each hand-over
 
 
+def test_held_batches_keep_the_batches_of_the_newest_samples():
+    from piezo_narx_ros.nodes import codec
+    from piezo_narx_ros.nodes.batching import HeldBatches
+    from piezo_narx_ros.nodes.codec import encode_joint_trajectory
+    codec._SHAPES.clear()
+
+    def batch(k, n=20):
+        t = T0 + (k * 20 + np.arange(n, dtype=np.int64)) * PERIOD
+        return encode_joint_trajectory(t, ['x'], position=np.full((n, 1), float(k)))
+    held = HeldBatches(50, keep=70)
+    assert held.push(batch(0))          # a shape not seen yet: taken at once, never dropped
+    assert [len(b) for _, b in held.take()] == [20]
+    for k in range(1, 30):
+        assert not held.push(batch(k))
+    assert held.push(batch(30, n=7))    # another shape: taken, with what is held
+    got = [b for _, b in held.take()]
+    # The 4 newest batches of 20 (80 samples >= 70; 3 would be 60), then the short one.
+    assert [float(b.position[0, 0]) for b in got] == [26.0, 30.0]
+    assert got[0].t_ns.size == 80 and held.dropped == 25 and len(held) == 0
+    assert HeldBatches(3).push(b'') is False and HeldBatches(1).push(b'')
+
+
+def test_measurements_beyond_the_error_window_dropped_unread_change_nothing():
+    """The estimator node's held measurements (HeldBatches keep=window): the same results."""
+    from piezo_narx_ros.nodes.batching import HeldBatches
+    from piezo_narx_ros.nodes.codec import encode_joint_trajectory
+    n = 6000
+    rng, t, u, y_meas, _ = _twin_estimators(9, 'rest', n)
+    # Estimates kept for pairing well beyond the window, as the node requires for keep=window.
+    now, late = (FreeRunEstimator(toy_narx(), init='rest', window=300, init_window=0.5,
+                                  range_margin=-0.3) for _ in range(2))
+    assert late.window + 40 <= late.pairing_horizon // 2
+    # A sensor answers the samples the stream estimates (a simulator refuses outlier stamps
+    # too), so every measurement pairs.
+    whole = FreeRunEstimator(toy_narx(), init='rest', window=300, range_margin=-0.3)
+    answered = set(whole.on_commands(t, u)[0].tolist())
+    held = HeldBatches(50, keep=late.window)
+
+    def hand_over():
+        for _, batch in held.take():
+            late.on_measurements(batch.t_ns, batch.position[:, 0])
+    late.handover = hand_over
+    errors = 0
+    stops = np.cumsum(rng.choice([20, 20, 20, 13], n // 13))
+    for sl in (slice(a, b) for a, b in zip(np.r_[0, stops], stops) if a < n):
+        lag = slice(max(0, sl.start - 3), max(0, sl.stop - 3))
+        keep = np.array([s in answered for s in t[lag].tolist()], dtype=bool)
+        tm, ym = t[lag][keep], y_meas[lag][keep]
+        now.on_measurements(tm, ym)
+        if tm.size and late.steady:
+            if held.push(encode_joint_trajectory(tm, ['x'], position=ym[:, None])):
+                hand_over()
+        elif tm.size:
+            hand_over()
+            late.on_measurements(tm, ym)
+        for est in (now, late):
+            est.on_commands(t[sl], u[sl])
+        if rng.random() < 0.03:      # a diagnostics tick
+            assert late.running_error() == now.running_error()
+            errors += 1
+    assert late.running_error() == now.running_error() and now.running_error()[2] == 300
+    assert vars(late.stats) == vars(now.stats)
+    assert errors > 3 and held.dropped > 50
+
+
 def test_estimator_fast_path_is_taken_and_runs_at_the_model_rate():
     model = toy_narx()
     est = FreeRunEstimator(model, init='rest', bracket=False)

@@ -31,7 +31,6 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
-from itertools import islice, repeat
 
 import numpy as np
 
@@ -39,6 +38,7 @@ from piezo_narx_ros.command.stamps import (RATE_TOLERANCE, SAMPLE, RateMonitor, 
                                            model_rate)
 from piezo_narx_ros.errors import ConfigError, DataError
 from piezo_narx_ros.estimator.memory import memory_bracket
+from piezo_narx_ros.estimator.stamp_table import StampTable
 from piezo_narx_ros.ident.state.estimate import MIN_WINDOW
 
 INIT_MODES = ('auto', 'rest', 'measurement')
@@ -159,7 +159,7 @@ class FreeRunEstimator:
         self.excursion = 0.0      # largest distance beyond the range (m) since take_excursion()
         self.gate = StampGate(self.period_ns, self.max_fill, confirm)
         self.rate = RateMonitor(self.period_ns, rate_tolerance, max(self.window, 8))
-        # u/t history kept for re-anchoring
+        # u/t history kept for re-anchoring (only then), and the stamp tables' horizon
         self._hist = max(self.n0, 1) + 64 + self.reanchor_every + self.init_samples
         self._err = deque(maxlen=self.window)
         self._ymeas = deque(maxlen=self.window)
@@ -188,8 +188,9 @@ class FreeRunEstimator:
         self._last_u = np.zeros(self.n_in) if self.vector else 0.0
         self._t_hist = deque(maxlen=self._hist)
         self._u_hist = deque(maxlen=self._hist)
-        self._est: dict[int, float] = {}       # t -> y_hat, for matching measurements
-        self._meas: dict[int, float] = {}      # t -> y measured, not matched yet / for the state
+        # t -> y_hat, for matching measurements; t -> y measured, not matched yet / for the state
+        self._est = StampTable(2 * self._hist)
+        self._meas = StampTable(2 * self._hist)
         self._since_anchor = 0
         self._memory = None
         self.out_of_range_now = False
@@ -324,11 +325,10 @@ class FreeRunEstimator:
             keep = [_finite(yi) for yi in yl]
             tl = [ti for ti, k in zip(tl, keep) if k]
             yl = [yi for yi, k in zip(yl, keep) if k]
-        paired = list(map(self._est.pop, tl, repeat(None)))
+        paired = self._est.pop_many(tl)
         if _any_value(paired):
             self._record_errors([(m, e) for m, e in zip(yl, paired) if e is not None])
-        self._meas.update(zip(tl, yl))
-        self._meas = self._trimmed(self._meas)
+        self._meas.extend(tl, yl, all(a < b for a, b in zip(tl, tl[1:])))
         return self.as_arrays([])
 
     def _run_batch(self, t: np.ndarray, ul: list, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -345,8 +345,6 @@ class FreeRunEstimator:
                 self.u_excursion = max(self.u_excursion, float(beyond.max()))
         tl = t.tolist()
         self._last_t, self._last_u = tl[-1], ul[-1]
-        self._t_hist.extend(tl)
-        self._u_hist.extend(ul)
         y = self._stepper.step_many(v)
         yl = list(y) if self.vector else y.tolist()
         withheld = int(np.count_nonzero(off))
@@ -359,13 +357,12 @@ class FreeRunEstimator:
             if beyond.size:
                 st.out_of_range += beyond.size
                 self.excursion = _running_largest(self.excursion, beyond)
-        measured = list(map(self._meas.get, tl))
+        measured = self._meas.get_many(tl)
         if _any_value(measured):
             self._record_errors([(m, e) for m, e in zip(measured, yl) if m is not None])
             self._est.update((s, e) for s, m, e in zip(tl, measured, yl) if m is None)
         else:
-            self._est.update(zip(tl, yl))
-        self._est = self._trimmed(self._est)
+            self._est.extend(tl, yl, True)     # each stamp the next on the grid
         if withheld:
             return t[~off], y[~off]
         return t, y
@@ -424,7 +421,7 @@ class FreeRunEstimator:
                 # A new stream keeps the decision of an 'auto' estimator (sensor or not): the
                 # node tells it only before the first command.
                 self._decided = decided
-                self._meas.update(keep)      # its measurements that arrived while it was held
+                self._meas.update(keep.items())   # its measurements that arrived while it was held
         self.stats.stamp_outliers = self.gate.outliers
         self.stats.stream_restarts = self.gate.restarts
 
@@ -474,7 +471,6 @@ class FreeRunEstimator:
         if y_hat is not None:
             self._record_error(y, y_hat)
         self._meas[t_ns] = y
-        self._meas = self._trimmed(self._meas)
         if self._stepper is None and self._pending and self._try_init_from_measurement():
             self._flush_init(out)
         return out
@@ -503,8 +499,9 @@ class FreeRunEstimator:
         self._last_u = u
         if filled:
             self.stats.filled += 1
-        self._t_hist.append(t_ns)
-        self._u_hist.append(u)
+        if self.reanchor_every:
+            self._t_hist.append(t_ns)
+            self._u_hist.append(u)
         if self._stepper is None:
             if not self._wait:
                 self._start_from_rest(u, 'rest')
@@ -557,19 +554,6 @@ class FreeRunEstimator:
             self._record_error(y, y_hat)
         else:
             self._est[t_ns] = y_hat
-            self._est = self._trimmed(self._est)
-
-    def _trimmed(self, table: dict) -> dict:
-        """
-        Return a stamp table ({t_ns: m}, oldest first) with at least its newest 2 * hist entries.
-
-        Trimmed in bulk once it holds 3 * hist: deleting the oldest key one insert at a time
-        costs a scan over the deleted slots of the dict (measured 4 us per sample at 20 kHz).
-        """
-        excess = len(table) - 2 * self._hist
-        if excess <= self._hist:
-            return table
-        return dict(islice(table.items(), excess, None))
 
     def _record_error(self, y: float, y_hat: float) -> None:
         self._err.append(y - y_hat)

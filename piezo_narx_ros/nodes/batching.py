@@ -11,7 +11,9 @@ from __future__ import annotations
 
 from sensor_msgs.msg import JointState
 
-from piezo_narx_ros.nodes.codec import (SampleBatch, decode_joint_trajectories,
+from collections import deque
+
+from piezo_narx_ros.nodes.codec import (SampleBatch, batch_points, decode_joint_trajectories,
                                         decode_joint_trajectory)
 from piezo_narx_ros.nodes.params import ParamSpec
 
@@ -55,24 +57,45 @@ class HeldBatches:
     The estimator's measurement stream at 20 kHz: each batch only feeds the running error once the
     free run is steady, and decoding and pairing 50 of them at once costs about what one did
     (FreeRunEstimator.steady says when holding them back is allowed).
-    limit: batches held before `push` says it is time to take them.
+    limit: batches held before `push` says it is time to take them. keep: instead, hold only the
+    batches that carry the newest `keep` samples and drop older ones unread (the running error
+    is over its last `window` pairs: older measurements would only be pushed out of it); a batch
+    of a shape not seen before is never dropped unread: `push` says to take it at once.
     """
 
-    def __init__(self, limit: int):
-        if limit < 1:
-            raise ValueError(f'limit must be >= 1, got {limit}')
+    def __init__(self, limit: int, keep: int | None = None):
+        if limit < 1 or (keep is not None and keep < 1):
+            raise ValueError(f'limit and keep must be >= 1, got {limit} and {keep}')
         self.limit = int(limit)
-        self._raw: list[bytes] = []
+        self.keep = None if keep is None else int(keep)
+        self._raw: deque = deque()
+        self._points: deque = deque()   # keep: samples of each held batch
+        self._held = 0                  # keep: samples held
+        self.dropped = 0                # batches dropped unread
 
     def __len__(self) -> int:
         return len(self._raw)
 
     def push(self, raw: bytes) -> bool:
-        """Hold one serialized batch; True once `limit` are held (take them now)."""
+        """Hold one serialized batch; True when the held ones must be taken now."""
         self._raw.append(raw)
-        return len(self._raw) >= self.limit
+        if self.keep is None:
+            return len(self._raw) >= self.limit
+        n = batch_points(raw)
+        if n is None:
+            return True
+        self._points.append(n)
+        self._held += n
+        points = self._points
+        while self._held - points[0] >= self.keep:    # the rest still hold `keep` samples
+            self._held -= points.popleft()
+            self._raw.popleft()
+            self.dropped += 1
+        return False
 
     def take(self) -> list:
         """Decode and release the held batches: [(messages, SampleBatch or DataError)]."""
-        raw, self._raw = self._raw, []
+        raw, self._raw = list(self._raw), deque()
+        self._points.clear()
+        self._held = 0
         return decode_joint_trajectories(raw) if raw else []

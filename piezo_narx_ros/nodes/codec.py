@@ -532,6 +532,17 @@ def _known_shape_of(buf) -> _BatchShape | None:
     return None
 
 
+def batch_points(buf) -> int | None:
+    """
+    Count the points of a serialized JointTrajectory without decoding it.
+
+    Only for a batch whose header (but the stamp) repeats a shape seen before, a stream's usual
+    batch; None for any other (decode it to know).
+    """
+    shape = _known_shape_of(buf)
+    return None if shape is None else shape.count
+
+
 def _decode_run(bufs: list, shape: _BatchShape) -> SampleBatch | None:
     """
     Decode messages of one known shape as one batch of all their points, in order.

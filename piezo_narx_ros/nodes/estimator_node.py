@@ -102,9 +102,15 @@ class EstimatorNode(PiezoNode):
             batch_topic(TOPIC_DEFLECTION, b),
             self.on_measurement_batch if b > 1 else self.on_measurement, sample_type(b))
         self.health = EstimatorHealth(self.est)
-        # Measurement batches held back while the free run is steady and decoded together:
-        # at most a quarter of the estimates kept for pairing, and 50 messages.
-        self._held = HeldBatches(max(1, min(50, self.est.pairing_horizon // (4 * b))))
+        # Measurement batches held back while the free run is steady and decoded together. They
+        # only feed the running error then, over its last `window` pairs: the batches of the
+        # newest `window` samples are kept and older ones dropped unread, when their estimates
+        # stay well inside the ones kept for pairing; else at most a quarter of those, and 50
+        # messages, all decoded.
+        horizon = self.est.pairing_horizon
+        self._held = HeldBatches(max(1, min(50, horizon // (4 * b))),
+                                 keep=self.est.window if self.est.window + b <= horizon // 2
+                                 else None)
         self.est.handover = self._take_held
         self._error_log = EpisodeLog(self.get_logger())
         # A command held back for its ambiguous stamp is decided when commands stop (the stream
