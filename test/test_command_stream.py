@@ -21,6 +21,30 @@ def test_clock_stamps_are_exact_after_a_day_at_odd_rates():
         SampleClock(0.0, 0, 0)
 
 
+@pytest.mark.parametrize('fs', [2000.0, 20000.0, 3000.0, 2000.0 / 3.0, 12345.678])
+def test_clock_stamps_of_a_batch_are_each_stamp(fs):
+    c = SampleClock(fs, t0_ns=1_795_000_000_123_456_789, mono0_ns=0)
+    for k in (0, 1, 999_983, 2000 * 86400 * 30, 10**11):     # a month at 2 kHz, years
+        for n in (0, 1, 20, 10_000):
+            assert c.stamps_ns(k, n).tolist() == [c.stamp_ns(k + i) for i in range(n)]
+    assert c.stamps_ns(0, 3).dtype == np.int64
+    far = SampleClock(fs, t0_ns=2**62, mono0_ns=0)      # beyond int64 arithmetic: exact anyway
+    assert far.stamps_ns(5, 3).tolist() == [far.stamp_ns(5 + i) for i in range(3)]
+
+
+def test_polls_read_the_signal_as_indexed_across_the_wrap():
+    sig = np.arange(50.0).reshape(25, 2)
+    s = CommandStreamer(sig, fs=1000.0, loop=True, lead=np.full((3, 2), -1.0))
+    s.start(0, 0)
+    got, now = [], 0
+    for k in range(40):
+        now += int(np.random.default_rng(k).integers(0, 9)) * 1_000_000
+        got.append(s.poll(now)[1])
+    u = np.concatenate(got)
+    want = np.concatenate([np.full((3, 2), -1.0)] + [sig] * 20)[:u.shape[0]]
+    assert u.shape[0] > 100 and np.array_equal(u, want)
+
+
 def test_due_count_follows_monotonic_time():
     c = SampleClock(1000.0, 0, mono0_ns=10 * NS)
     assert c.due_count(10 * NS - 1) == 0

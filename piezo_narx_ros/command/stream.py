@@ -36,6 +36,10 @@ class SampleClock:
         self._num, self._den = frac.numerator, frac.denominator  # fs = num/den
         self.t0_ns = int(t0_ns)
         self.mono0_ns = int(mono0_ns)
+        # A period of whole ns (20 kHz: 50 us): a batch's stamps are a first one plus multiples
+        # of it, one array addition (stamps_ns; the steps kept per batch size).
+        self._period = NS * self._den // self._num if NS * self._den % self._num == 0 else 0
+        self._steps: dict = {}
 
     def offset_ns(self, k: int) -> int:
         """k/fs in integer nanoseconds (rounded half up)."""
@@ -44,6 +48,22 @@ class SampleClock:
     def stamp_ns(self, k: int) -> int:
         """Stamp of sample k, ns: t0 + k/fs."""
         return self.t0_ns + self.offset_ns(k)
+
+    def stamps_ns(self, k: int, n: int) -> np.ndarray:
+        """Stamps of samples k .. k+n-1, (n,) int64 ns: stamp_ns of each, in one array."""
+        p = self._period
+        if p and self.t0_ns + p * (k + n) < 2**62:
+            steps = self._steps.get(n)
+            if steps is None:
+                if len(self._steps) > 16:      # catch-up polls of every size: keep a few
+                    self._steps.clear()
+                steps = self._steps[n] = np.arange(n, dtype=np.int64) * p
+            return steps + (self.t0_ns + p * k)
+        a, b = 2 * NS * self._den, 2 * self._num
+        q, r = divmod(a * k + self._num, b)       # offset_ns(k + i) = q + (r + a*i) // b
+        if a * n + r < 2**62 and self.t0_ns + q + NS * n < 2**62:
+            return self.t0_ns + q + (r + a * np.arange(n, dtype=np.int64)) // b
+        return np.fromiter((self.stamp_ns(k + i) for i in range(n)), dtype=np.int64, count=n)
 
     def due_ns(self, k: int) -> int:
         """Monotonic instant (ns) from which sample k is due: the first with due_count > k."""
@@ -165,16 +185,20 @@ class CommandStreamer:
         if not self.loop and not self.holding:
             n = min(n, m + self.signal.shape[0] - self.position)
         n = max(0, min(n, self.max_burst))
-        stamps = np.fromiter((self.clock.stamp_ns(self._k + i) for i in range(n)),
-                             dtype=np.int64, count=n)
+        stamps = self.clock.stamps_ns(self._k, n)
         if self.holding:
             self._k += n
             self.published += n
             return stamps, np.tile(self._last, (n, 1))
-        pos = self.position + np.arange(n)
-        volts = self.signal[(pos - m) % self.signal.shape[0]]
-        if n and pos[0] < m:            # the preamble first, once
-            volts[pos < m] = self.lead[pos[pos < m]]
+        start = self.position - m
+        if start >= 0 and start % self.signal.shape[0] + n <= self.signal.shape[0]:
+            start %= self.signal.shape[0]          # one stretch of the signal: a slice
+            volts = self.signal[start:start + n].copy()
+        else:
+            pos = self.position + np.arange(n)
+            volts = self.signal[(pos - m) % self.signal.shape[0]]
+            if n and pos[0] < m:            # the preamble first, once
+                volts[pos < m] = self.lead[pos[pos < m]]
         volts = self._slew(volts)
         self._k += n
         self.position += n

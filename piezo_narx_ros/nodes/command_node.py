@@ -290,8 +290,10 @@ class CommandNode(PiezoNode):
         stamps, volts = s.poll(pace)
         names, pub = self.axes, self.pub
         if self.batch > 1:
-            self._held_t = np.concatenate((self._held_t, stamps))
-            self._held_v = np.concatenate((self._held_v, volts))
+            if self._held_t.size:
+                stamps = np.concatenate((self._held_t, stamps))
+                volts = np.concatenate((self._held_v, volts))
+            self._held_t, self._held_v = stamps, volts
             self._publish_batches(flush=s.finished)
         elif self.position:
             for t, r in zip(stamps.tolist(), volts.tolist()):
