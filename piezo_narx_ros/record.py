@@ -91,6 +91,10 @@ class Record:
     state_window: int | None = None
     # How the recording's unlogged past ended, for that state: 'any' or 'fade-out' (ident.state).
     state_past: str = 'any'
+    # How that window is used (ident.start.START_POLICIES: 'rest', 'offset', 'state'); None: as
+    # `state_window` says above (the presets' convention, the same as 'state' for the
+    # hysteresis family).
+    state_policy: str | None = None
     inputs: tuple | None = None       # n_in channel names (None: default_names)
     outputs: tuple | None = None      # n_out channel names
 
@@ -140,7 +144,7 @@ class Record:
                       u_before=before_u.copy() if before_u.size else None,
                       y_before=before_y.copy() if before_y.size else None,
                       state_window=self.state_window, state_past=self.state_past,
-                      inputs=self.inputs, outputs=self.outputs)
+                      state_policy=self.state_policy, inputs=self.inputs, outputs=self.outputs)
 
     def split(self, fraction: float = 0.5) -> tuple['Record', 'Record']:
         """(estimation, validation): the first `fraction` of the samples and the rest."""

@@ -68,13 +68,15 @@ def weights_sha256(model) -> str:
     return h.hexdigest()
 
 
-def save_model(model, path, data=None, metrics=None, tests=None):
+def save_model(model, path, data=None, metrics=None, tests=None, start=None):
     """
     Write ``path`` (.json) and its weights ``path`` with suffix .npz.
 
     data : provenance of the estimation data (e.g. {'source': ..., 'samples': ...});
-    metrics, tests : results to record (JSON-serialisable dicts). None keeps what the model carries
-    in ``model.metadata`` (set by load_model). Returns the JSON path.
+    metrics, tests : results to record (JSON-serialisable dicts); start : the start policy the
+    model's users follow by default, {'policy': 'rest' | 'offset' | 'state', 'window_samples': N}
+    (ident/state/start.py; `check_start`). None keeps what the model carries in ``model.metadata`` (set by
+    load_model). Returns the JSON path.
     """
     path = Path(path)
     if path.suffix != '.json':
@@ -87,9 +89,11 @@ def save_model(model, path, data=None, metrics=None, tests=None):
     if not model._is_fitted():
         raise ModelFileError(f'cannot save {model!r} to {path}: it has no weights (fit it first)')
     meta = dict(getattr(model, 'metadata', None) or {})
-    for key, val in (('data', data), ('metrics', metrics), ('tests', tests)):
+    for key, val in (('data', data), ('metrics', metrics), ('tests', tests), ('start', start)):
         if val is not None:
             meta[key] = val
+    if meta.get('start') is not None:
+        meta['start'] = check_start(meta['start'], str(path), model.fs)
     wpath = path.with_suffix('.npz')
     path.parent.mkdir(parents=True, exist_ok=True)
     # Write to temporary names and rename, so a reader never sees half a file.
@@ -120,12 +124,36 @@ def save_model(model, path, data=None, metrics=None, tests=None):
         'data': meta.get('data'),
         'metrics': meta.get('metrics'),
         'tests': meta.get('tests'),
+        **({'start': meta['start']} if meta.get('start') is not None else {}),
     }
     tmp_j = path.with_name(path.name + '.tmp')
     tmp_j.write_text(json.dumps(_jsonable(doc), indent=2, allow_nan=False) + '\n')
     os.replace(tmp_w, wpath)
     os.replace(tmp_j, path)
     return path
+
+
+def check_start(start, name: str, fs=None) -> dict:
+    """
+    Return a model file's start block checked: {'policy', 'window_samples', 'window_s'}.
+
+    policy: one of ident.state.start.START_POLICIES; window_samples: the measured samples it was
+    chosen with (an integer >= 0); window_s their duration at the model's rate fs (Hz, when
+    known). ModelFileError naming the file otherwise.
+    """
+    from .state.start import START_POLICIES
+    if not isinstance(start, dict) or start.get('policy') not in START_POLICIES:
+        raise ModelFileError(f'{name}: start must be {{"policy": one of '
+                             f'{", ".join(START_POLICIES)}, "window_samples": N}}, got '
+                             f'{str(start)[:80]!r}')
+    n = start.get('window_samples')
+    if isinstance(n, bool) or not isinstance(n, int) or not 0 <= n <= 10 ** 9:
+        raise ModelFileError(f'{name}: start.window_samples must be an integer >= 0, got '
+                             f'{str(n)[:40]!r}')
+    out = {'policy': start['policy'], 'window_samples': n}
+    if fs:
+        out['window_s'] = n / float(fs)
+    return out
 
 
 def is_multi_axis(model) -> bool:
@@ -269,5 +297,7 @@ def load_model(path):
     model.fs = float(fs) if fs is not None else None
     model.input_range, model.output_range = in_range, out_range
     model.metadata = {k: doc.get(k) for k in ('data', 'metrics', 'tests')}
+    if doc.get('start') is not None:
+        model.metadata['start'] = check_start(doc['start'], name, model.fs)
     model.source = name
     return model

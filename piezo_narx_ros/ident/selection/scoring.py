@@ -61,6 +61,12 @@ def _free_run(model, record: Record):
     window = record.state_window
     before = u_before is not None and y_before is not None
     with np.errstate(all='ignore'):   # a diverging network must not spam warnings
+        if window is not None and record.state_policy is not None:
+            # A stored start policy (ident/state/start.py): the record on its own, as a rig
+            # sees it.
+            from piezo_narx_ros.ident.state.start import policy_simulate
+            return model.predict(u, y), policy_simulate(model, u, y, int(window),
+                                                        record.state_policy, record.state_past)
         if window:
             if before:
                 pred = model.predict(np.r_[u_before, u],

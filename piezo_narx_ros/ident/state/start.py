@@ -1,0 +1,133 @@
+"""
+Start policies: how a model's free run uses the first N measured samples of a record.
+
+A rig's estimator gets the commands from the start and, for a short window, the measured output
+too. What the window is best used for depends on the model and the rig, so the structure search
+(ident/selection/search.py) scores every fitted model under each policy on the validation records and the
+model file records the one that won (`start` in the file: policy and window):
+
+* ``rest``: the window is ignored; the free run starts from rest at the record's first sample
+  (every past input and output zero, the hysteresis memory empty).
+* ``offset``: from rest as above, plus one constant per output, the median of the window's
+  residual (a sensor whose zero moved since the fit; nothing else is read from the window).
+* ``state``: the window sets the state. A family whose whole state is its last inputs and
+  outputs (ARX, the paper's NARX) takes its lags from the window's last measured samples (the
+  paper's start, at the end of the window, so it never loses to it); a family whose state is a
+  function of the whole input history (the hysteresis-operator NARX) takes the state that best
+  explains the window (memory, creep, output dynamics and offset: ident/state/estimate.py).
+
+Every policy is expressed as a `ModelState` at the window's first sample (`window_state`), which
+the estimator node and `simulate(u, state=...)` take as they are; `relags(model, policy)` says
+when the lags are then replaced by the window's last measured samples at its end.
+`policy_simulate` is the offline free run of a whole record under a policy.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from piezo_narx_ros.errors import DataError
+from piezo_narx_ros.ident.state.estimate import MIN_WINDOW, ModelState
+
+#: The policies, simplest first (a tie in score goes to the earlier one).
+START_POLICIES = ('rest', 'offset', 'state')
+
+
+def check_policy(policy, name: str = 'start policy', error: type[Exception] = DataError) -> str:
+    """Return `policy` if it is one of START_POLICIES; `error` naming it otherwise."""
+    if policy not in START_POLICIES:
+        raise error(f'{name} must be one of {", ".join(START_POLICIES)}, got {policy!r}')
+    return policy
+
+
+def lagged(model) -> bool:
+    """Return True when the model's whole state is its last nu inputs and ny outputs."""
+    return not getattr(model, 'state_from_input', False)
+
+
+def relags(model, policy: str) -> bool:
+    """Return True when `policy` sets this model's lags from the window's last samples."""
+    return policy == 'state' and lagged(model)
+
+
+def min_window(model, policy: str) -> int:
+    """Fewest measured samples `policy` needs (0 for rest)."""
+    if policy == 'rest':
+        return 0
+    return max(MIN_WINDOW, int(model.n0))
+
+
+def check_window(model, policy: str, n: int, n_record: int, source: str = 'record') -> None:
+    """
+    DataError (one line) when a record of n_record samples cannot serve a window of n.
+
+    The window must hold what the policy needs (`min_window`) and leave at least two samples to
+    score after it.
+    """
+    need = min_window(model, policy)
+    if n < need:
+        raise DataError(f'{source}: the start policy {policy!r} needs at least {need} measured '
+                        f'samples, got {n}')
+    if n_record < n + 2:
+        raise DataError(f'{source}: {n_record} samples, too short for a window of {n} measured '
+                        f'samples and a scored free run after it')
+
+
+def _median_offset(model, residual: np.ndarray):
+    """Per-output median of a window's residual: a float for one output, else (n_out,) m."""
+    res = np.asarray(residual, dtype=np.float64).reshape(len(residual), -1)
+    offset = np.median(res, axis=0)
+    if not np.all(np.isfinite(offset)):
+        raise DataError('the free run from rest is not finite over the window: no offset')
+    return float(offset[0]) if model.n_out == 1 else offset
+
+
+def rest_state(model) -> ModelState:
+    """Return the model's state at rest (no past input, the memory empty, offset 0)."""
+    return model.stepper().state
+
+
+def window_state(model, u, y, policy: str, past: str = 'any') -> ModelState:
+    """
+    Return the ModelState at u[0] that `policy` takes from a window u (N, ...) V, y (N, ...) m.
+
+    In the model's own shapes ((N,) for one channel). For `state` on a lagged family this is the
+    state that best explains the window (the samples inside it are then estimated from it); the
+    lags at its end come from the measurement (`relags`). DataError when no state is found.
+    """
+    check_policy(policy)
+    if policy == 'rest':
+        return rest_state(model)
+    if policy == 'offset':
+        start = rest_state(model)
+        with np.errstate(all='ignore'):
+            sim = model.simulate(u, state=start)
+        return ModelState(start.values, _median_offset(model, np.asarray(y) - sim),
+                          {'policy': 'offset', 'window': int(len(u))})
+    return model.estimate_state(u, y, past=past)
+
+
+def policy_simulate(model, u, y, n: int, policy: str, past: str = 'any') -> np.ndarray:
+    """
+    Free run of a whole record u (N, ...) V under `policy` with its first n samples measured.
+
+    y (N, ...) m supplies the window y[:n] only. Returns the output in the model's shape; the
+    samples from n on are the ones a score may use. A window no state explains gives NaN.
+    """
+    check_policy(policy)
+    with np.errstate(all='ignore'):
+        if policy == 'rest':
+            return model.simulate(u)
+        try:
+            state = window_state(model, u[:n], y[:n], policy, past)
+        except DataError:
+            if not relags(model, policy):
+                return np.full(np.shape(model.simulate(u)), np.nan)
+            state = rest_state(model)
+        sim = model.simulate(u, state=state)
+        if relags(model, policy):
+            n0 = int(model.n0)
+            if n0:
+                sim[n:] = model.simulate(u[n - n0:], y[n - n0:n])[n0:]
+            else:
+                sim[n:] = model.simulate(u[n:])
+        return sim
