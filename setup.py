@@ -25,7 +25,7 @@ setup(
     # the distribution; on a bare machine requirements.txt brings the PyPI wheels.
     install_requires=[
         'numpy', 'scipy', 'h5py', 'numba', 'pyyaml', 'matplotlib', 'tqdm',
-        'rosbags', 'mcap', 'mcap-ros2-support',
+        'rosbags', 'mcap', 'mcap-ros2-support', 'optuna',
     ],
     # 'test' is what makes `colcon test` run pytest (without it colcon falls back to unittest,
     # which finds none of these tests and reports success), as ament_python templates declare it.

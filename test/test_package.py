@@ -22,9 +22,10 @@ ROSDEP_KEY = {
     'rosbags': 'python3-rosbags-pip', 'mcap': 'mcap-ros2-support', 'torch': 'python3-torch',
 }
 # Imported only by an optional feature, with no rosdep key to declare (pinned in requirements.txt
-# all the same). ray: `fit --executor ray`; ros/rosdistro's rosdep/python.yaml has no key for it
-# (checked 2026-11), and an unresolvable <exec_depend> would break `rosdep install`.
-NO_ROSDEP_KEY = {'ray'}
+# all the same). ray: `fit --executor ray`; optuna: `fit --preset search`. ros/rosdistro's
+# rosdep/python.yaml has no key for ray (checked 2026-11), none was found for optuna, and an
+# unresolvable <exec_depend> would break `rosdep install`.
+NO_ROSDEP_KEY = {'ray', 'optuna'}
 
 
 def _third_party_imports() -> dict[str, str]:

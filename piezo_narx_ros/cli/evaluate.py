@@ -35,10 +35,12 @@ def add_parser(subparsers):
                         '.mcap or rosbag2 directory')
     p.add_argument('--json', action='store_true', help='print one JSON object')
     p.add_argument('--init-samples', type=int, metavar='N',
-                   help="the first N measured samples set the model's state (hysteresis memory, "
-                        'creep, output dynamics, sensor offset); scores on the samples after '
-                        'them; 0: free run from rest (default: the first n0 measured outputs, '
-                        "the paper's convention)")
+                   help='the first N measured samples are available to start the free run; '
+                        "the model file's start policy (fit --preset search) decides how they "
+                        "are used, else they set the model's state (hysteresis memory, creep, "
+                        'output dynamics, sensor offset); scores on the samples after them; 0: '
+                        "free run from rest (default: the model file's window, else the first "
+                        "n0 measured outputs, the paper's convention)")
     from piezo_narx_ros.ident.state.estimate import PASTS
     p.add_argument('--past', choices=PASTS, default=PASTS[0],
                    help='with --init-samples: how the unlogged past before the record ended. '
@@ -169,14 +171,29 @@ def memory_windows(model, records, init_samples) -> tuple[list[dict], list[str]]
     return out, notes
 
 
+def stored_start(model, init_samples=None) -> tuple[str | None, int | None]:
+    """
+    Return (start policy, measured samples) for a model: the model file's `start`, if any.
+
+    init_samples (given by the user) says how many measured samples are available; the stored
+    policy decides how they are used. A model file without a start: (None, init_samples).
+    """
+    start = (getattr(model, 'metadata', None) or {}).get('start')
+    if not start:
+        return None, init_samples
+    n = start['window_samples'] if init_samples is None else int(init_samples)
+    return start['policy'], n
+
+
 def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='simulation',
-             noise_model='stored', noise_order=20, init_samples=None):
+             noise_model='stored', noise_order=20, init_samples=None, policy=None):
     """
     JSON-ready dict of scores and verdicts of a fitted model on records.
 
     init_samples: None scores every sample after the first n0 (free run from the first n0
     measured outputs); 0 a free run from rest, every sample; N the samples after the first N,
-    whose measurement set the model's state (ModelState).
+    whose measurement set the model's state (ModelState), or as `policy` says (ident.state.start:
+    'rest', 'offset', 'state'; the model file's start policy).
     """
     import math
     import warnings
@@ -192,7 +209,12 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
     if init_samples is not None:
         if init_samples < 0:
             raise ConfigError(f'--init-samples must be >= 0, got {init_samples}')
-        records = [replace(r, state_window=int(init_samples)) for r in records]
+        records = [replace(r, state_window=int(init_samples), state_policy=policy)
+                   for r in records]
+    if policy is not None:
+        from piezo_narx_ros.ident.state.start import check_window
+        for r in records:
+            check_window(model, policy, int(init_samples), len(r), r.source)
     for r in records:
         if (r.n_in, r.n_out) != (model.n_in, model.n_out):
             raise DataError(f'{r.source}: {r.n_in} input(s) and {r.n_out} output(s), but the '
@@ -252,6 +274,7 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
         'inputs': [r.source for r in records],
         'n': int(sum(len(r) - scored_from(model, r) for r in records)),
         'init_samples': init_samples,
+        'start_policy': policy,
         'prediction': _with_per_output(scores['prediction'], model),
         'simulation': _with_per_output(scores['simulation'], model),
         'tests': {k: v['passed'] for k, v in chosen.get('tests', {}).items()},
@@ -279,7 +302,7 @@ def _with_per_output(block: dict, model) -> dict:
                                      'fit_percent': block['fit_percent']}]}
 
 
-def save_output(model, records, init_samples, path) -> None:
+def save_output(model, records, init_samples, path, policy=None) -> None:
     """
     Write the free run of the (first) record to an .npz: u (V), y, y_sim (m), scored_from.
 
@@ -302,7 +325,7 @@ def save_output(model, records, init_samples, path) -> None:
                           'were given')
     rec = records[0]
     if init_samples is not None:
-        rec = replace(rec, state_window=int(init_samples))
+        rec = replace(rec, state_window=int(init_samples), state_policy=policy)
     from piezo_narx_ros.record import channels_arg
     _, sim = free_run(model, rec)
     # One axis: (N,) arrays as before several axes; several: (N, channels) with their names.
@@ -344,10 +367,11 @@ def _run(args) -> int:
                               'past before the measured window ended')
         from dataclasses import replace
         records = [replace(r, state_past=args.past) for r in records]
+    policy, init_samples = stored_start(model, args.init_samples)
     result = evaluate(model, records, args.max_lag, args.max_outside_fraction, args.residuals,
-                      args.noise_model, args.noise_order, args.init_samples)
+                      args.noise_model, args.noise_order, init_samples, policy)
     if args.save_output:
-        save_output(model, records, args.init_samples, args.save_output)
+        save_output(model, records, init_samples, args.save_output, policy)
     result['past'] = args.past
     if args.json:
         print(json.dumps(json_safe(result)))
@@ -357,6 +381,9 @@ def _run(args) -> int:
         return 'diverged' if v is None else format(v, spec)
 
     print(f'{result["structure"]} on {", ".join(result["inputs"])} ({result["n"]} samples)')
+    if policy is not None:
+        print(f'start: {policy!r} from the first {init_samples} measured samples (the model '
+              "file's start policy)")
     for mode in ('prediction', 'simulation'):
         s = result[mode]
         print(f'{mode:>10}: R² {fmt(s["r2"], ".6f")}  RMSE {fmt(s["rmse"], ".4g")} m  '

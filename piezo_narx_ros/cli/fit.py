@@ -33,7 +33,7 @@ CONFIG_KEYS = ('preset', 'family', 'ny', 'nu', 'hidden', 'seed', 'n_seeds', 'hna
 # Settings that belong to the command line, not to ExperimentConfig, with their defaults.
 CLI_DEFAULTS = {'arx': True, 'command_topic': 'piezo/voltage_command',
                 'deflection_topic': 'piezo/deflection'}
-PRESET_NAMES = ('paper', 'envelope')
+PRESET_NAMES = ('search', 'paper', 'envelope')
 
 
 def add_parser(subparsers):
@@ -79,9 +79,32 @@ def add_parser(subparsers):
                    help='overwrite the model, candidates and report already in DIR')
     p.add_argument('--config', metavar='YAML', help='settings file (see config/fit.yaml)')
     p.add_argument('--preset', choices=PRESET_NAMES,
-                   help="paper (default): the paper's NARX lag grid and ARX baseline, selected "
-                        'by the correlation tests; envelope: the hysteresis-operator NARX, '
-                        'accurate on slow, step and hold moves too, selected on the worst case')
+                   help='search (default): a structure search over the families, their '
+                        'structures, seeds and start policies, selected on the validation '
+                        "records (ident/search.py); paper: the paper's NARX lag grid and ARX "
+                        'baseline, selected by the correlation tests; envelope: the '
+                        'hysteresis-operator NARX over a fixed grid, selected on the worst case')
+    from piezo_narx_ros.ident.selection.search import SEARCH_FAMILIES, SearchOptions
+    search = p.add_argument_group('structure search (--preset search)')
+    search.add_argument('--trials', type=int, metavar='N',
+                        help=f'trials of the study, its first batch the presets\' structures '
+                             f'(default {SearchOptions.trials})')
+    search.add_argument('--budget-s', type=float, metavar='S',
+                        help='wall-time budget: no batch of trials starts that would end after '
+                             f'it (default {SearchOptions.budget_s:g} s; 0: none)')
+    search.add_argument('--batch', type=int, metavar='B',
+                        help='trials asked at once; with --seed and --trials it fixes the '
+                             'selected model for any number of workers '
+                             f'(default {SearchOptions.batch})')
+    search.add_argument('--tolerance', type=float, metavar='FRACTION',
+                        help='the fewest parameters win within this relative error of the best '
+                             f'(default {SearchOptions.tolerance:g})')
+    search.add_argument('--families', metavar='LIST',
+                        help=f'families searched, comma-separated (default '
+                             f'{",".join(SEARCH_FAMILIES)})')
+    search.add_argument('--resume', action='store_true',
+                        help='continue the interrupted search stored in --out (same inputs and '
+                             'options)')
     p.add_argument('--ny', metavar='RANGE', help='NARX output lags, e.g. 1-4 or 2 or 1,3 '
                                                  '(default 1-4)')
     p.add_argument('--nu', metavar='RANGE', help='NARX input lags (default 1-4)')
@@ -158,13 +181,15 @@ def preset_settings(preset: str) -> dict:
 
     from piezo_narx_ros.errors import ConfigError
     from piezo_narx_ros.ident.selection.experiment import PRESETS, ExperimentConfig
-    if preset not in PRESETS:
-        raise ConfigError(f'preset must be one of {", ".join(PRESETS)}, got {preset!r}')
+    if preset not in PRESET_NAMES:
+        raise ConfigError(f'preset must be one of {", ".join(PRESET_NAMES)}, got {preset!r}')
     base = ExperimentConfig()
     out = {f.name: getattr(base, f.name) for f in fields(ExperimentConfig)
            if f.name in CONFIG_KEYS}
     out.update(CLI_DEFAULTS)
-    out.update(PRESETS[preset])
+    # The search has no grid; the experiment's settings it reads (split, tests, past) are the
+    # paper's, and its window the estimator's 0.5 s.
+    out.update(PRESETS.get(preset, {'init_seconds': 0.5}))
     out['preset'] = preset
     return out
 
@@ -176,7 +201,7 @@ def load_settings(args) -> dict:
     if args.config:
         from piezo_narx_ros.settings import read_yaml_mapping
         doc = read_yaml_mapping(args.config, 'settings', known=CONFIG_KEYS)
-    preset = getattr(args, 'preset', None) or doc.get('preset') or 'paper'
+    preset = getattr(args, 'preset', None) or doc.get('preset') or 'search'
     settings = preset_settings(preset)
     settings.update(doc)
     settings['preset'] = preset
@@ -263,6 +288,10 @@ def _run(args) -> int:
     if out.exists() and not out.is_dir():
         raise ConfigError(f'--out {out}: exists and is not a directory')
     inputs = expand_inputs(args.inputs)
+    if settings['preset'] == 'search':
+        return _run_search(args, settings, config, inputs, executor, out)
+    if args.resume:
+        raise ConfigError('--resume continues a structure search (--preset search)')
     if args.per_record:
         if args.validate:
             raise ConfigError('--validate serves one model; it cannot be combined with '
@@ -471,6 +500,72 @@ def _print_fit(result, config, executor, model_path, out, paths) -> None:
     print(f'candidates: {out / "candidates.json"}')
     if paths:
         print(f'report: {out / "report"}')
+
+
+def search_options(args, settings, config, fs: float):
+    """The SearchOptions of a `fit --preset search` (ConfigError on bad values)."""
+    from piezo_narx_ros.errors import ConfigError
+    from piezo_narx_ros.ident.selection.search import SEARCH_FAMILIES, SearchOptions
+    budget = SearchOptions.budget_s if args.budget_s is None else (args.budget_s or None)
+    families = (tuple(f.strip() for f in args.families.split(',')) if args.families
+                else SEARCH_FAMILIES)
+    given = {'trials': args.trials, 'batch': args.batch, 'tolerance': args.tolerance}
+    options = SearchOptions(
+        budget_s=budget, seed=int(settings['seed']), families=families,
+        init_seconds=float(settings['init_seconds']), init_samples=args.init_samples,
+        past=str(settings['init_past']), split=config.split, max_lag=config.max_lag,
+        max_outside_fraction=config.max_outside_fraction, noise_model=config.noise_model,
+        noise_order=config.noise_order, progress=None if not args.quiet else False,
+        **{k: v for k, v in given.items() if v is not None})
+    try:
+        options.validate()
+    except ConfigError as exc:
+        raise ConfigError(f'--{str(exc).replace("_", "-")}') from None
+    return options
+
+
+def _run_search(args, settings, config, inputs, executor, out) -> int:
+    """--preset search: load, warn, search, write the selected model and the report."""
+    from piezo_narx_ros.control.gain_check import data_line
+    from piezo_narx_ros.errors import ConfigError
+    from piezo_narx_ros.ident.selection.experiment import split_records
+    from piezo_narx_ros.ident.selection.search import run_search
+    from piezo_narx_ros.ident.selection.search_report import family_lines, write_search
+    if args.per_record:
+        raise ConfigError('--per-record is not available with --preset search; fit each '
+                          'recording with its own --out, or use --preset envelope')
+    records = _resampled(_load(args, settings, config, inputs, whole=bool(args.validate)), args)
+    validation = _load_validation(args, settings, records) if args.validate else None
+    options = search_options(args, settings, config, records[0].fs)
+    est, val = (records, validation) if validation else split_records(records, config.split)
+    if not args.quiet:
+        print(f'searching {options.trials} trials over {", ".join(options.families)} on '
+              f'{executor.describe()}; study: {out / "study.journal"}')
+    with executor:
+        result = run_search(est, val, options, executor, out, resume=args.resume,
+                            force=args.force)
+    _warn_about_estimation(records, config)
+    info = {'split': None if validation else config.split,
+            'line': data_line([r.u for r in records], [r.y for r in records])}
+    model_path, paths = write_search(out, result, est, val, not args.no_report, info)
+    if not args.quiet:
+        best = result.best
+        if result.taken_over:
+            print(f'resumed: {result.taken_over} trial(s) taken over from {out}')
+        if result.stopped == 'budget':
+            print(f'stopped by the budget ({options.budget_s:g} s) after {len(result.trials)} '
+                  'trials')
+        print(f'selected {best.spec.label} ({best.n_params} parameters, start '
+              f'{best.scores["start"]["policy"]!r} from {result.window} samples) of '
+              f'{len(result.trials)} trials in {result.wall_seconds:.1f} s')
+        print('why: ' + result.why)
+        print('\n'.join(['best per family (worst case over the validation records):']
+                        + family_lines(result)))
+        print(f'model: {model_path}')
+        if paths:
+            print(f'report: {out / "report"} (pareto.png); study: optuna-dashboard '
+                  f'{out / "study.journal"}')
+    return 0
 
 
 # Columns of DIR/summary.csv (--per-record): one row per recording. SI units.

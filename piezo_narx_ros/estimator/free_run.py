@@ -97,7 +97,8 @@ class FreeRunEstimator:
                  u_max: float = 200.0, max_fill: int = 2000, range_margin: float = 0.1,
                  window: int = 2000, reanchor_every: int = 0, init_timeout: float = 1.0,
                  confirm: int = 3, rate_tolerance: float = RATE_TOLERANCE,
-                 init_window: float = 0.5, bracket: bool = True, init_past: str = 'any'):
+                 init_window: float | None = 0.5, bracket: bool = True, init_past: str = 'any',
+                 start_policy: str | None = None):
         for attr in ('nu', 'ny', 'n0', 'stepper'):
             if not hasattr(model, attr):
                 raise ConfigError(f'model has no {attr!r}: not a NARX/ARX model')
@@ -110,6 +111,18 @@ class FreeRunEstimator:
                 or not 0 < rate_tolerance < 1:
             raise ConfigError('max_fill, reanchor_every, init_timeout must be >= 0, window >= 2, '
                               'confirm >= 1 and rate_tolerance in (0, 1)')
+        # The model file's start policy (fit --preset search) decides how the measured window
+        # is used, and its window how long it is, unless the caller says otherwise.
+        start = (getattr(model, 'metadata', None) or {}).get('start') or {}
+        self.start_policy = start_policy if start_policy is not None else start.get('policy')
+        if self.start_policy is not None:
+            from piezo_narx_ros.ident.state.start import check_policy
+            check_policy(self.start_policy, 'start_policy', ConfigError)
+        if init_window is None:
+            init_window = start['window_samples'] / fs if start else 0.5
+            init_timeout = max(init_timeout, init_window)
+        if init == 'auto' and self.start_policy == 'rest':
+            init = 'rest'
         from piezo_narx_ros.ident.state.estimate import PASTS
         if init_past not in PASTS:
             raise ConfigError(f'init_past must be one of {list(PASTS)}, got {init_past!r}')
@@ -192,6 +205,7 @@ class FreeRunEstimator:
         self._est = StampTable(2 * self._hist)
         self._meas = StampTable(2 * self._hist)
         self._since_anchor = 0
+        self._relag = None    # (u, y) window whose last samples set the lags (_flush_init)
         self._memory = None
         self.out_of_range_now = False
         self.stats.init = 'waiting'
@@ -585,9 +599,18 @@ class FreeRunEstimator:
         u_win = np.array([u for _, u, _ in pending[start:start + n]])
         y_win = np.array([meas[t] for t, _, _ in pending[start:start + n]])
         try:
-            state = self.model.estimate_state(u_win, y_win, past=self.init_past)
+            if self.start_policy is None:
+                state = self.model.estimate_state(u_win, y_win, past=self.init_past)
+            else:
+                from piezo_narx_ros.ident.state.start import window_state
+                state = window_state(self.model, u_win, y_win, self.start_policy,
+                                     self.init_past)
         except DataError:
             return False
+        from piezo_narx_ros.ident.state.start import relags
+        # A lagged family started by its policy from the measured lags: set at the window's end.
+        self._relag = ((u_win, y_win) if self.start_policy is not None
+                       and relags(self.model, self.start_policy) else None)
         self.stats.unestimated += start
         del pending[:start]
         self._stepper = self.model.stepper(state=state)
@@ -601,8 +624,18 @@ class FreeRunEstimator:
         if self._stepper is None or not self._pending:
             return
         pending, self._pending = self._pending, []
-        for t, u, _ in pending:
+        relag, self._relag = self._relag, None
+        for i, (t, u, _) in enumerate(pending):
             self._step(t, u, out)
+            if relag is not None and i == len(relag[0]) - 1:
+                self._set_lags(*relag)
+
+    def _set_lags(self, u_win, y_win) -> None:
+        """Continue from the window's last measured inputs and outputs (start policy 'state')."""
+        n = len(u_win)
+        self._stepper.offset = np.zeros(self.n_out) if self.vector else 0.0
+        self._stepper.reset(u_win[n - self.nu:] if self.nu else None,
+                            y_win[n - self.ny:] if self.ny else None)
 
     def _init_pending_from_rest(self, out: list) -> None:
         pending, self._pending = self._pending, []

@@ -44,12 +44,14 @@ class EstimatorNode(PiezoNode):
         ParamSpec('rate_tolerance', RATE_TOLERANCE, 'relative difference between the command '
                   "stream's stamp rate and the model's beyond which estimates are withheld "
                   '(ERROR on /diagnostics)', low=1e-6, high=0.5, read_only=True),
-        ParamSpec('init', 'auto', 'initial state: rest, measurement (the state that explains the '
-                  'first init_window s of measured samples: hysteresis memory, creep, sensor '
-                  'offset), or auto (measurement when deflection has a publisher)',
-                  choices=INIT_MODES, read_only=True),
-        ParamSpec('init_window', 0.5, 'measured samples that set the initial state, s',
-                  low=0.0, high=60.0, read_only=True),
+        ParamSpec('init', 'auto', 'initial state: rest, measurement (the first init_window s of '
+                  "measured samples, used as the model file's start policy says, else the "
+                  'state that explains them: hysteresis memory, creep, sensor offset), or auto '
+                  "(the model file's start policy: rest, or measurement when deflection has a "
+                  'publisher)', choices=INIT_MODES, read_only=True),
+        ParamSpec('init_window', -1.0, 'measured samples that set the initial state, s (-1: the '
+                  "model file's window, 0.5 s for a file without a start policy)",
+                  low=-1.0, high=60.0, read_only=True),
         ParamSpec('init_past', 'any', "how the actuator's unlogged past ended, for init: "
                   'measurement: any (histories of up to two turning points) or fade-out (a move '
                   'ended by fading its amplitude out: the memory demagnetised about the first '
@@ -80,7 +82,8 @@ class EstimatorNode(PiezoNode):
             self.model, fs=p['fs'] or None, init=p['init'], u_min=p['u_min'], u_max=p['u_max'],
             max_fill=p['max_fill'], range_margin=p['range_margin'], window=p['window'],
             reanchor_every=p['reanchor_every'], init_timeout=p['init_timeout'],
-            init_window=p['init_window'], init_past=p['init_past'],
+            init_window=p['init_window'] if p['init_window'] >= 0 else None,
+            init_past=p['init_past'],
             rate_tolerance=p['rate_tolerance'])
         # Compile/load the kernel before the first sample.
         self.est.model.stepper().step(np.zeros(self.est.n_in) if self.est.vector else 0.0)

@@ -199,11 +199,9 @@ def seed_design(context: SpaceContext, families=SEARCH_FAMILIES) -> list[dict]:
     for params in design:
         if params['family'] not in families:
             continue
-        if not context.one_axis and params['family'] == 'hysteresis_narx':
-            if params.get('hnarx_structure') == 'chains' and not context.square:
-                continue
-            if not context.square:
-                params = {k: v for k, v in params.items() if k != 'hnarx_structure'}
+        if (not context.one_axis and params.get('hnarx_structure') == 'chains'
+                and not context.square):
+            continue
         out.append(dict(params))
     return out
 
@@ -466,7 +464,11 @@ def fingerprint(est: list[Record], val: list[Record], options: SearchOptions) ->
 
 
 def _optuna():
-    import optuna
+    try:
+        import optuna
+    except ImportError:
+        raise ConfigError('the structure search needs Optuna: pip install the optuna pin of '
+                          'requirements.txt, or fit with --preset envelope or paper') from None
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     warnings.filterwarnings('ignore', category=optuna.exceptions.ExperimentalWarning)
     return optuna
@@ -720,8 +722,9 @@ def _batch_trials(study, optuna, store: Study, options: SearchOptions, context: 
     for t in study.get_trials(deepcopy=False, states=(state.WAITING,)):
         study.tell(t.number, state=state.FAIL)
     study.sampler = _sampler(optuna, options, b)
-    design = seed_design(context, options.families) if b == 0 else []
-    for params in design[:size]:
+    # The seed design fills the first batches, whatever their size.
+    design = seed_design(context, options.families)[b * options.batch:][:size]
+    for params in design:
         study.enqueue_trial(params)
     out = []
     for _ in range(size):
