@@ -126,7 +126,8 @@ def test_a_batched_bag_fits_to_the_same_model_bit_for_bit(tmp_path, capsys):
         out = tmp_path / f'fit{batch}'
         with warnings.catch_warnings():
             warnings.simplefilter('error', BagWarning)     # a clean record, both ways
-            code, _, err = _cli(['fit', str(bag), '--ny', '1', '--nu', '1', '--hidden', '2',
+            code, _, err = _cli(['fit', '--preset', 'paper',
+                                 str(bag), '--ny', '1', '--nu', '1', '--hidden', '2',
                                  '--arx-na', '1-2', '--arx-nb', '1', '--jobs', '1',
                                  '--no-report', '--quiet', '--config',
                                  str(tmp_path / 'fast.yaml'), '--out', str(out)], capsys)

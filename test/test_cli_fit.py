@@ -56,7 +56,8 @@ def fitted(data_dir, tmp_path_factory):
     """One fit shared by the end-to-end checks: one network + a 2x2 ARX grid, serial."""
     out = tmp_path_factory.mktemp('fit')
     with pytest.raises(SystemExit) as exc:
-        main(['fit', str(data_dir / 'rec.npz'), '--ny', '2', '--nu', '2', '--hidden', '4',
+        main(['fit', '--preset', 'paper',
+              str(data_dir / 'rec.npz'), '--ny', '2', '--nu', '2', '--hidden', '4',
               '--arx-na', '1-2', '--arx-nb', '1-2', '--jobs', '1', '--quiet', '--out', str(out),
               '--config', str(data_dir / 'fast.yaml')])
     assert exc.value.code == 0
@@ -138,9 +139,11 @@ def test_evaluate_json_matches_model_and_data(fitted, data_dir, capsys):
 def test_csv_and_npz_inputs_give_the_same_fit(data_dir, tmp_path, capsys):
     args = ['--no-arx', '--ny', '1', '--nu', '1', '--hidden', '3', '--jobs', '1', '--quiet',
             '--no-report', '--config', str(data_dir / 'fast.yaml')]
-    assert cli(['fit', str(data_dir / 'rec.npz'), '--out', str(tmp_path / 'a')] + args,
+    assert cli(['fit', '--preset', 'paper',
+                str(data_dir / 'rec.npz'), '--out', str(tmp_path / 'a')] + args,
                capsys)[0] == 0
-    assert cli(['fit', str(data_dir / 'noheader.csv'), '--fs', '2000', '--out',
+    assert cli(['fit', '--preset', 'paper',
+                str(data_dir / 'noheader.csv'), '--fs', '2000', '--out',
                 str(tmp_path / 'b')] + args, capsys)[0] == 0
     a = json.loads((tmp_path / 'a' / 'candidates.json').read_text())['candidates'][0]
     b = json.loads((tmp_path / 'b' / 'candidates.json').read_text())['candidates'][0]
@@ -152,7 +155,8 @@ def test_fit_from_bag(data_dir, tmp_path, capsys):
     from piezo_narx_ros.bag.writer import write_uy_bag
     u, y = piezo_like(2000, seed=4)
     bag = write_uy_bag(tmp_path / 'bag', u, y, 2000.0)
-    code, out, err = cli(['fit', str(bag), '--no-arx', '--ny', '1', '--nu', '1', '--hidden', '2',
+    code, out, err = cli(['fit', '--preset', 'paper',
+                          str(bag), '--no-arx', '--ny', '1', '--nu', '1', '--hidden', '2',
                           '--jobs', '1', '--no-report', '--config', str(data_dir / 'fast.yaml'),
                           '--out', str(tmp_path / 'out')], capsys)
     assert code == 0, err
@@ -219,7 +223,8 @@ def test_fit_bad_input_one_line_exit_2(data_dir, tmp_path, capsys, inputs, extra
     paths = [str(data_dir / 'rec.npz') if i == 'rec.npz' else
              str(tmp_path / i) if i == 'absent.npz' else str(_write_bad(tmp_path, i))
              for i in inputs]
-    code, out, err = cli(['fit', *paths, '--out', str(tmp_path / 'out'), '--no-arx', '--ny', '1',
+    code, out, err = cli(['fit', '--preset', 'paper',
+                          *paths, '--out', str(tmp_path / 'out'), '--no-arx', '--ny', '1',
                           '--nu', '1', '--jobs', '1', *extra], capsys)
     assert code == 2
     assert err.count('\n') == 1 and err.startswith('piezo-narx: error: ')
@@ -229,7 +234,8 @@ def test_fit_bad_input_one_line_exit_2(data_dir, tmp_path, capsys, inputs, extra
 
 def test_fit_bad_config_file(data_dir, tmp_path, capsys):
     (tmp_path / 'bad.yaml').write_text('hiden: 10\n')
-    code, _, err = cli(['fit', str(data_dir / 'rec.npz'), '--out', str(tmp_path / 'o'),
+    code, _, err = cli(['fit', '--preset', 'paper',
+                        str(data_dir / 'rec.npz'), '--out', str(tmp_path / 'o'),
                         '--config', str(tmp_path / 'bad.yaml')], capsys)
     assert code == 2 and 'unknown setting(s) hiden' in err and err.count('\n') == 1
 

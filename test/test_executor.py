@@ -181,7 +181,8 @@ def test_fleet_per_record_local_and_ray(ray_executor, tmp_path, capsys):
     outs = {}
     for name, extra in (('local', ['--jobs', '2']), ('ray', ['--executor', 'ray'])):
         outs[name] = tmp_path / name
-        code, out, err = _cli(['fit', *common, '--out', str(outs[name]), *extra], capsys)
+        code, out, err = _cli(['fit', '--preset', 'paper',
+                               *common, '--out', str(outs[name]), *extra], capsys)
         # The idle recording fails alone, named in one line; the others are fitted.
         assert code == 2 and err.count('\n') == 1, err
         assert '1 of 3 recordings could not be fitted' in err and 'idle:' in err
@@ -207,7 +208,8 @@ def test_fleet_per_record_local_and_ray(ray_executor, tmp_path, capsys):
 
     # Each recording's fit is the fit of that recording alone.
     alone = tmp_path / 'alone'
-    code, _, _ = _cli(['fit', str(fleet / 'rig5.npz'), '--config', str(tmp_path / 'fast.yaml'),
+    code, _, _ = _cli(['fit', '--preset', 'paper',
+                       str(fleet / 'rig5.npz'), '--config', str(tmp_path / 'fast.yaml'),
                        *FLEET_ARGS, '--jobs', '1', '--out', str(alone)], capsys)
     assert code == 0
     assert weights_sha256(_load(alone / 'model.json')) == \
@@ -227,7 +229,8 @@ def test_executor_options_are_checked(capsys, tmp_path):
     with pytest.raises(ConfigError, match='jobs must be an integer'):
         LocalExecutor(0)
     _write_npz(tmp_path / 'r.npz', hysteretic_record())
-    code, _, err = _cli(['fit', str(tmp_path / 'r.npz'), '--out', str(tmp_path / 'o'),
+    code, _, err = _cli(['fit', '--preset', 'paper',
+                         str(tmp_path / 'r.npz'), '--out', str(tmp_path / 'o'),
                          '--ray-address', 'auto', *FLEET_ARGS], capsys)
     assert code == 2 and err == 'piezo-narx: error: --ray-address needs --executor ray\n'
 
@@ -296,7 +299,8 @@ def test_ctrl_c_stops_the_local_ray_cleanly(tmp_path, whom, when):
     """
     _write_npz(tmp_path / 'r.npz', hysteretic_record(n=6000, seed=9))
     proc = subprocess.Popen(
-        [sys.executable, '-m', 'piezo_narx_ros.cli.main', 'fit', str(tmp_path / 'r.npz'),
+        [sys.executable, '-m', 'piezo_narx_ros.cli.main', 'fit', '--preset', 'paper',
+         str(tmp_path / 'r.npz'),
          '--executor', 'ray', '--jobs', '2', '--ny', '1-4', '--nu', '1-4', '--no-report',
          '--out', str(tmp_path / 'out')],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
@@ -375,7 +379,8 @@ def test_fit_on_a_running_cluster_by_address(tmp_path):
         _write_npz(tmp_path / 'r.npz', record)
         (tmp_path / 'fast.yaml').write_text(json.dumps({'training': FAST_TRAINING,
                                                         'final_training': {}}))
-        args = ['fit', str(tmp_path / 'r.npz'), '--config', str(tmp_path / 'fast.yaml'),
+        args = ['fit', '--preset', 'paper',
+                str(tmp_path / 'r.npz'), '--config', str(tmp_path / 'fast.yaml'),
                 *FLEET_ARGS]
         done = subprocess.run(
             [sys.executable, '-m', 'piezo_narx_ros.cli.main', *args, '--executor', 'ray',
@@ -402,7 +407,8 @@ def test_fit_on_a_running_cluster_by_address(tmp_path):
 def test_unreachable_address_is_one_line(tmp_path):
     _write_npz(tmp_path / 'r.npz', hysteretic_record(seed=11))
     done = subprocess.run(
-        [sys.executable, '-m', 'piezo_narx_ros.cli.main', 'fit', str(tmp_path / 'r.npz'),
+        [sys.executable, '-m', 'piezo_narx_ros.cli.main', 'fit', '--preset', 'paper',
+         str(tmp_path / 'r.npz'),
          *FLEET_ARGS, '--executor', 'ray', '--ray-address', '127.0.0.1:9',
          '--out', str(tmp_path / 'o')], capture_output=True, text=True, timeout=300)
     assert done.returncode == 2, done.stderr
@@ -413,7 +419,8 @@ def test_unreachable_address_is_one_line(tmp_path):
 def test_without_address_a_local_ray_is_started_and_stopped(tmp_path):
     _write_npz(tmp_path / 'r.npz', hysteretic_record(seed=12))
     proc = subprocess.Popen(
-        [sys.executable, '-m', 'piezo_narx_ros.cli.main', 'fit', str(tmp_path / 'r.npz'),
+        [sys.executable, '-m', 'piezo_narx_ros.cli.main', 'fit', '--preset', 'paper',
+         str(tmp_path / 'r.npz'),
          '--no-arx', '--ny', '1', '--nu', '1', '--hidden', '2', '--no-report', '--executor',
          'ray', '--jobs', '2', '--out', str(tmp_path / 'o')],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)

@@ -55,7 +55,7 @@ def good_npz(tmp_path):
 
 # ------------------------------------------------------------------- files that are not UTF-8
 @pytest.mark.parametrize('argv', [
-    ['fit', '{good}', '--out', '{tmp}/o', '--config', '{bad}'],
+    ['fit', '--preset', 'paper', '{good}', '--out', '{tmp}/o', '--config', '{bad}'],
     ['bringup', '{bad}'],
     ['demo', '--config', '{bad}', '--out', '{tmp}/d'],
     ['simulate', '--seconds', '1', '--plant-config', '{bad}', '--out', '{tmp}/s.npz'],
@@ -94,7 +94,8 @@ def crafted_npz(path, declared=10**12):
 
 def test_npz_header_declaring_1e12_values_is_refused(tmp_path, capsys):
     path = crafted_npz(tmp_path / 'huge.npz')
-    code, _, err = cli(['fit', str(path), '--out', str(tmp_path / 'o')], capsys)
+    code, _, err = cli(['fit', '--preset', 'paper',
+                        str(path), '--out', str(tmp_path / 'o')], capsys)
     assert code == 2 and one_error_line(err) and 'declares shape (1000000000000,)' in err, err
 
 
@@ -120,7 +121,8 @@ def test_crafted_npz_refused_by_every_reader(tmp_path):
 def test_random_bytes_npz_is_not_called_pickled(tmp_path, capsys):
     path = tmp_path / 'r.npz'
     path.write_bytes(np.random.default_rng(0).bytes(1000))
-    code, _, err = cli(['fit', str(path), '--out', str(tmp_path / 'o')], capsys)
+    code, _, err = cli(['fit', '--preset', 'paper',
+                        str(path), '--out', str(tmp_path / 'o')], capsys)
     assert code == 2 and one_error_line(err) and 'not an .npz file' in err, err
     assert 'pickle' not in err
 
@@ -150,7 +152,8 @@ def test_utf8_bom_csv_reads_its_t_column(tmp_path):
 def test_header_only_csv_says_so(tmp_path, capsys):
     path = tmp_path / 'h.csv'
     path.write_text('t,u,y\n')
-    code, _, err = cli(['fit', str(path), '--out', str(tmp_path / 'o')], capsys)
+    code, _, err = cli(['fit', '--preset', 'paper',
+                        str(path), '--out', str(tmp_path / 'o')], capsys)
     assert code == 2 and one_error_line(err) and 'only a header row' in err, err
 
 
@@ -159,7 +162,8 @@ def test_near_constant_output_is_refused(tmp_path, capsys):
     u, _ = record()
     y = np.full(u.size, 1e-6) * (1 + 1e-16 * np.random.default_rng(1).standard_normal(u.size))
     np.savez(tmp_path / 'flat.npz', u=u, y=y, fs=2000.0)
-    code, _, err = cli(['fit', str(tmp_path / 'flat.npz'), '--out', str(tmp_path / 'o')], capsys)
+    code, _, err = cli(['fit', '--preset', 'paper',
+                        str(tmp_path / 'flat.npz'), '--out', str(tmp_path / 'o')], capsys)
     assert code == 2 and one_error_line(err) and 'output is constant' in err, err
     assert not (tmp_path / 'o').exists()
 
@@ -168,7 +172,8 @@ def test_idle_estimation_half_is_refused_with_the_fix(tmp_path, capsys):
     u, y = record(4000)
     u[:2400] = 0.0                      # rig idle for the first 1.2 s, then moving
     np.savez(tmp_path / 'idle.npz', u=u, y=y, fs=2000.0)
-    code, _, err = cli(['fit', str(tmp_path / 'idle.npz'), '--out', str(tmp_path / 'o')], capsys)
+    code, _, err = cli(['fit', '--preset', 'paper',
+                        str(tmp_path / 'idle.npz'), '--out', str(tmp_path / 'o')], capsys)
     assert code == 2 and one_error_line(err), err
     assert 'input is constant over the estimation part' in err and '--split' in err
 
@@ -188,7 +193,7 @@ def test_fit_refuses_to_overwrite_a_model_without_force(tmp_path, good_npz, caps
     out = tmp_path / 'o'
     out.mkdir()
     (out / 'model.json').write_text('{"keep": true}')
-    code, _, err = cli(['fit', str(good_npz), '--out', str(out)], capsys)
+    code, _, err = cli(['fit', '--preset', 'paper', str(good_npz), '--out', str(out)], capsys)
     assert code == 2 and one_error_line(err) and '--force' in err, err
     assert (out / 'model.json').read_text() == '{"keep": true}'
 
@@ -270,12 +275,14 @@ def test_no_traceback_in_a_real_process(tmp_path):
      r'--max-outside must be in \[0, 1\), got 1.0'),
     (['evaluate', '{model}', '{good}', '--noise-order', '500'],
      r'--noise-order must be in \[0, 200\], got 500'),
-    (['fit', '{good}', '--out', '{tmp}/o', '--ny', '1.5'], "--ny: not a lag range: '1.5'"),
-    (['fit', '{good}', '--out', '{tmp}/o', '--config', '{cfg}'],
+    (['fit', '--preset', 'paper',
+      '{good}', '--out', '{tmp}/o', '--ny', '1.5'], "--ny: not a lag range: '1.5'"),
+    (['fit', '--preset', 'paper', '{good}', '--out', '{tmp}/o', '--config', '{cfg}'],
      r'ny: lag orders must be integers, got \[1, 2.5\]'),
-    (['fit', '{good}', '--out', '{tmp}/o', '--fs', '-1'],
+    (['fit', '--preset', 'paper', '{good}', '--out', '{tmp}/o', '--fs', '-1'],
      '--fs must be a positive number of Hz, got -1.0'),
-    (['fit', '{good}', '--out', '{good}'], 'good.npz: exists and is not a directory'),
+    (['fit', '--preset', 'paper',
+      '{good}', '--out', '{good}'], 'good.npz: exists and is not a directory'),
     (['simulate', '--seconds', '1', '--out', '{tmp}/missing/s.npz'],
      '--out directory .*missing does not exist'),
     (['simulate', '--seconds', '1', '--seed', '-3', '--out', '{tmp}/s.npz'],

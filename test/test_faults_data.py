@@ -83,7 +83,8 @@ def test_records_in_different_units_are_not_fitted_together(tmp_path):
 def test_fit_cli_refuses_um_with_one_line(tmp_path, capsys):
     u, y = piezo()
     np.savez(tmp_path / 'r.npz', u=u, y=y * 1e6, fs=FS)
-    code, _, err = cli(['fit', str(tmp_path / 'r.npz'), '--out', str(tmp_path / 'o')], capsys)
+    code, _, err = cli(['fit', '--preset', 'paper',
+                        str(tmp_path / 'r.npz'), '--out', str(tmp_path / 'o')], capsys)
     assert code == 2 and one_line(err) and '--y-unit um' in err
     assert not (tmp_path / 'o').exists()
 
@@ -335,7 +336,8 @@ def test_cli_options_reach_the_loader(tmp_path, capsys):
     y = model.simulate(u)
     np.savetxt(tmp_path / 'r.dat', np.column_stack([u, np.zeros_like(u), y * 1e6]), fmt='%.17g',
                delimiter='\t')
-    code, _, err = cli(['fit', str(tmp_path / 'r.dat'), '--fs', '2000', '--columns', 'u=1,y=4',
+    code, _, err = cli(['fit', '--preset', 'paper',
+                        str(tmp_path / 'r.dat'), '--fs', '2000', '--columns', 'u=1,y=4',
                         '--out', str(tmp_path / 'o')], capsys)
     assert code == 2 and one_line(err) and '--columns y=4: the file has 3 column(s)' in err
     argv = ['evaluate', str(tmp_path / 'm.json'), str(tmp_path / 'r.dat'), '--fs', '2000',

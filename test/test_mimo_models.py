@@ -197,7 +197,8 @@ def test_fsm_record_fits_and_evaluates_per_output_after_100_samples(tmp_path, ca
     (tmp_path / 'fit.yaml').write_text(
         'training: {restarts: 1, max_iter: 3, refine_iter: 2, n_segments: 4}\n'
         'final_training: {}\n')
-    args = ['fit', str(FSM / 'train_100mV_r1.npz'), '--out', str(tmp_path / 'm'), '--ny', '1',
+    args = ['fit', '--preset', 'paper',
+            str(FSM / 'train_100mV_r1.npz'), '--out', str(tmp_path / 'm'), '--ny', '1',
             '--nu', '1', '--hidden', '2', '--arx-na', '4', '--arx-nb', '4', '--no-report',
             '--config', str(tmp_path / 'fit.yaml'), '--jobs', '1', '--quiet']
     with pytest.raises(SystemExit) as stop:

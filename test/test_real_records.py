@@ -41,7 +41,8 @@ def piezo_narx(*args):
 
 def fit_small(*args):
     """Run `piezo-narx fit ARGS` with one small network and one ARX(2, 2), quietly."""
-    return piezo_narx('fit', *args, '--ny', '1', '--nu', '0', '--hidden', '2', '--arx-na', '2',
+    return piezo_narx('fit', '--preset', 'paper',
+                      *args, '--ny', '1', '--nu', '0', '--hidden', '2', '--arx-na', '2',
                       '--arx-nb', '2', '--no-report', '--quiet')
 
 
@@ -249,7 +250,8 @@ def test_evaluate_says_when_the_state_window_leaves_the_memory_open(hnarx):
 def test_fit_validate_cli_refuses_an_estimation_record_as_validation(tmp_path):
     r = record(generate('multisine', FS, 2.0, 80.0, seed=1), seed=1)
     np.savez(tmp_path / 'a.npz', u=r.u, y=r.y, fs=FS)
-    out = piezo_narx('fit', str(tmp_path / 'a.npz'), '--validate', str(tmp_path / 'a.npz'),
+    out = piezo_narx('fit', '--preset', 'paper',
+                     str(tmp_path / 'a.npz'), '--validate', str(tmp_path / 'a.npz'),
                      '--out', str(tmp_path / 'o'), '--no-report', '--quiet')
     assert out.returncode == 2
     assert out.stderr.count('\n') == 1 and 'cannot validate the model it estimates' in out.stderr
