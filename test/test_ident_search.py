@@ -33,8 +33,8 @@ def records():
 
 
 def _options(**kw):
-    base = dict(trials=2, batch=2, budget_s=None, families=('arx', 'hysteresis_narx'),
-                init_samples=200, progress=False)
+    base = {'trials': 2, 'batch': 2, 'budget_s': None, 'families': ('arx', 'hysteresis_narx'),
+            'init_samples': 200, 'progress': False}
     return SearchOptions(**{**base, **kw})
 
 

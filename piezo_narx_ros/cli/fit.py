@@ -87,7 +87,7 @@ def add_parser(subparsers):
     from piezo_narx_ros.ident.selection.search import SEARCH_FAMILIES, SearchOptions
     search = p.add_argument_group('structure search (--preset search)')
     search.add_argument('--trials', type=int, metavar='N',
-                        help=f'trials of the study, its first batch the presets\' structures '
+                        help="trials of the study, its first batch the presets' structures "
                              f'(default {SearchOptions.trials})')
     search.add_argument('--budget-s', type=float, metavar='S',
                         help='wall-time budget: no batch of trials starts that would end after '

@@ -75,8 +75,8 @@ def save_model(model, path, data=None, metrics=None, tests=None, start=None):
     data : provenance of the estimation data (e.g. {'source': ..., 'samples': ...});
     metrics, tests : results to record (JSON-serialisable dicts); start : the start policy the
     model's users follow by default, {'policy': 'rest' | 'offset' | 'state', 'window_samples': N}
-    (ident/state/start.py; `check_start`). None keeps what the model carries in ``model.metadata`` (set by
-    load_model). Returns the JSON path.
+    (ident/state/start.py; `check_start`). None keeps what the model carries in
+    ``model.metadata`` (set by load_model). Returns the JSON path.
     """
     path = Path(path)
     if path.suffix != '.json':

@@ -92,7 +92,7 @@ def write_search(out, result: SearchResult, records: list, validation: list,
                 validation_sources=result.validation_sources, preset='search',
                 init_seconds=result.window / result.fs if result.fs else 0.0,
                 n_estimation=result.n_estimation, n_validation=result.n_validation)
-    metrics = {**{k: v for k, v in best.scores.items()}, 'selected_by': 'search',
+    metrics = {**best.scores, 'selected_by': 'search',
                'noise_model': result.options.noise_model,
                'search': {'why': result.why, 'trial': result.numbers[result.selected],
                           'trials': len(result.trials), 'tolerance': result.options.tolerance}}

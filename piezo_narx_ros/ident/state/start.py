@@ -3,8 +3,8 @@ Start policies: how a model's free run uses the first N measured samples of a re
 
 A rig's estimator gets the commands from the start and, for a short window, the measured output
 too. What the window is best used for depends on the model and the rig, so the structure search
-(ident/selection/search.py) scores every fitted model under each policy on the validation records and the
-model file records the one that won (`start` in the file: policy and window):
+(ident/selection/search.py) scores every fitted model under each policy on the validation records
+and the model file records the one that won (`start` in the file: policy and window):
 
 * ``rest``: the window is ignored; the free run starts from rest at the record's first sample
   (every past input and output zero, the hysteresis memory empty).
