@@ -66,7 +66,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 PLANTS = {'bouc_wen': REPO / 'config' / 'plant.yaml',
           'preisach': REPO / 'config' / 'plant_preisach.yaml'}
-PRESETS = ('paper', 'envelope')
+PRESETS = ('paper', 'envelope', 'search')
 INIT_SECONDS = 0.5            # measurement that may set the state (issue 18: N <= 0.5 s)
 TARGET_RATIO = 2.0            # free run within 2x the error of the start from rest
 HISTORY = ('--history', '20', '--history-hold', '1')   # unknown past: 20 s, then 1 s held
@@ -167,13 +167,14 @@ DEFAULT_SCENARIOS = tuple(s for s in ALL_SCENARIOS if s != 'growing10k')
 class Cli:
     """Runs `piezo-narx`; remembers which of the issue's options this install lacks."""
 
-    def __init__(self, jobs: int, fit_config: str | None = None):
+    def __init__(self, jobs: int, fit_config: str | None = None, search_args=()):
         exe = Path(sys.executable).with_name('piezo-narx')
         module = [sys.executable, '-m', 'piezo_narx_ros.cli.main']
         self.cmd = [str(exe)] if exe.exists() else module
         self.jobs = jobs
         # A settings file every fit reads over its preset (fit --config), to try an option.
         self.fit_config = ['--config', fit_config] if fit_config else []
+        self.search_args = list(search_args)   # fit options of --preset search only
         self.missing = set()      # options the CLI rejected ('--validate', '--init-samples')
         self.tried = set()        # options the bench has passed at least once
         self.sim_force = None     # ['--force'] once simulate is known to take it
@@ -212,7 +213,8 @@ class Cli:
         reading: how to read the inputs (e.g. --columns u=1,y=5 --y-unit um).
         """
         common = ['--preset', preset, '--out', out, '--jobs', self.jobs, '--quiet',
-                  '--no-report', '--force', *self.fit_config, *reading]
+                  '--no-report', '--force', *self.fit_config, *reading,
+                  *(self.search_args if preset == 'search' else [])]
         t0 = time.perf_counter()
         if val and '--validate' not in self.missing:
             proc = self.run('fit', *est, '--validate', *val, *common)
@@ -579,7 +581,9 @@ def main(argv=None):
                    default=list(DEFAULT_SCENARIOS))
     p.add_argument('--plants', nargs='+', choices=tuple(PLANTS), default=list(PLANTS))
     p.add_argument('--seeds', nargs='+', type=int, default=[0, 1, 2])
-    p.add_argument('--presets', nargs='+', choices=PRESETS, default=list(PRESETS))
+    p.add_argument('--presets', nargs='+', choices=PRESETS, default=list(PRESETS[:2]))
+    p.add_argument('--search-args', default='',
+                   help='extra fit options for --presets search, e.g. "--trials 16"')
     p.add_argument('--quick', action='store_true',
                    help='one plant (bouc_wen), one seed (0): about a quarter of an hour')
     p.add_argument('--data', default=str(default_data()),
@@ -598,7 +602,8 @@ def main(argv=None):
     args = p.parse_args(argv)
     if args.quick:
         args.plants, args.seeds = ['bouc_wen'], [0]
-    cli = Cli(args.jobs, args.fit_config)
+    import shlex
+    cli = Cli(args.jobs, args.fit_config, shlex.split(args.search_args))
     load = os.getloadavg()
     extra = f'; fit --config {args.fit_config}' if args.fit_config else ''
     print(f'bench_real: scenarios {" ".join(args.scenarios)}; plants {" ".join(args.plants)}; '

@@ -39,7 +39,7 @@ def _options(**kw):
 
 
 def search_picks(result):
-    """What must not depend on the executor: the trials, the pick and its weights' bits."""
+    """Return what must not depend on the executor: the trials, the pick, its weights' bits."""
     return (result.numbers[result.selected], weights_sha256(result.best.model),
             [t.spec for t in result.trials], [t.scores.get('start') for t in result.trials])
 

@@ -503,7 +503,7 @@ def _print_fit(result, config, executor, model_path, out, paths) -> None:
 
 
 def search_options(args, settings, config, fs: float):
-    """The SearchOptions of a `fit --preset search` (ConfigError on bad values)."""
+    """Return the SearchOptions of a `fit --preset search` (ConfigError on bad values)."""
     from piezo_narx_ros.errors import ConfigError
     from piezo_narx_ros.ident.selection.search import SEARCH_FAMILIES, SearchOptions
     budget = SearchOptions.budget_s if args.budget_s is None else (args.budget_s or None)

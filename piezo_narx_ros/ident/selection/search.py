@@ -310,7 +310,7 @@ def start_scores(model, records: list[Record], n: int, past: str = 'any') -> dic
 
 
 def _experiment_config(options: SearchOptions, training: dict) -> ExperimentConfig:
-    """The settings fit_candidate scores with (the tests reported beside the search's score)."""
+    """Return the settings fit_candidate scores with (the tests reported beside the score)."""
     return ExperimentConfig(training=training, final_training={}, max_lag=options.max_lag,
                             max_outside_fraction=options.max_outside_fraction,
                             noise_model=options.noise_model, noise_order=options.noise_order,
@@ -343,7 +343,7 @@ def trial_error(res: CandidateResult) -> float:
 
 # ------------------------------------------------------------------ selection
 def pareto_front(points: list[tuple[float, int]]) -> list[int]:
-    """Indices of the points (error, n_params) no other point beats on both (ties kept once)."""
+    """Return the indices of the points (error, n_params) no other point beats (ties once)."""
     front = []
     for i, (e, p) in enumerate(points):
         dominated = any((e2 <= e and p2 <= p and (e2 < e or p2 < p)) or
@@ -695,7 +695,7 @@ def _as_result(params: dict, outcome) -> CandidateResult:
 
 
 def _trial_attrs(res: CandidateResult) -> dict:
-    """What optuna-dashboard shows beside a trial's values."""
+    """Return what optuna-dashboard shows beside a trial's values."""
     attrs = {'label': res.spec.label, 'error_text': res.error or ''}
     if res.error is None:
         start = res.scores['start']

@@ -25,7 +25,7 @@ _MARKERS = {'arx': 's', 'narx': '^', 'hysteresis_narx': 'o'}
 
 
 def as_experiment(result: SearchResult) -> ExperimentResult:
-    """The search as an ExperimentResult, so the experiment's report and fleet code read it."""
+    """Return the search as an ExperimentResult, for the experiment's report."""
     config = ExperimentConfig(init_seconds=result.window / result.fs if result.fs else 0.0,
                               selection='worst_case', init_past=result.options.past,
                               max_lag=result.options.max_lag,
@@ -40,7 +40,7 @@ def as_experiment(result: SearchResult) -> ExperimentResult:
 
 
 def start_block(result: SearchResult) -> dict:
-    """The model file's start: the selected trial's policy and the window it was scored with."""
+    """Return the model file's start: the selected trial's policy and its window."""
     return {'policy': result.best.scores['start']['policy'], 'window_samples': result.window}
 
 

@@ -58,7 +58,7 @@ def min_window(model, policy: str) -> int:
 
 def check_window(model, policy: str, n: int, n_record: int, source: str = 'record') -> None:
     """
-    DataError (one line) when a record of n_record samples cannot serve a window of n.
+    Raise DataError (one line) when a record of n_record samples cannot serve a window of n.
 
     The window must hold what the policy needs (`min_window`) and leave at least two samples to
     score after it.
