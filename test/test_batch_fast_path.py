@@ -278,6 +278,28 @@ def test_plant_responder_batch_path_equals_one_sample_path(coupled):
     assert one.rejected and one.gaps and one.stream_restarts
 
 
+def test_one_sample_paths_give_the_offline_numbers():
+    # The one-sample fast paths (a clean stream's every command) against the offline plant and
+    # model, and a gap (the general path) on the way.
+    from piezo_narx_ros.nodes.simulator_node import PlantResponder
+    from piezo_narx_ros.plant import PiezoCantilever
+    u = np.random.default_rng(2).uniform(-150.0, 150.0, 600)
+    t = T0 + np.arange(600, dtype=np.int64) * PERIOD
+    t[300:] += PERIOD                        # one sample missing: held by the plant, not answered
+    held = np.insert(u, 300, u[299])
+    r = PlantResponder({'x': PiezoCantilever(fs=2000.0, seed=3)}, 2000.0)
+    got = [a for s, v in zip(t.tolist(), u.tolist()) for a in r.on_command(s, {'x': v})]
+    want = PiezoCantilever(fs=2000.0, seed=3).run(held)
+    keep = np.r_[0:300, 301:601]
+    assert [g[1][0] for g in got] == want.y[keep].tolist()
+    assert [g[2][0] for g in got] == want.u_applied[keep].tolist() and r.gaps == 1
+    model = toy_narx()
+    est = FreeRunEstimator(model, init='rest', bracket=False)
+    ys = [y for s, v in zip(t.tolist(), u.tolist()) for _, y in est.on_command(s, v)]
+    assert np.allclose(ys, model.simulate(held), rtol=0, atol=1e-12 * 1e-6)
+    assert len(ys) == 601 and est.stats.filled == 1
+
+
 @pytest.mark.parametrize('axes', [1, 2, 'coupled'])
 def test_run_checked_equals_run(axes):
     # The simulator's batch path (commands known finite) gives run()'s numbers and state.

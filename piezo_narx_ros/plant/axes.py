@@ -83,7 +83,8 @@ class AxisPlants:
     def warm_up(self) -> None:
         """Load the compiled kernels now (not on the first command) and go back to rest."""
         for plant in self._chain:
-            plant.step(0.0)
+            plant.step(0.0)          # the one-sample kernel and the batch one
+            plant.run(np.zeros(2))
             plant.reset()
 
 

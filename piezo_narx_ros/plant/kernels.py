@@ -161,6 +161,23 @@ def advance(u_cmd, noise, n_sub, consts, phi, g0, g1, state, work, y_meas, y_tru
 
 
 @njit(cache=True)
+def advance_one(u_k, noise_k, n_sub, consts, phi, g0, g1, state, work):
+    """
+    `advance` over one sample (u_k V, noise_k a standard normal draw), in one compiled call.
+
+    Returns (y_true m, y_meas m, u_applied V), the same numbers: the one-sample path of a
+    simulator, which no longer fills and reads back arrays of one element from Python.
+    """
+    u = np.empty(1)
+    u[0] = u_k
+    noise = np.empty(1)
+    noise[0] = noise_k
+    y_meas, y_true, u_applied = np.empty(1), np.empty(1), np.empty(1)
+    advance(u, noise, n_sub, consts, phi, g0, g1, state, work, y_meas, y_true, u_applied)
+    return y_true[0], y_meas[0], u_applied[0]
+
+
+@njit(cache=True)
 def preisach_output(plays, weights, centres, spread):
     """
     Irreversible Preisach deflection (m) from the play outputs (V) of every radius.

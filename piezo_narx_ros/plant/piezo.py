@@ -283,9 +283,15 @@ class PiezoCantilever:
         if self._noise_pos >= self._noise.size:
             self._noise = self._rng.standard_normal(_NOISE_BLOCK)
             self._noise_pos = 0
-        self._u1[0] = u
-        self._n1[0] = self._noise[self._noise_pos]
+        noise = self._noise[self._noise_pos]
         self._noise_pos += 1
+        if self._preisach is None:      # one compiled call, no arrays to fill and read back
+            y_true, y_meas, u_app = kernels.advance_one(
+                u, noise, self.params.substeps, self._consts, self._phi, self._g0, self._g1,
+                self._state, self._work)
+            return y_meas, y_true, u_app
+        self._u1[0] = u
+        self._n1[0] = noise
         self._advance(self._u1, self._n1, self._y1, self._yt1, self._ua1)
         return float(self._y1[0]), float(self._yt1[0]), float(self._ua1[0])
 
