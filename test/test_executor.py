@@ -103,6 +103,22 @@ def die_once(payload, data):
     return mode
 
 
+def test_ray_structure_search_equals_local_bit_for_bit(ray_executor, tmp_path):
+    """The structure search (fit --preset search) on Ray selects the local pool's model."""
+    from piezo_narx_ros.ident.selection.search import SearchOptions, run_search
+    rec = hysteretic_record(n=3000, seed=5)
+    est, val = [rec.segment(0, 2000)], [rec.segment(2000, 3000)]
+    picks = []
+    for name, executor in (('local', LocalExecutor(jobs=2)), ('ray', ray_executor)):
+        options = SearchOptions(trials=2, batch=2, budget_s=None, init_samples=100,
+                                families=('arx', 'hysteresis_narx'), progress=False)
+        res = run_search(est, val, options, executor, tmp_path / name)
+        picks.append((res.numbers[res.selected], weights_sha256(res.best.model),
+                      [t.spec for t in res.trials],
+                      [t.scores['start']['error'] for t in res.trials]))
+    assert picks[0] == picks[1]
+
+
 def _executors(ray_executor):
     return [LocalExecutor(jobs=2), ray_executor]
 

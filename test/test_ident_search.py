@@ -1,18 +1,16 @@
-"""The structure search (ident/search.py) and the start policies (ident/start.py)."""
+"""The structure search (ident/selection/search.py)."""
 import json
 
 import numpy as np
 import pytest
 
-from piezo_narx_ros.errors import ConfigError, DataError, ModelFileError
-from piezo_narx_ros.ident.arx.model import ARXModel
-from piezo_narx_ros.ident.model_io import load_model, save_model, weights_sha256
+from piezo_narx_ros.errors import ConfigError, DataError
+from piezo_narx_ros.ident.model_io import weights_sha256
 from piezo_narx_ros.ident.selection.executor import Executor, LocalExecutor
 from piezo_narx_ros.ident.selection.search import (SEARCH_FAMILIES, SPACE, SearchOptions,
                                                    SpaceContext, pareto_front, run_search,
                                                    seed_design, spec_from_params, trial_task)
-from piezo_narx_ros.ident.state.start import (START_POLICIES, check_window, policy_simulate,
-                                              window_state)
+from piezo_narx_ros.ident.state.start import START_POLICIES
 from piezo_narx_ros.plant.piezo import PiezoCantilever
 from piezo_narx_ros.plant.signals import generate
 from piezo_narx_ros.record import Record
@@ -42,56 +40,6 @@ def search_picks(result):
     """Return what must not depend on the executor: the trials, the pick, its weights' bits."""
     return (result.numbers[result.selected], weights_sha256(result.best.model),
             [t.spec for t in result.trials], [t.scores.get('start') for t in result.trials])
-
-
-# ------------------------------------------------------------------ start policies
-def test_state_policy_of_a_lagged_model_is_the_paper_start_at_the_window_end(records):
-    est, val = records
-    r = val[0]
-    m = ARXModel(na=4, nb=3).fit(r.u[:, 0], r.y[:, 0], fs=FS)
-    u, y, n = r.u[:, 0], r.y[:, 0], 300
-    sim = policy_simulate(m, u, y, n, 'state')
-    paper = m.simulate(u[n - m.n0:], y[n - m.n0:n])
-    np.testing.assert_array_equal(sim[n:], paper[m.n0:])
-    rest = policy_simulate(m, u, y, n, 'rest')
-    np.testing.assert_array_equal(rest, m.simulate(u))
-
-
-def test_offset_policy_recovers_a_moved_sensor_zero(records):
-    r = records[1][0]
-    m = ARXModel(na=4, nb=3).fit(r.u[:, 0], r.y[:, 0], fs=FS)
-    u, y = r.u[:, 0], r.y[:, 0]
-    shift = 3e-6
-    state = window_state(m, u[:400], m.simulate(u)[:400] + shift, 'offset')
-    assert state.offset == pytest.approx(shift, rel=1e-9)
-    moved = policy_simulate(m, u, m.simulate(u) + shift, 400, 'offset')
-    np.testing.assert_allclose(moved, m.simulate(u) + shift, rtol=0, atol=1e-15)
-    assert not np.allclose(policy_simulate(m, u, y, 400, 'rest'), moved)
-
-
-def test_a_window_too_short_for_a_policy_is_refused_in_one_line(records):
-    m = ARXModel(na=8, nb=3).fit(records[1][0].u[:, 0], records[1][0].y[:, 0], fs=FS)
-    with pytest.raises(DataError, match="'state' needs at least 10 measured samples, got 5"):
-        check_window(m, 'state', 5, 1000, 'rec.npz')
-    with pytest.raises(DataError, match='too short for a window of 990'):
-        check_window(m, 'offset', 990, 991, 'rec.npz')
-    check_window(m, 'rest', 0, 10, 'rec.npz')
-
-
-def test_start_policy_round_trips_through_the_model_file(tmp_path, records):
-    r = records[1][0]
-    m = ARXModel(na=2, nb=2).fit(r.u[:, 0], r.y[:, 0], fs=FS)
-    path = save_model(m, tmp_path / 'm.json', start={'policy': 'offset', 'window_samples': 1000})
-    loaded = load_model(path)
-    assert loaded.metadata['start'] == {'policy': 'offset', 'window_samples': 1000,
-                                        'window_s': 0.5}
-    doc = json.loads(path.read_text())
-    doc['start']['policy'] = 'magic'
-    path.write_text(json.dumps(doc))
-    with pytest.raises(ModelFileError, match='start must be'):
-        load_model(path)
-    with pytest.raises(ModelFileError, match='window_samples'):
-        save_model(m, tmp_path / 'n.json', start={'policy': 'state', 'window_samples': -3})
 
 
 # ------------------------------------------------------------------ space and selection
@@ -196,6 +144,42 @@ def test_every_policy_is_scored_and_the_best_kept(records):
     res = trial_task(({'family': 'arx', 'arx_na': 3, 'arx_nb': 3}, options, 200), (est, val))
     start = res.scores['start']
     assert set(start['policies']) == set(START_POLICIES)
-    errors = {p: v['error'] for p, v in start['policies'].items()}
-    assert start['error'] == min(errors.values())
-    assert errors[start['policy']] == start['error']
+    robust = {p: max(v['windows'].values()) for p, v in start['policies'].items()}
+    assert robust[start['policy']] == min(robust.values())
+    assert start['policies'][start['policy']]['error'] == start['error']
+    assert set(start['policies']['rest']['windows']) == {'25', '50', '100', '200'}
+
+
+def test_fit_searches_by_default_and_resumes_from_the_command_line(tmp_path, records, capsys):
+    from piezo_narx_ros.cli.main import main
+    paths = []
+    for name, rec in (('est', records[0][0]), ('val', records[1][0])):
+        paths.append(tmp_path / f'{name}.npz')
+        np.savez(paths[-1], u=rec.u[:, 0], y=rec.y[:, 0], fs=FS)
+
+    def fit(out, *extra):
+        with pytest.raises(SystemExit) as done:
+            main(['fit', str(paths[0]), '--validate', str(paths[1]), '--out', str(out),
+                  '--families', 'arx', '--batch', '3', '--init-samples', '200', '--jobs', '1',
+                  *extra])
+        captured = capsys.readouterr()
+        return done.value.code, captured.out, captured.err
+
+    code, out, err = fit(tmp_path / 'a', '--trials', '3')
+    assert code == 0, err
+    assert 'selected ARX(' in out and 'why: ' in out and 'optuna-dashboard' in out
+    doc = json.loads((tmp_path / 'a' / 'model.json').read_text())
+    assert doc['start']['window_samples'] == 200 and doc['data']['preset'] == 'search'
+    assert (tmp_path / 'a' / 'report' / 'pareto.png').stat().st_size > 10_000
+    assert len(json.loads((tmp_path / 'a' / 'candidates.json').read_text())['candidates']) == 3
+    code, _, err = fit(tmp_path / 'a', '--trials', '3')
+    assert code == 2 and err.count('\n') == 1 and 'continue it with --resume' in err
+    code, out, err = fit(tmp_path / 'a', '--trials', '6', '--resume', '--no-report')
+    assert code == 0 and 'resumed: 3 trial(s) taken over' in out, err
+    code, _, err = fit(tmp_path / 'b', '--trials', '6', '--no-report')
+    assert code == 0, err
+    from piezo_narx_ros.ident.model_io import load_model
+    assert weights_sha256(load_model(tmp_path / 'a' / 'model.json')) == \
+        weights_sha256(load_model(tmp_path / 'b' / 'model.json'))
+    code, _, err = fit(tmp_path / 'c', '--trials', '0')
+    assert code == 2 and 'trials must be an integer in [1' in err

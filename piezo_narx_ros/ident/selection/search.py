@@ -51,7 +51,7 @@ from piezo_narx_ros.ident.selection.executor import Executor, TaskFailure, in_wo
 from piezo_narx_ros.ident.selection.experiment import (FINAL_TRAINING, CandidateResult,
                                                        CandidateSpec, ExperimentConfig,
                                                        fit_candidate)
-from piezo_narx_ros.ident.state.estimate import PASTS
+from piezo_narx_ros.ident.state.estimate import MIN_WINDOW, PASTS
 from piezo_narx_ros.ident.state.start import START_POLICIES, check_window, policy_simulate
 from piezo_narx_ros.ident.validation import metrics
 from piezo_narx_ros.record import Record, as_columns, channels_arg
@@ -68,7 +68,8 @@ DIVERGED = 1e6
 # ('cat', choices). The reference and the tests read this table.
 SPACE = {
     'arx': {'arx_na': ('int', 1, 10), 'arx_nb': ('int', 1, 10)},
-    'narx': {'narx_ny': ('int', 1, 6), 'narx_nu': ('int', 1, 6), 'narx_hidden': ('int', 3, 20),
+    'narx': {'narx_ny': ('int', 1, 10), 'narx_nu': ('int', 1, 10),
+             'narx_hidden': ('int', 3, 24),
              'narx_seed': ('int', 0, 4), 'narx_training': ('cat', ('screen', 'final'))},
     'hysteresis_narx': {
         'hnarx_hidden': ('int', 3, 16), 'hnarx_plays': ('int', 4, 24),
@@ -279,32 +280,60 @@ def _worst(score: dict) -> float | None:
     return None if any(v is None for v in values) else min(values)
 
 
+def _policy_error(model, records: list[Record], n: int, policy: str, past: str) -> dict:
+    """Return {'r2_worst', 'error', 'records'} of one policy with the first n samples measured."""
+    rows, worst = [], math.inf
+    for r in records:
+        sim = as_columns(policy_simulate(model, channels_arg(r.u), channels_arg(r.y), n,
+                                         policy, past))[n:]
+        if np.all(np.isfinite(sim)):
+            score = metrics.channel_scores(r.y[n:], sim, r.outputs)
+            w = _worst(score)
+        else:
+            score, w = {'r2': None, 'rmse': None, 'diverged': True}, None
+        rows.append({'source': r.source, 'samples': int(len(r) - n), **score})
+        worst = -math.inf if w is None else min(worst, w)
+    error = DIVERGED if not math.isfinite(worst) else math.sqrt(max(0.0, 1.0 - worst))
+    return {'r2_worst': worst if math.isfinite(worst) else None, 'error': min(error, DIVERGED),
+            'records': rows}
+
+
+def check_windows(model, n: int) -> tuple:
+    """
+    Return the windows (samples) a policy is judged on: n, and n/2, n/4, n/8 where usable.
+
+    A rig may give its estimator fewer samples than the search scored with (`--init-samples`
+    says how many there are; the stored policy decides how they are used): a policy that only
+    wins with the whole window, e.g. from rest once the start-up transient has died, must not
+    be chosen over one that holds with fewer.
+    """
+    least = max(MIN_WINDOW, int(model.n0))
+    return tuple(sorted({w for w in (n // 8, n // 4, n // 2) if w >= least} | {n}))
+
+
 def start_scores(model, records: list[Record], n: int, past: str = 'any') -> dict:
     """
     Score the free run of every record after its first n samples, under each start policy.
 
-    Returns {'policies': {policy: {'r2_worst', 'error', 'records': [...]}}, 'policy': the best,
-    'r2_worst', 'error'}; error = sqrt(1 - worst R²) over records and outputs (DIVERGED when a
-    free run is not finite). Ties go to the simpler policy (START_POLICIES order).
+    Returns {'policies': {policy: {'r2_worst', 'error', 'records', 'windows'}}, 'policy': the
+    chosen one, 'window', 'r2_worst', 'error'}; error = sqrt(1 - worst R²) over records and
+    outputs (DIVERGED when a free run is not finite). The policy chosen is the one whose worst
+    error over `check_windows(model, n)` is lowest (ties: the simpler, START_POLICIES order);
+    its scores with n samples are the trial's.
     """
+    for r in records:
+        for policy in START_POLICIES:
+            check_window(model, policy, n, len(r), r.source)
+    windows = check_windows(model, n)
     result = {}
     for policy in START_POLICIES:
-        rows, worst = [], math.inf
-        for r in records:
-            check_window(model, policy, n, len(r), r.source)
-            sim = as_columns(policy_simulate(model, channels_arg(r.u), channels_arg(r.y), n,
-                                             policy, past))[n:]
-            if np.all(np.isfinite(sim)):
-                score = metrics.channel_scores(r.y[n:], sim, r.outputs)
-                w = _worst(score)
-            else:
-                score, w = {'r2': None, 'rmse': None, 'diverged': True}, None
-            rows.append({'source': r.source, 'samples': int(len(r) - n), **score})
-            worst = -math.inf if w is None else min(worst, w)
-        error = DIVERGED if not math.isfinite(worst) else math.sqrt(max(0.0, 1.0 - worst))
-        result[policy] = {'r2_worst': worst if math.isfinite(worst) else None,
-                          'error': min(error, DIVERGED), 'records': rows}
-    best = min(START_POLICIES, key=lambda p: (result[p]['error'], START_POLICIES.index(p)))
+        result[policy] = _policy_error(model, records, n, policy, past)
+        shorter = {w: _policy_error(model, records, w, policy, past)['error']
+                   for w in windows if w != n}
+        result[policy]['windows'] = {**{str(w): e for w, e in shorter.items()},
+                                     str(n): result[policy]['error']}
+    best = min(START_POLICIES, key=lambda p: (max(result[p]['windows'].values()),
+                                              START_POLICIES.index(p)))
     return {'policies': result, 'policy': best, 'window': int(n),
             'r2_worst': result[best]['r2_worst'], 'error': result[best]['error']}
 
