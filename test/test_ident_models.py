@@ -161,9 +161,14 @@ def test_step_many_gives_the_numbers_of_single_steps_and_refuses_before_stepping
     before = many.y_past
     with pytest.raises(DataError, match=r'finite voltage, got nan at index 2'):
         many.step_many([1.0, 2.0, np.nan])
+    for bad in ([np.inf, -np.inf], np.r_[np.zeros(99), -np.inf]):   # short and long batches
+        with pytest.raises(DataError, match='finite voltage, got -?inf at index'):
+            many.step_many(bad)
     with pytest.raises(DataError, match=r'must be 1-D \(n,\), got shape \(2, 2\)'):
         many.step_many(np.zeros((2, 2)))
     assert np.array_equal(many.y_past, before)         # nothing stepped
+    # Finite inputs whose sum overflows are inputs all the same.
+    assert np.isfinite(m.stepper().step_many([1.7e308, 1.7e308])).shape == (2,)
 
 
 # ---------------------------------------------------------------- NARX: free-run kernels

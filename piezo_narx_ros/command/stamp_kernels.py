@@ -17,19 +17,21 @@ F_RATIO, F_ARRIVAL = range(2)
 
 
 @njit(cache=True)
-def observe_run(t_ns, received, period, tolerance, min_steps, single_writer, ring, st, fst,
-                off_out):
+def observe_run(t_ns, received, each, period, tolerance, min_steps, single_writer, ring, st,
+                fst, off_out):
     """
     Accept the samples t_ns (n,) int64 ns in order; off_out (n,) gets the verdict after each.
 
-    received (n,) int64: commands received before each sample is accepted (added to the count
-    first, as RateMonitor.received() calls are). ring (window, 3) int64: stamp, cumulative steps,
-    count at each accepted sample; st, fst: the state vectors above, updated in place. The window
-    is the last `window` accepted samples; the verdict needs min_steps periods of stamps.
+    received: commands received before the first sample, each: before each sample besides
+    (RateMonitor.observe_run: the batch's own commands, 1), added to the count first, as
+    RateMonitor.received() calls are. ring (window, 3) int64: stamp, cumulative steps, count at
+    each accepted sample; st, fst: the state vectors above, updated in place. The window is the
+    last `window` accepted samples; the verdict needs min_steps periods of stamps.
     """
     w = ring.shape[0]
+    st[I_COUNT] += received
     for i in range(t_ns.shape[0]):
-        st[I_COUNT] += received[i]
+        st[I_COUNT] += each
         t = t_ns[i]
         if st[I_HAS_LAST]:
             k = np.int64(np.rint((t - st[I_LAST]) / period))

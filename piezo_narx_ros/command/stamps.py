@@ -177,7 +177,7 @@ def _load_kernels() -> None:
     global _KERNELS_LOADED
     if not _KERNELS_LOADED:
         t = np.zeros(1, dtype=np.int64)
-        sk.observe_run(t, t.copy(), 1.0, 0.01, RATE_MIN_STEPS, False,
+        sk.observe_run(t, 0, 1, 1.0, 0.01, RATE_MIN_STEPS, False,
                        np.zeros((RATE_MIN_STEPS + 1, 3), dtype=np.int64),
                        np.zeros(sk.N_INT_STATE, dtype=np.int64), np.zeros(2),
                        np.zeros(1, dtype=np.bool_))
@@ -201,7 +201,7 @@ class RateMonitor:
     """
 
     __slots__ = ('period_ns', 'tolerance', 'window', 'single_writer', '_ring', '_st', '_fst',
-                 '_one_t', '_one_got', '_one_off', '_received')
+                 '_one_t', '_one_off', '_received')
 
     def __init__(self, period_ns: float, tolerance: float = RATE_TOLERANCE, window: int = 2000):
         if not (period_ns > 0 and tolerance > 0 and window >= RATE_MIN_STEPS + 1):
@@ -219,7 +219,6 @@ class RateMonitor:
         # are then a faster stream, not a second writer.
         self.single_writer = False
         self._one_t = np.zeros(1, dtype=np.int64)
-        self._one_got = np.zeros(1, dtype=np.int64)
         self._one_off = np.zeros(1, dtype=np.bool_)
         self.reset()
         _load_kernels()
@@ -264,8 +263,8 @@ class RateMonitor:
     def observe(self, t_ns: int) -> bool:
         """One sample the gate accepted (stamp ns); returns `off`."""
         self._one_t[0] = t_ns
-        self._one_got[0], self._received = self._received, 0
-        return sk.observe_run(self._one_t, self._one_got, self.period_ns, self.tolerance,
+        got, self._received = self._received, 0
+        return sk.observe_run(self._one_t, got, 0, self.period_ns, self.tolerance,
                               RATE_MIN_STEPS, self.single_writer, self._ring, self._st,
                               self._fst, self._one_off)
 
@@ -278,12 +277,11 @@ class RateMonitor:
         """
         t = np.ascontiguousarray(t_ns, dtype=np.int64)
         offs = np.empty(t.shape[0], dtype=np.bool_)
-        got = np.ones(t.shape[0], dtype=np.int64)
-        if got.shape[0]:
-            got[0] += self._received
-            self._received = 0
-        sk.observe_run(t, got, self.period_ns, self.tolerance,
-                       RATE_MIN_STEPS, self.single_writer, self._ring, self._st, self._fst, offs)
+        if not t.shape[0]:
+            return offs
+        got, self._received = self._received, 0
+        sk.observe_run(t, got, 1, self.period_ns, self.tolerance, RATE_MIN_STEPS,
+                       self.single_writer, self._ring, self._st, self._fst, offs)
         return offs
 
     def describe(self, what: str = 'stream') -> str:
