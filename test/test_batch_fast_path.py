@@ -52,6 +52,34 @@ def test_rate_monitor_observe_run_equals_one_by_one(window, single_writer):
     assert a.episodes > 0      # the off-rate stretches were seen
 
 
+def test_pass_run_observed_is_pass_run_then_observe_run():
+    from piezo_narx_ros.command.stamps import StampGate, pass_run_observed
+    rng = np.random.default_rng(4)
+    pairs = [(StampGate(PERIOD, 100), RateMonitor(PERIOD, 0.01, 50)) for _ in range(2)]
+    assert pass_run_observed(*pairs[1], np.array([T0], dtype=np.int64)) is None   # no stream
+    for g, _ in pairs:
+        g.push(T0)
+    for _ in range(300):
+        m = int(rng.integers(0, 30))
+        steps = rng.choice([PERIOD, PERIOD, PERIOD, 3 * PERIOD, 0.7 * PERIOD], m)
+        if rng.random() < 0.3:       # a stretch at another rate, on the gate's grid
+            steps = np.full(m, 1.2 * PERIOD)
+        (g1, r1), (g2, r2) = pairs
+        stamps = (g1.last + np.cumsum(steps)).astype(np.int64)
+        for _ in range(int(rng.integers(0, 3))):
+            r1.received()
+            r2.received()
+        ok = g1.pass_run(stamps)
+        want = r1.observe_run(stamps) if ok else None
+        got = pass_run_observed(g2, r2, stamps)
+        assert (got is None) == (not ok) and g1.last == g2.last
+        if ok:
+            assert got[0].tolist() == want.tolist() and got[1] == int(want.sum())
+        assert (r1._st == r2._st).all() and (r1._ring == r2._ring).all()
+        assert _same(r1.ratio, r2.ratio) and r1._received == r2._received
+    assert pairs[1][1].episodes >= 1      # the other rate was seen
+
+
 def _command_stream(rng, n):
     """Stamps and volts of a stream with every kind of trouble in some of its stretches."""
     t = T0 + np.arange(n, dtype=np.int64) * PERIOD

@@ -74,3 +74,23 @@ def on_grid_run(t_ns, last, period, tolerance):
             return False
         prev = t_ns[i]
     return True
+
+
+@njit(cache=True)
+def pass_and_observe(t_ns, last, grid_tolerance, received, period, tolerance, min_steps,
+                     single_writer, ring, st, fst, off_out):
+    """
+    on_grid_run, then, when the batch passes, observe_run (each = 1): one call for both.
+
+    Returns -1 when a stamp is off the grid (nothing changed), else how many samples are off
+    rate (off_out filled as observe_run fills it).
+    """
+    if not on_grid_run(t_ns, last, period, grid_tolerance):
+        return -1
+    observe_run(t_ns, received, 1, period, tolerance, min_steps, single_writer, ring, st, fst,
+                off_out)
+    n_off = 0
+    for i in range(off_out.shape[0]):
+        if off_out[i]:
+            n_off += 1
+    return n_off

@@ -182,6 +182,10 @@ def _load_kernels() -> None:
                        np.zeros(sk.N_INT_STATE, dtype=np.int64), np.zeros(2),
                        np.zeros(1, dtype=np.bool_))
         sk.on_grid_run(t, 0, 1.0, GRID_TOLERANCE)
+        sk.pass_and_observe(t, 0, GRID_TOLERANCE, 0, 1.0, 0.01, RATE_MIN_STEPS, False,
+                            np.zeros((RATE_MIN_STEPS + 1, 3), dtype=np.int64),
+                            np.zeros(sk.N_INT_STATE, dtype=np.int64), np.zeros(2),
+                            np.zeros(1, dtype=np.bool_))
         _KERNELS_LOADED = True
 
 
@@ -297,6 +301,27 @@ class RateMonitor:
         if arrivals > 1.25 * stream:
             text += f'; {arrivals:.6g} commands/s arrive (the others are off the grid)'
         return text
+
+
+def pass_run_observed(gate: StampGate, rate: RateMonitor, t_ns: np.ndarray):
+    """
+    Return gate.pass_run(t_ns) and, when it passes, rate.observe_run(t_ns), in one compiled call.
+
+    t_ns: (n,) int64 ns, C-contiguous. None when the batch does not pass (nothing changed);
+    else (the `off` verdict after each sample (n,) bool, how many are off): a batch path's
+    stamp and rate checks at the price of one.
+    """
+    if gate._held or gate.last is None or t_ns.shape[0] == 0:
+        return None
+    offs = np.empty(t_ns.shape[0], dtype=np.bool_)
+    n_off = sk.pass_and_observe(t_ns, gate.last, GRID_TOLERANCE, rate._received,
+                                rate.period_ns, rate.tolerance, RATE_MIN_STEPS,
+                                rate.single_writer, rate._ring, rate._st, rate._fst, offs)
+    if n_off < 0:
+        return None
+    gate.last = int(t_ns[-1])
+    rate._received = 0
+    return offs, n_off
 
 
 def model_rate(model, fs: float | None = None) -> float:

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from piezo_narx_ros.command.stamps import (GRID_TOLERANCE, RATE_TOLERANCE, SAMPLE, RateMonitor,
-                                           StampGate, model_rate)
+                                           StampGate, model_rate, pass_run_observed)
 from piezo_narx_ros.errors import ConfigError, DataError
 from piezo_narx_ros.estimator.memory import memory_bracket
 from piezo_narx_ros.estimator.stamp_table import StampTable
@@ -324,9 +324,12 @@ class FreeRunEstimator:
             ul = v.tolist()
             clean = bool(ul) and math.isfinite(sum(ul)) and \
                 self.u_min <= min(ul) and max(ul) <= self.u_max
-        if (clean and self._stepper is not None and self._memory is None
-                and not self.reanchor_every and self.gate.pass_run(t)):
-            return self._run_batch(t, ul, v)
+        passed = None
+        if clean and self._stepper is not None and self._memory is None \
+                and not self.reanchor_every:
+            passed = pass_run_observed(self.gate, self.rate, t)    # stamp and rate checks
+        if passed is not None:
+            return self._run_batch(t, ul, v, *passed)
         self._hand_over()
         out = [e for ti, vi in zip(t.tolist(), ul) for e in self.on_command(ti, vi)]
         return self.as_arrays(out)
@@ -358,12 +361,16 @@ class FreeRunEstimator:
         self._meas.extend(tl, yl, all(a < b for a, b in zip(tl, tl[1:])))
         return self.as_arrays([])
 
-    def _run_batch(self, t: np.ndarray, ul: list, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Run the batch fast path of on_commands (its conditions hold: see there)."""
+    def _run_batch(self, t: np.ndarray, ul: list, v: np.ndarray, off: np.ndarray,
+                   withheld: int) -> tuple[np.ndarray, np.ndarray]:
+        """
+        Run the batch fast path of on_commands (its conditions hold: see there).
+
+        The stamps passed the gate and the rate check: off (n,) bool and withheld, their verdict.
+        """
         st = self.stats
         n = len(ul)
         st.commands += n
-        off = self.rate.observe_run(t)
         if self.vector or min(ul) < self.u_lo or max(ul) > self.u_hi:
             # Estimated, but the model extrapolates there (finite here: no NaN to follow).
             beyond = _rows_beyond(v, self.u_lo, self.u_hi)
@@ -374,7 +381,6 @@ class FreeRunEstimator:
         self._last_t, self._last_u = tl[-1], ul[-1]
         y = self._stepper.step_many(v)
         yl = list(y) if self.vector else y.tolist()
-        withheld = int(np.count_nonzero(off))
         st.rate_withheld += withheld
         st.estimates += n - withheld
         self.out_of_range_now = not _within(yl[-1], self.y_lo, self.y_hi)
