@@ -183,3 +183,45 @@ def test_fit_searches_by_default_and_resumes_from_the_command_line(tmp_path, rec
         weights_sha256(load_model(tmp_path / 'b' / 'model.json'))
     code, _, err = fit(tmp_path / 'c', '--trials', '0')
     assert code == 2 and 'trials must be an integer in [1' in err
+
+
+def test_sigint_then_resume_ends_on_the_uninterrupted_model(tmp_path, records):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    paths = []
+    for name, rec in (('est', records[0][0]), ('val', records[1][0])):
+        paths.append(tmp_path / f'{name}.npz')
+        np.savez(paths[-1], u=rec.u[:, 0], y=rec.y[:, 0], fs=FS)
+    env = {**os.environ, 'PYTHONUNBUFFERED': '1'}
+
+    def argv(out, *extra):
+        return [sys.executable, '-m', 'piezo_narx_ros.cli.main', 'fit', str(paths[0]),
+                '--validate', str(paths[1]), '--out', str(out), '--families', 'arx',
+                '--trials', '16', '--batch', '2', '--init-samples', '200', '--jobs', '1',
+                '--no-report', '--quiet', *extra]
+    proc = subprocess.Popen(argv(tmp_path / 'cut'), env=env, stderr=subprocess.PIPE, text=True)
+    trials = tmp_path / 'cut' / 'trials'
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and len(list(trials.glob('*.model.json'))) < 3:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert 'continue it with the same command and --resume' in err
+    done = subprocess.run(argv(tmp_path / 'cut', '--resume'), env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    whole = subprocess.run(argv(tmp_path / 'whole'), env=env, capture_output=True, text=True,
+                           timeout=300)
+    assert whole.returncode == 0, whole.stderr
+    from piezo_narx_ros.ident.model_io import load_model
+    assert weights_sha256(load_model(tmp_path / 'cut' / 'model.json')) == \
+        weights_sha256(load_model(tmp_path / 'whole' / 'model.json'))
+    cut = json.loads((tmp_path / 'cut' / 'candidates.json').read_text())
+    assert cut['search']['taken_over'] >= 3
+    assert [c['label'] for c in cut['candidates']] == [
+        c['label'] for c in json.loads((tmp_path / 'whole' / 'candidates.json').read_text())[
+            'candidates']]

@@ -541,9 +541,22 @@ def _run_search(args, settings, config, inputs, executor, out) -> int:
     if not args.quiet:
         print(f'searching {options.trials} trials over {", ".join(options.families)} on '
               f'{executor.describe()}; study: {out / "study.journal"}')
-    with executor:
-        result = run_search(est, val, options, executor, out, resume=args.resume,
-                            force=args.force)
+    import signal
+    import sys
+
+    def stop(signum, frame):      # SIGTERM as Ctrl-C: the workers are stopped, the study kept
+        raise KeyboardInterrupt
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        with executor:
+            result = run_search(est, val, options, executor, out, resume=args.resume,
+                                force=args.force)
+    except KeyboardInterrupt:
+        print(f'piezo-narx: the search is stored in {out}: continue it with the same command '
+              'and --resume', file=sys.stderr)
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     _warn_about_estimation(records, config)
     info = {'split': None if validation else config.split,
             'line': data_line([r.u for r in records], [r.y for r in records])}
