@@ -171,14 +171,17 @@ def test_driver_with_fake_rig_reproduces_the_plant_stream(probe):
         stamps = probe.send(u)
         probe.wait(lambda: len(probe.deflection) >= len(u), 20.0,
                    lambda: f'all deflection samples, got {len(probe.deflection)}')
-        # Malformed datagrams at the driver's reply port are counted and survived.
+        # Datagrams at the driver's reply port from another port than the target's are dropped,
+        # counted and said (a WARN), and survived.
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as junk:
             for data in (b'x', b'PZRG' + bytes(20), p.pack_command(p.Command(1, 0, (1.0,)))):
                 junk.sendto(data, ('127.0.0.1', local_port))
         probe.send([5.0])
         probe.wait(lambda: len(probe.deflection) > len(u), 10.0, 'a sample after the junk')
-        probe.wait(lambda: any(diagnostic_values(s).get('replies_malformed') == '3'
-                               for s in probe.status), 5.0, 'malformed count on /diagnostics')
+        probe.wait(lambda: any(diagnostic_values(s).get('datagrams_foreign') == '3'
+                               and s.level == DIAG_WARN and '3 datagrams from an address other '
+                               "than the target's" in s.message for s in probe.status), 5.0,
+                   'foreign datagrams on /diagnostics')
     finally:
         out = stop(driver)
         stop(rig)
@@ -195,7 +198,8 @@ def test_driver_with_fake_rig_reproduces_the_plant_stream(probe):
     last = diagnostic_values(probe.status[-1])
     # (reply_timeouts may count start-up pings sent before fake_rig was listening)
     assert int(last['replies']) >= len(u) and last['replies_duplicate'] == '0'
-    assert last['receive_errors'] == '0' and last['datagrams_foreign'] == '0'
+    assert last['receive_errors'] == '0' and last['datagrams_foreign'] == '3'
+    assert last['replies_malformed'] == '0' and last['replies_mismatched'] == '0'
 
 
 def test_driver_with_fake_rig_equals_simulator_node_across_lost_commands():
@@ -338,6 +342,8 @@ def test_limits_clamp_and_watchdog_ramps_to_zero_at_the_slew_limit(probe):
     ({'reply_timeout': -1.0}, 'parameter reply_timeout must be >= 1e-05'),
     ({'target_host': 'no.such.host.invalid'},
      "target_host 'no.such.host.invalid' cannot be resolved"),
+    ({'target_host': '192.0.2.7'}, 'local_host 127.0.0.1 is a loopback address but the target '
+     '192.0.2.7 is not'),
 ])
 def test_bad_parameters_are_refused_with_a_reason(params, reason):
     proc = start_driver(local_port=0, **params)

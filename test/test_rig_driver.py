@@ -231,3 +231,55 @@ def test_an_early_ramp_tick_still_moves_no_faster_than_the_slew_limit():
     drv.tick(0.0619)                                  # 1.9 ms later: sent, 1.9 V
     drv.tick(0.0629)                                  # 1.0 ms later: too early, skipped
     assert [c.volts[0] for c in target.sent[1:]] == pytest.approx([48.0, 46.1])
+
+
+def test_a_reply_pairs_only_with_a_command_sent_and_only_once():
+    drv, target = make()
+    drv.command([1.0], stamp_ns=1000, now=0.0)
+    cmd = target.sent[0]
+    forged = p.Command(cmd.seq, 999_999, cmd.volts)          # right seq, a stamp never sent
+    assert drv.receive(target.reply(forged), now=0.001) is None
+    assert drv.counts['replies_mismatched'] == 1
+    level, msg, _ = drv.report(0.001)
+    assert level == DIAG_WARN and 'stamps are not those of their command' in msg
+    s = drv.receive(target.reply(cmd), now=0.002)              # the real answer still pairs
+    assert s.stamp_ns == 1000 and not s.late
+    for _ in range(4):                                         # 5 replies to one command
+        assert drv.receive(target.reply(cmd), now=0.003) is None
+    assert drv.counts['samples_answered'] == 1 and drv.counts['replies_duplicate'] == 4
+
+
+def test_a_batch_reply_must_echo_exactly_its_commands_stamps():
+    drv, target = make()
+    drv.command([1.0], stamp_ns=1000, now=0.0)
+    cmd = target.sent[0]
+    five = p.pack_reply_batch(p.ReplyBatch(cmd.seq, (1000, 2000, 3000, 4000, 5000),
+                                           ((1e-7,),) * 5, ((1.0,),) * 5))
+    assert drv.receive_batch(five, now=0.001) == []
+    assert drv.counts['replies_mismatched'] == 1 and drv.counts['samples_answered'] == 0
+    drv.tick(0.02)                                    # expired: a late reply must match too
+    assert drv.receive_batch(five, now=0.021) == []
+    assert drv.counts['replies_mismatched'] == 2
+    one = p.pack_reply_batch(p.ReplyBatch(cmd.seq, (1000,), ((1e-7,),), ((1.0,),)))
+    [s] = drv.receive_batch(one, now=0.022)
+    assert s.stamp_ns == 1000 and s.late
+
+
+def test_a_late_reply_to_a_ramp_datagram_is_not_published():
+    drv, target = make()
+    drv.command([1.0], 0, 0.0)
+    drv.receive(target.reply(target.sent[0]), 0.0001)
+    drv.tick(0.1)                                              # watchdog: a ramp datagram
+    ramp = target.sent[-1]
+    assert ramp.flags & p.FLAG_RAMP
+    drv.tick(0.2)                                              # and it times out
+    assert drv.receive(target.reply(ramp), 0.21) is None
+
+
+def test_datagrams_from_elsewhere_are_a_warning_while_they_arrive():
+    drv, _ = make()
+    level, msg, values = drv.report(0.0, foreign=30_399)
+    assert level == DIAG_WARN and "30399 datagrams from an address other than the target's" in msg
+    assert values['datagrams_foreign'] == 30_399
+    level, _, _ = drv.report(1.0, foreign=30_399)              # none since: OK again
+    assert level == DIAG_OK

@@ -129,3 +129,29 @@ def test_ping_reports_the_last_measurement_without_stepping(rig):
     plant = PiezoCantilever(load_plant_params(), fs=2000.0, seed=3)
     assert [cmd.position_m[0], nxt.position_m[0]] == [plant.step(80.0)[0], plant.step(80.0)[0]]
     assert rig.pings == 2 and rig.commands == 2
+
+
+def test_client_binds_loopback_and_drops_datagrams_from_another_port():
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as target:
+        target.bind(('127.0.0.1', 0))
+        client = RigClient('127.0.0.1', target.getsockname()[1], 0)
+        got = []
+        client.start(lambda data, now: got.append(data))
+        try:
+            assert client.sock.getsockname()[0] == '127.0.0.1'
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as spoof:   # same IP, other port
+                spoof.sendto(b'spoofed', ('127.0.0.1', client.local_port))
+            target.sendto(b'real', ('127.0.0.1', client.local_port))
+            deadline = time.monotonic() + 2.0
+            while not got and time.monotonic() < deadline:
+                time.sleep(1e-3)
+        finally:
+            client.close()
+    assert got == [b'real'] and client.foreign == 1
+
+
+def test_a_loopback_bind_with_a_remote_target_is_refused_in_one_line():
+    from piezo_narx_ros.errors import ConfigError
+    with pytest.raises(ConfigError, match='local_host 127.0.0.1 is a loopback address but the '
+                       'target 192.0.2.7 is not'):
+        RigClient('192.0.2.7', 50000, 0)

@@ -19,6 +19,7 @@ piezo_narx_ros.rig.driver.RigDriver.
 """
 from __future__ import annotations
 
+import secrets
 import time
 
 from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
@@ -33,7 +34,7 @@ from piezo_narx_ros.nodes.diagnostics import Diagnostics
 from piezo_narx_ros.nodes.params import ParamSpec
 from piezo_narx_ros.nodes.runtime import PiezoNode, main_for
 from piezo_narx_ros.nodes.topics import TOPIC_COMMAND, TOPIC_DEFLECTION
-from piezo_narx_ros.rig.client import RigClient, resolve_target
+from piezo_narx_ros.rig.client import RigClient, check_reachable, resolve_target
 from piezo_narx_ros.rig.driver import (DIAG_ERROR, DIAG_OK, DIAG_WARN, STATE_RAMPING,
                                        DriverConfig, RigDriver)   # levels as ints
 
@@ -58,6 +59,9 @@ class DriverNode(PiezoNode, LifecycleNode):
                   check=(_nonempty, 'must not be empty'), read_only=True),
         ParamSpec('target_port', 50000, 'UDP port of the target', low=1, high=65535,
                   read_only=True),
+        ParamSpec('local_host', '127.0.0.1', 'local address the reply socket binds (loopback by '
+                  'default; the interface facing a remote target, or 0.0.0.0 for every one)',
+                  check=(_nonempty, 'must not be empty'), read_only=True),
         ParamSpec('local_port', 50001, 'local UDP port the replies come back to (0 = any free '
                   'port)', low=0, high=65535, read_only=True),
         ParamSpec('axis', 'x', 'axis name taken from voltage_command and written on deflection',
@@ -100,7 +104,8 @@ class DriverNode(PiezoNode, LifecycleNode):
             ramp_rate=p['ramp_rate'], reply_timeout=p['reply_timeout'],
             protocol_version=p['protocol_version'] or 1)
         self.config.validate()
-        resolve_target(p['target_host'], p['target_port'])   # refuse a bad host at start-up
+        # Refuse a bad host, or a bind address the target's replies cannot reach, at start-up.
+        check_reachable(p['local_host'], resolve_target(p['target_host'], p['target_port'])[0])
         self.axis = p['axis']
         self.address = f"{p['target_host']}:{p['target_port']}"
         self.client: RigClient | None = None
@@ -138,10 +143,12 @@ class DriverNode(PiezoNode, LifecycleNode):
         """Bind the socket, start receiving, ping the target until it answers."""
         p = self.params
         try:
-            self.client = RigClient(p['target_host'], p['target_port'], p['local_port'])
+            self.client = RigClient(p['target_host'], p['target_port'], p['local_port'],
+                                    p['local_host'])
         except ConfigError as exc:
             return self._configure_failed(str(exc))
-        self.driver = RigDriver(self.config, self.client.send)
+        # A random first seq: a blind spoofer cannot guess which numbers are in flight.
+        self.driver = RigDriver(self.config, self.client.send, seq0=secrets.randbits(32))
         self.client.start(self.on_datagram)
         deadline = time.monotonic() + p['connect_timeout']
         # protocol_version 0: ping in both versions; a version-2 answer selects version 2.
@@ -340,11 +347,10 @@ class DriverNode(PiezoNode, LifecycleNode):
         if self.driver is None:
             level = DIAG_ERROR if self.problem else DIAG_OK
             return bytes([level]), self.problem or self.lifecycle, values
-        level, message, report = self.driver.report(time.monotonic())
+        level, message, report = self.driver.report(time.monotonic(), self.client.foreign)
         values.update(report)
         values['protocol_version'] = self.driver.version
-        values.update(datagrams_foreign=self.client.foreign,
-                      receive_errors=self.client.callback_errors)
+        values['receive_errors'] = self.client.callback_errors
         if self.client.callback_errors:
             values['last_receive_error'] = self.client.last_error
         if self.estopped:

@@ -16,13 +16,15 @@ class RigClient:
     A UDP socket bound to (local_host, local_port) that talks to (target_host, target_port).
 
     `send(data)` may raise OSError (the driver counts it). `start(on_datagram)` runs a thread that
-    calls on_datagram(data, t_monotonic_s) for every datagram received from the target address;
-    datagrams from any other address are ignored (counted in `foreign`).
+    calls on_datagram(data, t_monotonic_s) for every datagram received from the target's address
+    and port; datagrams from anywhere else are ignored (counted in `foreign`). The socket binds
+    loopback unless told otherwise, so nothing off the machine can reach it by default.
     """
 
     def __init__(self, target_host: str, target_port: int, local_port: int = 0,
-                 local_host: str = '0.0.0.0'):
+                 local_host: str = '127.0.0.1'):
         self.target = resolve_target(target_host, target_port)
+        check_reachable(local_host, self.target[0])
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         # Room for a burst of replies while the receive thread waits for the GIL.
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 21)
@@ -56,7 +58,7 @@ class RigClient:
         self._thread.start()
 
     def _run(self, on_datagram) -> None:
-        target_ip = self.target[0]
+        target_ip, target_port = self.target
         while not self._stop.is_set():
             try:
                 data, addr = self.sock.recvfrom(_MAX_DATAGRAM)
@@ -69,7 +71,8 @@ class RigClient:
                     break
                 time.sleep(0.001)
                 continue
-            if addr[0] != target_ip and not _both_loopback(addr[0], target_ip):
+            if addr[1] != target_port or (addr[0] != target_ip
+                                          and not _both_loopback(addr[0], target_ip)):
                 self.foreign += 1
                 continue
             try:
@@ -93,6 +96,19 @@ def resolve_target(host: str, port: int) -> tuple[str, int]:
     except (socket.gaierror, UnicodeError) as exc:
         raise ConfigError(f'target_host {host!r} cannot be resolved: {exc}') from None
     return infos[0][4]
+
+
+def check_reachable(local_host: str, target_ip: str) -> None:
+    """Raise ConfigError (one line) when replies from target_ip can never reach local_host."""
+    if _is_loopback(local_host) and not _is_loopback(target_ip):
+        raise ConfigError(f'local_host {local_host} is a loopback address but the target '
+                          f'{target_ip} is not: its replies cannot reach this socket; set '
+                          'local_host to the address of the interface facing the target '
+                          '(0.0.0.0: every interface)')
+
+
+def _is_loopback(host: str) -> bool:
+    return host.startswith('127.') or host == 'localhost'
 
 
 def _both_loopback(a: str, b: str) -> bool:

@@ -80,25 +80,29 @@ class Sample:
 
 @dataclass
 class _Pending:
-    sent_at: float   # monotonic s
-    publish: bool    # False for watchdog ramp datagrams (no command stamp to answer)
+    sent_at: float               # monotonic s
+    publish: bool                # False for watchdog ramp datagrams (no command stamp to answer)
+    stamps: tuple[int, ...]      # ns, the stamps this datagram carried: a reply must echo them
 
 
-class _BoundedSeqSet:
-    """The last `size` sequence numbers seen (old ones forgotten), for duplicate/late detection."""
+class _BoundedSeqMap:
+    """The last `size` sequence numbers seen with a value each (old ones forgotten)."""
 
     def __init__(self, size: int = 4096):
-        self._items: OrderedDict[int, None] = OrderedDict()
+        self._items: OrderedDict[int, object] = OrderedDict()
         self._size = size
 
-    def add(self, seq: int) -> None:
-        self._items[seq] = None
+    def add(self, seq: int, value=None) -> None:
+        self._items[seq] = value
         self._items.move_to_end(seq)
         while len(self._items) > self._size:
             self._items.popitem(last=False)
 
     def discard(self, seq: int) -> None:
         self._items.pop(seq, None)
+
+    def get(self, seq: int):
+        return self._items.get(seq)
 
     def __contains__(self, seq: int) -> bool:
         return seq in self._items
@@ -116,6 +120,7 @@ COUNTERS = (
     'replies_late',        # replies that arrived after reply_timeout
     'replies_duplicate',   # a second reply to the same command
     'replies_unknown',     # a reply to a command never sent (or long forgotten)
+    'replies_mismatched',  # a reply whose stamps are not those of the command its seq names
     'replies_malformed',   # datagrams that failed validation (bad magic, size, ...)
     'reply_timeouts',      # commands unanswered after reply_timeout
     'target_faults',       # replies carrying the target's fault flag
@@ -141,9 +146,10 @@ class RigDriver:
         self.counts = dict.fromkeys(COUNTERS, 0)
         self._seq = seq0 % protocol.SEQ_MODULO
         self._pending: OrderedDict[int, _Pending] = OrderedDict()
-        self._answered = _BoundedSeqSet()
-        self._expired = _BoundedSeqSet()
-        self._ignored = _BoundedSeqSet()   # negotiation pings left unanswered on purpose
+        self._answered = _BoundedSeqMap()
+        self._expired = _BoundedSeqMap()   # seq -> its _Pending, for a late reply
+        self._ignored = _BoundedSeqMap()   # negotiation pings left unanswered on purpose
+        self._foreign_reported = 0
         self._last_send: float | None = None
         self._last_reply: float | None = None
         self._latencies: deque[float] = deque(maxlen=2000)
@@ -328,7 +334,7 @@ class RigDriver:
         else:
             data = protocol.pack_command(protocol.Command(seq, stamp_ns, tuple(volts.tolist()),
                                                           flags))
-        self._transmit(seq, data, now, publish)
+        self._transmit(seq, data, now, publish, (stamp_ns,))
 
     def _send_batch(self, volts: list, stamps: list, now: float) -> None:
         if not stamps:
@@ -336,9 +342,10 @@ class RigDriver:
         seq = self._seq
         data = protocol.pack_command_batch(protocol.CommandBatch(
             seq, tuple(stamps), tuple(tuple(v.tolist()) for v in volts)))
-        self._transmit(seq, data, now, True)
+        self._transmit(seq, data, now, True, tuple(stamps))
 
-    def _transmit(self, seq: int, data: bytes, now: float, publish: bool) -> None:
+    def _transmit(self, seq: int, data: bytes, now: float, publish: bool,
+                  stamps: tuple[int, ...]) -> None:
         self._seq = (self._seq + 1) % protocol.SEQ_MODULO
         self._last_send = now
         self._answered.discard(seq)  # after a wrap-around the number is new again
@@ -349,15 +356,18 @@ class RigDriver:
             self.counts['send_errors'] += 1
             return
         self.counts['datagrams_sent'] += 1
-        self._pending[seq] = _Pending(now, publish)
+        self._pending[seq] = _Pending(now, publish, stamps)
 
     # ------------------------------------------------------------------------------ replies
     def receive(self, data: bytes, now: float) -> Sample | None:
         """
         Account for one datagram from the target; the Sample to publish, or None.
 
-        Replies to commands are published even when late (the measurement and its stamp are still
-        right); duplicates, unknown sequence numbers, ramp replies and malformed datagrams are not.
+        A reply is published only when it answers a command sample this driver sent: its seq is
+        one sent and not answered yet, and it echoes that command's stamp (published with the
+        stamp the driver sent, never one the target made up). Replies are published even when
+        late (the measurement and its stamp are still right); duplicates, unknown sequence
+        numbers, mismatched stamps, ramp replies and malformed datagrams are not.
         """
         with self._lock:
             try:
@@ -365,18 +375,21 @@ class RigDriver:
             except protocol.DatagramError:
                 self.counts['replies_malformed'] += 1
                 return None
-            got = self._account(reply.seq, reply.flags, reply.position_m, now, 1)
+            got = self._account(reply.seq, (reply.stamp_ns,), reply.flags, reply.position_m,
+                                now)
             if got is None:
                 return None
-            return Sample(reply.seq, reply.stamp_ns, tuple(reply.position_m),
-                          tuple(reply.applied_volts), *got)
+            stamps, late, fault = got
+            return Sample(reply.seq, stamps[0], tuple(reply.position_m),
+                          tuple(reply.applied_volts), late, fault)
 
     def receive_batch(self, data: bytes, now: float) -> list[Sample]:
         """
         Account for one datagram of either version; the Samples to publish, in datagram order.
 
-        A version-1 reply gives at most one (as `receive`), a version-2 reply one per sample, all
-        sharing the datagram's seq, lateness and fault flag.
+        A version-1 reply gives at most one (as `receive`), a version-2 reply one per sample of
+        the command it answers (it must echo exactly that command's stamps), all sharing the
+        datagram's seq, lateness and fault flag.
         """
         if protocol.datagram_version(data) != protocol.VERSION_BATCH:
             sample = self.receive(data, now)
@@ -387,26 +400,32 @@ class RigDriver:
             except protocol.DatagramError:
                 self.counts['replies_malformed'] += 1
                 return []
-            got = self._account(reply.seq, reply.flags, reply.position_m[-1], now,
-                                len(reply.stamps_ns), protocol.VERSION_BATCH)
+            got = self._account(reply.seq, tuple(reply.stamps_ns), reply.flags,
+                                reply.position_m[-1], now, protocol.VERSION_BATCH)
             if got is None:
                 return []
-            return [Sample(reply.seq, t, tuple(pos), tuple(app), *got) for t, pos, app in
-                    zip(reply.stamps_ns, reply.position_m, reply.applied_volts)]
+            stamps, late, fault = got
+            return [Sample(reply.seq, t, tuple(pos), tuple(app), late, fault) for t, pos, app in
+                    zip(stamps, reply.position_m, reply.applied_volts)]
 
-    def _account(self, seq: int, flags: int, position, now: float, n_samples: int,
-                 version: int = protocol.VERSION) -> tuple[bool, bool] | None:
+    def _account(self, seq: int, stamps: tuple[int, ...], flags: int, position, now: float,
+                 version: int = protocol.VERSION) -> tuple[tuple[int, ...], bool, bool] | None:
         """
-        Match a valid reply to its command (lock held): (late, target fault) to publish it.
+        Match a valid reply to its command (lock held): (stamps, late, target fault) to publish.
 
-        None when it is not to be published (duplicate, unknown seq, ping or ramp reply).
+        None when it is not to be published (duplicate, unknown seq, stamps other than the
+        command's, ping or ramp reply). A reply with the right seq but the wrong stamps leaves
+        the command waiting for its real answer: it is counted, not paired.
         """
-        self.versions_seen.add(version)
         if seq in self._ignored:
             self._ignored.discard(seq)
             return None
-        pending = self._pending.pop(seq, None)
+        pending = self._pending.get(seq)
         if pending is not None:
+            if stamps != pending.stamps:
+                self.counts['replies_mismatched'] += 1
+                return None
+            del self._pending[seq]
             late = now - pending.sent_at > self.config.reply_timeout
             if late:
                 # Not expired by tick() yet, but late all the same.
@@ -417,8 +436,12 @@ class RigDriver:
                 self._latencies.append(now - pending.sent_at)
             publish = pending.publish
         elif seq in self._expired:
+            expired = self._expired.get(seq)
+            if stamps != expired.stamps:
+                self.counts['replies_mismatched'] += 1
+                return None
             self._expired.discard(seq)
-            late, publish = True, True
+            late, publish = True, expired.publish
             self.counts['replies_late'] += 1
         elif seq in self._answered:
             self.counts['replies_duplicate'] += 1
@@ -426,6 +449,7 @@ class RigDriver:
         else:
             self.counts['replies_unknown'] += 1
             return None
+        self.versions_seen.add(version)
         self._answered.add(seq)
         self._last_reply = now
         self._last_position = tuple(position)
@@ -433,8 +457,8 @@ class RigDriver:
         self.counts['target_faults'] += fault
         if not publish:
             return None
-        self.counts['samples_answered'] += n_samples
-        return late, fault
+        self.counts['samples_answered'] += len(stamps)
+        return stamps, late, fault
 
     def _expire(self, now: float) -> None:
         limit = now - self.config.reply_timeout
@@ -444,12 +468,17 @@ class RigDriver:
             if pending.sent_at >= limit:
                 break
             del self._pending[seq]
-            self._expired.add(seq)
+            self._expired.add(seq, pending)
             self.counts['reply_timeouts'] += 1
 
     # -------------------------------------------------------------------------- diagnostics
-    def report(self, now: float) -> tuple[int, str, dict]:
-        """Return (level, one-line message, {key: value}) for /diagnostics, since the last call."""
+    def report(self, now: float, foreign: int = 0) -> tuple[int, str, dict]:
+        """
+        Return (level, one-line message, {key: value}) for /diagnostics, since the last call.
+
+        foreign: datagrams received so far from an address other than the target's (the socket
+        drops them; counted by RigClient), a WARN while more arrive.
+        """
         with self._lock:
             self._expire(now)
             c = self.counts
@@ -493,10 +522,18 @@ class RigDriver:
             for key, what in (('replies_malformed', 'malformed datagrams'),
                               ('replies_duplicate', 'duplicate replies'),
                               ('replies_unknown', 'replies to unknown commands'),
+                              ('replies_mismatched', 'replies whose stamps are not those of '
+                               'their command (not published: a spoofed or confused target)'),
                               ('commands_rejected', 'commands rejected')):
                 if delta[key]:
                     level = max(level, DIAG_WARN)
                     problems.append(f'{delta[key]} {what}')
+            new_foreign, self._foreign_reported = foreign - self._foreign_reported, foreign
+            values['datagrams_foreign'] = foreign
+            if new_foreign > 0:
+                level = max(level, DIAG_WARN)
+                problems.append(f'{new_foreign} datagrams from an address other than the '
+                                "target's (ignored)")
             message = '; '.join(problems) if problems else f'{self.state}'
             return level, message, values
 
