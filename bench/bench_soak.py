@@ -21,9 +21,10 @@ Printed:
 - samples lost per stream, outside the injected windows (target 0) and inside them. A stream's
   window is the part of the run a fault could touch (from 0.5 s before the injection to 0.5 s
   after it ends): every stream for sigstop and burst, the estimate for the estimator restart
-  (until the new estimator's first estimate), every stream for the recorder kill (until the new
-  recorder's first message). Expected samples are the command node's grid t0 + k/fs from its
-  first to its last recorded stamp;
+  (until the new estimator's first estimate: the first stamped after the old process exited),
+  every stream for the recorder kill (until the new recorder's first message of that stream).
+  Expected samples are the command node's grid t0 + k/fs from its first to its last recorded
+  stamp;
 - recovery after each fault: when every stream's lateness (arrival - stamp) is back under the
   quiet-period threshold for 200 consecutive samples, counted from the end of the injection
   (for the restarts, from the kill: it includes the new process's start-up), and when the
@@ -238,8 +239,9 @@ class Soak:
         self.retire('estimator')
         old.send_signal(signal.SIGTERM)
         old.wait(20)
+        # Everything stamped from here on can only be the new process's: the old one is gone.
         self.events['estimator'] = {'start': t0, 'end': None, 'streams': ('deflection_estimate',),
-                                    'code': old.returncode,
+                                    'code': old.returncode, 'exited': time.time_ns(),
                                     'last_status': probe.status('estimator')}
         self.start_estimator()
         # Back when the new estimator reports estimates (the exact first one: from the bag).
@@ -371,13 +373,19 @@ def recovery_ms(data, start_ns: int, thr_ns: float, t0: int, period: int,
     return worst
 
 
+def window_end(event: dict, topic: str) -> int:
+    """End of a fault's window for one stream, ns: a restart's is per stream (analyse)."""
+    end = event['end']
+    return end[topic] if isinstance(end, dict) else end
+
+
 def counters(kv: dict | None, keys) -> str:
     return ', '.join(f'{k} {(kv or {}).get(k)}' for k in keys)
 
 
 ESTIMATOR_KEYS = ('commands', 'estimates', 'stamp_outliers', 'stream_restarts',
-                  'rejected_nonfinite', 'rejected_range', 'gaps', 'filled', 'out_of_range',
-                  'init')
+                  'rejected_nonfinite', 'rejected_range', 'refused_messages', 'gaps', 'filled',
+                  'out_of_range', 'init')
 
 
 def analyse(soak: Soak, probe: Probe) -> None:
@@ -391,15 +399,19 @@ def analyse(soak: Soak, probe: Probe) -> None:
     k_own = (own[on_grid(own, t0, period)] - t0) // period
     k_all = np.arange(0, int(k_own.max()) + 1)
     end_ns = t0 + int(k_all[-1]) * period
+    # Each restart's window ends at the first sample of the process that replaces the faulty
+    # one, per stream: not at the old process's last words after its SIGTERM.
     if 'estimator' in ev:
-        # The new estimator's first estimate: stamped after the kill (the old one's backlog,
-        # still arriving after the kill, carries earlier stamps).
+        # The new estimator's first estimate: stamped after the old process exited (whatever
+        # the old one published between SIGTERM and its exit carries earlier stamps).
         s, logs = data['deflection_estimate']
-        later = logs[s >= ev['estimator']['start']]
-        ev['estimator']['end'] = int(later.min()) if later.size else end_ns
+        later = logs[s >= ev['estimator']['exited']]
+        ev['estimator']['end'] = {'deflection_estimate': int(later.min()) if later.size
+                                  else end_ns}
     if 'recorder' in ev:
-        first = read_bags(soak.bags[-1:])['voltage_command'][1]
-        ev['recorder']['end'] = int(first.min()) if first.size else end_ns
+        fresh = read_bags(soak.bags[-1:])      # the new recorder's own bag
+        ev['recorder']['end'] = {t: int(fresh[t][1].min()) if fresh[t][1].size else end_ns
+                                 for t in TOPICS}
     load = np.array(soak.load)
     print(f'\n1-minute load average during the run (every 5 s): min {load.min():.2f}, median '
           f'{np.median(load):.2f}, max {load.max():.2f} ({os.cpu_count()} cores)')
@@ -426,7 +438,7 @@ def analyse(soak: Soak, probe: Probe) -> None:
     for topic, (stamps, _) in data.items():
         k = np.unique((stamps[on_grid(stamps, t0, period)] - t0) // period)
         missing = np.setdiff1d(k_all, k)
-        windows = [(e['start'] - margin, e['end'] + margin) for e in ev.values()
+        windows = [(e['start'] - margin, window_end(e, topic) + margin) for e in ev.values()
                    if topic in e['streams']]
         t_missing = t0 + missing * period
         inside = np.zeros(missing.size, bool)
@@ -436,6 +448,8 @@ def analyse(soak: Soak, probe: Probe) -> None:
 
     print('\nrecovery after each fault')
     diag = [(t, lvl, msg) for t, name, lvl, msg, _ in probe.diag if 'estimator' in name]
+    for e in ev.values():       # from here on one end per fault: its last stream's
+        e['end'] = max(e['end'].values()) if isinstance(e['end'], dict) else e['end']
     for name, e in ev.items():
         restart = name in ('estimator', 'recorder')
         rec = recovery_ms(data, e['start'] if restart else e['end'], thr, t0, period)

@@ -13,6 +13,9 @@ CASES = [
     ('command_node', ['-p', 'f_max:=5000.0'], 'f_max'),     # above fs/2: refused by the generator
     ('command_node', ['-p', 'preamble:=ramp'], 'preamble must be one of'),
     ('simulator_node', ['-p', 'axes:=[""]'], 'axes must be a non-empty list'),
+    # issue 45: one axis named twice (two signals called x, one simulated, one estimated)
+    ('command_node', ['-p', "axes:=['x','x']"], 'axes must be a non-empty list of distinct'),
+    ('simulator_node', ['-p', "axes:=['x','x']"], 'axes must be a non-empty list of distinct'),
     ('simulator_node', ['-p', 'plant_params:=/nonexistent/plant.yaml'], 'plant.yaml'),
     ('estimator_node', [], 'model must name a model file'),
     ('estimator_node', ['-p', 'model:=/nonexistent/m.json'], '/nonexistent/m.json'),

@@ -117,7 +117,8 @@ def test_bad_references_are_counted_limited_and_survived(model_file):
                             .get('references') == '602', 5.0)
         _, _, values = col.diag['/badref/controller_node']
         assert ctl.poll() is None                     # still running
-        assert values['rejected_nonfinite'] == '3'    # NaN, inf and the message without x
+        assert values['rejected_nonfinite'] == '2'    # NaN and inf
+        assert values['refused_messages'] == '1'      # the message without x, said as such
         assert values['out_of_range'] == '52' and values['stamp_outliers'] == '2'
         assert int(values['voltage_limited']) >= 40
         t, u = col.arrays('voltage_command')
@@ -148,3 +149,32 @@ def test_bad_parameters_end_in_one_line(model_file, tmp_path):
                       'mode:=inverse_feedback', '-p', 'use_deflection:=false')
     assert proc.wait(60) == 2
     assert 'needs use_deflection:=true' in proc.stderr.read()
+
+
+def test_a_hand_widened_input_range_cannot_push_commands_past_the_safety_limits(
+        model_file, tmp_path):
+    """Issue 45: a model file claiming +-5000 V made the node command -3450 V."""
+    import json
+    import shutil
+    doc = json.loads(model_file.read_text())
+    doc['input_range'] = [-5000.0, 5000.0]
+    wide = tmp_path / model_file.name
+    wide.write_text(json.dumps(doc))
+    shutil.copy(model_file.with_suffix('.npz'), tmp_path)
+    col = Collector('/wide', ('voltage_command',), diagnostics=True)
+    pub = col.node.create_publisher(JointState, 'position_reference', sample_qos(depth=1000))
+    ctl = start_node('controller_node', '-p', f'model:={wide}', '-p', 'slew_rate:=0.0',
+                     '-p', 'y_min:=-0.001', '-p', 'y_max:=0.001', ns='/wide')
+    try:
+        assert wait_matched(pub, col._data_subs, 1, 40.0)
+        for k in range(400):        # far beyond what 200 V move the stage: up to the limits
+            pub.publish(make_joint_state(10**18 + k * P, ['x'],
+                                         position=[1e-3 * math.sin(k / 30.0)]))
+            time.sleep(0.0005)
+        assert col.wait_for(lambda: len(col.data['voltage_command']) >= 400, 20.0)
+    finally:
+        codes = stop([ctl])
+        col.close()
+    assert codes == [0]
+    _, u = col.arrays('voltage_command')
+    assert u.min() == -200.0 and u.max() == 200.0       # v_min / v_max, not the file's range

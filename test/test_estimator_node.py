@@ -221,6 +221,8 @@ def test_nan_range_and_gap_injection_counted_and_survived(toy_model_file):
             if k not in skip:
                 col.pub.publish(make_joint_state(t0 + k * P, ['x'], effort=[sent[k]]))
                 time.sleep(0.0005)
+            if k == 300:      # a message without the axis: refused and said so, not "non-finite"
+                col.pub.publish(make_joint_state(t0 + 301 * P, ['y'], effort=[0.0]))
         assert col.wait_for(lambda: len(col.data['deflection_estimate']) >= 400, 20.0)
         assert col.wait_for(lambda: col.diag.get('/inj/estimator_node', (0, '', {}))[2]
                             .get('commands') == '395', 5.0)
@@ -233,6 +235,7 @@ def test_nan_range_and_gap_injection_counted_and_survived(toy_model_file):
         assert np.max(np.abs(y_hat - model.simulate(held))) <= 1e-12
         level, message, values = col.diag['/inj/estimator_node']
         assert values['rejected_nonfinite'] == '2' and values['rejected_range'] == '1'
+        assert values['refused_messages'] == '1'
         assert values['gaps'] == '1' and values['filled'] == '8'
     finally:
         codes = stop([est])

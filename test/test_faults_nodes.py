@@ -557,7 +557,7 @@ def test_malformed_bytes_reaching_a_running_simulator_and_estimator_are_counted_
         # Diagnostics are periodic: wait for a status that has counted every command (one
         # taken between the last rejection and the last command said 252 of 300).
         assert col.wait_for(lambda: values('simulator_node').get('rejected') == '3'
-                            and values('estimator_node').get('rejected_nonfinite') == '3'
+                            and values('estimator_node').get('refused_messages') == '3'
                             and values('estimator_node').get('commands') == str(n), 10.0), (
             values('simulator_node'), values('estimator_node'))
         assert sim.poll() is None and est.poll() is None              # still running

@@ -50,7 +50,7 @@ def test_two_axis_pipeline_publishes_every_axis_as_offline(tmp_path):
         # recorded, it is the bag's first command and the reader still pairs x and y by name.
         probe.pub.publish(encode_joint_trajectory([10**18], ['x'], effort=[[1.0]]))
         assert probe.wait_for(lambda: probe.diag.get(f'{ns}/estimator_node', (0, {}))[1]
-                              .get('rejected_nonfinite') == '1', 10.0)
+                              .get('refused_messages') == '1', 10.0)
         procs.append(start_node('command_node', '-p', f'fs:={FS}', '-p', f'batch:={batch}',
                                 '-p', "axes:=['x','y']", '-p', 'loop:=false', '-p',
                                 f'seconds:={n / FS}', '-p', 'wait_for_subscribers:=4', '-p',
@@ -80,7 +80,7 @@ def test_two_axis_pipeline_publishes_every_axis_as_offline(tmp_path):
     assert np.concatenate([b.t_ns for b in est]).tolist() == t.tolist()
     y_hat = np.concatenate([b.position for b in est])
     assert np.allclose(y_hat, model.simulate(u), rtol=0, atol=1e-12 * np.ptp(y_hat))
-    assert values['rejected_nonfinite'] == '1'          # the batch without y
+    assert values['refused_messages'] == '1'            # the batch without y
     assert sim                                           # the simulator refused it too
     # The recorded bag reads back as one record of two inputs and two outputs, by name.
     from piezo_narx_ros.bag.reader import read_uy_report

@@ -197,7 +197,8 @@ def test_estimator_answers_batches_and_survives_nan_gap_and_bad_batches(toy_mode
     for k in [100, 150, 151, *range(200, 205)]:
         held[k] = held[k - 1]
     assert np.max(np.abs(y_hat - model.simulate(held))) <= 1e-12
-    assert values['rejected_nonfinite'] == str(2 + 2) and values['rejected_range'] == '1'
+    assert values['rejected_nonfinite'] == '2' and values['rejected_range'] == '1'
+    assert values['refused_messages'] == '2'        # the two refused batches, said as such
     assert values['gaps'] == '1' and values['filled'] == '8'
     assert codes == [0]
 

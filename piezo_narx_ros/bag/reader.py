@@ -17,6 +17,7 @@ from typing import Iterator
 
 import numpy as np
 
+from piezo_narx_ros.axis_names import repeated
 from piezo_narx_ros.bag.pairing import (StreamCheck, clean_stream, pair_by_stamp,
                                         sample_clock)
 from piezo_narx_ros.bag.writer import (BATCH_SUFFIX, COMMAND_TOPIC, DEFLECTION_TOPIC,
@@ -286,6 +287,13 @@ def read_joint_series(path: str | Path, fields: dict[str, str], axis: str | int 
                 logs.append(log_ns)
                 keys.append(key)
                 values.append(arr)
+    for topic, keys in seen.items():
+        for names in keys:
+            dup = repeated(names)
+            if dup is not None:
+                raise BagError(f'bag {path}: {absolute_topic(topic)} carries messages naming '
+                               f'axis {dup!r} twice ({", ".join(names)}): their values cannot '
+                               'be told apart')
     return {t: _series(t, acc[t], list(seen[t]), axis) for t in fields}
 
 

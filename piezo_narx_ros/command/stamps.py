@@ -163,6 +163,11 @@ class StampGate:
 RATE_TOLERANCE = 0.01
 # The first verdict needs this many sample periods of stamps (a few ms at kHz rates).
 RATE_MIN_STEPS = 3
+# A received command counts as an arrival of the stream (one writer sending more commands than
+# grid points) only when its stamp lies this many periods after the last accepted one: the
+# in-between stamps of a faster stream do, the outliers of a burst (stamps seconds or hours
+# away, duplicates of past ones) do not, so a burst cannot make a good stream look too fast.
+ARRIVAL_AFTER = (GRID_TOLERANCE, 2.5)
 
 
 _KERNELS_LOADED = False
@@ -205,7 +210,7 @@ class RateMonitor:
     """
 
     __slots__ = ('period_ns', 'tolerance', 'window', 'single_writer', '_ring', '_st', '_fst',
-                 '_one_t', '_one_off', '_received')
+                 '_one_t', '_one_off', '_received', '_near')
 
     def __init__(self, period_ns: float, tolerance: float = RATE_TOLERANCE, window: int = 2000):
         if not (period_ns > 0 and tolerance > 0 and window >= RATE_MIN_STEPS + 1):
@@ -214,6 +219,7 @@ class RateMonitor:
         self.period_ns = float(period_ns)
         self.tolerance = float(tolerance)
         self.window = int(window)
+        self._near = (ARRIVAL_AFTER[0] * self.period_ns, ARRIVAL_AFTER[1] * self.period_ns)
         # The state lives in arrays that one compiled kernel (stamp_kernels.observe_run) updates
         # for a sample or a batch alike.
         self._st = np.zeros(sk.N_INT_STATE, dtype=np.int64)
@@ -260,8 +266,17 @@ class RateMonitor:
         st[sk.I_N] = st[sk.I_COUNT] = st[sk.I_HEAD] = st[sk.I_LAST] = st[sk.I_HAS_LAST] = 0
         self._received = 0                  # received() calls not yet passed to the kernel
 
-    def received(self) -> None:
-        """Count one incoming command (accepted or refused by the gate)."""
+    def received(self, t_ns: int | None = None) -> None:
+        """
+        Count one incoming command (accepted or refused by the gate), stamped t_ns (ns).
+
+        With its stamp, it counts only when that lies ARRIVAL_AFTER periods after the last
+        accepted stamp (or there is none yet): where a faster stream's commands lie.
+        """
+        if t_ns is not None and self._st[sk.I_HAS_LAST]:
+            d = t_ns - int(self._st[sk.I_LAST])
+            if not self._near[0] <= d <= self._near[1]:
+                return
         self._received += 1
 
     def observe(self, t_ns: int) -> bool:

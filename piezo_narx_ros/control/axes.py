@@ -34,7 +34,8 @@ import numpy as np
 from piezo_narx_ros.command.stamps import (RATE_TOLERANCE, SAMPLE, RateMonitor, StampGate,
                                            model_rate)
 from piezo_narx_ros.control.controller import PositionController, bridge_gap
-from piezo_narx_ros.control.health import ANTI_PHASE, MIN_JUDGED, ControllerHealth
+from piezo_narx_ros.control.health import (ANTI_PHASE, MIN_JUDGED, ControllerHealth,
+                                           nonfinite_line)
 from piezo_narx_ros.counters import ERROR, OK
 from piezo_narx_ros.errors import ConfigError, DataError
 
@@ -150,6 +151,8 @@ class VectorInverse:
                 jac = np.column_stack([(self._peek(u + e) - y) / self.du
                                        for e in np.eye(self.n_in) * self.du])
                 square = jac.shape[0] == jac.shape[1]
+            if not (np.isfinite(jac).all() and np.isfinite(y).all()):
+                break           # a model giving NaN/inf: no step to take, u stays finite
             try:
                 step = np.linalg.solve(jac, r - y) if square else \
                     np.linalg.lstsq(jac, r - y, rcond=None)[0]
@@ -163,7 +166,7 @@ class VectorInverse:
             y = self._peek(u)
         miss = y - r
         limit = 'reached'
-        if np.max(np.abs(miss)) > self.reach_tol:
+        if not (np.abs(miss) <= self.reach_tol).all():      # NaN: not reached
             at_volts = (u <= self.u_min) | (u >= self.u_max)
             limit = ('voltage' if at_volts.any() else 'slew') if clipped else 'not_invertible'
         return VectorSolution(u, y, miss, limit)
@@ -198,6 +201,9 @@ class AxesStats:
     stream_restarts: int = 0
     rate_refused: int = 0
     measurements_rejected: int = 0  # deflections without every axis (chains: the rest pass on)
+    model_nonfinite: int = 0        # commands after which the model's output was NaN/inf
+    refused_messages: int = 0       # reference messages the node could not read (axis missing)
+    last_refusal: str = ''          # and why the last one was refused
 
 
 class AxesController:
@@ -290,11 +296,14 @@ class AxesController:
             return self.chains.status()
         values = dict(vars(self.stats))
         values['u_last'] = [round(float(v), 6) for v in self.inverse.u_prev]
-        grew = {k: v - self._last_values.get(k, 0) for k, v in vars(self.stats).items()}
+        grew = {k: v - self._last_values.get(k, 0) for k, v in vars(self.stats).items()
+                if k != 'last_refusal'}
         self._last_values = dict(vars(self.stats))
         if self.rate.off:
             return 2, self.rate.describe('reference') + ': no commands sent', values
         errors = self.watch.problems()
+        if grew['model_nonfinite']:
+            errors.insert(0, nonfinite_line(grew['model_nonfinite'], grew['commands']))
         if errors:
             return ERROR, errors[0] + (f' (+{len(errors) - 1} more)' if len(errors) > 1
                                        else ''), values
@@ -302,7 +311,9 @@ class AxesController:
             ('unreachable', 'reference(s) out of reach (limits or not invertible)'),
             ('rejected_nonfinite', 'non-finite reference(s) held'),
             ('out_of_range', 'reference(s) clamped to [y_min, y_max]'),
-            ('stamp_outliers', 'reference stamp(s) refused')) if grew[k]]
+            ('stamp_outliers', 'reference stamp(s) refused'),
+            ('refused_messages', f'reference message(s) refused (the last: '
+                                 f'{self.stats.last_refusal})')) if grew[k]]
         if words:
             return 1, '; '.join(words) + ' since the last report', values
         return 0, f'ok ({self.mode}, {self.n_out} axes)', values
@@ -315,7 +326,7 @@ class AxesController:
         if self.chains:
             return self._from_chains(self.chains.on_reference(t_ns, self._checked(r)))
         self.stats.references += 1
-        self.rate.received()
+        self.rate.received(t_ns)
         return self._apply(self.gate.push(t_ns, r))
 
     def flush(self) -> list[tuple[int, np.ndarray]]:
@@ -373,7 +384,10 @@ class AxesController:
         else:
             self._last_ref = r
             u = self._command(r, dt)
-        inv.commit(u)
+            if not np.isfinite(u).all():     # never send what the solver could not decide
+                u = inv.u_prev
+        if not np.isfinite(inv.commit(u)).all():
+            st.model_nonfinite += 1
         st.commands += 1
         if r is not None:
             self.watch.add(r, u)
@@ -389,7 +403,7 @@ class AxesController:
                             else 'slew')
             return u
         sol = inv.solve(r, dt)
-        if sol.limit != 'reached':
+        if sol.limit != 'reached' and np.isfinite(sol.miss).all():    # NaN: model_nonfinite
             self._count(sol.limit)
         return sol.u
 
@@ -521,7 +535,8 @@ class ChainAxes:
         for key in ('commands', 'gaps', 'filled', 'stamp_outliers', 'stream_restarts',
                     'rate_refused'):
             setattr(stats, key, getattr(first, key))
-        for key in ('unreachable', 'voltage_limited', 'slew_limited', 'not_invertible'):
+        for key in ('unreachable', 'voltage_limited', 'slew_limited', 'not_invertible',
+                    'model_nonfinite'):
             setattr(stats, key, sum(getattr(c.stats, key) for c in self.axes))
 
     def status(self) -> tuple[int, str, dict]:

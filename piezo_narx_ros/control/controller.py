@@ -77,6 +77,9 @@ class ControllerStats:
     windup_holds: int = 0        # integrator steps skipped by the anti-windup
     requested_resets: int = 0    # ~/reset
     rate_refused: int = 0        # references refused: their stream's rate is not the model's
+    model_nonfinite: int = 0     # commands after which the model's output was NaN/inf
+    refused_messages: int = 0    # reference messages the node could not read (axis missing...)
+    last_refusal: str = ''       # and why the last one was refused
 
 
 class PositionController:
@@ -205,7 +208,7 @@ class PositionController:
         None while the stamp is held, several when held references are released.
         """
         self.stats.references += 1
-        self.rate.received()
+        self.rate.received(t_ns)
         out: list[tuple[int, float]] = []
         self._apply(self.gate.push(t_ns, r), out)
         return out
@@ -322,7 +325,11 @@ class PositionController:
             self._refs[t_ns] = r
             if len(self._refs) > self._keep:
                 del self._refs[next(iter(self._refs))]
+        if not math.isfinite(u):       # never send what the solver could not decide
+            u = inv.u_prev
         inv.commit(u)
+        if not math.isfinite(inv.y_model):
+            st.model_nonfinite += 1
         st.commands += 1
         out.append((t_ns, u))
 
@@ -354,6 +361,8 @@ class PositionController:
         target -= self.advance * (r - r_prev)
         sol = inv.solve(target, dt)
         self._limited = 0
+        if not math.isfinite(sol.miss):
+            return sol.u        # a model that gives NaN/inf misses nothing: model_nonfinite
         if sol.limit != REACHED:
             self._limited = 1 if sol.miss < 0 else -1
             self._count_limit(sol.limit, abs(sol.miss))
@@ -391,6 +400,33 @@ def bridge_gap(ctl, t_ns: int) -> float | None:
                 ctl.inverse.commit(ctl.inverse.u_prev)
     ctl._last_t = t_ns
     return dt
+
+
+def safety_bounded(limits: dict, v_min, v_max) -> tuple[dict, str]:
+    """
+    Intersect command limits {'u_min', 'u_max'} (V, scalars or per axis) with the safety window.
+
+    The node's own [v_min, v_max] bounds every command whatever a model file's trained range
+    (or u_min/u_max) says. Returns (limits, note): the note says what was cut, '' when nothing.
+    ConfigError (one line) when nothing of the limits lies inside the window.
+    """
+    lo, hi = np.asarray(limits['u_min'], float), np.asarray(limits['u_max'], float)
+    b_lo, b_hi = np.maximum(lo, v_min), np.minimum(hi, v_max)
+    if not (b_lo < b_hi).all():
+        raise ConfigError(f'the command limits [{_volts(lo)}, {_volts(hi)}] V lie outside the '
+                          f'safety limits [{v_min:g}, {v_max:g}] V (v_min, v_max)')
+    note = ''
+    if (b_lo != lo).any() or (b_hi != hi).any():
+        note = (f'the command limits [{_volts(lo)}, {_volts(hi)}] V (the trained input range '
+                f'the model file claims, or u_min/u_max) exceed the safety limits '
+                f'[{v_min:g}, {v_max:g}] V: every command is bounded by them')
+    if lo.ndim == 0:
+        return {'u_min': float(b_lo), 'u_max': float(b_hi)}, note
+    return {'u_min': b_lo, 'u_max': b_hi}, note
+
+
+def _volts(v: np.ndarray) -> str:
+    return ' '.join(f'{x:g}' for x in np.atleast_1d(v))
 
 
 def input_limits(model, margin: float = 0.05, fallback: float = 200.0) -> dict:

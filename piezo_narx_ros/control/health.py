@@ -36,6 +36,7 @@ _WARN_ON = (
                     'sent)'),
     ('out_of_range', 'reference(s) outside [y_min, y_max] clamped'),
     ('rejected_nonfinite', 'non-finite reference(s): the previous one held'),
+    ('refused_messages', 'reference message(s) refused'),
     ('stamp_outliers', 'reference stamp(s) refused as outliers (backwards, far in the future, '
                        'duplicate or a second writer): no command sent'),
     ('stream_restarts', 'reference stream restart(s) followed (the model kept its state)'),
@@ -52,7 +53,14 @@ _CUMULATIVE = ('references', 'commands', 'rejected_nonfinite', 'out_of_range', '
                'stamp_outliers', 'stream_restarts', 'unreachable', 'voltage_limited',
                'slew_limited', 'not_invertible', 'measurements', 'measurements_rejected',
                'measurements_late', 'feedback_stale', 'windup_holds', 'requested_resets',
-               'rate_refused')
+               'rate_refused', 'model_nonfinite', 'refused_messages')
+
+
+def nonfinite_line(n: int, commands: int) -> str:
+    """Return the ERROR phrase for commands after which the model's output was NaN/inf."""
+    return (f"{n} of {commands} commands: the model's output is not finite (NaN/inf), so it "
+            'cannot be inverted and no target is met (commands held); the model file is '
+            'unusable (piezo-narx evaluate refuses it): refit or load another')
 
 
 class ControllerHealth:
@@ -65,7 +73,8 @@ class ControllerHealth:
                             [name for name, _ in self._warn] + ['commands', 'voltage_limited',
                                                                 'slew_limited',
                                                                 'not_invertible',
-                                                                'rate_refused'])
+                                                                'rate_refused',
+                                                                'model_nonfinite'])
 
     def rate_line(self) -> str:
         """Return the one line that says why no command is sent (the reference stream's rate)."""
@@ -125,6 +134,8 @@ class ControllerHealth:
         if ctl.rate.off or d['rate_refused']:
             errors.append(f'{self.rate_line()} ({d["rate_refused"]} references refused since '
                           'the last report)')
+        if d['model_nonfinite']:
+            errors.append(nonfinite_line(d['model_nonfinite'], d['commands']))
         tracking_errors, problems = self.judge_tracking(values)
         errors += tracking_errors
         if reference_publishers is not None and reference_publishers > 1:
@@ -139,6 +150,8 @@ class ControllerHealth:
                         f'{miss:.3g} m (voltage limit {d["voltage_limited"]}, slew limit '
                         f'{d["slew_limited"]}, model flat/folded {d["not_invertible"]}): '
                         'closest input sent')
+            elif name == 'refused_messages':
+                text += f' (the last: {st.last_refusal})'
             problems.append(text)
         problems += ctl.notes
         values.update({k: getattr(st, k) for k in _CUMULATIVE})

@@ -52,6 +52,10 @@ class EstimatorStats:
     estimates: int = 0         # estimates returned for publication
     rejected_nonfinite: int = 0
     rejected_range: int = 0
+    # messages the node could not read (an axis missing, names repeated, malformed), and why
+    # the last one was refused
+    refused_messages: int = 0
+    last_refusal: str = ''
     gaps: int = 0              # stamp gaps detected (events)
     filled: int = 0            # samples estimated from a held command (gaps + rejected)
     # commands refused: their stamp continues neither the running stream nor a new one
@@ -221,13 +225,13 @@ class FreeRunEstimator:
             self._wait = bool(measurement_available)
             self._decided = True
 
-    def request_restart(self, from_measurement: bool) -> None:
+    def request_restart(self, from_measurement: bool) -> str:
         """
-        Restart the free run at the next command.
+        Restart the free run at the next command; returns the one line that says how.
 
-        From rest (all past u, y = 0), or from the next n0 measured samples (`from_measurement`;
-        still from rest after init_timeout without them). The estimator node's ~/reset and
-        ~/reinitialize services.
+        From rest (all past u, y = 0), or from the next init_samples measured samples
+        (`from_measurement`; still from rest after init_timeout without them). The estimator
+        node's ~/reset and ~/reinitialize services.
         """
         if from_measurement and self.init_mode == 'rest':
             raise ConfigError("init is 'rest': this estimator never initialises from measurement")
@@ -235,6 +239,11 @@ class FreeRunEstimator:
         self._wait = bool(from_measurement)
         self._decided = True
         self.stats.requested_restarts += 1
+        if not from_measurement:
+            return 'free run restarts from rest at the next command'
+        n, wait = self.init_samples, self.init_timeout_samples
+        return (f'free run restarts from the next {n} measured samples ({n / self.fs:g} s; '
+                f'from rest if they do not come within {wait / self.fs:g} s)')
 
     @property
     def initialised(self) -> bool:
@@ -280,7 +289,7 @@ class FreeRunEstimator:
             u = np.array(u, dtype=np.float64).reshape(self.n_in)   # kept: a copy
         self._hand_over()
         self.stats.commands += 1
-        self.rate.received()
+        self.rate.received(t_ns)
         if not self._decided:
             self._decided = True
             self._wait = self.init_mode == 'measurement'

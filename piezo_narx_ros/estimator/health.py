@@ -22,11 +22,13 @@ _WARN_ON = (
     ('stream_restarts', 'command stream restart(s) (a loop, a new run or a long jump): free '
                         'run restarted'),
     ('rejected_nonfinite', 'non-finite command(s) held'),
+    ('refused_messages', 'message(s) refused'),
     ('rejected_range', 'command(s) outside [u_min, u_max] held'),
     ('gaps', 'gap(s) in the command stamps, filled by holding'),
     ('input_out_of_range', 'command(s) outside the trained input range: the model extrapolates'),
 )
-_CUMULATIVE = ('commands', 'estimates', 'rejected_nonfinite', 'rejected_range', 'gaps', 'filled',
+_CUMULATIVE = ('commands', 'estimates', 'rejected_nonfinite', 'rejected_range',
+               'refused_messages', 'gaps', 'filled',
                'stamp_outliers', 'stream_restarts', 'out_of_range', 'reanchors', 'unestimated',
                'init', 'rate_withheld', 'input_out_of_range')
 
@@ -85,6 +87,8 @@ class EstimatorHealth:
                             f'range (up to {excursion:.3g} m beyond it)')
                 elif name == 'input_out_of_range':
                     text += f' (up to {u_beyond:.3g} V beyond it)'
+                elif name == 'refused_messages':
+                    text += f' (the last: {st.last_refusal})'
                 problems.append(text)
         problems += self.notes
         if st.state == 'undetermined' and st.state_spread_m > 0:

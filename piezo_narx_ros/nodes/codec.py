@@ -15,6 +15,7 @@ from typing import Sequence
 import numpy as np
 from sensor_msgs.msg import JointState
 
+from piezo_narx_ros.axis_names import repeated
 from piezo_narx_ros.errors import DataError
 
 
@@ -71,7 +72,8 @@ class Sample:
 
 
 def parse_joint_state(msg: JointState) -> Sample:
-    """Convert a JointState to a Sample (no validation of values; see Sample.value)."""
+    """Convert a JointState to a Sample (names checked, values not: see Sample.value)."""
+    check_message_names(msg.name)
     return Sample(stamp_to_ns(msg.header.stamp), list(msg.name), list(msg.position),
                   list(msg.effort))
 
@@ -109,7 +111,17 @@ def _read_header_names(buf: bytes):
         (n,) = struct.unpack_from(e + 'I', data, off)
         names.append(bytes(data[off + 4:off + 3 + n]).decode())
         off += 4 + n
+    # Read only when a message's shape is new: a stream's usual message takes the fast path.
+    check_message_names(names)
     return e, data, sec * 1_000_000_000 + nsec, names, off
+
+
+def check_message_names(names) -> None:
+    """Raise DataError when a message names one axis twice (its values cannot be told apart)."""
+    dup = repeated(names)
+    if dup is not None:
+        raise DataError(f'message names axis {dup!r} twice (names: {list(names)}): each axis '
+                        'may appear once')
 
 
 def _read_doubles(e: str, data, off: int) -> tuple[tuple, int]:

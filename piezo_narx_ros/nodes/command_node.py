@@ -35,6 +35,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.parameter import Parameter
 from std_srvs.srv import SetBool
 
+from piezo_narx_ros.axis_names import AXES_CHECK
 from piezo_narx_ros.command.playback import playback_signal
 from piezo_narx_ros.command.stream import CommandStreamer, make_signal
 from piezo_narx_ros.errors import ConfigError
@@ -49,9 +50,6 @@ from piezo_narx_ros.plant.signals import KINDS, PREAMBLES, preamble
 
 OUTPUTS = ('voltage', 'position')
 
-_nonempty = (lambda v: len(v) > 0 and all(isinstance(a, str) and a.strip() for a in v),
-             'must be a non-empty list of non-empty names')
-
 
 class CommandNode(PiezoNode):
     """Thin wiring: parameters -> CommandStreamer; timer -> poll -> publish."""
@@ -65,7 +63,7 @@ class CommandNode(PiezoNode):
                   'without one, or as the target of resample)', low=1.0, high=100000.0,
                   read_only=True),
         ParamSpec('axes', ['x'], 'axis names (one signal per axis, axis i seeded seed + i)',
-                  read_only=True, check=_nonempty),
+                  read_only=True, check=AXES_CHECK),
         ParamSpec('kind', 'multisine', 'signal kind', choices=KINDS, read_only=True),
         ParamSpec('amplitude', 100.0, 'peak deviation from offset, V (m in position mode)',
                   low=0.0, high=1000.0, read_only=True),

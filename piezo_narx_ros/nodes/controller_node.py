@@ -16,9 +16,11 @@ import numpy as np
 from std_srvs.srv import Trigger
 
 from piezo_narx_ros.command.stamps import RATE_TOLERANCE
-from piezo_narx_ros.control.controller import MODES, PositionController, input_limits
+from piezo_narx_ros.control.controller import (MODES, PositionController, input_limits,
+                                               safety_bounded)
 from piezo_narx_ros.control.health import ControllerHealth
 from piezo_narx_ros.control.inverse import TARGETS
+from piezo_narx_ros.errors import ConfigError
 from piezo_narx_ros.nodes.batching import BATCH_PARAM, batch_topic, batch_values, sample_type
 from piezo_narx_ros.nodes.codec import (decode_joint_state, decode_joint_trajectory,
                                         encode_joint_state, encode_joint_trajectory)
@@ -58,6 +60,12 @@ class ControllerNode(PiezoNode):
                   'model was fitted on)', low=-10000.0, high=10000.0, read_only=True),
         ParamSpec('u_max', 0.0, 'highest command, V', low=-10000.0, high=10000.0,
                   read_only=True),
+        ParamSpec('v_min', -200.0, 'lowest voltage this node ever commands, V, whatever the model '
+                  "file's trained range or u_min say (the amplifier's range)", low=-10000.0,
+                  high=0.0, read_only=True),
+        ParamSpec('v_max', 200.0, 'highest voltage this node ever commands, V, whatever the '
+                  "model file's trained range or u_max say", low=0.0, high=10000.0,
+                  read_only=True),
         ParamSpec('slew_rate', 1e5, 'largest command rate of change, V/s (0: no limit)',
                   low=0.0, high=1e12, read_only=True),
         ParamSpec('y_min', 0.0, "lowest accepted reference, m (y_min = y_max = 0: the model's "
@@ -90,7 +98,6 @@ class ControllerNode(PiezoNode):
 
     def __init__(self, **kwargs):
         super().__init__(**kwargs)
-        from piezo_narx_ros.errors import ConfigError
         from piezo_narx_ros.ident.model_io import load_model
         p = self.params
         trained_u = p['u_min'] == p['u_max'] == 0.0
@@ -110,8 +117,8 @@ class ControllerNode(PiezoNode):
         if self.vector:
             self._init_axes(p, trained_u, limits)
             return
-        u_limits = ({'u_min': p['u_min'], 'u_max': p['u_max']} if not trained_u
-                    else input_limits(self.model, p['range_margin']))
+        u_limits = self._safe(p, {'u_min': p['u_min'], 'u_max': p['u_max']} if not trained_u
+                              else input_limits(self.model, p['range_margin']))
         self.ctl = PositionController(
             self.model, mode=p['mode'], fs=p['fs'] or None, **u_limits,
             slew_rate=p['slew_rate'] or math.inf, range_margin=p['range_margin'],
@@ -134,6 +141,16 @@ class ControllerNode(PiezoNode):
         for note in c.notes:
             self.get_logger().warning(note)
 
+    def _safe(self, p, u_limits: dict) -> dict:
+        """Return the command limits within the node's safety window [v_min, v_max]; log a cut."""
+        if not p['v_min'] < p['v_max']:
+            raise ConfigError(f"parameter v_min ({p['v_min']} V) must be below v_max "
+                              f"({p['v_max']} V)")
+        bounded, note = safety_bounded(u_limits, p['v_min'], p['v_max'])
+        if note:
+            self.get_logger().warning(note)
+        return bounded
+
     def _init_axes(self, p, trained_u: bool, limits: dict) -> None:
         """Several axes: AxesController (modes inverse and linear; limits on every axis)."""
         from piezo_narx_ros.control.axes import AxesController
@@ -144,6 +161,7 @@ class ControllerNode(PiezoNode):
             u_limits = {'u_min': u_rng[:, 0] - pad, 'u_max': u_rng[:, 1] + pad}
         else:
             u_limits = {'u_min': p['u_min'], 'u_max': p['u_max']}
+        u_limits = self._safe(p, u_limits)
         # A model of one chain per axis: each chain gets the one-axis controller's options.
         chain = {} if getattr(self.model, 'chains_', None) is None or p['mode'] == 'linear' \
             else {'target': None if p['target'] == 'auto' else p['target'],
@@ -221,15 +239,20 @@ class ControllerNode(PiezoNode):
                 return sample.t_ns, sample.values('position', self._ref_names)
             return sample.t_ns, sample.value('position', self.axis)
         except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the node
-            self.get_logger().warning(f'{what} message ignored: {exc}',
-                                      throttle_duration_sec=1.0)
+            self._refused(what, 'message', exc)
             return None
+
+    def _refused(self, what: str, kind: str, exc: Exception) -> None:
+        """Log a message that cannot be read; a reference one is counted with its reason."""
+        if what == 'reference':
+            self.ctl.stats.refused_messages += 1
+            self.ctl.stats.last_refusal = str(exc)
+        self.get_logger().warning(f'{what} {kind} ignored: {exc}', throttle_duration_sec=1.0)
 
     def on_reference(self, msg: bytes) -> None:
         got = self._value(msg, 'reference')
         if got is None:
-            self.ctl.stats.rejected_nonfinite += 1   # unusable: counted like a non-finite one
-            return
+            return      # counted in refused_messages; the next reference sees a gap
         self.publish(self.ctl.on_reference(*got))
 
     def on_measurement(self, msg: bytes) -> None:
@@ -246,15 +269,14 @@ class ControllerNode(PiezoNode):
                 return list(zip(b.t_ns.tolist(), b.columns('position', self._ref_names)))
             return batch_values(msg, 'position', self.axis)
         except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the node
-            self.get_logger().warning(f'{what} batch ignored: {exc}', throttle_duration_sec=1.0)
+            self._refused(what, 'batch', exc)
             return None
 
     def on_reference_batch(self, msg: bytes) -> None:
         """Feed a batch sample by sample through the one-sample call; answer with one batch."""
         got = self._values(msg, 'reference')
         if got is None:
-            self.ctl.stats.rejected_nonfinite += 1   # a refused message, as in on_reference
-            return
+            return      # counted in refused_messages, as in on_reference
         self.publish([c for t, r in got for c in self.ctl.on_reference(t, r)])
 
     def on_measurement_batch(self, msg: bytes) -> None:

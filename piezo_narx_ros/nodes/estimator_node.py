@@ -131,9 +131,8 @@ class EstimatorNode(PiezoNode):
 
     def on_reset(self, _request, response):
         """~/reset (std_srvs/Trigger): the free run restarts from rest at the next command."""
-        self.est.request_restart(from_measurement=False)
+        response.message = self.est.request_restart(from_measurement=False)
         response.success = True
-        response.message = 'free run restarts from rest at the next command'
         self.get_logger().info(response.message)
         return response
 
@@ -149,12 +148,11 @@ class EstimatorNode(PiezoNode):
                                'from rest)'
             return response
         try:
-            self.est.request_restart(from_measurement=True)
+            response.message = self.est.request_restart(from_measurement=True)
         except ConfigError as exc:
             response.success, response.message = False, str(exc)
             return response
         response.success = True
-        response.message = f'free run restarts from the next {self.model.n0} measured samples'
         self.get_logger().info(response.message)
         return response
 
@@ -166,8 +164,7 @@ class EstimatorNode(PiezoNode):
                 return sample.t_ns, sample.values(field, names)
             return sample.t_ns, sample.value(field, self.axis)
         except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the node
-            self.get_logger().warning(f'{field} message ignored: {exc}',
-                                      throttle_duration_sec=1.0)
+            self._refused(field, 'message', exc)
             return None
 
     def _values(self, msg: bytes, field: str):
@@ -188,14 +185,20 @@ class EstimatorNode(PiezoNode):
                 return batch.t_ns, batch.columns(field, names)
             return batch.t_ns, batch.column(field, self.axis)
         except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the node
-            self.get_logger().warning(f'{field} batch ignored: {exc}', throttle_duration_sec=1.0)
+            self._refused(field, 'batch', exc)
             return None
+
+    def _refused(self, field: str, what: str, exc: Exception) -> None:
+        """Count and log a message that cannot be read, saying why (for /diagnostics)."""
+        topic = 'command' if field == 'effort' else 'deflection'
+        self.est.stats.refused_messages += 1
+        self.est.stats.last_refusal = f'{topic} {what}: {exc}'
+        self.get_logger().warning(f'{topic} {what} ignored: {exc}', throttle_duration_sec=1.0)
 
     def on_command(self, msg: bytes) -> None:
         got = self._value(msg, 'effort')
         if got is None:
-            self.est.stats.rejected_nonfinite += 1   # unusable: counted like a non-finite one
-            return
+            return      # counted in refused_messages; the next command sees a gap
         self.publish(self._command(*got))
 
     def _command(self, t_ns: int, volts: float):
@@ -212,8 +215,7 @@ class EstimatorNode(PiezoNode):
         """Answer a batch with one batch (FreeRunEstimator.on_commands: one-sample numbers)."""
         got = self._values(msg, 'effort')
         if got is None:
-            self.est.stats.rejected_nonfinite += 1   # a refused message, as in on_command
-            return
+            return      # counted in refused_messages, as in on_command
         if self.est.stats.commands == 0:
             self._command_start()
         self._publish_batch(*self.est.on_commands(*got))

@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 
+from piezo_narx_ros.axis_names import AXES_CHECK
 from piezo_narx_ros.command.stamps import (GRID_TOLERANCE, RATE_TOLERANCE, RESTART, RateMonitor,
                                            StampGate, pass_run_observed)
 from piezo_narx_ros.counters import Since
@@ -80,7 +81,7 @@ class PlantResponder:
         (the plant is not touched).
         """
         self.received += 1
-        self.rate.received()
+        self.rate.received(t_ns)
         try:
             u = [float(volts[a]) for a in self.axes]
         except KeyError as exc:
@@ -202,8 +203,7 @@ class SimulatorNode(PiezoNode):
         ParamSpec('fs', 2000.0, 'sample rate of the commands, Hz', low=1.0, high=100000.0,
                   read_only=True),
         ParamSpec('axes', ['x'], 'axes simulated (one plant each)', read_only=True,
-                  check=(lambda v: len(v) > 0 and all(a.strip() for a in v),
-                         'must be a non-empty list of non-empty names')),
+                  check=AXES_CHECK),
         ParamSpec('plant_params', '', 'plant parameter YAML (empty: config/plant.yaml)',
                   read_only=True),
         ParamSpec('seed', 0, 'seed of the sensor noise (axis i uses seed + i)', low=0,

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from piezo_narx_ros.axis_names import distinct_names
 from piezo_narx_ros.errors import ConfigError, DataError
 from piezo_narx_ros.plant.params import load_plant_params, plant_params_from, read_yaml_mapping
 from piezo_narx_ros.plant.piezo import _NOISE_BLOCK, _NOISE_STREAM, PiezoCantilever
@@ -163,6 +164,11 @@ class CoupledCantilever(AxisPlants):
         y, ua = super().run_checked(u)
         return self._sense(y), ua
 
+    def run_with_truth(self, u) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """run(u), also returning the stage's true deflection: (measured, applied, true) (N, n)."""
+        chain, ua = AxisPlants.run(self, u)
+        return self._sense(chain), ua, self.true_deflection(chain)
+
     def true_deflection(self, chain_deflection) -> np.ndarray:
         """Mix chain deflections (N, n) m through the coupling: the stage's true deflection."""
         return np.asarray(chain_deflection) @ self.coupling.T
@@ -196,10 +202,9 @@ def load_axes_config(path) -> tuple[tuple, list, np.ndarray | None]:
         raise ConfigError(f'{where}: unknown key {unknown[0]!r} (axes, plant, axis_params, '
                           'coupling)')
     axes = doc['axes']
-    if (not isinstance(axes, list) or not axes
-            or not all(isinstance(a, str) and a.strip() for a in axes)
-            or len(set(axes)) != len(axes)):
-        raise ConfigError(f'{where}: axes must be a list of distinct non-empty names')
+    if not isinstance(axes, list) or not distinct_names(axes):
+        raise ConfigError(f'{where}: axes must be a list of distinct non-empty names, got '
+                          f'{axes!r}')
     base = plant_params_from(doc.get('plant') or {}, where)
     per_axis = doc.get('axis_params') or {}
     if not isinstance(per_axis, dict) or set(per_axis) - set(axes):
@@ -229,6 +234,8 @@ def make_axis_plants(axes, path=None, fs: float = 2000.0, seed: int = 0) -> Axis
     else:
         names, params, coupling = (), [load_plant_params()], None
     axes = tuple(axes)
+    if axes and not distinct_names(axes):
+        raise ConfigError(f'axes must be distinct non-empty names, got {list(axes)}')
     if names:
         if axes not in ((), ('x',), names):
             raise ConfigError(f"axes {list(axes)} differ from the plant file's {list(names)}")
