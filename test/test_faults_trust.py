@@ -125,7 +125,7 @@ def test_a_model_that_gives_nan_is_reported_as_such_not_as_a_zero_miss():
 
 def test_a_vector_model_that_gives_nan_sends_finite_commands_and_says_why(arx2):
     from piezo_narx_ros.control.axes import AxesController
-    from piezo_narx_ros.ident.arx import ARXModel
+    from piezo_narx_ros.ident.arx.model import ARXModel
     m = ARXModel(na=2, nb=2).set_coefficients(a=arx2.a, b=arx2.b, c=np.array([1e308, -1e308]))
     m.fs, m.input_range, m.output_range = arx2.fs, arx2.input_range, arx2.output_range
     m.output_2d_ = True

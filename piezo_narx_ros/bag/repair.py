@@ -20,6 +20,7 @@ import yaml
 
 from piezo_narx_ros.bag.writer import lock_recording, typestore
 from piezo_narx_ros.errors import BagError
+from piezo_narx_ros.files import write_atomic, write_text_atomic
 
 
 @dataclass
@@ -188,10 +189,8 @@ def _repair(path: Path, bag_dir: Path, mcap_path: Path, backup: bool) -> RepairR
         old = bag_dir / 'metadata.yaml'
         if backup and old.is_file():
             os.replace(old, bag_dir / 'metadata.yaml.damaged')
-        meta_tmp = bag_dir / 'metadata.yaml.tmp'
-        meta_tmp.write_text(yaml.safe_dump({'rosbag2_bagfile_information': info},
-                                           default_flow_style=False), encoding='utf8')
-        os.replace(meta_tmp, old)
+        write_text_atomic(old, yaml.safe_dump({'rosbag2_bagfile_information': info},
+                                              default_flow_style=False))
     return report
 
 
@@ -203,8 +202,7 @@ def _rewrite_mcap(mcap_path: Path, schemas: dict, channels: dict, messages: list
     Bytes, times and sequence numbers are unchanged.
     """
     from mcap.writer import CompressionType, Writer
-    tmp = mcap_path.with_name(mcap_path.name + '.repairing')
-    with tmp.open('wb') as out:
+    with write_atomic(mcap_path) as out:
         writer = Writer(out, compression=CompressionType.NONE)
         writer.start(profile='ros2', library='piezo_narx_ros bag repair')
         schema_ids = {sid: writer.register_schema(s.name, s.encoding, s.data)
@@ -220,10 +218,9 @@ def _rewrite_mcap(mcap_path: Path, schemas: dict, channels: dict, messages: list
         writer.add_metadata('rosbag2', {'serialized_metadata': yaml.safe_dump(
             info, default_flow_style=False).strip()})
         writer.finish()
-    if backup:
-        report.backup = mcap_path.with_name(mcap_path.name + '.damaged')
-        os.replace(mcap_path, report.backup)
-    os.replace(tmp, mcap_path)
+        if backup:      # before write_atomic renames the new file over it
+            report.backup = mcap_path.with_name(mcap_path.name + '.damaged')
+            os.replace(mcap_path, report.backup)
 
 
 def _metadata(file_name: str, channels: dict, types: dict, counts: dict, t_min: int, t_max: int,

@@ -90,14 +90,13 @@ def _export(args) -> int:
     from piezo_narx_ros.bag.reader import read_uy_report
     from piezo_narx_ros.cli.reading import reading_options
     from piezo_narx_ros.errors import ConfigError
+    from piezo_narx_ros.files import refuse_overwrite, write_atomic, write_npz
     from piezo_narx_ros.ident.data.records import checked
     out = Path(args.out)
     # np.savez appends .npz to any other name: 'e.csv' became 'e.csv.npz' while we said 'e.csv'.
     if out.suffix.lower() not in ('.npz', '.csv'):
         raise ConfigError(f'--out must end in .npz or .csv, got {out}')
-    if out.exists() and not args.force:
-        raise ConfigError(f'--out {out} exists; choose another name or pass --force to '
-                          'overwrite it')
+    refuse_overwrite(out, args.force, '--out')
     reading = reading_options(args)
     rec, report = read_uy_report(args.bag, args.command_topic, args.deflection_topic,
                                  reading['axis'])
@@ -109,8 +108,8 @@ def _export(args) -> int:
     # Several axes: the channel names go with the data (npz keys inputs/outputs, CSV header).
     names = {} if one_axis else {'inputs': np.array(rec.inputs), 'outputs': np.array(rec.outputs)}
     if out.suffix.lower() == '.npz':
-        np.savez(out, u=channels_arg(rec.u), y=channels_arg(rec.y), t=rec.t,
-                 fs=np.float64(rec.fs), **names)
+        write_npz(out, u=channels_arg(rec.u), y=channels_arg(rec.y), t=rec.t,
+                  fs=np.float64(rec.fs), **names)
     else:   # what `fit` reads back: t,u,y with a header, exact to the last bit (%.17g)
         # Several axes: the bag's names, unless inputs and outputs share one (x commands, x
         # deflects): then u1.., y1.. in that order, which `fit` reads without options.
@@ -119,7 +118,8 @@ def _export(args) -> int:
             cols = tuple(f'u{i + 1}' for i in range(rec.n_in)) + \
                 tuple(f'y{i + 1}' for i in range(rec.n_out))
         header = 't,u,y' if one_axis else ','.join(('t',) + cols)
-        np.savetxt(out, np.column_stack([rec.t, rec.u, rec.y]), delimiter=',', fmt='%.17g',
-                   header=header, comments='')
+        with write_atomic(out, 'w', encoding='utf-8') as fh:
+            np.savetxt(fh, np.column_stack([rec.t, rec.u, rec.y]), delimiter=',', fmt='%.17g',
+                       header=header, comments='')
     print(f'wrote {out}: {len(rec)} samples at {rec.fs:.6g} Hz')
     return 0

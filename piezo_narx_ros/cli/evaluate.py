@@ -9,7 +9,7 @@ so a fixed filter here); a model file without one gets an AR noise model fitted 
 residuals themselves, and the JSON says so. Prints a short summary, or with --json one JSON object:
 
     {"model": ..., "inputs": [...], "n": ..., "prediction": {"r2", "rmse", "nrmse", "fit_percent"},
-     "simulation": {...}, "tests": {name: true|false}, "tests_passed": bool,
+     "simulation": {...}, "tests": {name: true|false}, "tests_passed": bool (null when no test could run),
      "tests_residuals": "simulation",
      "tests_noise_model": {"kind", "order", "coef", "source"} | null,
      "tests_raw": {name: true|false}, "tests_detail": {...},
@@ -53,7 +53,8 @@ def add_parser(subparsers):
                         'model fitted with fit --resample')
     p.add_argument('--save-output', metavar='FILE.npz',
                    help='write the free-run output as y_sim beside u and y (and the first '
-                        'scored sample as scored_from)')
+                        'scored sample as scored_from); an existing file only with --force')
+    p.add_argument('--force', action='store_true', help='overwrite --save-output if it exists')
     p.add_argument('--fs', type=float, metavar='HZ', help='sample rate for inputs without one')
     p.add_argument('--max-lag', type=int, default=20, metavar='L',
                    help='correlation test lags (default 20)')
@@ -207,8 +208,15 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
     from piezo_narx_ros.ident.data.saturation import saturation_warnings
 
     if init_samples is not None:
+        from piezo_narx_ros.ident.state.estimate import MIN_WINDOW
+        need = max(MIN_WINDOW, int(model.n0))
         if init_samples < 0:
             raise ConfigError(f'--init-samples must be >= 0, got {init_samples}')
+        if policy is None and 0 < init_samples < need:
+            raise ConfigError(f'--init-samples {init_samples} is too few to set the state: this '
+                              f'model needs at least {need} measured samples (n0 = {model.n0}; '
+                              f'a state is estimated from {MIN_WINDOW} or more); 0 runs from '
+                              'rest')
         records = [replace(r, state_window=int(init_samples), state_policy=policy)
                    for r in records]
     if policy is not None:
@@ -278,7 +286,8 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
         'prediction': _with_per_output(scores['prediction'], model),
         'simulation': _with_per_output(scores['simulation'], model),
         'tests': {k: v['passed'] for k, v in chosen.get('tests', {}).items()},
-        'tests_passed': bool(chosen['passed']),
+        # null, not false, when no test could run (the free run diverged): nothing failed.
+        'tests_passed': bool(chosen['passed']) if chosen.get('tests') else None,
         'tests_residuals': residuals,
         'tests_noise_model': (None if nm is None else
                               {'per_output': nm, 'source': source} if isinstance(nm, list)
@@ -302,27 +311,38 @@ def _with_per_output(block: dict, model) -> dict:
                                      'fit_percent': block['fit_percent']}]}
 
 
-def save_output(model, records, init_samples, path, policy=None) -> None:
-    """
-    Write the free run of the (first) record to an .npz: u (V), y, y_sim (m), scored_from.
-
-    The same free run as the scores (state from the first init_samples samples, or as
-    `evaluate` says for None and 0). Written to a temporary name and renamed.
-    """
-    import os
-    from dataclasses import replace
+def check_save_output(path, records, force: bool = False) -> None:
+    """Raise ConfigError (one line) for a --save-output that cannot or must not be written."""
     from pathlib import Path
 
-    import numpy as np
-
     from piezo_narx_ros.errors import ConfigError
-    from piezo_narx_ros.ident.selection.scoring import free_run, scored_from
+    from piezo_narx_ros.files import refuse_overwrite
     path = Path(path)
     if path.suffix != '.npz':
         raise ConfigError(f'--save-output must name an .npz file, got {path}')
     if len(records) != 1:
         raise ConfigError(f"--save-output writes one record's free run; {len(records)} inputs "
                           'were given')
+    if not path.parent.is_dir():
+        raise ConfigError(f'--save-output directory {path.parent} does not exist')
+    refuse_overwrite(path, force, '--save-output')
+
+
+def save_output(model, records, init_samples, path, policy=None, force: bool = False) -> None:
+    """
+    Write the free run of the (first) record to an .npz: u (V), y, y_sim (m), scored_from.
+
+    The same free run as the scores (state from the first init_samples samples, or as
+    `evaluate` says for None and 0). An existing file only with `force`; written to a fresh
+    temporary file and renamed (files.write_atomic).
+    """
+    from dataclasses import replace
+
+    import numpy as np
+
+    from piezo_narx_ros.files import write_npz
+    from piezo_narx_ros.ident.selection.scoring import free_run, scored_from
+    check_save_output(path, records, force)
     rec = records[0]
     if init_samples is not None:
         rec = replace(rec, state_window=int(init_samples), state_policy=policy)
@@ -331,11 +351,8 @@ def save_output(model, records, init_samples, path, policy=None) -> None:
     # One axis: (N,) arrays as before several axes; several: (N, channels) with their names.
     names = {} if rec.n_in == 1 and rec.n_out == 1 else {
         'inputs': np.array(rec.inputs), 'outputs': np.array(rec.outputs)}
-    tmp = path.with_name(path.name + '.tmp')
-    with open(tmp, 'wb') as fh:
-        np.savez(fh, u=channels_arg(rec.u), y=channels_arg(rec.y), y_sim=channels_arg(sim),
-                 fs=rec.fs, scored_from=scored_from(model, rec), **names)
-    os.replace(tmp, path)
+    write_npz(path, u=channels_arg(rec.u), y=channels_arg(rec.y), y_sim=channels_arg(sim),
+              fs=rec.fs, scored_from=scored_from(model, rec), **names)
 
 
 def run(args) -> int:
@@ -357,6 +374,8 @@ def _run(args) -> int:
     model = load_model(args.model)
     records = load_records(args.inputs, fs=args.fs, command_topic=args.command_topic,
                            deflection_topic=args.deflection_topic, **reading_options(args))
+    if args.save_output:     # before the work: a refusal costs nothing
+        check_save_output(args.save_output, records, args.force)
     if args.resample is not None:
         from piezo_narx_ros.ident.data.resample import resample_record
         records = [resample_record(r, args.resample) for r in records]
@@ -371,7 +390,7 @@ def _run(args) -> int:
     result = evaluate(model, records, args.max_lag, args.max_outside_fraction, args.residuals,
                       args.noise_model, args.noise_order, init_samples, policy)
     if args.save_output:
-        save_output(model, records, init_samples, args.save_output, policy)
+        save_output(model, records, init_samples, args.save_output, policy, args.force)
     result['past'] = args.past
     if args.json:
         print(json.dumps(json_safe(result)))
@@ -395,6 +414,10 @@ def _run(args) -> int:
     if rest is not None:
         print(f'{"from rest":>10}: R² {fmt(rest["r2"], ".6f")}  RMSE {fmt(rest["rmse"], ".4g")} m'
               '  (the same samples; estimator init:=rest where this is the better one)')
+    if not result['tests']:
+        print(f'correlation tests: not run (the {result["tests_residuals"]} residuals are not '
+              'finite: the run diverged)')
+        return 0
     nm = result['tests_noise_model']
     how = describe_noise(nm.get('per_output', nm) if nm else None)
     print(f'correlation tests ({result["tests_residuals"]} residuals, {how}): '

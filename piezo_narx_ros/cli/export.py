@@ -21,6 +21,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help='directory for pnr_model.h and pnr_model.c (created if missing)')
     p.add_argument('--fs', type=float, metavar='HZ',
                    help='sample rate, Hz, for a model file without one')
+    p.add_argument('--force', action='store_true',
+                   help='overwrite pnr_model.h / pnr_model.c in DIR even when an earlier export '
+                        'did not write them')
     return p
 
 
@@ -30,6 +33,6 @@ def run(args) -> int:
     from piezo_narx_ros.ident.model_io import load_model
 
     model = load_model(args.model)
-    header, source = write_c(model, args.c_dir, fs=args.fs, source=args.model)
+    header, source = write_c(model, args.c_dir, fs=args.fs, source=args.model, force=args.force)
     print(f'wrote {header} and {source} ({model.kind}, {model.n_params} parameters)')
     return 0

@@ -158,6 +158,7 @@ def run(args) -> int:
     import numpy as np
 
     from piezo_narx_ros.errors import ConfigError
+    from piezo_narx_ros.files import refuse_overwrite, write_npz
     from piezo_narx_ros.plant import PiezoCantilever, generate, load_plant_params, preamble
 
     out = Path(args.out)
@@ -165,9 +166,7 @@ def run(args) -> int:
         raise ConfigError(f'--out must name an .npz file, got {args.out}')
     if not out.parent.is_dir():
         raise ConfigError(f'--out directory {out.parent} does not exist')
-    if out.exists() and not args.force:
-        raise ConfigError(f'--out {out} exists; choose another name or pass --force to '
-                          'overwrite it')
+    refuse_overwrite(out, args.force, '--out')
     options = {name: getattr(args, flag) for flag, name in SIGNAL_FLAGS.items()
                if getattr(args, flag) is not None}
     playback = args.signal == 'playback'
@@ -180,6 +179,10 @@ def run(args) -> int:
     amplitude = args.amplitude if args.amplitude is not None or playback else 100.0
     if args.seed < 0:
         raise ConfigError(f'--seed must be a non-negative integer, got {args.seed}')
+    from piezo_narx_ros.plant.axes import load_axes_config
+    axes = load_axes_config(args.plant_config)[0] if args.plant_config else ()
+    if axes:
+        return _run_stage(args, axes, out, seconds, amplitude, options)
     params = load_plant_params(args.plant_config)
     u = generate(args.signal, args.fs, seconds, amplitude, offset=args.offset, seed=args.seed,
                  **options)
@@ -200,8 +203,53 @@ def run(args) -> int:
     if lead.size:
         meta['preamble'] = {'kind': args.preamble, 'seconds': args.preamble_seconds,
                             'cycles': args.preamble_cycles, 'samples': int(lead.size)}
-    np.savez(out, u=u, u_applied=res.u_applied, y=res.y, y_true=res.y_true, fs=np.float64(args.fs),
-             t=np.arange(u.size) / args.fs, meta=np.str_(json.dumps(meta)))
+    write_npz(out, u=u, u_applied=res.u_applied, y=res.y, y_true=res.y_true,
+              fs=np.float64(args.fs), t=np.arange(u.size) / args.fs,
+              meta=np.str_(json.dumps(meta)))
     print(f'wrote {out}: {u.size} samples at {args.fs:g} Hz, u {u.min():.1f}..{u.max():.1f} V, '
           f'y {1e6 * np.ptp(res.y):.2f} um peak-to-peak')
+    return 0
+
+
+# Options that shape one cantilever's session (its past, its sensor): not defined for a stage.
+_ONE_AXIS_ONLY = (('history', 0.0), ('sensor_offset', None), ('session', None),
+                  ('sensor_bits', None), ('sensor_span', None), ('preamble', 'none'))
+
+
+def _run_stage(args, axes, out, seconds, amplitude, options) -> int:
+    """
+    Simulate a stage file of several axes: one signal per axis (axis i seeded seed + i).
+
+    Writes u, u_applied, y, y_true as (N, axes) arrays with the axis names (`inputs`,
+    `outputs`), as command_node + simulator_node would stream them.
+    """
+    import json
+
+    import numpy as np
+
+    from piezo_narx_ros.errors import ConfigError
+    from piezo_narx_ros.files import write_npz
+    from piezo_narx_ros.plant import generate
+    from piezo_narx_ros.plant.axes import make_axis_plants
+
+    for name, default in _ONE_AXIS_ONLY:
+        if getattr(args, name) != default:
+            raise ConfigError(f'--{name.replace("_", "-")} shapes one cantilever\'s session; '
+                              f'{args.plant_config} is a stage of {len(axes)} axes '
+                              f'({", ".join(axes)})')
+    u = np.column_stack([generate(args.signal, args.fs, seconds, amplitude, offset=args.offset,
+                                  seed=args.seed + i, **options) for i in range(len(axes))])
+    stage = make_axis_plants(axes, args.plant_config, fs=args.fs, seed=args.seed)
+    y, u_applied, y_true = stage.run_with_truth(u)
+    meta = {'signal': args.signal, 'seconds': u.shape[0] / args.fs, 'amplitude_V': amplitude,
+            'offset_V': args.offset, 'seed': args.seed, 'options': options,
+            'plant_config': str(args.plant_config), 'axes': list(axes),
+            'units': {'u': 'V', 'y': 'm', 't': 's', 'fs': 'Hz'}}
+    names = np.array(axes)
+    write_npz(out, u=u, u_applied=u_applied, y=y, y_true=y_true, fs=np.float64(args.fs),
+              t=np.arange(u.shape[0]) / args.fs, inputs=names, outputs=names,
+              meta=np.str_(json.dumps(meta)))
+    print(f'wrote {out}: {u.shape[0]} samples of {len(axes)} axes ({", ".join(axes)}) at '
+          f'{args.fs:g} Hz, u {u.min():.1f}..{u.max():.1f} V, y '
+          f'{1e6 * np.ptp(y, axis=0).max():.2f} um peak-to-peak at most')
     return 0

@@ -15,6 +15,42 @@ from piezo_narx_ros.export import ExportError
 
 WIDTH = 99          # line length of the generated C
 
+# Printable ASCII that means nothing special anywhere in C text (no backslash, quote or '?',
+# which could start an escape or a trigraph).
+_PLAIN = frozenset(chr(c) for c in range(0x20, 0x7f)) - set('\\"?')
+
+
+def c_escape(text) -> str:
+    """
+    Return `text` as printable ASCII that is safe in any C text: the one escaping rule.
+
+    Backslash, double quote and '?' (trigraphs) are escaped; every other character that is not
+    printable ASCII (newlines, control characters, non-ASCII) becomes octal escapes of its
+    UTF-8 bytes (three digits each, so a following digit cannot extend one). What reaches the
+    generated C from outside (a file name, a model file's strings) goes through here: inside a
+    string literal (`c_string`) it reads back as the same bytes, inside a comment
+    (`c_comment`) it stays one line of text.
+    """
+    out = []
+    for ch in str(text):
+        if ch in _PLAIN:
+            out.append(ch)
+        elif ch in '\\"?':
+            out.append('\\' + ch)
+        else:
+            out.extend(f'\\{b:03o}' for b in ch.encode('utf-8', 'surrogatepass'))
+    return ''.join(out)
+
+
+def c_string(text) -> str:
+    """Return a C string literal holding `text` (c_escape)."""
+    return f'"{c_escape(text)}"'
+
+
+def c_comment(text) -> str:
+    """Return `text` safe inside a /* */ comment: c_escape, and no comment opened or closed."""
+    return c_escape(text).replace('*/', '*\\/').replace('/*', '/\\*')
+
 
 def c_float(x) -> str:
     """Return the C double literal of a finite number, exact (repr round-trips)."""
@@ -52,7 +88,7 @@ def c_array(name: str, values, comment: str = '') -> str:
     a = np.asarray(values, dtype=np.float64)
     if a.size == 0 or a.ndim not in (1, 2):
         raise ExportError(f'internal: {name} must be a non-empty 1-D or 2-D array')
-    head = (f'/* {comment} */\n' if comment else '') + \
+    head = (f'/* {c_comment(comment)} */\n' if comment else '') + \
         f'static const double {name}' + ''.join(f'[{n}]' for n in a.shape) + ' = {'
     if a.ndim == 1:
         return '\n'.join([head] + _wrapped([c_float(v) for v in a], '    ') + ['};'])
@@ -70,13 +106,13 @@ def c_array(name: str, values, comment: str = '') -> str:
 
 def c_scalar(name: str, value, comment: str = '') -> str:
     """Return `static const double NAME = value;` (exact)."""
-    tail = f'   /* {comment} */' if comment else ''
+    tail = f'   /* {c_comment(comment)} */' if comment else ''
     return f'static const double {name} = {c_float(value)};{tail}'
 
 
 def comment_block(lines) -> str:
-    """Return the lines as one C block comment."""
-    return '\n'.join(['/*'] + [(' * ' + ln).rstrip() for ln in lines] + [' */'])
+    """Return the lines as one C block comment (each line through c_comment)."""
+    return '\n'.join(['/*'] + [(' * ' + c_comment(ln)).rstrip() for ln in lines] + [' */'])
 
 
 class Emitter:

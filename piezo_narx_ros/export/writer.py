@@ -11,18 +11,21 @@ inverse (c_inverse.py).
 from __future__ import annotations
 
 import math
-import os
 from pathlib import Path
 
 import numpy as np
 
 from piezo_narx_ros.export import ExportError, c_inverse
-from piezo_narx_ros.export.c_code import c_macro_number, comment_block
+from piezo_narx_ros.export.c_code import c_comment, c_macro_number, c_string, comment_block
 
 HEADER = 'pnr_model.h'
 SOURCE = 'pnr_model.c'
 #: controller_node's default widening of the trained output range into accepted references.
 RANGE_MARGIN = 0.05
+# Every generated file says so in its first comment: a file there without it is not ours (the
+# second phrase: a pnr_model.c of an export before the mark was added to it).
+_MARK = 'exported by `piezo-narx export`'
+_MARKS = (_MARK, f'{SOURCE}: see {HEADER}.')
 
 
 def emitter_of(model):
@@ -88,7 +91,7 @@ def render(model, fs: float | None = None, source: str | None = None) -> tuple[s
     target = _default_target(em)
     advance = _advance_quasi_static(model, fs) if siso and 'quasi_static' in em.targets \
         else None
-    about = [f'{HEADER} / {SOURCE}: a {em.kind} model exported by `piezo-narx export`',
+    about = [f'{HEADER} / {SOURCE}: a {em.kind} model {_MARK}',
              f'from {source or repr(model)}; weights sha256 {digest}.',
              'Generated: re-export rather than edit. C99, no allocation, libm only;',
              'docs/export.md shows how to use it.',
@@ -99,7 +102,7 @@ def render(model, fs: float | None = None, source: str | None = None) -> tuple[s
     about += ['pnr_init_history: ' + em.history_note + '.']
     rng_in = getattr(model, 'input_range', None)
     rng_out = getattr(model, 'output_range', None)
-    macros = [('PNR_KIND', f'"{em.kind}"', "model family (the model file's structure.kind)"),
+    macros = [('PNR_KIND', c_string(em.kind), "model family (the model file's structure.kind)"),
               ('PNR_N_INPUTS', str(em.n_in), 'inputs per sample, V'),
               ('PNR_N_OUTPUTS', str(em.n_out), 'outputs per sample, m'),
               ('PNR_FS_HZ', c_macro_number(fs), 'sample rate, Hz'),
@@ -118,7 +121,7 @@ def render(model, fs: float | None = None, source: str | None = None) -> tuple[s
                            (f'PNR_{name}_MAX_{k}', c_macro_number(hi), '')]
     h = [comment_block(about), '#ifndef PNR_MODEL_H', '#define PNR_MODEL_H', '',
          '#ifdef __cplusplus', 'extern "C" {', '#endif', '']
-    h += [f'#define {n} {v}' + (f'   /* {c} */' if c else '') for n, v, c in macros]
+    h += [f'#define {n} {v}' + (f'   /* {c_comment(c)} */' if c else '') for n, v, c in macros]
     h += ['', 'typedef struct {', '    double x[PNR_STATE_SIZE];', '} pnr_state_t;', '',
           '/* Rest: every past input and output 0. */',
           'void pnr_init(pnr_state_t *s);',
@@ -145,7 +148,7 @@ def render(model, fs: float | None = None, source: str | None = None) -> tuple[s
         h += ['#define PNR_HAS_INVERSE 0   /* the inverse needs one input and one output */', '']
     h += ['#ifdef __cplusplus', '}', '#endif', '', '#endif /* PNR_MODEL_H */']
 
-    c = [comment_block([f'{SOURCE}: see {HEADER}.']),
+    c = [comment_block([f'{SOURCE}: see {HEADER} ({_MARK}).']),
          "/* The numbers equal the Python kernels' to the bit only if the compiler does not",
          ' * fuse a * b + c into one rounding (FMA): -std=c99 does not; GNU modes on FMA',
          ' * targets do unless told not to, as below. */',
@@ -247,26 +250,42 @@ void pnr_get_state(const pnr_state_t *s, double *x)
 """
 
 
-def write_c(model, directory, fs: float | None = None, source: str | None = None) -> tuple:
+def _refuse_foreign(path: Path, force: bool) -> None:
+    """Raise ExportError when `path` exists and this exporter did not write it (unless force)."""
+    if force or not (path.exists() or path.is_symlink()):
+        return
+    try:
+        with open(path, 'rb') as fh:
+            head = fh.read(400).decode('ascii', 'replace')
+        ours = not path.is_symlink() and any(mark in head for mark in _MARKS)
+    except OSError:
+        ours = False
+    if not ours:
+        raise ExportError(f'{path} exists and was not written by piezo-narx export; choose '
+                          'another directory or pass --force to overwrite it')
+
+
+def write_c(model, directory, fs: float | None = None, source: str | None = None,
+            force: bool = False) -> tuple:
     """
     Write DIR/pnr_model.h and DIR/pnr_model.c for `model`; returns their paths.
 
-    Both are written to temporary names first and renamed, so a build never sees half a file.
-    ExportError (one line) when the model cannot be exported.
+    A file of either name that the exporter did not write (its first comment says so) is
+    replaced only with `force`; an earlier export is replaced.
+    Each is written to a fresh temporary file and renamed (files.write_atomic), so a build
+    never sees half a file and no planted name is followed. ExportError (one line) when the
+    model cannot be exported.
     """
+    from piezo_narx_ros.files import write_texts_atomic
     header, code = render(model, fs=fs, source=source)
     directory = Path(directory)
+    for name in (HEADER, SOURCE):
+        _refuse_foreign(directory / name, force)
+    paths = (directory / HEADER, directory / SOURCE)
     try:
         directory.mkdir(parents=True, exist_ok=True)
-        paths = []
-        for name, text in ((HEADER, header), (SOURCE, code)):
-            path = directory / name
-            tmp = path.with_name(path.name + '.tmp')
-            tmp.write_text(text)
-            paths.append((tmp, path))
-        for tmp, path in paths:
-            os.replace(tmp, path)
+        write_texts_atomic(dict(zip(paths, (header, code))))
     except OSError as exc:
         raise ExportError(f'cannot write the C files to {directory}: {exc.strerror or exc}') \
             from None
-    return tuple(path for _, path in paths)
+    return paths

@@ -190,6 +190,12 @@ def load_plant_params(path=None) -> PlantParams:
         if 'must hold a mapping' not in str(exc):
             raise
         doc = None
+    if isinstance(doc, dict) and 'axes' in doc:
+        # A stage file's `plant:` holds only the fields its axes share: read as one cantilever
+        # it would silently simulate something else than the file describes.
+        raise ConfigError(f'plant config {path} describes a stage of several axes (axes: '
+                          f'{doc["axes"]}); this needs one cantilever\'s parameters '
+                          '(config/plant.yaml); stages are for simulate and simulator_node')
     if isinstance(doc, dict) and 'plant' in doc:
         doc = doc['plant']
     if not isinstance(doc, dict):

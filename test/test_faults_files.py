@@ -1,0 +1,162 @@
+"""
+Issue 45, files: what a path, an output name or a plant file may do to the files the tools write.
+
+No tool overwrites a file it did not create without --force; temporary files are fresh and
+exclusive, so a planted symlink is never followed; every string that reaches generated C goes
+through one escaping rule; a stage plant file is simulated as a stage or refused, never read as
+one cantilever; evaluate refuses a state window too short to set a state.
+"""
+import json
+import os
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+from test_faults_cli import cli, one_error_line
+
+CC = shutil.which('gcc')
+
+
+@pytest.fixture
+def toy(tmp_path):
+    """Return a toy model file and a record it scores (its own free run plus noise)."""
+    from piezo_narx_ros.estimator.toy import toy_narx
+    from piezo_narx_ros.ident.model_io import save_model
+    model = toy_narx(fs=2000.0)
+    path = save_model(model, tmp_path / 'toy.json')
+    u = np.random.default_rng(0).uniform(-100, 100, 3000)
+    y = model.simulate(u) + 1e-9 * np.random.default_rng(1).standard_normal(u.size)
+    np.savez(tmp_path / 'rec.npz', u=u, y=y, fs=2000.0)
+    return path, tmp_path / 'rec.npz'
+
+
+# --------------------------------------------------------------------- overwriting files
+def test_evaluate_save_output_never_overwrites_without_force(toy, capsys):
+    model, rec = toy
+    before = rec.read_bytes()
+    code, _, err = cli(['evaluate', str(model), str(rec), '--save-output', str(rec)], capsys)
+    assert code == 2 and one_error_line(err) and '--force' in err, err
+    assert rec.read_bytes() == before                       # the input record is intact
+    out = rec.with_name('out.npz')
+    code, _, _ = cli(['evaluate', str(model), str(rec), '--save-output', str(out)], capsys)
+    assert code == 0 and 'y_sim' in np.load(out)
+    code, _, err = cli(['evaluate', str(model), str(rec), '--save-output', str(out)], capsys)
+    assert code == 2 and 'exists' in err
+    code, _, _ = cli(['evaluate', str(model), str(rec), '--save-output', str(out), '--force'],
+                     capsys)
+    assert code == 0
+
+
+def test_export_replaces_its_own_files_but_not_anyone_elses(toy, tmp_path, capsys):
+    model, _ = toy
+    c = tmp_path / 'c'
+    assert cli(['export', str(model), '--c', str(c)], capsys)[0] == 0
+    assert cli(['export', str(model), '--c', str(c)], capsys)[0] == 0     # its own: replaced
+    (c / 'pnr_model.c').write_text('int my_own_work;\n')
+    code, _, err = cli(['export', str(model), '--c', str(c)], capsys)
+    assert code == 2 and one_error_line(err) and 'not written by piezo-narx export' in err
+    assert (c / 'pnr_model.c').read_text() == 'int my_own_work;\n'
+    assert cli(['export', str(model), '--c', str(c), '--force'], capsys)[0] == 0
+
+
+def test_a_symlink_planted_at_the_old_temporary_names_is_not_followed(toy, tmp_path, capsys):
+    model, rec = toy
+    victim = tmp_path / 'victim.txt'
+    victim.write_text('precious')
+    c = tmp_path / 'c'
+    c.mkdir()
+    for name in ('pnr_model.h.tmp', 'pnr_model.c.tmp'):
+        os.symlink(victim, c / name)
+    os.symlink(victim, tmp_path / 'o.npz.tmp')
+    assert cli(['export', str(model), '--c', str(c)], capsys)[0] == 0
+    assert cli(['evaluate', str(model), str(rec), '--save-output', str(tmp_path / 'o.npz')],
+               capsys)[0] == 0
+    assert victim.read_text() == 'precious'
+    assert (c / 'pnr_model.h').stat().st_mode & 0o777 == 0o666 & ~_umask()
+    leftovers = [p.name for p in c.iterdir() if p.name.startswith('.')]
+    assert leftovers == []
+
+
+def _umask():
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+# ---------------------------------------------------------------------- generated C text
+HOSTILE = 'a*/b\n#error injected\n/* "q" ??/ \\ \u00b5m \t end'
+
+
+def test_one_escaping_rule_keeps_any_text_inert():
+    from piezo_narx_ros.export.c_code import c_comment, c_escape, c_string
+    assert c_escape('plain/path-1.json') == 'plain/path-1.json'
+    body = c_comment(HOSTILE)
+    assert '*/' not in body and '/*' not in body and '\n' not in body and '??/' not in body
+    assert all(32 <= ord(ch) < 127 for ch in c_string(HOSTILE))
+
+
+@pytest.mark.skipif(CC is None, reason='gcc is needed')
+def test_a_string_literal_reads_back_the_same_bytes(tmp_path):
+    from piezo_narx_ros.export.c_code import c_string
+    src = tmp_path / 's.c'
+    src.write_text('#include <stdio.h>\nint main(void) { fputs(' + c_string(HOSTILE)
+                   + ', stdout); return 0; }\n')
+    exe = tmp_path / 's'
+    subprocess.run([CC, '-std=c99', '-Wall', '-Werror', '-trigraphs', str(src), '-o', str(exe)],
+                   check=True, capture_output=True)
+    assert subprocess.run([str(exe)], capture_output=True).stdout == HOSTILE.encode()
+
+
+@pytest.mark.skipif(CC is None, reason='gcc is needed')
+def test_a_model_path_holding_comment_ends_and_newlines_stays_a_comment(toy, tmp_path, capsys):
+    model, _ = toy
+    evil = tmp_path / 'x*/\n#error injected\n'
+    evil.mkdir(parents=True)      # 'x*' holding a folder named '\n#error injected\n'
+    for suffix in ('.json', '.npz'):
+        shutil.copy(model.with_suffix(suffix), evil)
+    c = tmp_path / 'c'
+    assert cli(['export', str(evil / model.name), '--c', str(c)], capsys)[0] == 0
+    header = (c / 'pnr_model.h').read_text()
+    assert '#error' not in [ln.strip()[:6] for ln in header.splitlines()]
+    done = subprocess.run([CC, '-std=c99', '-Wall', '-Werror', '-trigraphs', '-c',
+                           str(c / 'pnr_model.c'), '-o', str(tmp_path / 'm.o')],
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+
+
+# ------------------------------------------------------------------------ plants and windows
+def test_simulate_a_stage_file_writes_every_axis(tmp_path, capsys):
+    from piezo_narx_ros.ident.data.loaders import load_records
+    from piezo_narx_ros.share import config_path
+    out = tmp_path / 's.npz'
+    code, _, err = cli(['simulate', '--plant-config', str(config_path('plant_2axis.yaml')),
+                        '--seconds', '0.5', '--out', str(out)], capsys)
+    assert code == 0, err
+    with np.load(out) as z:
+        assert z['u'].shape == z['y'].shape == z['y_true'].shape == (1000, 2)
+        assert list(z['inputs']) == list(z['outputs']) == ['x', 'y']
+        assert not np.array_equal(z['u'][:, 0], z['u'][:, 1])     # axis i seeded seed + i
+        assert json.loads(str(z['meta']))['axes'] == ['x', 'y']
+    [rec] = load_records([str(out)])
+    assert (rec.n_in, rec.n_out) == (2, 2)
+    code, _, err = cli(['simulate', '--plant-config', str(config_path('plant_2axis.yaml')),
+                        '--seconds', '0.5', '--history', '2', '--out',
+                        str(tmp_path / 'h.npz')], capsys)
+    assert code == 2 and one_error_line(err) and 'stage of 2 axes' in err
+
+
+def test_a_stage_file_is_not_read_as_one_cantilever():
+    from piezo_narx_ros.errors import ConfigError
+    from piezo_narx_ros.plant import load_plant_params
+    from piezo_narx_ros.share import config_path
+    with pytest.raises(ConfigError, match='describes a stage of several axes'):
+        load_plant_params(config_path('plant_2axis.yaml'))
+
+
+@pytest.mark.parametrize('n', [1, 9])
+def test_evaluate_refuses_a_state_window_too_short_to_set_a_state(toy, capsys, n):
+    model, rec = toy
+    code, out, err = cli(['evaluate', str(model), str(rec), '--init-samples', str(n)], capsys)
+    assert code == 2 and one_error_line(err), err
+    assert f'--init-samples {n} is too few to set the state' in err and 'FAIL' not in out
