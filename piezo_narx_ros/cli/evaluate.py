@@ -9,7 +9,7 @@ so a fixed filter here); a model file without one gets an AR noise model fitted 
 residuals themselves, and the JSON says so. Prints a short summary, or with --json one JSON object:
 
     {"model": ..., "inputs": [...], "n": ..., "prediction": {"r2", "rmse", "nrmse", "fit_percent"},
-     "simulation": {...}, "tests": {name: true|false}, "tests_passed": bool (null when no test could run),
+     "simulation": {...}, "tests": {name: true|false}, "tests_passed": bool | null (no test),
      "tests_residuals": "simulation",
      "tests_noise_model": {"kind", "order", "coef", "source"} | null,
      "tests_raw": {name: true|false}, "tests_detail": {...},
