@@ -10,8 +10,9 @@ with the same codec (nodes.codec); it computes nothing:
 - simulator: each command message answered with one deflection message of the same stamps, the
   commands copied into position and effort;
 - estimator: each command message answered with one estimate message, the commands copied into
-  position; the deflection stream taken and decoded as the estimator does (batches held and
-  decoded 50 at a time, single messages one by one).
+  position; the deflection stream taken and decoded as the estimator takes it once its free run
+  is steady (the batches of the newest `window` samples held and decoded once a second, single
+  messages one by one).
 
 No /diagnostics, no timers, no checks. So a real node's CPU over its floor's is what the
 package's own work costs above rclpy's and Fast DDS's for the same traffic.
@@ -35,9 +36,9 @@ from piezo_narx_ros.nodes.topics import TOPIC_COMMAND, TOPIC_DEFLECTION, TOPIC_E
 
 FS = ParamSpec('fs', 2000.0, 'sample rate, Hz', low=1.0, high=100000.0, read_only=True)
 AXES = ParamSpec('axes', ['x'], 'axis names on the streams', read_only=True)
-#: Measurement batches the floor estimator holds before decoding them together (the real node's
-#: HeldBatches limit at the bench's rates).
-HELD = 50
+#: Measurement samples the floor estimator holds, decoded once a second: the estimator's
+#: default running-error window, which its node holds the same way (HeldBatches keep).
+WINDOW = 2000
 
 
 class FloorCommand(PiezoNode):
@@ -143,10 +144,12 @@ class FloorEstimator(PiezoNode):
         self.sub_cmd = self.sample_subscription(batch_topic(TOPIC_COMMAND, b),
                                                 self.on_batch if b > 1 else self.on_one,
                                                 sample_type(b))
-        self.held = HeldBatches(HELD)
+        self.held = HeldBatches(1, keep=WINDOW)
         self.sub_meas = self.sample_subscription(
             batch_topic(TOPIC_DEFLECTION, b),
             self.on_measurement_batch if b > 1 else decode_joint_state, sample_type(b))
+        if b > 1:    # the estimator's diagnostics tick hands the held ones over
+            self.take_timer = self.create_timer(1.0, self.held.take)
 
     def on_one(self, raw: bytes) -> None:
         s = decode_joint_state(raw)
