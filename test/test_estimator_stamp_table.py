@@ -89,3 +89,14 @@ def test_stamp_table_memory_stays_bounded():
     assert len(table._t) < 200 and len(table._other) < 200 and len(table) >= 100
     with pytest.raises(ValueError):
         StampTable(0)
+
+
+def test_stamp_table_pops_a_run_of_stamps_as_one_slice():
+    table = StampTable(1000)
+    table.extend(list(range(100)), [float(k) for k in range(100)], True)
+    assert table.pop(12) == 12.0
+    assert table.pop_many(list(range(10, 15))) == [10.0, 11.0, None, 13.0, 14.0]
+    assert table.pop_many(list(range(10, 15))) == [None] * 5
+    assert table.pop_many([20, 22, 21]) == [20.0, 22.0, 21.0]     # not a run: one by one
+    assert table.pop_many(list(range(95, 105))) == [95.0, 96.0, 97.0, 98.0, 99.0] + [None] * 5
+    assert 30 in table and 14 not in table and len(table) == 100 - 13

@@ -350,7 +350,9 @@ class FreeRunEstimator:
         The same as n on_measurement() calls; (stamps (m,), y_hat (m,)) as on_commands. Once
         the free run has started, the pairing with the estimates runs on whole lists.
         """
-        tl = np.asarray(t_ns, dtype=np.int64).ravel().tolist()
+        t = np.asarray(t_ns, dtype=np.int64).ravel()
+        increasing = t.shape[0] < 2 or bool((t[1:] > t[:-1]).all())
+        tl = t.tolist()
         if self.vector:
             yl = list(np.array(y, dtype=np.float64).reshape(len(tl), self.n_out))
         else:
@@ -361,13 +363,13 @@ class FreeRunEstimator:
             return self.as_arrays([e for ti, yi in zip(tl, yl)
                                    for e in self.on_measurement(ti, yi)])
         if not _finite(sum(yl)):
-            keep = [_finite(yi) for yi in yl]
+            keep = [_finite(yi) for yi in yl]   # fewer stamps: still in order
             tl = [ti for ti, k in zip(tl, keep) if k]
             yl = [yi for yi, k in zip(yl, keep) if k]
         paired = self._est.pop_many(tl)
         if _any_value(paired):
             self._record_errors([(m, e) for m, e in zip(yl, paired) if e is not None])
-        self._meas.extend(tl, yl, all(a < b for a, b in zip(tl, tl[1:])))
+        self._meas.extend(tl, yl, increasing)
         return self.as_arrays([])
 
     def _run_batch(self, t: np.ndarray, ul: list, v: np.ndarray, off: np.ndarray,

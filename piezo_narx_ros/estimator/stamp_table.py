@@ -125,6 +125,14 @@ class StampTable:
         ts = self._t
         if not stamps or not self._other and (not ts or min(stamps) > ts[-1]):
             return [None] * len(stamps)
+        if not self._other:     # a sensor's run of stamps, each an estimate's in turn: one slice
+            i = bisect_left(ts, stamps[0])
+            j = i + len(stamps)
+            if ts[i:j] == stamps:
+                got = self._v[i:j]
+                self._v[i:j] = [None] * len(stamps)
+                self._hint = j
+                return got
         return [self.pop(t) for t in stamps]
 
     def _trim(self) -> None:

@@ -228,7 +228,9 @@ class EstimatorNode(PiezoNode):
     def on_measurement(self, msg: bytes) -> None:
         got = self._value(msg, 'position')
         if got is not None:
-            self.publish(self.est.on_measurement(*got))
+            ready = self.est.on_measurement(*got)
+            if ready:            # estimates that waited for the initial measurements: rarely
+                self.publish(ready)
 
     def on_measurement_batch(self, msg: bytes) -> None:
         if self.est.steady:
