@@ -51,21 +51,23 @@ def write_text_atomic(path, text: str) -> None:
         fh.write(text)
 
 
-def write_texts_atomic(texts: dict) -> None:
+def write_files_atomic(contents: dict) -> None:
     """
-    Write {path: text} (UTF-8): every temporary file first, then every rename.
+    Write {path: text (UTF-8) or bytes}: every temporary file first, then every rename.
 
-    Files that belong together (a C header and its source) are never half written; the window
-    in which one is new and the other old is a few renames.
+    Files that belong together (a C header and its source, a model file and its weights) are
+    never half written; the window in which one is new and the other old is a few renames.
     """
     temps = []
     try:
-        for path, text in texts.items():
+        for path, content in contents.items():
             fd, tmp = _fresh_temp(Path(path))
             temps.append(tmp)
-            with os.fdopen(fd, 'w', encoding='utf-8') as fh:
-                fh.write(text)
-        for tmp, path in zip(temps, texts):
+            binary = isinstance(content, (bytes, bytearray))
+            with os.fdopen(fd, 'wb' if binary else 'w',
+                           encoding=None if binary else 'utf-8') as fh:
+                fh.write(content)
+        for tmp, path in zip(temps, contents):
             os.replace(tmp, path)
     except BaseException:
         _discard(temps)

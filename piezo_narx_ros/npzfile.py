@@ -30,14 +30,20 @@ def _header(member) -> tuple[tuple[int, ...], np.dtype]:
     return shape, dtype
 
 
-def read_npz(path, keys=None, error=DataError) -> dict[str, np.ndarray]:
+def read_npz(path, keys=None, error=DataError, shapes=None,
+             max_bytes=None) -> dict[str, np.ndarray]:
     """
     {key: array} of the .npz file `path` (only `keys` when given; absent keys are left out).
 
-    Raises `error` (a PiezoNarxError subclass) with one line naming the file when it is not a
-    zip archive, is damaged, holds Python objects, or an array header declares more data than the
-    file stores.
+    shapes: {key: shape} the caller expects (a model file's declared weights): only those are
+    read, each must be there with exactly that shape, and no other member is decompressed.
+    max_bytes: the most the arrays read may hold together, checked from their headers before
+    any data is read. Raises `error` (a PiezoNarxError subclass) with one line naming the file
+    when it is not a zip archive, is damaged, holds Python objects, an array header declares
+    more data than the file stores, or shapes / max_bytes are not met.
     """
+    if shapes is not None:
+        keys = tuple(shapes)
     path = Path(path)
     try:
         with path.open('rb') as f:
@@ -47,9 +53,13 @@ def read_npz(path, keys=None, error=DataError) -> dict[str, np.ndarray]:
     if magic not in _ZIP_MAGIC:
         raise error(f'{path}: not an .npz file (not a zip archive)')
     out: dict[str, np.ndarray] = {}
+    total = 0
     try:
         with zipfile.ZipFile(path) as z:
             members = {i.filename[:-4]: i for i in z.infolist() if i.filename.endswith('.npy')}
+            for key in shapes or ():
+                if key not in members:
+                    raise error(f'{path}: missing weight array {key!r}')
             for key, info in members.items():
                 if keys is not None and key not in keys:
                     continue
@@ -58,11 +68,18 @@ def read_npz(path, keys=None, error=DataError) -> dict[str, np.ndarray]:
                     if dtype.hasobject:
                         raise error(f'{path}: array {key!r} holds Python objects (pickled data); '
                                     'refused')
+                    if shapes is not None and tuple(shape) != shapes[key]:
+                        raise error(f'{path}: weight array {key!r} has shape {tuple(shape)}, '
+                                    f'expected {shapes[key]} (the shape its model file declares)')
                     need = int(np.prod(shape, dtype=object)) * dtype.itemsize
                     if need > info.file_size:
                         raise error(f'{path}: array {key!r} declares shape {shape} '
                                     f'({need:.3g} bytes) but the file stores {info.file_size} '
                                     'bytes for it (corrupt or crafted)')
+                    total += need
+                    if max_bytes is not None and total > max_bytes:
+                        raise error(f'{path}: its arrays declare more than {max_bytes} bytes '
+                                    '(the most this file may hold); refused before reading')
                 with z.open(info) as member:   # read_array starts from the magic again
                     out[key] = np.lib.format.read_array(member, allow_pickle=False)
     except (zipfile.BadZipFile, zlib.error, ValueError, EOFError, OSError,

@@ -77,15 +77,15 @@ def test_simulate_absurd_length_is_refused_before_allocating(tmp_path, capsys, e
     assert not (tmp_path / 's.npz').exists()
 
 
-def crafted_npz(path, declared=10**12):
+def crafted_npz(path, declared=10**12, names=('u', 'y')):
     """Return an .npz whose 'u' header declares `declared` float64 values but stores 80 bytes."""
     import io
     head = io.BytesIO()
     np.lib.format.write_array_header_1_0(
         head, {'descr': '<f8', 'fortran_order': False, 'shape': (declared,)})
     with zipfile.ZipFile(path, 'w') as z:
-        z.writestr('u.npy', head.getvalue() + b'\x00' * 80)   # the header includes the magic
-        z.writestr('y.npy', head.getvalue() + b'\x00' * 80)
+        for name in names:       # the header includes the magic
+            z.writestr(f'{name}.npy', head.getvalue() + b'\x00' * 80)
         buf = io.BytesIO()
         np.save(buf, np.float64(2000.0))
         z.writestr('fs.npy', buf.getvalue())
@@ -107,12 +107,14 @@ def test_crafted_npz_refused_by_every_reader(tmp_path):
     crafted = crafted_npz(tmp_path / 'c.npz')
     with pytest.raises(ConfigError, match='declares shape'):
         generate('playback', 2000.0, None, None, path=str(crafted))
-    # Model weights: the JSON's SHA-256 is updated so that only the header check can stop it.
+    # Model weights: the JSON's SHA-256 and declared shape are updated so that only the header
+    # check can stop it.
     model = save_model(toy_narx(), tmp_path / 'm.json')
     import hashlib
-    (tmp_path / 'm.npz').write_bytes(crafted.read_bytes())
+    weights = crafted_npz(tmp_path / 'm.npz', names=('W1',))
     doc = json.loads(model.read_text())
-    doc['weights']['sha256'] = hashlib.sha256(crafted.read_bytes()).hexdigest()
+    doc['weights'].update(sha256=hashlib.sha256(weights.read_bytes()).hexdigest(),
+                          arrays={'W1': [10**12]})
     model.write_text(json.dumps(doc))
     with pytest.raises(ModelFileError, match='declares shape'):
         load_model(model)

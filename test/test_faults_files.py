@@ -60,14 +60,19 @@ def test_export_replaces_its_own_files_but_not_anyone_elses(toy, tmp_path, capsy
     assert cli(['export', str(model), '--c', str(c), '--force'], capsys)[0] == 0
 
 
+def plant(victim, folder, names):
+    """Create `folder` with symlinks `names` in it pointing at `victim` (a file to protect)."""
+    victim.write_text('precious')
+    folder.mkdir(exist_ok=True)
+    for name in names:
+        os.symlink(victim, folder / name)
+
+
 def test_a_symlink_planted_at_the_old_temporary_names_is_not_followed(toy, tmp_path, capsys):
     model, rec = toy
     victim = tmp_path / 'victim.txt'
-    victim.write_text('precious')
     c = tmp_path / 'c'
-    c.mkdir()
-    for name in ('pnr_model.h.tmp', 'pnr_model.c.tmp'):
-        os.symlink(victim, c / name)
+    plant(victim, c, ('pnr_model.h.tmp', 'pnr_model.c.tmp'))
     os.symlink(victim, tmp_path / 'o.npz.tmp')
     assert cli(['export', str(model), '--c', str(c)], capsys)[0] == 0
     assert cli(['evaluate', str(model), str(rec), '--save-output', str(tmp_path / 'o.npz')],
@@ -160,3 +165,102 @@ def test_evaluate_refuses_a_state_window_too_short_to_set_a_state(toy, capsys, n
     code, out, err = cli(['evaluate', str(model), str(rec), '--init-samples', str(n)], capsys)
     assert code == 2 and one_error_line(err), err
     assert f'--init-samples {n} is too few to set the state' in err and 'FAIL' not in out
+
+
+# ------------------------------------------------------------------- what a model file holds
+def _resign(model_json):
+    import hashlib
+    doc = json.loads(model_json.read_text())
+    doc['weights']['sha256'] = hashlib.sha256(
+        model_json.with_suffix('.npz').read_bytes()).hexdigest()
+    model_json.write_text(json.dumps(doc))
+
+
+def test_an_extra_member_that_inflates_hugely_is_never_decompressed(toy):
+    """Issue 45: a 1.1 MB .npz with a compressible extra member cost 1.35 GB to load."""
+    import tracemalloc
+    import zipfile
+
+    from piezo_narx_ros.ident.model_io import load_model
+    model, _ = toy
+    npz = model.with_suffix('.npz')
+    with zipfile.ZipFile(npz, 'a', compression=zipfile.ZIP_DEFLATED) as z:
+        with z.open('junk.npy', 'w', force_zip64=True) as member:
+            n = 64 * 2**20 // 8
+            np.lib.format.write_array_header_1_0(
+                member, {'descr': '<f8', 'fortran_order': False, 'shape': (n,)})
+            block = bytes(2**20)
+            for _ in range(64):
+                member.write(block)
+    assert npz.stat().st_size < 2 * 2**20                  # 64 MiB of zeros, deflated
+    _resign(model)
+    tracemalloc.start()
+    try:
+        loaded = load_model(model)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert loaded.n_params > 0 and peak < 8 * 2**20, peak
+
+
+def test_declared_weights_beyond_the_size_limit_are_refused_before_reading(toy, monkeypatch):
+    from piezo_narx_ros.errors import ModelFileError
+    from piezo_narx_ros.ident import model_io
+    model, _ = toy
+    monkeypatch.setattr(model_io, 'MAX_WEIGHT_BYTES', 2**20)
+    doc = json.loads(model.read_text())
+    big = np.zeros(200_000)                                 # 1.6 MB
+    with np.load(model.with_suffix('.npz')) as z:
+        arrays = {k: z[k] for k in z.files}
+    np.savez_compressed(model.with_suffix('.npz'), **arrays, extra=big)
+    doc['weights']['arrays']['extra'] = [200_000]
+    model.write_text(json.dumps(doc))
+    _resign(model)
+    with pytest.raises(ModelFileError, match=r'its arrays declare more than 1048576 bytes'):
+        model_io.load_model(model)
+
+
+@pytest.mark.parametrize('edit, message', [
+    (lambda text: text.replace('"fs": 2000.0', '"fs": 1' + '0' * 400), 'integer of 401 digits'),
+    (lambda text: text.replace('"fs": 2000.0', '"fs": 1' + '0' * 400 + '.0'),
+     'does not fit a double'),
+    (lambda text: text.replace('"data": null', '"data": ' + '[' * 100_000 + ']' * 100_000),
+     'nested too deeply'),
+])
+def test_absurd_numbers_and_nesting_are_one_line_refusals(toy, capsys, edit, message):
+    model, rec = toy
+    model.write_text(edit(model.read_text()))
+    code, _, err = cli(['evaluate', str(model), str(rec)], capsys)
+    assert code == 2 and one_error_line(err) and message in err, err
+    assert 'this is a bug' not in err
+
+
+def test_saving_a_model_follows_no_planted_temporary_name(tmp_path):
+    from piezo_narx_ros.estimator.toy import toy_narx
+    from piezo_narx_ros.ident.model_io import load_model, save_model
+    victim, out = tmp_path / 'victim.txt', tmp_path / 'fit'
+    plant(victim, out, ('model.json.tmp', 'model.npz.tmp'))
+    path = save_model(toy_narx(fs=2000.0), out / 'model.json')
+    assert victim.read_text() == 'precious' and load_model(path).n_params > 0
+
+
+def test_a_constant_record_is_not_scored_minus_1e30_but_said_undefined(toy, tmp_path, capsys):
+    """Issue 45: y = 1e-6 m throughout scored R² -3.9e30 (its mean is off by rounding)."""
+    from piezo_narx_ros.errors import DataError
+    from piezo_narx_ros.ident.selection.experiment import ExperimentConfig, run_experiment
+    from piezo_narx_ros.ident.validation.metrics import r2
+    from piezo_narx_ros.record import Record
+    flat = np.full(4000, 1e-6)
+    assert float(np.sum((flat - flat.mean()) ** 2)) > 0.0          # the rounding that did it
+    with pytest.raises(DataError, match='R² undefined: the measured output is constant'):
+        r2(flat, flat * 1.01)
+    model, rec = toy
+    u = np.random.default_rng(0).uniform(-100, 100, 4000)
+    np.savez(tmp_path / 'flat.npz', u=u, y=flat, fs=2000.0)
+    code, out, err = cli(['evaluate', str(model), str(tmp_path / 'flat.npz')], capsys)
+    assert code == 2 and one_error_line(err) and 'R² is undefined against it' in err, err
+    with np.load(rec) as z:
+        est = Record(u=z['u'], y=z['y'], fs=2000.0, source='est')
+    cfg = ExperimentConfig(narx=False, arx_na=(2,), arx_nb=(2,), noise_model='none', jobs=1)
+    with pytest.raises(DataError, match='flat: the measured output is constant'):
+        run_experiment([est], cfg, validation=[Record(u=u, y=flat, fs=2000.0, source='flat')])

@@ -155,8 +155,25 @@ def test_truncated_weights_file(saved):
     w.write_bytes(w.read_bytes()[:200])
     with pytest.raises(ModelFileError, match='do not match the SHA-256'):
         load_model(saved)
-    edit_json(saved, _set('weights.sha256', None))  # without the checksum np.load must catch it
+    resign(saved)                   # with the checksum of the damaged file, np.load must catch it
     with pytest.raises(ModelFileError, match='not a readable .npz'):
+        load_model(saved)
+
+
+def resign(saved):
+    """Record the weights file's present SHA-256 in the model file (as if saved so)."""
+    import hashlib
+    digest = hashlib.sha256(saved.with_suffix('.npz').read_bytes()).hexdigest()
+    edit_json(saved, _set('weights.sha256', digest))
+
+
+def test_a_model_file_without_its_checksum_is_refused(saved):
+    """Issue 45: removing the sha256 key switched the check off."""
+    doc = json.loads(saved.read_text())
+    del doc['weights']['sha256']
+    saved.write_text(json.dumps(doc))
+    with pytest.raises(ModelFileError, match='weights.sha256 is missing, so its weights cannot '
+                       'be verified'):
         load_model(saved)
 
 
@@ -171,7 +188,7 @@ def test_tampered_well_formed_weights_with_the_old_hash_are_refused(saved):
     with pytest.raises(ModelFileError, match='do not match the SHA-256') as exc:
         load_model(saved)
     assert 'model.npz' in str(exc.value) and '\n' not in str(exc.value)
-    edit_json(saved, _set('weights.sha256', None))   # the same file loads once the hash is gone
+    resign(saved)                   # the same file loads with its own checksum
     assert np.array_equal(load_model(saved).W1, content['W1'])
 
 
@@ -183,7 +200,7 @@ def rewrite_weights(saved, **arrays):
     for k in [k for k, v in arrays.items() if v is None]:
         del content[k]
     np.savez(w, **content)
-    edit_json(saved, _set('weights.sha256', None))
+    resign(saved)
 
 
 @pytest.mark.parametrize('arrays, match', [
@@ -203,7 +220,7 @@ def test_bad_weight_arrays(saved, arrays, match):
 
 def test_weights_file_that_is_not_a_zip(saved):
     saved.with_suffix('.npz').write_text('not a zip archive')
-    edit_json(saved, _set('weights.sha256', None))
+    resign(saved)
     with pytest.raises(ModelFileError, match='not an .npz file'):
         load_model(saved)
     assert not zipfile.is_zipfile(saved.with_suffix('.npz'))

@@ -276,7 +276,7 @@ def write_c(model, directory, fs: float | None = None, source: str | None = None
     never sees half a file and no planted name is followed. ExportError (one line) when the
     model cannot be exported.
     """
-    from piezo_narx_ros.files import write_texts_atomic
+    from piezo_narx_ros.files import write_files_atomic
     header, code = render(model, fs=fs, source=source)
     directory = Path(directory)
     for name in (HEADER, SOURCE):
@@ -284,7 +284,7 @@ def write_c(model, directory, fs: float | None = None, source: str | None = None
     paths = (directory / HEADER, directory / SOURCE)
     try:
         directory.mkdir(parents=True, exist_ok=True)
-        write_texts_atomic(dict(zip(paths, (header, code))))
+        write_files_atomic(dict(zip(paths, (header, code))))
     except OSError as exc:
         raise ExportError(f'cannot write the C files to {directory}: {exc.strerror or exc}') \
             from None

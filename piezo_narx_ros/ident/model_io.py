@@ -14,14 +14,15 @@ reading them back: `file_document`, `file_weights`, `from_file_document`) and is
 document's structure.kind in the registry (ident.families).
 """
 import hashlib
+import io
 import json
 import math
-import os
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import DataError, ModelFileError
+from ..files import write_files_atomic
 from ..npzfile import read_npz
 from . import families
 from . import document
@@ -36,6 +37,12 @@ FORMAT_VERSION = 3
 #: The first format version with several axes.
 MULTI_AXIS_VERSION = 3
 UNITS = {'input': 'V', 'output': 'm', 'time': 's', 'fs': 'Hz'}
+# What a model file may make a reader hold, whatever it declares: far above any model fitted here
+# (the largest, an ensemble of envelope models, is well under 1 MB), far below a machine's memory.
+MAX_JSON_BYTES = 16 * 2**20
+MAX_WEIGHT_BYTES = 256 * 2**20
+# Integers in a model file are counts, lags and seeds: more digits than this is not one of them.
+MAX_INT_DIGITS = 30
 
 
 def _jsonable(x):
@@ -96,12 +103,11 @@ def save_model(model, path, data=None, metrics=None, tests=None, start=None):
         meta['start'] = check_start(meta['start'], str(path), model.fs)
     wpath = path.with_suffix('.npz')
     path.parent.mkdir(parents=True, exist_ok=True)
-    # Write to temporary names and rename, so a reader never sees half a file.
-    tmp_w = wpath.with_name(wpath.name + '.tmp')
     weights = model.file_weights()
-    with open(tmp_w, 'wb') as fh:
-        np.savez(fh, **weights)
-    digest = hashlib.sha256(tmp_w.read_bytes()).hexdigest()
+    buf = io.BytesIO()
+    np.savez(buf, **weights)
+    raw = buf.getvalue()
+    digest = hashlib.sha256(raw).hexdigest()
     blocks = model.file_document()
     multi = is_multi_axis(model)
     structure = dict(blocks['structure'])
@@ -126,10 +132,10 @@ def save_model(model, path, data=None, metrics=None, tests=None, start=None):
         'tests': meta.get('tests'),
         **({'start': meta['start']} if meta.get('start') is not None else {}),
     }
-    tmp_j = path.with_name(path.name + '.tmp')
-    tmp_j.write_text(json.dumps(_jsonable(doc), indent=2, allow_nan=False) + '\n')
-    os.replace(tmp_w, wpath)
-    os.replace(tmp_j, path)
+    # Fresh temporary files renamed over the targets (files.write_files_atomic): a reader never
+    # sees half a file, and a name planted beside them (model.json.tmp) is never followed.
+    write_files_atomic({wpath: raw,
+                        path: json.dumps(_jsonable(doc), indent=2, allow_nan=False) + '\n'})
     return path
 
 
@@ -192,10 +198,30 @@ def _channel_range(doc, key, name, n):
     return (tuple(float(x) for x in v[0]), tuple(float(x) for x in v[1]))
 
 
+class _Refused(ValueError):
+    """A value the model file format does not allow (raised while parsing)."""
+
+
 def _refuse_constant(token):
     # save_model writes finite numbers only (allow_nan=False); NaN or Infinity in a model file
     # would pass every range and rate check silently.
-    raise ValueError(f'{token} is not allowed in a model file (finite numbers only)')
+    raise _Refused(f'{token} is not allowed in a model file (finite numbers only)')
+
+
+def _parse_int(text: str) -> int:
+    digits = len(text.lstrip('-'))
+    if digits > MAX_INT_DIGITS:
+        raise _Refused(f'an integer of {digits} digits is not allowed in a model file (at most '
+                       f'{MAX_INT_DIGITS})')
+    return int(text)
+
+
+def _parse_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise _Refused(f'the number {text[:20]}{"..." if len(text) > 20 else ""} does not fit '
+                       'a double (finite numbers only)')
+    return value
 
 
 def _read_json(path):
@@ -203,12 +229,21 @@ def _read_json(path):
     if not path.is_file():
         raise ModelFileError(f'model file not found: {name}')
     try:
-        doc = json.loads(path.read_text(encoding='utf-8'), parse_constant=_refuse_constant)
+        size = path.stat().st_size
+        if size > MAX_JSON_BYTES:
+            raise ModelFileError(f'{name}: {size} bytes is more than a model file holds (at '
+                                 f'most {MAX_JSON_BYTES}); not a model file')
+        doc = json.loads(path.read_text(encoding='utf-8'), parse_constant=_refuse_constant,
+                         parse_int=_parse_int, parse_float=_parse_float)
     except UnicodeDecodeError:      # e.g. the .npz given instead of the .json
         raise ModelFileError(f'{name}: not a JSON model file (not UTF-8 text)') from None
+    except RecursionError:
+        raise ModelFileError(f'{name}: nested too deeply to be a model file') from None
+    except _Refused as exc:
+        raise ModelFileError(f'{name}: {exc}') from None
     except ValueError as exc:
-        if not isinstance(exc, json.JSONDecodeError):   # from _refuse_constant
-            raise ModelFileError(f'{name}: {exc}') from None
+        if not isinstance(exc, json.JSONDecodeError):   # e.g. Python's own integer limit
+            raise ModelFileError(f'{name}: not a valid model file ({exc})') from None
         raise ModelFileError(f'{name}: not valid JSON ({exc.msg} at line {exc.lineno} column '
                              f'{exc.colno})') from None
     except OSError as exc:
@@ -235,12 +270,41 @@ def _read_weights(path, doc):
     wpath = path.parent / wname
     if not wpath.is_file():
         raise ModelFileError(f'weights file not found: {wpath} (named by {name})')
-    raw = wpath.read_bytes()
-    digest = doc['weights'].get('sha256')
-    if digest is not None and hashlib.sha256(raw).hexdigest() != digest:
+    # Every model file save_model writes carries the checksum: without one the weights cannot
+    # be vouched for, so a missing key is refused, not taken as "do not check".
+    digest = doc['weights'].get('sha256') if isinstance(doc.get('weights'), dict) else None
+    if not isinstance(digest, str):
+        raise ModelFileError(f'{name}: weights.sha256 is missing, so its weights cannot be '
+                             'verified (every model file fit writes has it; re-save the model)')
+    shapes = _declared_shapes(doc, name)
+    size = wpath.stat().st_size
+    if size > MAX_WEIGHT_BYTES:
+        raise ModelFileError(f'{wpath}: {size} bytes is more than the weights of a model hold '
+                             f'(at most {MAX_WEIGHT_BYTES})')
+    h = hashlib.sha256()
+    with open(wpath, 'rb') as fh:
+        for block in iter(lambda: fh.read(1 << 20), b''):
+            h.update(block)
+    if h.hexdigest() != digest:
         raise ModelFileError(f'{wpath}: contents do not match the SHA-256 recorded in {name} '
                              f'(changed or truncated)')
-    return wpath, read_npz(wpath, error=ModelFileError)
+    # Only the arrays the document declares, of the shapes it declares, within the size limit:
+    # an extra member that inflates to gigabytes is never decompressed.
+    return wpath, read_npz(wpath, error=ModelFileError, shapes=shapes,
+                           max_bytes=MAX_WEIGHT_BYTES)
+
+
+def _declared_shapes(doc, name) -> dict[str, tuple[int, ...]]:
+    """{array name: shape} of weights.arrays, each shape a list of non-negative integers."""
+    arrays = _get(doc, 'weights.arrays', name, (dict,))
+    out = {}
+    for key, shape in arrays.items():
+        if not (isinstance(shape, list) and len(shape) <= 8 and all(
+                isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape)):
+            raise ModelFileError(f'{name}: weights.arrays.{key} must be a shape (a list of '
+                                 f'non-negative integers), got {shape!r}')
+        out[key] = tuple(shape)
+    return out
 
 
 def load_model(path):

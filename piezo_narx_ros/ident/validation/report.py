@@ -51,8 +51,9 @@ def json_safe(obj):
 
 def write_json(obj, path) -> Path:
     """Write obj as indented JSON (non-finite numbers as null); returns the path."""
+    from piezo_narx_ros.files import write_text_atomic
     path = Path(path)
-    path.write_text(json.dumps(json_safe(obj), indent=1) + '\n')
+    write_text_atomic(path, json.dumps(json_safe(obj), indent=1) + '\n')
     return path
 
 
