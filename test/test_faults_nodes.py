@@ -14,6 +14,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import rclpy
 from rclpy.node import Node
@@ -723,3 +724,25 @@ def test_a_node_aborted_while_it_spins_prints_its_threads_stacks():
             proc.wait()
     assert proc.returncode == -signal.SIGABRT, err
     assert 'Fatal Python error: Aborted' in err and 'in run_node' in err, err
+
+
+def test_a_model_whose_free_run_is_nan_stops_the_estimator_and_the_controller(tmp_path):
+    """
+    Refuse a model evaluate refuses, in both nodes, with evaluate's one line (issue 45).
+
+    estimator_node published 100 % NaN estimates with OK status from such a model file; both
+    nodes now load through ident.validation.usable.
+    """
+    from test_estimator_node import start_node
+    from test_faults_trust import nan_model
+
+    from piezo_narx_ros.ident.model_io import save_model
+    with np.errstate(all='ignore'):
+        path = save_model(nan_model(), tmp_path / 'nan.json')
+    procs = [start_node(node, '-p', f'model:={path}', ns='/nanmodel')
+             for node in ('estimator_node', 'controller_node')]
+    for node, proc in zip(('estimator_node', 'controller_node'), procs):
+        assert proc.wait(120) == 2, node
+        lines = [ln for ln in proc.stderr.read().splitlines() if ln.strip()]
+        assert len(lines) == 1 and lines[0].startswith(f'{node}: error: '), lines
+        assert "the model's free run from rest is not finite" in lines[0]

@@ -160,3 +160,34 @@ def test_reinitialize_names_the_window_it_really_waits_for():
     assert est.init_samples == 1000
     assert est.request_restart(from_measurement=False) == \
         'free run restarts from rest at the next command'
+
+
+# ------------------------------------------------------------ one check that a model runs
+def test_the_shared_check_refuses_a_model_whose_free_run_overflows(tmp_path, capsys):
+    from piezo_narx_ros.errors import ModelFileError
+    from piezo_narx_ros.ident.model_io import save_model
+    from piezo_narx_ros.ident.validation.usable import check_runs, load_runnable
+    check_runs(toy_narx())                                   # a sane model passes
+    path = save_model(nan_model(), tmp_path / 'nan.json')
+    with pytest.raises(ModelFileError, match="nan.json: the model's free run from rest is not "
+                       'finite .* it can neither estimate nor control'):
+        load_runnable(path)
+    from test_faults_cli import cli, one_error_line
+    np.savez(tmp_path / 'r.npz', u=np.zeros(3000), y=np.zeros(3000) + 1e-9, fs=2000.0)
+    code, _, err = cli(['evaluate', str(path), str(tmp_path / 'r.npz')], capsys)
+    assert code == 2 and one_error_line(err) and 'free run from rest is not finite' in err
+
+
+def test_an_estimator_whose_estimates_turn_nan_is_an_error_not_ok():
+    with np.errstate(all='ignore'):
+        est = FreeRunEstimator(nan_model(), init='rest')
+        health = EstimatorHealth(est)
+        for k in range(200):
+            est.on_command(k * P, 10.0)
+        level, msg, values = health.tick()
+    assert level == 2 and msg.startswith('200 of 200 estimates are not finite (NaN/inf)')
+    assert values['nonfinite_estimates'] == 200
+    with np.errstate(all='ignore'):
+        for k in range(200, 210):             # every later tick with estimates: ERROR again
+            est.on_command(k * P, 10.0)
+    assert health.tick()[0] == 2

@@ -205,6 +205,7 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
     from piezo_narx_ros.errors import ConfigError, DataError
     from piezo_narx_ros.ident.selection.scoring import (evaluate_model, fit_noise_models,
                                                         from_rest_scores, scored_from)
+    from piezo_narx_ros.ident.data.records import check_scorable
     from piezo_narx_ros.ident.data.saturation import saturation_warnings
 
     if init_samples is not None:
@@ -241,6 +242,7 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
         if model.fs is not None and abs(r.fs - model.fs) > 1e-6 * model.fs:
             raise DataError(f'{r.source}: sampled at {r.fs:g} Hz but the model was fitted at '
                             f'{model.fs:g} Hz')
+        check_scorable(r, scored_from(model, r))     # R² against a flat output: undefined
         # Whole records are scored here (no split), so half the usual length suffices.
         if len(r) < scored_from(model, r) + 4 * max_lag:
             raise DataError(f'{r.source}: {len(r)} samples are too few for the model '
@@ -368,10 +370,10 @@ def _run(args) -> int:
     from piezo_narx_ros.ident.validation.noise_model import describe as describe_noise
     from piezo_narx_ros.cli.reading import reading_options
     from piezo_narx_ros.ident.data.loaders import load_records
-    from piezo_narx_ros.ident.model_io import load_model
+    from piezo_narx_ros.ident.validation.usable import load_runnable
     from piezo_narx_ros.ident.validation.report import json_safe
 
-    model = load_model(args.model)
+    model = load_runnable(args.model)
     records = load_records(args.inputs, fs=args.fs, command_topic=args.command_topic,
                            deflection_topic=args.deflection_topic, **reading_options(args))
     if args.save_output:     # before the work: a refusal costs nothing

@@ -63,6 +63,7 @@ class EstimatorStats:
     stamp_outliers: int = 0
     stream_restarts: int = 0   # new streams recognised (loop, new run, jump beyond max_fill)
     out_of_range: int = 0      # estimates outside the model's trained output range (+ margin)
+    nonfinite_estimates: int = 0   # of those, NaN or inf: the model's free run diverged
     reanchors: int = 0
     unestimated: int = 0       # commands before the first n0 measured ones (init from measurement)
     requested_restarts: int = 0   # restarts asked for (reset / reinitialize services)
@@ -401,6 +402,8 @@ class FreeRunEstimator:
             if beyond.size:
                 st.out_of_range += beyond.size
                 self.excursion = _running_largest(self.excursion, beyond)
+                st.nonfinite_estimates += int(np.count_nonzero(
+                    ~np.isfinite(y.reshape(n, -1)).all(axis=1)))
         measured = self._meas.get_many(tl)
         if _any_value(measured):
             self._record_errors([(m, e) for m, e in zip(measured, yl) if m is not None])
@@ -593,6 +596,8 @@ class FreeRunEstimator:
             beyond = _beyond(y_hat, self.y_lo, self.y_hi)
             if not beyond <= self.excursion:   # also NaN: a diverged estimate
                 self.excursion = beyond
+            if not _finite(y_hat):
+                self.stats.nonfinite_estimates += 1
         y = self._meas.get(t_ns)   # kept: re-anchoring reads it
         if y is not None:
             self._record_error(y, y_hat)

@@ -28,7 +28,7 @@ _WARN_ON = (
     ('input_out_of_range', 'command(s) outside the trained input range: the model extrapolates'),
 )
 _CUMULATIVE = ('commands', 'estimates', 'rejected_nonfinite', 'rejected_range',
-               'refused_messages', 'gaps', 'filled',
+               'refused_messages', 'gaps', 'filled', 'nonfinite_estimates',
                'stamp_outliers', 'stream_restarts', 'out_of_range', 'reanchors', 'unestimated',
                'init', 'rate_withheld', 'input_out_of_range')
 
@@ -47,7 +47,8 @@ class EstimatorHealth:
         self.notes = [note] if note else []
         self._since = Since(lambda: vars(estimator.stats),
                             [name for name, _ in _WARN_ON] + ['estimates', 'commands',
-                                                              'rate_withheld'])
+                                                              'rate_withheld',
+                                                              'nonfinite_estimates'])
 
     def rate_line(self) -> str:
         """Return the one line that says why estimates are withheld (the stream's rate)."""
@@ -70,6 +71,10 @@ class EstimatorHealth:
         excursion = self.est.take_excursion()
         u_beyond = self.est.take_input_excursion()
         errors, problems = list(errors), []
+        if d['nonfinite_estimates']:
+            errors.append(f"{d['nonfinite_estimates']} of {d['estimates']} estimates are not "
+                          "finite (NaN/inf): the model's free run diverged and cannot stand in "
+                          'for the sensor (evaluate refuses such a model file); refit it')
         if self.est.rate.off or d['rate_withheld']:
             errors.append(f'{self.rate_line()} ({d["rate_withheld"]} withheld since the last '
                           'report)')

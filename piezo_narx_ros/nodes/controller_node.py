@@ -98,7 +98,7 @@ class ControllerNode(PiezoNode):
 
     def __init__(self, **kwargs):
         super().__init__(**kwargs)
-        from piezo_narx_ros.ident.model_io import load_model
+        from piezo_narx_ros.ident.validation.usable import load_runnable
         p = self.params
         trained_u = p['u_min'] == p['u_max'] == 0.0
         if p['u_min'] >= p['u_max'] and not trained_u:
@@ -109,7 +109,7 @@ class ControllerNode(PiezoNode):
                               'the measured deflection)')
         limits = ({} if p['y_min'] == p['y_max'] == 0.0
                   else {'y_min': p['y_min'], 'y_max': p['y_max']})
-        self.model = load_model(p['model'])
+        self.model = load_runnable(p['model'])
         # A model of several axes (issue 20): AxesController, references and commands are
         # vectors mapped by the model's output and input names.
         self.vector = int(getattr(self.model, 'n_in', 1)) > 1 or \

@@ -75,9 +75,9 @@ class EstimatorNode(PiezoNode):
 
     def __init__(self, **kwargs):
         super().__init__(**kwargs)
-        from piezo_narx_ros.ident.model_io import load_model
+        from piezo_narx_ros.ident.validation.usable import load_runnable
         p = self.params
-        self.model = load_model(p['model'])
+        self.model = load_runnable(p['model'])
         self.est = FreeRunEstimator(
             self.model, fs=p['fs'] or None, init=p['init'], u_min=p['u_min'], u_max=p['u_max'],
             max_fill=p['max_fill'], range_margin=p['range_margin'], window=p['window'],
