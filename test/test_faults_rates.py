@@ -218,6 +218,11 @@ def test_data_line_is_the_least_squares_line():
     line = data_line([u[:200], u[200:]], [4e-7 * u[:200] + 1e-6, 4e-7 * u[200:] + 1e-6])
     assert line['gain_m_per_v'] == pytest.approx(4e-7) and line['offset_m'] == pytest.approx(1e-6)
     assert line['r2'] == pytest.approx(1.0)
+    # Issue 45: a 2-input 1-output fit ended, after all the fitting, in "unexpected TypeError
+    # ... this is a bug" here; a line is one input against one output.
+    two = np.column_stack([u, -u])
+    assert data_line([two], [4e-7 * u]) is None
+    assert data_line([u[:, None]], [4e-7 * u[:, None]])['gain_m_per_v'] == pytest.approx(4e-7)
 
 
 # ----------------------------------------------------------------- item 1: live tracking figures

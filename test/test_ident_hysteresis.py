@@ -4,6 +4,7 @@ The hysteresis-operator NARX (ident/hysteresis/model.py).
 Exact derivatives, free run = Stepper, frozen operators and a bounded free run, identification of
 the plant, several records, the parameter table, and its model file.
 """
+import hashlib
 import json
 import subprocess
 import sys
@@ -398,7 +399,8 @@ def test_unstable_or_misshapen_weights_are_refused(tmp_path, fitted):
                               ('W1', np.full(arrays['W1'].shape, np.nan), 'NaN')):
         bad = dict(arrays, **{key: value})
         np.savez(path.with_suffix('.npz'), **bad)
-        _edit(path, lambda d: d['weights'].pop('sha256', None))
+        digest = hashlib.sha256(path.with_suffix('.npz').read_bytes()).hexdigest()
+        _edit(path, lambda d: d['weights'].update(sha256=digest))
         with pytest.raises(ModelFileError, match=match):
             load_model(path)
 
@@ -467,17 +469,25 @@ def test_no_slew_is_invented_where_the_data_show_none():
     assert m.training_info_['drive_starts'][0].get('kept')
 
 
-def test_a_model_file_written_before_the_amplifier_runs_the_same_bits():
+# A stored free run was computed on one CPU: another x86-64 or an arm64 one rounds exp() and
+# fused multiply-adds differently in the last bit (an AMD EPYC differed by up to 3.4e-21 m in
+# 339 of 2000 samples of this 4e-5 m run). 1e-15 m is six orders above that and nine below the
+# model's own error, so any real change of the computation still fails.
+STORED_RUN_ATOL_M = 1e-15
+
+
+def test_a_model_file_written_before_the_amplifier_runs_the_same():
     # test/data/hnarx_slew: a small model fitted on the protocol and saved, with its free run
     # of a 0.1-500 Hz multisine, by the code before the drive had a bandwidth (its slew limit,
-    # 3.7e4 V/s, clips that multisine). Loading and running it must give the same bits.
+    # 3.7e4 V/s, clips that multisine). Loading and running it must give the same free run.
     from pathlib import Path
     here = Path(__file__).parent / 'data' / 'hnarx_slew'
     m = load_model(here / 'model.json')
     with np.load(here / 'expected.npz') as z:
         u, y = z['u'], z['y']
     assert not m.amplifier_ and m.drive_bandwidth == np.inf
-    assert np.array_equal(m.simulate(u), y)
-    assert np.array_equal(m.stepper().step_many(u), y)
+    run = m.simulate(u)
+    np.testing.assert_allclose(run, y, rtol=0.0, atol=STORED_RUN_ATOL_M)
+    assert np.array_equal(m.stepper().step_many(u), run)     # one CPU: the same bits
     lay, _ = m._layout()
     assert lay['drive'][1] - lay['drive'][0] == 1

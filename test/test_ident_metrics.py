@@ -86,6 +86,8 @@ def test_constant_output_raises(name, message):
     f = getattr(metrics, name)
     with pytest.raises(DataError) as exc:
         f(np.ones(10), np.zeros(10))
-    assert str(exc.value) == message
+    assert str(exc.value) == message + ' (it has no variance to explain)'
+    with pytest.raises(DataError):       # constant but for rounding: undefined too (issue 45)
+        f(np.full(4000, 1e-6), np.zeros(4000))
     y = np.r_[np.ones(5), 2.0]          # constant except one sample: defined
     assert np.isfinite(f(y, y * 0.9))

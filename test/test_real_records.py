@@ -309,6 +309,12 @@ def test_resample_is_anti_aliased_and_only_slower():
     for bad in (10000.0, 20000.0, -1.0):
         with pytest.raises(DataError):
             resample_record(rec, bad)
+    # Issue 45: 1999 Hz from 2000 Hz was "resampled" by the nearest ratio, 1/1: a 2000 Hz fit.
+    at2k = resample_record(rec, 2000.0)
+    with pytest.raises(DataError, match='--resample 1999 Hz cannot be made from the record.s '
+                       '2000 Hz .* the nearest slower rate it can make is 1998 Hz'):
+        resample_record(at2k, 1999.0)
+    assert resample_record(at2k, 1998.0).fs == 1998.0
 
 
 def test_fit_and_evaluate_at_a_resampled_rate(tmp_path):

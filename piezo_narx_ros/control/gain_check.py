@@ -61,10 +61,15 @@ def data_line(us, ys) -> dict:
 
     us, ys: one array or a list of arrays (records) of V and m. Returns {'gain_m_per_v',
     'offset_m', 'r2'}: what a user fits to a record by hand, stored with the model so that its
-    own line can be checked against the data later.
+    own line can be checked against the data later. None for records of several inputs or
+    outputs: a line is one input against one output (several axes are checked by
+    control.axes.static_gains on the model itself).
     """
-    u = np.concatenate([np.asarray(x, float).ravel() for x in _as_list(us)])
-    y = np.concatenate([np.asarray(x, float).ravel() for x in _as_list(ys)])
+    us, ys = _as_list(us), _as_list(ys)
+    if any(np.ndim(x) > 1 and np.shape(x)[1] != 1 for x in us + ys):
+        return None
+    u = np.concatenate([np.asarray(x, float).ravel() for x in us])
+    y = np.concatenate([np.asarray(x, float).ravel() for x in ys])
     gain, offset = np.polyfit(u, y, 1)
     return {'gain_m_per_v': float(gain), 'offset_m': float(offset),
             'r2': _r2(y, gain * u + offset)}

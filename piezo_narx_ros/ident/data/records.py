@@ -14,10 +14,11 @@ import numpy as np
 
 from piezo_narx_ros.errors import DataError
 from piezo_narx_ros.ident.data.units import SI, Units, check_magnitudes
+from piezo_narx_ros.ident.validation.metrics import is_constant as _constant
 from piezo_narx_ros.record import Record, check_names
 
-__all__ = ['MIN_SAMPLES', 'checked', 'check_length', 'check_identifiable', 'time_clock',
-           'TimeClock']
+__all__ = ['MIN_SAMPLES', 'checked', 'check_length', 'check_identifiable', 'check_scorable',
+           'time_clock', 'TimeClock']
 
 
 # Fewest samples a record may have: below this neither a 50/50 split nor the correlation tests
@@ -212,9 +213,20 @@ def check_length(record: Record, n0: int, max_lag: int = 20, what: str = 'lags')
                         f'{n0} (need at least {need})')
 
 
-def _constant(x: np.ndarray) -> bool:
-    """Return True when x does not vary beyond float rounding (relative spread <= 1e-9)."""
-    return bool(np.ptp(x) <= 1e-9 * np.max(np.abs(x)))
+def check_scorable(record: Record, start: int = 0) -> None:
+    """
+    Raise DataError (naming the record) when an output it would score against is constant.
+
+    R² against a flat output is undefined (validation.metrics.is_constant); before, a constant
+    validation record scored R² -3.9e30. start: the first sample scored.
+    """
+    for j in range(record.n_out):
+        y = record.y[start:, j]
+        if len(y) and _constant(y):
+            which = 'the measured output' if record.n_out == 1 else f'output {record.outputs[j]}'
+            raise DataError(f'{record.source}: {which} is constant (y = {y[0]:.6g} m, spread '
+                            f'{np.ptp(y):.3g} m): R² is undefined against it, so it cannot score '
+                            'a model; score on a record where the deflection moves')
 
 
 def check_identifiable(record: Record, split: float = 0.5) -> list[str]:

@@ -25,8 +25,9 @@ def resample_record(record: Record, fs: float) -> Record:
     """
     `record` at the sample rate fs (Hz, below the record's): u, y (and y_true) resampled.
 
-    The ratio fs / record.fs is taken as the nearest fraction with denominator <= MAX_FACTOR;
-    DataError when fs is not positive, not slower, or leaves fewer than 100 samples. Stamps t
+    The ratio fs / record.fs must be a fraction with denominator <= MAX_FACTOR (to 1e-6
+    relative); DataError when fs is not positive, not slower, is a rate the filter cannot make
+    (the message names the nearest one it can), or leaves fewer than 100 samples. Stamps t
     (when the record had them) restart at the first sample's time with a step of 1/fs. A segment
     of a longer recording is resampled alone (its history is dropped).
     """
@@ -42,6 +43,17 @@ def resample_record(record: Record, fs: float) -> Record:
     if ratio.numerator == 0:
         raise DataError(f'{record.source}: --resample {fs:g} Hz is below 1/{MAX_FACTOR} of the '
                         f"record's {record.fs:g} Hz")
+    made = record.fs * ratio.numerator / ratio.denominator
+    if abs(made - fs) > 1e-6 * fs:
+        # e.g. 1999 Hz from 2000 Hz: the nearest ratio was 1/1, and the model would silently
+        # have been fitted at 2000 Hz while the user asked for 1999 Hz.
+        if ratio >= 1:
+            ratio = Fraction(MAX_FACTOR - 1, MAX_FACTOR)
+        near = record.fs * ratio.numerator / ratio.denominator
+        raise DataError(f'{record.source}: --resample {fs:g} Hz cannot be made from '
+                        f"the record's {record.fs:g} Hz (rate ratios p/q with q <= {MAX_FACTOR}); "
+                        f'the nearest slower rate it can make is {near:.8g} Hz: pass that, or a '
+                        f'rate in a simple ratio to {record.fs:g} Hz')
 
     def down(x):
         if x is None:

@@ -50,7 +50,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from piezo_narx_ros.errors import ConfigError, DataError, PiezoNarxError
-from piezo_narx_ros.ident.data.records import check_length
+from piezo_narx_ros.ident.data.records import check_length, check_scorable
 from piezo_narx_ros.ident.selection.executor import Executor, LocalExecutor, TaskFailure, in_worker
 from piezo_narx_ros.ident.selection.grid import auto_grid, distinct_specs
 from piezo_narx_ros.ident.selection.scoring import RESIDUAL_KINDS, evaluate_model, fit_noise_models
@@ -676,6 +676,7 @@ def run_experiments(groups: list[list[Record]], config: ExperimentConfig | None 
             else:
                 for r in validation:
                     check_length(r, config.max_n0, config.max_lag)
+                    check_scorable(r)
                 data[g] = (with_state_window(records, config),
                            with_state_window(validation, config))
         except PiezoNarxError as exc:

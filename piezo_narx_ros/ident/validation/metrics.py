@@ -29,6 +29,21 @@ def _one_column(a: np.ndarray) -> np.ndarray:
     return a[:, 0] if a.ndim == 2 and a.shape[1] == 1 else a
 
 
+def is_constant(x) -> bool:
+    """
+    Return True when x does not vary beyond float rounding (spread <= 1e-9 of its magnitude).
+
+    A flat record's mean is not exactly its value (rounding), so sum((y - mean)^2) is a tiny
+    positive number, not 0: R² against it came out as -3.9e30 (issue 45). Such a record has no
+    variance to explain: R², NRMSE and fit % are undefined.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    return bool(np.ptp(x) <= 1e-9 * np.max(np.abs(x)))
+
+
+_CONSTANT = 'undefined: the measured output is constant (it has no variance to explain)'
+
+
 def r2(y, y_hat, start: int = 0) -> float:
     """
     Coefficient of determination, paper eq. (3): 1 - sum((y - y_hat)^2) / sum((y - mean y)^2).
@@ -38,8 +53,8 @@ def r2(y, y_hat, start: int = 0) -> float:
     y, y_hat = _pair(y, y_hat, start)
     ss_res = float(np.sum((y - y_hat) ** 2))
     ss_tot = float(np.sum((y - y.mean()) ** 2))
-    if ss_tot == 0.0:
-        raise DataError('R² undefined: the measured output is constant')
+    if ss_tot == 0.0 or is_constant(y):
+        raise DataError(f'R² {_CONSTANT}')
     return 1.0 - ss_res / ss_tot
 
 
@@ -53,8 +68,8 @@ def nrmse(y, y_hat, start: int = 0) -> float:
     """RMSE divided by the standard deviation of the measured output (unit-free)."""
     y, y_hat = _pair(y, y_hat, start)
     std = float(np.std(y))
-    if std == 0.0:
-        raise DataError('NRMSE undefined: the measured output is constant')
+    if std == 0.0 or is_constant(y):
+        raise DataError(f'NRMSE {_CONSTANT}')
     return float(np.sqrt(np.mean((y - y_hat) ** 2))) / std
 
 
@@ -62,8 +77,8 @@ def fit_percent(y, y_hat, start: int = 0) -> float:
     """Normalised fit in percent, 100 (1 - ||y - y_hat|| / ||y - mean y||) (100 = perfect)."""
     y, y_hat = _pair(y, y_hat, start)
     den = float(np.sqrt(np.sum((y - y.mean()) ** 2)))
-    if den == 0.0:
-        raise DataError('fit % undefined: the measured output is constant')
+    if den == 0.0 or is_constant(y):
+        raise DataError(f'fit % {_CONSTANT}')
     return 100.0 * (1.0 - float(np.sqrt(np.sum((y - y_hat) ** 2))) / den)
 
 
@@ -99,7 +114,7 @@ def channel_scores(y, y_hat, names=None, per_output: bool | None = None) -> dict
         _pair(y[:, 0], y_hat[:, 0], 0)
         sse = np.sum((y - y_hat) ** 2, axis=0)
         sst = np.sum((y - y.mean(axis=0)) ** 2, axis=0)
-        if float(sst.sum()) == 0.0:
+        if float(sst.sum()) == 0.0 or all(is_constant(y[:, j]) for j in range(n_out)):
             raise DataError('R² undefined: every measured output is constant')
         ratio = float(sse.sum() / sst.sum())
         out = {'r2': 1.0 - ratio, 'rmse': float(np.sqrt(sse.sum() / y.size)),
