@@ -505,10 +505,10 @@ def _print_fit(result, config, executor, model_path, out, paths) -> None:
 def search_options(args, settings, config, fs: float):
     """Return the SearchOptions of a `fit --preset search` (ConfigError on bad values)."""
     from piezo_narx_ros.errors import ConfigError
-    from piezo_narx_ros.ident.selection.search import SEARCH_FAMILIES, SearchOptions
+    from piezo_narx_ros.ident.selection.search import SearchOptions
     budget = SearchOptions.budget_s if args.budget_s is None else (args.budget_s or None)
     families = (tuple(f.strip() for f in args.families.split(',')) if args.families
-                else SEARCH_FAMILIES)
+                else None)
     given = {'trials': args.trials, 'batch': args.batch, 'tolerance': args.tolerance}
     options = SearchOptions(
         budget_s=budget, seed=int(settings['seed']), families=families,
@@ -529,7 +529,7 @@ def _run_search(args, settings, config, inputs, executor, out) -> int:
     from piezo_narx_ros.control.gain_check import data_line
     from piezo_narx_ros.errors import ConfigError
     from piezo_narx_ros.ident.selection.experiment import split_records
-    from piezo_narx_ros.ident.selection.search import run_search
+    from piezo_narx_ros.ident.selection.search import SEARCH_FAMILIES, run_search
     from piezo_narx_ros.ident.selection.search_report import family_lines, write_search
     if args.per_record:
         raise ConfigError('--per-record is not available with --preset search; fit each '
@@ -539,7 +539,8 @@ def _run_search(args, settings, config, inputs, executor, out) -> int:
     options = search_options(args, settings, config, records[0].fs)
     est, val = (records, validation) if validation else split_records(records, config.split)
     if not args.quiet:
-        print(f'searching {options.trials} trials over {", ".join(options.families)} on '
+        print(f'searching {options.trials} trials over '
+              f'{", ".join(options.families or SEARCH_FAMILIES)} on '
               f'{executor.describe()}; study: {out / "study.journal"}')
     import signal
     import sys
@@ -563,6 +564,8 @@ def _run_search(args, settings, config, inputs, executor, out) -> int:
     model_path, paths = write_search(out, result, est, val, not args.no_report, info)
     if not args.quiet:
         best = result.best
+        for note in result.notes:
+            print(f'note: {note}')
         if result.taken_over:
             print(f'resumed: {result.taken_over} trial(s) taken over from {out}')
         if result.stopped == 'budget':
