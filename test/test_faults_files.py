@@ -264,3 +264,18 @@ def test_a_constant_record_is_not_scored_minus_1e30_but_said_undefined(toy, tmp_
     cfg = ExperimentConfig(narx=False, arx_na=(2,), arx_nb=(2,), noise_model='none', jobs=1)
     with pytest.raises(DataError, match='flat: the measured output is constant'):
         run_experiment([est], cfg, validation=[Record(u=u, y=flat, fs=2000.0, source='flat')])
+
+
+# ----------------------------------------------------------- names derived from input names
+def test_per_record_names_are_unique_and_stay_inside_out(tmp_path):
+    """Issue 45: a/run, run-2, b/run were named run, run-2, run-2; a stem '..' escaped --out."""
+    from piezo_narx_ros.cli.fit import recording_names
+    assert recording_names(['a/run.npz', 'run-2.npz', 'b/run.npz']) == ['run', 'run-2', 'run-3']
+    assert recording_names(['a/run.npz', 'b/run.npz', 'run-2.npz']) == ['run', 'run-3', 'run-2']
+    hostile = ['x/...npz', 'y/..npz', '.npz', 'Run.npz', 'run.npz', 'a b/c d.csv',
+               'rec\n.npz', 'e/../../f.npz', 'run.npz']
+    names = recording_names(hostile)
+    assert len({n.casefold() for n in names}) == len(hostile)
+    out = tmp_path / 'out'
+    for name in names:
+        assert (out / name).resolve().parent == out.resolve() and not name.startswith('.')

@@ -591,13 +591,27 @@ SUMMARY_COLUMNS = ('recording', 'status', 'selected', 'n_params', 'validated',
 
 
 def recording_names(paths) -> list[str]:
-    """Output folder name per input path: its stem, made unique with -2, -3, ..."""
+    """
+    Output folder name per input path: unique, and one plain name inside --out.
+
+    The stem, with anything but letters, digits, '.', '-' and '_' made '_' and leading dots
+    dropped (a stem '..' would have named the parent of --out); repeats get -2, -3, ..., never
+    a name another input's own stem takes (a/run, run-2, b/run: run, run-2, run-3). Compared
+    without case, for file systems that ignore it.
+    """
+    import re
     from pathlib import Path
-    names, seen = [], {}
-    for path in paths:
-        stem = Path(path).stem or 'recording'
-        seen[stem] = seen.get(stem, 0) + 1
-        names.append(stem if seen[stem] == 1 else f'{stem}-{seen[stem]}')
+    stems = [re.sub(r'[^\w.-]', '_', Path(path).stem).lstrip('.') or 'recording'
+             for path in paths]
+    reserved = {s.casefold() for s in stems}
+    names, used = [], set()
+    for stem in stems:
+        name, k = stem, 1
+        while name.casefold() in used or (k > 1 and name.casefold() in reserved):
+            k += 1
+            name = f'{stem}-{k}'
+        used.add(name.casefold())
+        names.append(name)
     return names
 
 
