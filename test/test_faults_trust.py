@@ -191,3 +191,33 @@ def test_an_estimator_whose_estimates_turn_nan_is_an_error_not_ok():
         for k in range(200, 210):             # every later tick with estimates: ERROR again
             est.on_command(k * P, 10.0)
     assert health.tick()[0] == 2
+
+
+# --------------------------------------------------------------- a write DDS refuses
+def test_a_write_dds_refuses_loses_that_sample_not_the_node():
+    """Issue 45 soak: `RCLError: Failed to publish: cannot publish data` ended command_node."""
+    from rclpy._rclpy_pybind11 import RCLError
+
+    from piezo_narx_ros.nodes.qos import PublishFailures
+
+    class Writer:                       # what DDS does under load: refuses every third write
+        topic_name = '/piezo/voltage_command'
+
+        def __init__(self):
+            self.sent = []
+
+        def publish(self, msg):
+            if len(self.sent) % 3 == 2:
+                self.sent.append(None)
+                raise RCLError('Failed to publish: cannot publish data, at rmw_publish.cpp:120')
+            self.sent.append(msg)
+
+    pub, failures = Writer(), PublishFailures()
+    failures.guard(pub)
+    for k in range(9):
+        pub.publish(k)                  # never raises
+    assert [m for m in pub.sent if m is not None] == [0, 1, 3, 4, 6, 7]
+    phrase = failures.take()
+    assert phrase.startswith('samples lost: DDS refused 3 on /piezo/voltage_command '
+                             '(Failed to publish: cannot publish data')
+    assert failures.take() == ''        # nothing new since

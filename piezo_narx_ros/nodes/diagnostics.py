@@ -41,9 +41,15 @@ class Diagnostics:
         Return the DiagnosticArray that would be published now.
 
         The provider's status, raised to WARN while a QoS incompatibility with a peer lasts (see
-        QosWatch).
+        QosWatch) and for a tick in which DDS refused samples (PublishFailures).
         """
         level, message, values = self._provider()
+        failures = getattr(self._node, 'publish_failures', None)
+        lost = failures.take() if failures is not None else ''
+        if lost:
+            level = max(level, DIAG_WARN)
+            message = f'{lost}; {message}'
+            values = {**values, 'publish_failures': sum(failures.counts.values())}
         watch = getattr(self._node, 'qos_watch', None)
         problems = watch.problems() if watch is not None else []
         if problems:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import copy
 from typing import Any
 
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.duration import Duration, Infinite
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
@@ -123,3 +124,51 @@ class QosWatch:
                     peer = f'{info.node_namespace.rstrip("/")}/{info.node_name}'
                     out.append(f'{topic}: {peer} cannot match this {kind} ({reason.strip()})')
         return out
+
+
+class PublishFailures:
+    """
+    Samples a node could not hand to DDS, for /diagnostics, instead of the node ending.
+
+    On an overloaded host a reliable writer's history fills while a reader lags, and Fast DDS
+    then refuses a write ("Failed to publish: cannot publish data") after blocking: rclpy raises
+    RCLError, which ended the command node of a soak run (issue 45). `guard(publisher)` makes that
+    publisher count such a failure (that sample is lost) and go on; `take()` says what failed
+    since the last call.
+    """
+
+    def __init__(self, log=None):
+        self._log = log
+        self.counts: dict[str, int] = {}
+        self.last_error = ''
+        self._reported: dict[str, int] = {}
+
+    def guard(self, pub) -> None:
+        """Replace pub.publish by one that counts a refused write instead of raising."""
+        raw, topic = pub.publish, pub.topic_name
+
+        def publish(msg) -> None:
+            try:
+                raw(msg)
+            except RCLError as exc:
+                self.note(topic, exc)
+        pub.publish = publish
+
+    def note(self, topic: str, exc: BaseException) -> None:
+        """Count one sample DDS refused on `topic` (logged at most once a second)."""
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+        self.last_error = ' '.join(str(exc).split())
+        if self._log is not None:
+            self._log.error(f'sample lost on {topic}: {self.last_error}',
+                            throttle_duration_sec=1.0)
+
+    def take(self) -> str:
+        """Return the WARN phrase for the failures since the last call ('' when none)."""
+        new = {t: n - self._reported.get(t, 0) for t, n in self.counts.items()}
+        self._reported = dict(self.counts)
+        new = {t: n for t, n in new.items() if n}
+        if not new:
+            return ''
+        where = ', '.join(f'{n} on {t}' for t, n in new.items())
+        return (f'samples lost: DDS refused {where} ({self.last_error}); a reader is not '
+                'keeping up or the host is overloaded')

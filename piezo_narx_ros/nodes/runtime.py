@@ -21,7 +21,8 @@ from sensor_msgs.msg import JointState
 
 from piezo_narx_ros.errors import ConfigError, PiezoNarxError
 from piezo_narx_ros.nodes.params import ParamSpec, declare_parameters, one_line
-from piezo_narx_ros.nodes.qos import SAMPLE_DEPTH, QosWatch, qos_overriding, sample_qos
+from piezo_narx_ros.nodes.qos import (SAMPLE_DEPTH, PublishFailures, QosWatch, qos_overriding,
+                                      sample_qos)
 from piezo_narx_ros.nodes.topics import DEFAULT_NAMESPACE
 
 # Exit codes of a node process.
@@ -291,6 +292,7 @@ class PiezoNode(Node):
         super().__init__(self.NODE_NAME, **kwargs)
         self._finished = None     # run_node's future: finish() completes it
         self.qos_watch = QosWatch(self)
+        self.publish_failures = PublishFailures(self.get_logger())
         self.params = declare_parameters(self, self.PARAMS)
         # Before the node opens anything: a refused recorder left an empty bag behind.
         refuse_retired(self)
@@ -328,6 +330,7 @@ class PiezoNode(Node):
                                     qos_overriding_options=qos_overriding(),
                                     event_callbacks=self.qos_watch.callbacks('publisher', topic))
         self.qos_watch.add('publisher', pub)
+        self.publish_failures.guard(pub)      # a refused write loses a sample, not the node
         return pub
 
     def sample_subscription(self, topic: str, callback, msg_type=JointState, raw: bool = True,
