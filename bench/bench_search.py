@@ -38,7 +38,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_real import Cli, YAN9A_READING, default_data  # noqa: E402
 
-PRESETS = ('search', 'envelope', 'paper')
+PRESETS = ['search', 'envelope', 'paper']
 BOUCWEN_N = (10, 20, 50, 100, 200, 500, 1000)
 
 
@@ -192,12 +192,14 @@ def main(argv=None) -> int:
                    choices=('yan9a', 'boucwen', 'fsm', 'sim'))
     p.add_argument('--data', type=Path, default=default_data())
     p.add_argument('--jobs', type=int, default=2)
+    p.add_argument('--presets', nargs='+', choices=PRESETS, default=list(PRESETS))
     p.add_argument('--search-args', default='', help='extra options of fit --preset search')
     p.add_argument('--sim-args', default='--scenarios session growing wideband --seeds 0',
                    help="bench_real.py's options for the sim part")
     p.add_argument('--keep', type=Path, help='keep the fits in this folder')
     p.add_argument('--json', type=Path, help='write the figures here')
     args = p.parse_args(argv)
+    PRESETS[:] = args.presets
     cli = Cli(args.jobs, search_args=shlex.split(args.search_args))
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
