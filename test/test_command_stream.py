@@ -45,6 +45,37 @@ def test_polls_read_the_signal_as_indexed_across_the_wrap():
     assert u.shape[0] > 100 and np.array_equal(u, want)
 
 
+@pytest.mark.parametrize('slew', [math.inf, 2000.0])
+def test_poll_lists_is_poll_as_lists(slew):
+    def streamer():
+        return CommandStreamer(np.arange(30.0).reshape(15, 2), fs=1000.0, loop=True,
+                               slew_rate=slew, max_burst=5, lead=np.full((4, 2), -3.0))
+    a, b = streamer(), streamer()
+    a.start(7 * NS, 0)
+    b.start(7 * NS, 0)
+    rng = np.random.default_rng(1)
+    now, calls = 0, []
+    for k in range(300):
+        now += int(rng.choice([0, 1, 1, 1, 2, 9])) * 1_000_000
+        if k in (100, 150):
+            a.hold()
+            b.hold()
+        if k in (120, 170):
+            a.resume()
+            b.resume()
+        t, v = a.poll(now)
+        got = b.poll_lists(now)
+        assert got == (t.tolist(), v.tolist())
+        calls.append(len(got[0]))
+    assert calls.count(1) > 100 and max(calls) == 5
+    for name in ('position', 'published', 'late_polls', 'max_batch', 'holding'):
+        assert getattr(a, name) == getattr(b, name), name
+    assert np.array_equal(a._last, b._last)
+    a.stop()
+    b.stop()
+    assert b.poll_lists(now) == ([], [])
+
+
 def test_due_count_follows_monotonic_time():
     c = SampleClock(1000.0, 0, mono0_ns=10 * NS)
     assert c.due_count(10 * NS - 1) == 0

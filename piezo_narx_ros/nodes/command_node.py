@@ -285,21 +285,23 @@ class CommandNode(PiezoNode):
             if not self._listeners_ready():
                 return
             s.start(self.get_clock().now().nanoseconds, pace)
-        stamps, volts = s.poll(pace)
         names, pub = self.axes, self.pub
         if self.batch > 1:
+            stamps, volts = s.poll(pace)
             if self._held_t.size:
                 stamps = np.concatenate((self._held_t, stamps))
                 volts = np.concatenate((self._held_v, volts))
             self._held_t, self._held_v = stamps, volts
             self._publish_batches(flush=s.finished)
-        elif self.position:
-            for t, r in zip(stamps.tolist(), volts.tolist()):
-                pub.publish(encode_joint_state(t, names, position=r))
         else:
-            for t, u in zip(stamps.tolist(), volts.tolist()):
-                pub.publish(encode_joint_state(t, names, effort=u))   # CDR bytes: 2x cheaper
-        if s.finished and stamps.size:
+            stamps, volts = s.poll_lists(pace)
+            if self.position:
+                for t, r in zip(stamps, volts):
+                    pub.publish(encode_joint_state(t, names, position=r))
+            else:
+                for t, u in zip(stamps, volts):
+                    pub.publish(encode_joint_state(t, names, effort=u))   # CDR: 2x cheaper
+        if s.finished and len(stamps):
             self.get_logger().info(f'signal finished after {s.published} samples')
 
     def _listeners_ready(self) -> bool:
