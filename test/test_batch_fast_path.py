@@ -53,6 +53,7 @@ def test_rate_monitor_observe_run_equals_one_by_one(window, single_writer):
 
 
 def test_pass_run_observed_is_pass_run_then_observe_run():
+    from piezo_narx_ros.command import stamp_kernels as sk
     from piezo_narx_ros.command.stamps import StampGate, pass_run_observed
     rng = np.random.default_rng(4)
     pairs = [(StampGate(PERIOD, 100), RateMonitor(PERIOD, 0.01, 50)) for _ in range(2)]
@@ -67,8 +68,15 @@ def test_pass_run_observed_is_pass_run_then_observe_run():
         (g1, r1), (g2, r2) = pairs
         stamps = (g1.last + np.cumsum(steps)).astype(np.int64)
         for _ in range(int(rng.integers(0, 3))):
-            r1.received()
-            r2.received()
+            r1.received(g1.last + PERIOD)
+            r2.received(g2.last + PERIOD)
+        if rng.random() < 0.2:    # one sample alone, as the one-sample paths observe it
+            for g, r in pairs:
+                r.observe(g.last + PERIOD)
+                g.push(g.last + PERIOD)
+        if rng.random() < 0.02:
+            for _, r in pairs:
+                r.reset()
         ok = g1.pass_run(stamps)
         want = r1.observe_run(stamps) if ok else None
         got = pass_run_observed(g2, r2, stamps)
@@ -77,6 +85,8 @@ def test_pass_run_observed_is_pass_run_then_observe_run():
             assert got[0].tolist() == want.tolist() and got[1] == int(want.sum())
         assert (r1._st == r2._st).all() and (r1._ring == r2._ring).all()
         assert _same(r1.ratio, r2.ratio) and r1._received == r2._received
+        for r in (r1, r2):        # received(t) reads the last accepted stamp from Python
+            assert r._last == (int(r._st[sk.I_LAST]) if r._st[sk.I_HAS_LAST] else None)
     assert pairs[1][1].episodes >= 1      # the other rate was seen
 
 

@@ -65,6 +65,20 @@ def observe_run(t_ns, received, each, period, tolerance, min_steps, single_write
 
 
 @njit(cache=True)
+def observe_one(t, received, period, tolerance, min_steps, single_writer, ring, st, fst):
+    """
+    observe_run for one sample t (int ns), its received count before it: returns the verdict.
+
+    In one compiled call without the one-element arrays a caller would fill (RateMonitor.observe).
+    """
+    t_ns = np.empty(1, dtype=np.int64)
+    t_ns[0] = t
+    off = np.empty(1, dtype=np.bool_)
+    return observe_run(t_ns, received, 0, period, tolerance, min_steps, single_writer, ring, st,
+                       fst, off)
+
+
+@njit(cache=True)
 def on_grid_run(t_ns, last, period, tolerance):
     """Tell whether each stamp of t_ns (n,) ns is one period (± tolerance) after the one before."""
     prev = last

@@ -187,6 +187,9 @@ def _load_kernels() -> None:
                        np.zeros(sk.N_INT_STATE, dtype=np.int64), np.zeros(2),
                        np.zeros(1, dtype=np.bool_))
         sk.on_grid_run(t, 0, 1.0, GRID_TOLERANCE)
+        sk.observe_one(0, 0, 1.0, 0.01, RATE_MIN_STEPS, False,
+                       np.zeros((RATE_MIN_STEPS + 1, 3), dtype=np.int64),
+                       np.zeros(sk.N_INT_STATE, dtype=np.int64), np.zeros(2))
         sk.pass_and_observe(t, 0, GRID_TOLERANCE, 0, 1.0, 0.01, RATE_MIN_STEPS, False,
                             np.zeros((RATE_MIN_STEPS + 1, 3), dtype=np.int64),
                             np.zeros(sk.N_INT_STATE, dtype=np.int64), np.zeros(2),
@@ -210,7 +213,7 @@ class RateMonitor:
     """
 
     __slots__ = ('period_ns', 'tolerance', 'window', 'single_writer', '_ring', '_st', '_fst',
-                 '_one_t', '_one_off', '_received', '_near')
+                 '_received', '_near', '_last')
 
     def __init__(self, period_ns: float, tolerance: float = RATE_TOLERANCE, window: int = 2000):
         if not (period_ns > 0 and tolerance > 0 and window >= RATE_MIN_STEPS + 1):
@@ -228,8 +231,6 @@ class RateMonitor:
         # Set by a node that knows one publisher feeds the stream: more commands than grid points
         # are then a faster stream, not a second writer.
         self.single_writer = False
-        self._one_t = np.zeros(1, dtype=np.int64)
-        self._one_off = np.zeros(1, dtype=np.bool_)
         self.reset()
         _load_kernels()
 
@@ -265,6 +266,7 @@ class RateMonitor:
         st = self._st
         st[sk.I_N] = st[sk.I_COUNT] = st[sk.I_HEAD] = st[sk.I_LAST] = st[sk.I_HAS_LAST] = 0
         self._received = 0                  # received() calls not yet passed to the kernel
+        self._last: int | None = None       # the last accepted stamp (the kernel's I_LAST)
 
     def received(self, t_ns: int | None = None) -> None:
         """
@@ -273,19 +275,17 @@ class RateMonitor:
         With its stamp, it counts only when that lies ARRIVAL_AFTER periods after the last
         accepted stamp (or there is none yet): where a faster stream's commands lie.
         """
-        if t_ns is not None and self._st[sk.I_HAS_LAST]:
-            d = t_ns - int(self._st[sk.I_LAST])
+        if t_ns is not None and self._last is not None:
+            d = t_ns - self._last
             if not self._near[0] <= d <= self._near[1]:
                 return
         self._received += 1
 
     def observe(self, t_ns: int) -> bool:
         """One sample the gate accepted (stamp ns); returns `off`."""
-        self._one_t[0] = t_ns
-        got, self._received = self._received, 0
-        return sk.observe_run(self._one_t, got, 0, self.period_ns, self.tolerance,
-                              RATE_MIN_STEPS, self.single_writer, self._ring, self._st,
-                              self._fst, self._one_off)
+        got, self._received, self._last = self._received, 0, t_ns
+        return sk.observe_one(t_ns, got, self.period_ns, self.tolerance, RATE_MIN_STEPS,
+                              self.single_writer, self._ring, self._st, self._fst)
 
     def observe_run(self, t_ns: np.ndarray) -> np.ndarray:
         """
@@ -298,7 +298,7 @@ class RateMonitor:
         offs = np.empty(t.shape[0], dtype=np.bool_)
         if not t.shape[0]:
             return offs
-        got, self._received = self._received, 0
+        got, self._received, self._last = self._received, 0, int(t[-1])
         sk.observe_run(t, got, 1, self.period_ns, self.tolerance, RATE_MIN_STEPS,
                        self.single_writer, self._ring, self._st, self._fst, offs)
         return offs
@@ -334,7 +334,7 @@ def pass_run_observed(gate: StampGate, rate: RateMonitor, t_ns: np.ndarray):
                                 rate.single_writer, rate._ring, rate._st, rate._fst, offs)
     if n_off < 0:
         return None
-    gate.last = int(t_ns[-1])
+    gate.last = rate._last = int(t_ns[-1])
     rate._received = 0
     return offs, n_off
 
