@@ -1,9 +1,11 @@
 """
 `piezo-narx fit`: run the identification experiment and save the selected model.
 
-    piezo-narx fit INPUT... --out DIR [--preset paper|envelope] [--ny 1-4 --nu 1-4 --hidden 10 ...]
+    piezo-narx fit INPUT... --out DIR [--validate VAL...] [--preset search|paper|envelope] ...
 
-`--preset paper` (the default) is the paper's lag grid; `--preset envelope` fits the
+`--preset search` (the default) searches family, structure, seed and start policy on the
+validation records (ident/selection/search.py, docs/search.md); `--preset paper` is the paper's
+lag grid; `--preset envelope` fits the
 hysteresis-operator NARX over several network seeds and selects on the worst case over records
 (ident.selection.experiment.PRESETS, docs/envelope.md). Several INPUTs are fitted together:
 no regressor or state crosses from one record to the next, each is split, and the report gives
@@ -40,9 +42,10 @@ def add_parser(subparsers):
     """Register the `fit` subcommand (argparse only; heavy imports wait for run)."""
     p = subparsers.add_parser(
         'fit', help='identify NARX/ARX models from recorded data and select one',
-        description='Fit a grid of NARX networks and ARX models on the first half of each input, '
-                    'score them on the second half (R², correlation tests) and save the selected '
-                    'model and a report.')
+        description='Identify a model from recorded data: by default a structure search over '
+                    'ARX, NARX and hysteresis-operator NARX models scored on the validation '
+                    "records (or each input's second half); --preset paper fits the paper's grid. "
+                    'Saves the selected model and a report.')
     p.add_argument('inputs', nargs='+', metavar='INPUT',
                    help='.npz (u, y, fs), text table (.csv, .tsv, .txt, .dat: t,u,y or u,y, or '
                         '--columns), MATLAB .mat (variables u, y, fs or t, or --columns; v4 to '
@@ -81,7 +84,7 @@ def add_parser(subparsers):
     p.add_argument('--preset', choices=PRESET_NAMES,
                    help='search (default): a structure search over the families, their '
                         'structures, seeds and start policies, selected on the validation '
-                        "records (ident/search.py); paper: the paper's NARX lag grid and ARX "
+                        "records (docs/search.md); paper: the paper's NARX lag grid and ARX "
                         'baseline, selected by the correlation tests; envelope: the '
                         'hysteresis-operator NARX over a fixed grid, selected on the worst case')
     from piezo_narx_ros.ident.selection.search import SEARCH_FAMILIES, SearchOptions
