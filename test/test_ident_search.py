@@ -237,3 +237,29 @@ def test_sigint_then_resume_ends_on_the_uninterrupted_model(tmp_path, records):
     assert [c['label'] for c in cut['candidates']] == [
         c['label'] for c in json.loads((tmp_path / 'whole' / 'candidates.json').read_text())[
             'candidates']]
+
+
+@pytest.mark.parametrize('signum', ['SIGINT', 'SIGTERM'])
+def test_a_signal_inside_a_journal_write_comes_after_it(tmp_path, signum):
+    # CI once stopped with FileNotFoundError instead of the interruption: SIGINT landed inside
+    # Optuna's lock release. The write must finish, the lock go, then the signal act.
+    import os
+    import signal
+    from piezo_narx_ros.ident.selection.study import signal_safe_journal
+    sig = getattr(signal, signum)
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        backend = signal_safe_journal(str(tmp_path / 'j'))
+        release = backend._lock.release
+
+        def release_after_a_signal():
+            os.kill(os.getpid(), sig)
+            release()
+
+        backend._lock.release = release_after_a_signal
+        with pytest.raises(KeyboardInterrupt):
+            backend.append_logs([{'op': 1}])
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert list(backend.read_logs(0)) == [{'op': 1}]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['j']

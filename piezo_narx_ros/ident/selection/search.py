@@ -39,9 +39,7 @@ import json
 import math
 import os
 import time
-import warnings
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -51,6 +49,7 @@ from piezo_narx_ros.ident.selection.executor import Executor, TaskFailure, in_wo
 from piezo_narx_ros.ident.selection.experiment import (FINAL_TRAINING, CandidateResult,
                                                        CandidateSpec, ExperimentConfig,
                                                        fit_candidate)
+from piezo_narx_ros.ident.selection.study import Study, sampler
 from piezo_narx_ros.ident.state.estimate import MIN_WINDOW, PASTS
 from piezo_narx_ros.ident.state.start import (START_POLICIES, check_window, lagged,
                                               policy_simulate)
@@ -58,9 +57,6 @@ from piezo_narx_ros.ident.validation import metrics
 from piezo_narx_ros.record import Record, as_columns, channels_arg
 
 SEARCH_FAMILIES = ('arx', 'narx', 'hysteresis_narx')
-STUDY_NAME = 'piezo-narx-search'
-#: What the journal's study records about the run it belongs to (resume checks it).
-FINGERPRINT_KEY = 'fingerprint'
 #: Error of a trial whose free run is not finite on some validation record (a finite number:
 #: Optuna sorts the front on it).
 DIVERGED = 1e6
@@ -501,108 +497,6 @@ def fingerprint(est: list[Record], val: list[Record], options: SearchOptions) ->
     return h.hexdigest()
 
 
-def _optuna():
-    try:
-        import optuna
-    except ImportError:
-        raise ConfigError('the structure search needs Optuna: pip install the optuna pin of '
-                          'requirements.txt, or fit with --preset envelope or paper') from None
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
-    warnings.filterwarnings('ignore', category=optuna.exceptions.ExperimentalWarning)
-    return optuna
-
-
-def _sampler(optuna, options: SearchOptions, batch_index: int):
-    # Seeded per batch: a resumed run rebuilds batch b's sampler without the RNG state of the
-    # process that asked batches 0..b-1 (the journal does not hold it).
-    seed = (int(options.seed) * 1_000_003 + batch_index) % (2 ** 32)
-    return optuna.samplers.TPESampler(seed=seed, multivariate=True, group=True,
-                                      n_startup_trials=options.batch, constant_liar=True)
-
-
-class Study:
-    """The Optuna study of one output folder: journal, trial files, resume."""
-
-    def __init__(self, out: Path, resume: bool, force: bool, print_fn=None):
-        self.out = Path(out)
-        self.journal = self.out / 'study.journal'
-        self.trial_dir = self.out / 'trials'
-        self.resume, self.force = resume, force
-        self.print = print_fn or (lambda line: None)
-
-    def open(self, fp: str):  # noqa: A003 - pairs with the journal's lifetime
-        """Create or load the study; refuse a resume of another run or a silent overwrite."""
-        optuna = _optuna()
-        from optuna.storages import JournalStorage
-        from optuna.storages.journal import JournalFileBackend
-        if self.resume and not self.journal.is_file():
-            raise ConfigError(f'--resume: no study to continue in {self.out} (no '
-                              f'{self.journal.name})')
-        if not self.resume and self.journal.exists():
-            if not self.force:
-                raise ConfigError(f'{self.out} holds a search already ({self.journal.name}); '
-                                  'continue it with --resume or start again with --force')
-            self.journal.unlink()
-            for p in sorted(self.trial_dir.glob('*')) if self.trial_dir.is_dir() else ():
-                if p.is_file():
-                    p.unlink()
-        self.out.mkdir(parents=True, exist_ok=True)
-        self.trial_dir.mkdir(exist_ok=True)
-        storage = JournalStorage(JournalFileBackend(str(self.journal)))
-        if self.resume:
-            study = optuna.load_study(study_name=STUDY_NAME, storage=storage)
-            if study.user_attrs.get(FINGERPRINT_KEY) != fp:
-                raise ConfigError(f'--resume: the study in {self.out} was run on other records '
-                                  'or settings; give the same inputs and options, or start '
-                                  'again with --force')
-        else:
-            study = optuna.create_study(study_name=STUDY_NAME, storage=storage,
-                                        directions=['minimize', 'minimize'])
-            study.set_user_attr(FINGERPRINT_KEY, fp)
-        study.set_metric_names(['worst-case validation error', 'parameters'])
-        self.study, self.optuna = study, optuna
-        return study
-
-    def trial_path(self, number: int) -> Path:
-        """Return DIR/trials/NNNN.json (scores); its model is NNNN.model.json (+ .npz)."""
-        return self.trial_dir / f'{number:04d}.json'
-
-    def save_trial(self, number: int, params: dict, res: CandidateResult) -> None:
-        """Write a finished trial's scores and model (atomically: a crash leaves neither)."""
-        from piezo_narx_ros.ident.model_io import save_model
-        from piezo_narx_ros.ident.validation.report import json_safe
-        if res.model is not None:
-            save_model(res.model, self.trial_dir / f'{number:04d}.model.json',
-                       metrics=res.scores, tests=res.tests)
-        doc = {'trial': number, 'params': params, **res.to_dict()}
-        path = self.trial_path(number)
-        tmp = path.with_name(f'.{path.name}.{os.getpid()}.tmp')
-        tmp.write_text(json.dumps(json_safe(doc), indent=1) + '\n')
-        os.replace(tmp, path)
-
-    def load_trial(self, number: int, params: dict) -> CandidateResult | None:
-        """Return a trial finished on disk (scores and model), or None when it is not there."""
-        from piezo_narx_ros.ident.model_io import load_model
-        path = self.trial_path(number)
-        if not path.is_file():
-            return None
-        doc = json.loads(path.read_text())
-        if doc.get('params') != params:
-            return None
-        spec, _ = spec_from_params(params)
-        res = CandidateResult(spec=spec, n_params=doc.get('n_params'),
-                              scores=doc.get('scores') or {}, tests=doc.get('tests') or {},
-                              validated=bool(doc.get('validated')),
-                              fit_seconds=float(doc.get('fit_seconds') or 0.0),
-                              error=doc.get('error'))
-        model_path = self.trial_dir / f'{number:04d}.model.json'
-        if res.error is None:
-            if not model_path.is_file():
-                return None
-            res.model = load_model(model_path)
-        return res
-
-
 def _values(res: CandidateResult) -> list[float]:
     return [trial_error(res), float(res.n_params if res.n_params is not None else 1e12)]
 
@@ -680,7 +574,8 @@ def run_search(est: list[Record], val: list[Record], options: SearchOptions,
             complete = [t for t in trials if t.state == optuna.trial.TrialState.COMPLETE]
             if len(complete) == size:
                 for t in sorted(complete, key=lambda t: t.number):
-                    res = store.load_trial(t.number, dict(t.params))
+                    res = store.load_trial(t.number, dict(t.params),
+                                           spec_from_params(dict(t.params))[0])
                     if res is None:
                         raise DataError(f'{store.trial_path(t.number)}: missing or changed; the '
                                         'study cannot be continued (start again with --force)')
@@ -700,7 +595,7 @@ def run_search(est: list[Record], val: list[Record], options: SearchOptions,
             todo, tasks = [], []
             for trial_number, params in live:
                 numbers_params[trial_number] = params
-                res = store.load_trial(trial_number, params)
+                res = store.load_trial(trial_number, params, spec_from_params(params)[0])
                 if res is not None:
                     taken_over += 1
                 elif params_key(params) in done_params:
@@ -785,7 +680,7 @@ def _batch_trials(study, optuna, store: Study, options: SearchOptions, context: 
             study.tell(t.number, state=state.FAIL)
     for t in study.get_trials(deepcopy=False, states=(state.WAITING,)):
         study.tell(t.number, state=state.FAIL)
-    study.sampler = _sampler(optuna, options, b)
+    study.sampler = sampler(optuna, options.seed, options.batch, b)
     # The seed design fills the first batches, whatever their size.
     design = seed_design(context, options.families)[b * options.batch:][:size]
     for params in design:
