@@ -241,18 +241,11 @@ def test_fit_bad_config_file(data_dir, tmp_path, capsys):
 
 
 def test_default_config_file_matches_built_in_defaults(tmp_path):
-    from types import SimpleNamespace
-
-    from piezo_narx_ros.cli.fit import experiment_config, load_settings
-    blank = dict.fromkeys(('config', 'ny', 'nu', 'hidden', 'seed', 'arx_na', 'arx_nb', 'max_lag',
-                           'max_outside_fraction', 'residuals', 'noise_model', 'noise_order',
-                           'jobs', 'preset', 'n_seeds', 'command_topic', 'deflection_topic'))
-    blank['no_arx'] = False
+    from piezo_narx_ros.ident.pipeline.settings import experiment_config, merge_settings
     # config/fit.yaml spells out the paper preset (the search, the default, has no grid).
-    built_in = load_settings(SimpleNamespace(**{**blank, 'preset': 'paper'}))
-    assert load_settings(SimpleNamespace(**blank))['preset'] == 'search'
-    from_file = load_settings(SimpleNamespace(**{**blank, 'config': str(REPO / 'config' /
-                                                                        'fit.yaml')}))
+    built_in = merge_settings('paper')
+    assert merge_settings()['preset'] == 'search'
+    from_file = merge_settings(config_file=str(REPO / 'config' / 'fit.yaml'))
     # The file spells ranges as text ('1-4'); what matters is the experiment they configure.
     assert experiment_config(from_file, False) == experiment_config(built_in, False)
     assert set(from_file) == set(built_in)
@@ -294,7 +287,7 @@ def test_evaluate_bad_input_one_line_exit_2(fitted, data_dir, tmp_path, capsys, 
 def test_warnings_print_as_one_line(capsys):
     import warnings
 
-    from piezo_narx_ros.cli.fit import one_line_warnings
+    from piezo_narx_ros.cli.fit_output import one_line_warnings
     with one_line_warnings():
         warnings.warn('bag.mcap: 3 samples missing on /piezo/deflection', UserWarning)
     err = capsys.readouterr().err

@@ -194,13 +194,10 @@ def test_ensemble_settings_are_checked():
 
 def test_fit_settings_reach_the_experiment(tmp_path):
     """The --config keys ensemble / ensemble_margin set ExperimentConfig's (off in the presets)."""
-    from types import SimpleNamespace
-
-    from piezo_narx_ros.cli.fit import experiment_config, load_settings
+    from piezo_narx_ros.ident.pipeline.settings import experiment_config, merge_settings
     path = tmp_path / 'fit.yaml'
     path.write_text('preset: envelope\nensemble: 5\nensemble_margin: -1.0e-4\n')
-    args = SimpleNamespace(config=str(path), preset=None, no_arx=False)
-    cfg = experiment_config(load_settings(args), progress=False)
+    cfg = experiment_config(merge_settings(config_file=str(path)), progress=False)
     assert (cfg.ensemble, cfg.ensemble_margin) == (5, -1e-4)
     path.write_text('preset: envelope\n')
-    assert experiment_config(load_settings(args), progress=False).ensemble == 0
+    assert experiment_config(merge_settings(config_file=str(path)), progress=False).ensemble == 0

@@ -200,7 +200,7 @@ def test_a_gap_in_a_time_column_is_said(tmp_path, kind):
 
 
 def test_fit_prints_the_gap_warning(tmp_path, capsys):
-    from piezo_narx_ros.cli.fit import one_line_warnings
+    from piezo_narx_ros.cli.fit_output import one_line_warnings
     u, y = piezo(3000)
     t = np.arange(u.size) / FS
     t[1500:] += 0.5

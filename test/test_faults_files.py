@@ -269,7 +269,7 @@ def test_a_constant_record_is_not_scored_minus_1e30_but_said_undefined(toy, tmp_
 # ----------------------------------------------------------- names derived from input names
 def test_per_record_names_are_unique_and_stay_inside_out(tmp_path):
     """Issue 45: a/run, run-2, b/run were named run, run-2, run-2; a stem '..' escaped --out."""
-    from piezo_narx_ros.cli.fit import recording_names
+    from piezo_narx_ros.ident.pipeline.fleet import recording_names
     assert recording_names(['a/run.npz', 'run-2.npz', 'b/run.npz']) == ['run', 'run-2', 'run-3']
     assert recording_names(['a/run.npz', 'b/run.npz', 'run-2.npz']) == ['run', 'run-3', 'run-2']
     hostile = ['x/...npz', 'y/..npz', '.npz', 'Run.npz', 'run.npz', 'a b/c d.csv',

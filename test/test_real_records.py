@@ -208,17 +208,11 @@ def test_evaluate_past_fade_out_needs_a_window_and_is_reported(tmp_path, hnarx):
 
 
 def test_fit_past_reaches_every_scored_state_window():
-    from types import SimpleNamespace
-
-    from piezo_narx_ros.cli.fit import experiment_config, load_settings
     from piezo_narx_ros.errors import ConfigError
+    from piezo_narx_ros.ident.pipeline.settings import experiment_config, merge_settings
     from piezo_narx_ros.ident.selection.experiment import with_state_window
-    args = SimpleNamespace(**dict.fromkeys(
-        ('config', 'ny', 'nu', 'hidden', 'seed', 'n_seeds', 'split', 'arx_na', 'arx_nb',
-         'max_lag', 'max_outside_fraction', 'residuals', 'noise_model', 'noise_order', 'jobs',
-         'command_topic', 'deflection_topic')), preset='envelope', no_arx=False,
-        init_past='fade-out')
-    cfg = experiment_config(load_settings(args), progress=False)
+    cfg = experiment_config(merge_settings('envelope', overrides={'init_past': 'fade-out'}),
+                            progress=False)
     assert (cfg.init_past, cfg.init_seconds) == ('fade-out', 0.5)
     recs = with_state_window([record(np.zeros(2000))], cfg)
     assert (recs[0].state_window, recs[0].state_past) == (1000, 'fade-out')

@@ -359,7 +359,7 @@ def save_output(model, records, init_samples, path, policy=None, force: bool = F
 
 def run(args) -> int:
     """Load model and inputs, print the scores; exit code 0."""
-    from piezo_narx_ros.cli.fit import one_line_warnings
+    from piezo_narx_ros.cli.fit_output import one_line_warnings
     with one_line_warnings():
         return _run(args)
 

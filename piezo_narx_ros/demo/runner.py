@@ -102,7 +102,7 @@ def load_settings(path=None, quick: bool = False, **overrides) -> dict:
             raise ConfigError(f'{key} must be one of {", ".join(KINDS)}, got {settings[key]!r}')
     if not isinstance(settings['fit'], dict):
         raise ConfigError('fit must be a mapping of `piezo-narx fit` settings')
-    from piezo_narx_ros.cli.fit import CONFIG_KEYS
+    from piezo_narx_ros.ident.pipeline.settings import CONFIG_KEYS
     check_known(settings['fit'], CONFIG_KEYS, 'fit')
     if settings['fs'] * min(settings['seconds'], settings['validation_seconds'],
                             settings['slow_seconds']) < 500:
