@@ -44,8 +44,8 @@ soak: setup
 # results in mutants/ (a second run only retests what changed); figures: docs/testing.md.
 MUTATE := ident.narx.regressors ident.data.checks ident.validation.correlation \
 	ident.validation.metrics ident.validation.noise_model ident.narx.model ident.model_io \
-	estimator.free_run bag.pairing nodes.codec.x_decode_joint_state \
-	nodes.codec.x_encode_joint_state
+	estimator.free_run bag.pairing nodes.wire.joint_state.x_decode_joint_state \
+	nodes.wire.joint_state.x_encode_joint_state
 
 mutate: setup
 	$(PY) -m pip install -q -r requirements-dev.txt

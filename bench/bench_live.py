@@ -95,8 +95,8 @@ class Probe:
         from rclpy.experimental import EventsExecutor
         from rclpy.node import Node
 
-        from piezo_narx_ros.nodes.batching import batch_topic, sample_type
-        from piezo_narx_ros.nodes.codec import decode_joint_trajectory
+        from piezo_narx_ros.nodes.wire.batching import batch_topic, sample_type
+        from piezo_narx_ros.nodes.wire import decode_joint_trajectory
         from piezo_narx_ros.nodes.diagnostics import diagnostic_values
         from piezo_narx_ros.nodes.qos import sample_qos
         self.realtime = node_priority > 0

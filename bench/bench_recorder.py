@@ -52,8 +52,8 @@ def live_run(rate: float, seconds: float, workdir: Path, batch: int = 1) -> dict
     from rclpy.serialization import serialize_message
 
     from piezo_narx_ros.bag.reader import bag_info
-    from piezo_narx_ros.nodes.batching import batch_topic, sample_type
-    from piezo_narx_ros.nodes.codec import encode_joint_trajectory, make_joint_state
+    from piezo_narx_ros.nodes.wire.batching import batch_topic, sample_type
+    from piezo_narx_ros.nodes.wire import encode_joint_trajectory, make_joint_state
     from piezo_narx_ros.nodes.qos import sample_qos
 
     ns = f'/bench{int(rate)}'

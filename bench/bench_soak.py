@@ -211,7 +211,7 @@ class Soak:
     def fault_burst(self, probe: Probe) -> None:
         from sensor_msgs.msg import JointState
 
-        from piezo_narx_ros.nodes.codec import encode_joint_state
+        from piezo_narx_ros.nodes.wire import encode_joint_state
         from piezo_narx_ros.nodes.qos import sample_qos
         last = probe.one_command_stamp()
         pub = probe.node.create_publisher(JointState, 'voltage_command', sample_qos(1000))

@@ -27,9 +27,9 @@ import time
 
 import numpy as np
 
-from piezo_narx_ros.nodes.batching import BATCH_PARAM, HeldBatches, batch_topic, sample_type
-from piezo_narx_ros.nodes.codec import (decode_joint_state, decode_joint_trajectory,
-                                        encode_joint_state, encode_joint_trajectory)
+from piezo_narx_ros.nodes.wire.batching import BATCH_PARAM, HeldBatches, batch_topic, sample_type
+from piezo_narx_ros.nodes.wire import (decode_joint_state, decode_joint_trajectory,
+                                       encode_joint_state, encode_joint_trajectory)
 from piezo_narx_ros.nodes.params import ParamSpec
 from piezo_narx_ros.nodes.runtime import PiezoNode, run_node
 from piezo_narx_ros.nodes.topics import TOPIC_COMMAND, TOPIC_DEFLECTION, TOPIC_ESTIMATE

@@ -4,7 +4,8 @@ Kill rate per core module and the surviving mutants, from the results `mutmut ru
     python bench/mutation_summary.py [--diffs]       (after `make mutate`; docs/testing.md)
 
 Reads mutants/<module>.py.meta (mutmut 3's per-file results: exit code of the tests per mutant)
-for the modules `make mutate` mutates; for nodes/codec.py only the JointState codec counts.
+for the modules `make mutate` mutates; for nodes/wire/joint_state.py only the JointState
+codec counts.
 A mutant is killed when the tests fail or time out on it; one that no test reaches counts as
 surviving. --diffs prints each survivor's change (`mutmut show`).
 """
@@ -27,7 +28,7 @@ MODULES = {
     'ident/model_io.py': ('',),
     'estimator/free_run.py': ('',),
     'bag/pairing.py': ('',),
-    'nodes/codec.py': ('x_decode_joint_state__', 'x_encode_joint_state__'),
+    'nodes/wire/joint_state.py': ('x_decode_joint_state__', 'x_encode_joint_state__'),
 }
 # Killed: the tests fail, time out or crash (-6 abort, -9 kill, -11 segfault).
 KILLED = {1, 3, 24, -24, 152, 255, 36, -6, -9, -11}

@@ -182,7 +182,7 @@ def test_rclpy_serialized_payloads_with_trailing_bytes_are_read(tmp_path):
     """
     from rclpy.serialization import serialize_message
 
-    from piezo_narx_ros.nodes.codec import make_joint_state
+    from piezo_narx_ros.nodes.wire import make_joint_state
     with BagWriter(tmp_path / 'b') as bag:
         c = bag.add_topic('piezo/voltage_command', JOINT_STATE)
         d = bag.add_topic('piezo/deflection', JOINT_STATE)

@@ -198,9 +198,9 @@ def test_measurements_held_back_while_steady_change_nothing(init):
 
 
 def test_held_batches_keep_the_batches_of_the_newest_samples():
-    from piezo_narx_ros.nodes import codec
-    from piezo_narx_ros.nodes.batching import HeldBatches
-    from piezo_narx_ros.nodes.codec import encode_joint_trajectory
+    from piezo_narx_ros.nodes.wire import trajectory as codec
+    from piezo_narx_ros.nodes.wire.batching import HeldBatches
+    from piezo_narx_ros.nodes.wire import encode_joint_trajectory
     codec._SHAPES.clear()
 
     def batch(k, n=20):
@@ -221,8 +221,8 @@ def test_held_batches_keep_the_batches_of_the_newest_samples():
 
 def test_measurements_beyond_the_error_window_dropped_unread_change_nothing():
     """The estimator node's held measurements (HeldBatches keep=window): the same results."""
-    from piezo_narx_ros.nodes.batching import HeldBatches
-    from piezo_narx_ros.nodes.codec import encode_joint_trajectory
+    from piezo_narx_ros.nodes.wire.batching import HeldBatches
+    from piezo_narx_ros.nodes.wire import encode_joint_trajectory
     n = 6000
     rng, t, u, y_meas, _ = _twin_estimators(9, 'rest', n)
     # Estimates kept for pairing well beyond the window, as the node requires for keep=window.

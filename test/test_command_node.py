@@ -161,7 +161,7 @@ def test_use_sim_time_paces_on_clock_waits_for_it_stops_with_it_and_follows_a_ju
     from sensor_msgs.msg import JointState
 
     from piezo_narx_ros.nodes.command_node import CommandNode
-    from piezo_narx_ros.nodes.codec import stamp_to_ns
+    from piezo_narx_ros.nodes.wire import stamp_to_ns
     from piezo_narx_ros.nodes.qos import sample_qos
     ctx = rclpy.Context()
     rclpy.init(context=ctx)

@@ -18,7 +18,7 @@ import pytest
 from sensor_msgs.msg import JointState
 from test_estimator_node import Collector, start_node, stop, wait_matched
 
-from piezo_narx_ros.nodes.codec import make_joint_state
+from piezo_narx_ros.nodes.wire import make_joint_state
 from piezo_narx_ros.nodes.qos import sample_qos
 
 FS = 2000.0

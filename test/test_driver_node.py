@@ -18,7 +18,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import JointState
 
-from piezo_narx_ros.nodes.codec import make_joint_state, stamp_to_ns
+from piezo_narx_ros.nodes.wire import make_joint_state, stamp_to_ns
 from piezo_narx_ros.nodes.diagnostics import DIAG_ERROR, DIAG_OK, DIAG_WARN, diagnostic_values
 from piezo_narx_ros.nodes.qos import sample_qos
 from piezo_narx_ros.plant import PiezoCantilever, load_plant_params

@@ -23,7 +23,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from piezo_narx_ros.nodes.codec import make_joint_state, stamp_to_ns
+from piezo_narx_ros.nodes.wire import make_joint_state, stamp_to_ns
 from piezo_narx_ros.nodes.diagnostics import diagnostic_values, status_node
 from piezo_narx_ros.nodes.qos import sample_qos
 

@@ -183,7 +183,7 @@ def test_recorder_on_a_full_disk_reports_the_error_and_leaves_a_repairable_bag(t
 
     from piezo_narx_ros.bag.reader import iter_raw
     from piezo_narx_ros.bag.repair import repair_bag
-    from piezo_narx_ros.nodes.codec import decode_joint_state
+    from piezo_narx_ros.nodes.wire import decode_joint_state
     from piezo_narx_ros.nodes.diagnostics import DIAG_ERROR
 
     def small_files():

@@ -23,7 +23,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 from piezo_narx_ros.errors import ConfigError
-from piezo_narx_ros.nodes.codec import encode_joint_state, make_joint_state
+from piezo_narx_ros.nodes.wire import encode_joint_state, make_joint_state
 from piezo_narx_ros.nodes.diagnostics import Diagnostics, diagnostic_values
 from piezo_narx_ros.nodes.params import ParamSpec
 from piezo_narx_ros.nodes.qos import sample_qos
@@ -390,7 +390,7 @@ def test_live_estimator_refuses_outliers_and_reports_a_second_writer(tmp_path):
 
     from piezo_narx_ros.estimator.toy import toy_narx
     from piezo_narx_ros.ident.model_io import save_model
-    from piezo_narx_ros.nodes.codec import make_joint_state
+    from piezo_narx_ros.nodes.wire import make_joint_state
     from piezo_narx_ros.nodes.qos import sample_qos
     model = toy_narx(fs=2000.0)
     save_model(model, tmp_path / 'toy.json')
@@ -632,7 +632,7 @@ def test_live_streams_at_another_rate_and_two_estimators_of_one_name_are_errors(
 
     from piezo_narx_ros.estimator.toy import toy_narx
     from piezo_narx_ros.ident.model_io import save_model
-    from piezo_narx_ros.nodes.codec import make_joint_state
+    from piezo_narx_ros.nodes.wire import make_joint_state
     from piezo_narx_ros.nodes.diagnostics import DIAG_ERROR
     save_model(toy_narx(fs=2000.0), tmp_path / 'toy.json')
     model = f'model:={tmp_path / "toy.json"}'

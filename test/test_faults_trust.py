@@ -19,9 +19,9 @@ from piezo_narx_ros.errors import BagError, ConfigError, DataError
 from piezo_narx_ros.estimator.free_run import FreeRunEstimator
 from piezo_narx_ros.estimator.health import EstimatorHealth
 from piezo_narx_ros.estimator.toy import toy_narx
-from piezo_narx_ros.nodes.codec import (decode_joint_state, decode_joint_trajectory,
-                                        encode_joint_state, encode_joint_trajectory,
-                                        make_joint_state, parse_joint_state)
+from piezo_narx_ros.nodes.wire import (decode_joint_state, decode_joint_trajectory,
+                                       encode_joint_state, encode_joint_trajectory,
+                                       make_joint_state, parse_joint_state)
 from piezo_narx_ros.nodes.params import ParamSpec
 from piezo_narx_ros.plant.axes import make_axis_plants
 

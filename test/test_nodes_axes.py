@@ -14,7 +14,7 @@ from test_nodes_batch import BatchProbe
 
 from piezo_narx_ros.ident.arx.model import ARXModel
 from piezo_narx_ros.ident.model_io import save_model
-from piezo_narx_ros.nodes.codec import encode_joint_trajectory
+from piezo_narx_ros.nodes.wire import encode_joint_trajectory
 from piezo_narx_ros.plant.axes import make_axis_plants
 from piezo_narx_ros.plant.signals import generate
 from piezo_narx_ros.share import config_path

@@ -20,7 +20,7 @@ from rclpy.node import Node
 from test_estimator_node import start_node, stop, wait_matched
 from trajectory_msgs.msg import JointTrajectory
 
-from piezo_narx_ros.nodes.codec import decode_joint_trajectory, encode_joint_trajectory
+from piezo_narx_ros.nodes.wire import decode_joint_trajectory, encode_joint_trajectory
 from piezo_narx_ros.nodes.diagnostics import DIAG_WARN, diagnostic_values, status_node
 from piezo_narx_ros.nodes.qos import sample_qos
 

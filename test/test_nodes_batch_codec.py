@@ -1,4 +1,4 @@
-"""nodes/codec.py, batches: JointTrajectory CDR bytes against rclpy's and rosbags' serialisers."""
+"""nodes/wire/trajectory.py: JointTrajectory CDR bytes against rclpy's and rosbags' serialisers."""
 import dataclasses
 
 import numpy as np
@@ -7,8 +7,8 @@ from rclpy.serialization import deserialize_message, serialize_message
 from trajectory_msgs.msg import JointTrajectory
 
 from piezo_narx_ros.errors import DataError
-from piezo_narx_ros.nodes.codec import (decode_joint_trajectory, encode_joint_trajectory,
-                                        make_joint_trajectory)
+from piezo_narx_ros.nodes.wire import (decode_joint_trajectory, encode_joint_trajectory,
+                                       make_joint_trajectory)
 
 TRAJECTORY = 'trajectory_msgs/msg/JointTrajectory'
 T0 = 1_795_241_581_999_999_990          # 10 ns before a whole second: offsets cross it
@@ -72,7 +72,7 @@ def test_stamps_round_trip_exactly_whatever_their_spacing(stamps):
                                             (3, ('position', 'effort')), (0, ())])
 def test_compiled_batches_are_the_bytes_and_values_of_the_numpy_paths(stamps, n_axes, fields):
     """codec_kernels (a stream's second batch on) against the numpy views and the general path."""
-    from piezo_narx_ros.nodes import codec
+    from piezo_narx_ros.nodes.wire import trajectory as codec
     names = ['x', 'y', 'z'][:n_axes]
     pos, eff = _case(len(stamps), n_axes, fields, seed=3)
     codec._ENCODED.clear()
@@ -189,7 +189,7 @@ def test_column_names_the_missing_axis_or_field():
 
 def test_remembered_shapes_give_the_bytes_and_values_of_the_general_path():
     """The encoder's templates and the decoder's remembered shapes change no byte or value."""
-    from piezo_narx_ros.nodes import codec
+    from piezo_narx_ros.nodes.wire import trajectory as codec
     rng = np.random.default_rng(5)
     for names in (['x'], ['x', 'y'], ['x', 'y', 'z'], []):
         for n_pos, n_eff in ((1, 0), (0, 1), (1, 1), (len(names), len(names))):
@@ -231,7 +231,7 @@ def test_remembered_shapes_give_the_bytes_and_values_of_the_general_path():
 
 def test_command_and_deflection_batches_both_take_the_remembered_shape(monkeypatch):
     """The estimator takes both streams; a deflection batch's point 0 has a layout of its own."""
-    from piezo_narx_ros.nodes import codec
+    from piezo_narx_ros.nodes.wire import trajectory as codec
     t = _stamps(20)
     cmd = encode_joint_trajectory(t, ['x'], effort=np.arange(20.0)[:, None])
     meas = encode_joint_trajectory(t, ['x'], position=-np.arange(20.0)[:, None])
@@ -251,8 +251,8 @@ def test_batches_decoded_together_equal_each_decoded_alone():
     """decode_joint_trajectories: runs of one shape in one view, anything else alone, in order."""
     from trajectory_msgs.msg import JointTrajectoryPoint
 
-    from piezo_narx_ros.nodes import codec
-    from piezo_narx_ros.nodes.codec import decode_joint_trajectories
+    from piezo_narx_ros.nodes.wire import trajectory as codec
+    from piezo_narx_ros.nodes.wire import decode_joint_trajectories
     rng = np.random.default_rng(11)
     codec._SHAPES.clear()
 

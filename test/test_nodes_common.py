@@ -8,8 +8,8 @@ from rclpy.parameter import Parameter
 from rclpy.qos import ReliabilityPolicy
 
 from piezo_narx_ros.errors import ConfigError, DataError
-from piezo_narx_ros.nodes.codec import (decode_joint_state, encode_joint_state, make_joint_state,
-                                        parse_joint_state)
+from piezo_narx_ros.nodes.wire import (decode_joint_state, encode_joint_state, make_joint_state,
+                                       parse_joint_state)
 from piezo_narx_ros.nodes.diagnostics import DIAG_WARN, Diagnostics, diagnostic_values, status_node
 from piezo_narx_ros.nodes.params import ParamSpec
 from piezo_narx_ros.nodes.qos import sample_qos
@@ -253,7 +253,7 @@ def test_remembered_joint_states_give_the_bytes_and_values_of_the_general_path()
     """The encoder's templates and the decoder's remembered shapes change no byte or value."""
     from rclpy.serialization import serialize_message
 
-    from piezo_narx_ros.nodes import codec
+    from piezo_narx_ros.nodes.wire import joint_state as codec
     rng = np.random.default_rng(4)
     cases = [(['x'], 1, 0), (['x'], 0, 1), (['x'], 1, 1), (['x', 'yy', 'zzz'], 3, 3),
              (['ab', 'c'], 0, 0), ([], 0, 1)]

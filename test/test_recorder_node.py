@@ -22,7 +22,7 @@ from sensor_msgs.msg import JointState
 from piezo_narx_ros.bag.reader import bag_info, iter_raw, read_uy
 from piezo_narx_ros.bag.repair import repair_bag
 from piezo_narx_ros.bag.writer import typestore
-from piezo_narx_ros.nodes.codec import make_joint_state
+from piezo_narx_ros.nodes.wire import make_joint_state
 from piezo_narx_ros.nodes.qos import sample_qos
 
 T0 = 1_700_000_000_000_000_000

@@ -39,8 +39,8 @@ from piezo_narx_ros.axis_names import AXES_CHECK
 from piezo_narx_ros.command.playback import playback_signal
 from piezo_narx_ros.command.stream import CommandStreamer, make_signal
 from piezo_narx_ros.errors import ConfigError
-from piezo_narx_ros.nodes.batching import BATCH_PARAM, batch_topic, sample_type
-from piezo_narx_ros.nodes.codec import encode_joint_state, encode_joint_trajectory
+from piezo_narx_ros.nodes.wire.batching import BATCH_PARAM, batch_topic, sample_type
+from piezo_narx_ros.nodes.wire import encode_joint_state, encode_joint_trajectory
 from piezo_narx_ros.nodes.diagnostics import DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics
 from piezo_narx_ros.nodes.graph import same_name_problem
 from piezo_narx_ros.nodes.params import ParamSpec

@@ -21,9 +21,9 @@ from piezo_narx_ros.control.controller import (MODES, PositionController, input_
 from piezo_narx_ros.control.health import ControllerHealth
 from piezo_narx_ros.control.inverse import TARGETS
 from piezo_narx_ros.errors import ConfigError
-from piezo_narx_ros.nodes.batching import BATCH_PARAM, batch_topic, batch_values, sample_type
-from piezo_narx_ros.nodes.codec import (decode_joint_state, decode_joint_trajectory,
-                                        encode_joint_state, encode_joint_trajectory)
+from piezo_narx_ros.nodes.wire.batching import BATCH_PARAM, batch_topic, batch_values, sample_type
+from piezo_narx_ros.nodes.wire import (decode_joint_state, decode_joint_trajectory,
+                                       encode_joint_state, encode_joint_trajectory)
 from piezo_narx_ros.nodes.diagnostics import DIAG_WARN, Diagnostics
 from piezo_narx_ros.nodes.graph import EpisodeLog, same_name_problem
 from piezo_narx_ros.nodes.params import ParamSpec
@@ -89,6 +89,10 @@ class ControllerNode(PiezoNode):
         ParamSpec('use_deflection', True, 'subscribe to deflection (the PI of inverse_feedback, '
                   'and the tracking error on /diagnostics); false saves the callbacks (about '
                   '13 % of a core at 2 kHz here) in the other modes', read_only=True),
+        ParamSpec('start', 'auto', "how the model's state is set: auto (the start policy the "
+                  'model file stores, from the first measured deflections; rest without '
+                  'use_deflection or a stored policy) or rest (the actuator is at rest)',
+                  choices=('auto', 'rest'), read_only=True),
         ParamSpec('wait_for_subscribers', 0, 'subscribe to position_reference only once '
                   'voltage_command has this many subscriptions (so the first commands are '
                   'heard; a reference streamer waiting for this node then waits for them too)',
@@ -125,7 +129,9 @@ class ControllerNode(PiezoNode):
             target=None if p['target'] == 'auto' else p['target'],
             advance=None if p['compensate_advance'] else 0.0, kp=p['kp'], ki=p['ki'],
             feedback_timeout=p['feedback_timeout'], max_fill=p['max_fill'],
-            window=p['window'], rate_tolerance=p['rate_tolerance'], **limits)
+            window=p['window'], rate_tolerance=p['rate_tolerance'],
+            start_policy=None if p['start'] == 'auto' and p['use_deflection'] else 'rest',
+            **limits)
         self.ctl.inverse.solve(0.0)   # compile/load the solver kernel before the first sample
         self.ctl.inverse.reset()      # ...and forget that solve (its remembered slope)
         self.axis = p['axis']
@@ -137,7 +143,9 @@ class ControllerNode(PiezoNode):
             f'{p["mode"]} with {type(self.model).__name__} ({p["model"]}) at {c.fs:g} Hz, '
             f'target {c.inverse.target}, advance {c.advance:.3f} samples, static gain '
             f'{c.gain * 1e6:.4g} um/V, references [{c.y_min * 1e6:.1f}, {c.y_max * 1e6:.1f}] '
-            f'um, commands [{u_limits["u_min"]:g}, {u_limits["u_max"]:g}] V')
+            f'um, commands [{u_limits["u_min"]:g}, {u_limits["u_max"]:g}] V, start '
+            + (c.start_policy if c.start_policy == 'rest' else
+               f'{c.start_policy} from the first {c.start_window} measured deflections'))
         for note in c.notes:
             self.get_logger().warning(note)
 

@@ -27,9 +27,9 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from piezo_narx_ros.errors import ConfigError, DataError
-from piezo_narx_ros.nodes.batching import BATCH_PARAM, batch_topic, sample_type
-from piezo_narx_ros.nodes.codec import (decode_joint_trajectory, encode_joint_trajectory,
-                                        make_joint_state, parse_joint_state)
+from piezo_narx_ros.nodes.wire.batching import BATCH_PARAM, batch_topic, sample_type
+from piezo_narx_ros.nodes.wire import (decode_joint_trajectory, encode_joint_trajectory,
+                                       make_joint_state, parse_joint_state)
 from piezo_narx_ros.nodes.diagnostics import Diagnostics
 from piezo_narx_ros.nodes.params import ParamSpec
 from piezo_narx_ros.nodes.runtime import PiezoNode, main_for

@@ -19,9 +19,9 @@ from piezo_narx_ros.errors import ConfigError
 from piezo_narx_ros.estimator.free_run import INIT_MODES, FreeRunEstimator
 from piezo_narx_ros.estimator.health import EstimatorHealth
 from piezo_narx_ros.ident.state.estimate import PASTS
-from piezo_narx_ros.nodes.batching import BATCH_PARAM, HeldBatches, batch_topic, sample_type
-from piezo_narx_ros.nodes.codec import (decode_joint_state, decode_joint_trajectory,
-                                        encode_joint_state, encode_joint_trajectory)
+from piezo_narx_ros.nodes.wire.batching import BATCH_PARAM, HeldBatches, batch_topic, sample_type
+from piezo_narx_ros.nodes.wire import (decode_joint_state, decode_joint_trajectory,
+                                       encode_joint_state, encode_joint_trajectory)
 from piezo_narx_ros.nodes.diagnostics import Diagnostics
 from piezo_narx_ros.nodes.graph import EpisodeLog, same_name_problem
 from piezo_narx_ros.nodes.params import ParamSpec

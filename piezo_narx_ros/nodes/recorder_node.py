@@ -28,7 +28,7 @@ from piezo_narx_ros.bag.recorder import (AUTO_TYPE, BagRecorder, discovered_type
 from piezo_narx_ros.bag.writer import (JOINT_STATE, JOINT_TRAJECTORY, check_type,
                                        qos_from_rclpy, typestore)
 from piezo_narx_ros.errors import BagError, ConfigError
-from piezo_narx_ros.nodes.batching import BATCH_PARAM, batch_topic
+from piezo_narx_ros.nodes.wire.batching import BATCH_PARAM, batch_topic
 from piezo_narx_ros.nodes.diagnostics import DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics
 from piezo_narx_ros.nodes.params import ParamSpec
 from piezo_narx_ros.nodes.runtime import PiezoNode, main_for

@@ -3,7 +3,7 @@ The node process: PiezoNode (the base of every node) and run_node (init, spin, c
 
 Nodes stay thin: they declare parameters as `PARAMS` (nodes.params.ParamSpec), create their sample
 streams with `sample_publisher` / `sample_subscription` (nodes.qos), convert messages with
-nodes.codec, report health through nodes.diagnostics.Diagnostics, and start from `main_for`.
+nodes.wire, report health through nodes.diagnostics.Diagnostics, and start from `main_for`.
 """
 from __future__ import annotations
 
@@ -272,8 +272,8 @@ def main_for(node_cls) -> Callable[[list[str] | None], None]:
 def _warm_codec(msg_type) -> None:
     """Load the batch codec's compiled kernels before a batch stream's first message."""
     if msg_type is not JointState:
-        from piezo_narx_ros.nodes import codec
-        codec.warm_up()
+        from piezo_narx_ros.nodes.wire import warm_up
+        warm_up()
 
 
 class PiezoNode(Node):

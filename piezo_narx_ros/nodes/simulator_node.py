@@ -20,9 +20,9 @@ from piezo_narx_ros.command.stamps import (GRID_TOLERANCE, RATE_TOLERANCE, RESTA
                                            StampGate, pass_run_observed)
 from piezo_narx_ros.counters import Since
 from piezo_narx_ros.errors import DataError
-from piezo_narx_ros.nodes.batching import BATCH_PARAM, batch_topic, sample_type
-from piezo_narx_ros.nodes.codec import (decode_joint_state, decode_joint_trajectory,
-                                        encode_joint_state, encode_joint_trajectory)
+from piezo_narx_ros.nodes.wire.batching import BATCH_PARAM, batch_topic, sample_type
+from piezo_narx_ros.nodes.wire import (decode_joint_state, decode_joint_trajectory,
+                                       encode_joint_state, encode_joint_trajectory)
 from piezo_narx_ros.nodes.diagnostics import DIAG_ERROR, DIAG_OK, DIAG_WARN, Diagnostics
 from piezo_narx_ros.nodes.graph import EpisodeLog, same_name_problem
 from piezo_narx_ros.nodes.params import ParamSpec

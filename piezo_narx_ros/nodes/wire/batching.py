@@ -13,8 +13,8 @@ from sensor_msgs.msg import JointState
 
 from collections import deque
 
-from piezo_narx_ros.nodes.codec import (SampleBatch, batch_points, decode_joint_trajectories,
-                                        decode_joint_trajectory)
+from piezo_narx_ros.nodes.wire import (SampleBatch, batch_points, decode_joint_trajectories,
+                                       decode_joint_trajectory)
 from piezo_narx_ros.nodes.params import ParamSpec
 
 BATCH_SUFFIX = '_batch'

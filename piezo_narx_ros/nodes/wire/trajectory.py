@@ -1,8 +1,5 @@
 """
-The sample messages: JointState (one sample) and JointTrajectory (a batch), as objects and as CDR.
-
-Stamps are carried as integer nanoseconds (`int`) inside the nodes, so that t_k = t0 + k/fs is
-exact and never accumulates float error over long runs.
+The batch message, trajectory_msgs/JointTrajectory: one point per sample, as CDR bytes.
 """
 from __future__ import annotations
 
@@ -13,257 +10,12 @@ from functools import lru_cache
 from typing import Sequence
 
 import numpy as np
-from sensor_msgs.msg import JointState
 
-from piezo_narx_ros.axis_names import repeated
 from piezo_narx_ros.errors import DataError
 
-
-def ns_to_stamp(t_ns: int) -> tuple[int, int]:
-    """Integer nanoseconds -> (sec, nanosec) of builtin_interfaces/Time."""
-    sec, nsec = divmod(int(t_ns), 1_000_000_000)
-    return sec, nsec
-
-
-def stamp_to_ns(stamp) -> int:
-    """builtin_interfaces/Time -> integer nanoseconds."""
-    return stamp.sec * 1_000_000_000 + stamp.nanosec
-
-
-def make_joint_state(t_ns: int, names: Sequence[str], position: Sequence[float] | None = None,
-                     effort: Sequence[float] | None = None) -> JointState:
-    """Build the JointState of one sample: stamp t_ns (ns), names, position (m), effort (V)."""
-    msg = JointState()
-    msg.header.stamp.sec, msg.header.stamp.nanosec = ns_to_stamp(t_ns)
-    msg.name = list(names)
-    if position is not None:
-        msg.position = [float(v) for v in position]
-    if effort is not None:
-        msg.effort = [float(v) for v in effort]
-    return msg
-
-
-@dataclass
-class Sample:
-    """One parsed JointState: stamp (ns), axis names, positions (m) and efforts (V)."""
-
-    t_ns: int
-    names: list[str]
-    position: list[float]
-    effort: list[float]
-
-    def value(self, field: str, axis: str) -> float:
-        """Return the `field` ('position' or 'effort') of `axis`; raises DataError when absent."""
-        seq = self.position if field == 'position' else self.effort
-        if not self.names:
-            i = 0  # an unnamed single-axis message
-        else:
-            try:
-                i = self.names.index(axis)
-            except ValueError:
-                raise DataError(f'axis {axis!r} not in message (names: {self.names})') from None
-        if i >= len(seq):
-            raise DataError(f'message has no {field} for axis {axis!r}')
-        return float(seq[i])
-
-    def values(self, field: str, axes: Sequence[str]) -> list[float]:
-        """Return the `field` of each of `axes`, in that order (mapped by name); DataError."""
-        return [self.value(field, a) for a in axes]
-
-
-def parse_joint_state(msg: JointState) -> Sample:
-    """Convert a JointState to a Sample (names checked, values not: see Sample.value)."""
-    check_message_names(msg.name)
-    return Sample(stamp_to_ns(msg.header.stamp), list(msg.name), list(msg.position),
-                  list(msg.effort))
-
-
-# ------------------------------------------------------------------- JointState as CDR bytes
-# rclpy turns every received JointState into a Python object (about 20 us here) and back on
-# publish (about 6 us). The sample streams carry one stamp and one or two numbers, so the nodes
-# subscribe with raw=True and read/write the CDR bytes directly (about 2 us each way). The layout
-# is the OMG CDR of sensor_msgs/msg/JointState: 4-byte encapsulation header, then header.stamp
-# (int32 sec, uint32 nanosec), header.frame_id (string), name (sequence<string>), position,
-# velocity, effort (sequence<float64>); primitives aligned to their size from the byte after the
-# encapsulation header. Test: test_nodes_common.py checks both directions against rclpy's own.
-_U32 = struct.Struct('<I')
-_STAMP = struct.Struct('<iI')
-
-
-def _read_header_names(buf: bytes):
-    """
-    Read the common prefix of JointState and JointTrajectory CDR: header, then a string sequence.
-
-    Returns (struct byte-order character, payload memoryview, stamp ns, names, offset after the
-    names). The frame_id is skipped.
-    """
-    e = '<' if buf[1] == 1 else '>'
-    data = memoryview(buf)[4:]
-    sec, nsec = struct.unpack_from(e + 'iI', data, 0)
-    (n,) = struct.unpack_from(e + 'I', data, 8)
-    off = 12 + n
-    off = (off + 3) & ~3
-    (count,) = struct.unpack_from(e + 'I', data, off)
-    off += 4
-    names = []
-    for _ in range(count):
-        off = (off + 3) & ~3
-        (n,) = struct.unpack_from(e + 'I', data, off)
-        names.append(bytes(data[off + 4:off + 3 + n]).decode())
-        off += 4 + n
-    # Read only when a message's shape is new: a stream's usual message takes the fast path.
-    check_message_names(names)
-    return e, data, sec * 1_000_000_000 + nsec, names, off
-
-
-def check_message_names(names) -> None:
-    """Raise DataError when a message names one axis twice (its values cannot be told apart)."""
-    dup = repeated(names)
-    if dup is not None:
-        raise DataError(f'message names axis {dup!r} twice (names: {list(names)}): each axis '
-                        'may appear once')
-
-
-def _read_doubles(e: str, data, off: int) -> tuple[tuple, int]:
-    """Read one sequence<float64> at `off` (before alignment); returns (values, next offset)."""
-    off = (off + 3) & ~3
-    (count,) = struct.unpack_from(e + 'I', data, off)
-    off += 4
-    if not count:
-        return (), off
-    off = (off + 7) & ~7
-    return struct.unpack_from(f'{e}{count}d', data, off), off + 8 * count
-
-
-@dataclass(frozen=True)
-class _StateShape:
-    """
-    What a stream's JointStates repeat: every byte but the stamp's and the values'.
-
-    Byte ranges [0, 4) and [12, pos) (encapsulation; frame_id, names, the positions' count),
-    [pos_end, eff) (the empty velocities, the efforts' count) and [eff_end, length) (usually
-    nothing) as they were; the values unpacked with `pos_values` / `eff_values` at pos / eff.
-    """
-
-    encapsulation: bytes
-    head: bytes
-    mid: bytes
-    tail: bytes
-    pos: int
-    pos_end: int
-    eff: int
-    eff_end: int
-    stamp: struct.Struct
-    pos_values: struct.Struct
-    eff_values: struct.Struct
-    names: tuple
-
-
-# JointState shapes seen, per buffer length (a stream's messages share one); templates of the
-# encoder per (names, positions, efforts): its bytes, where the values go and their Structs.
-_STATE_SHAPES: dict = {}
-_STATE_ENCODED: dict = {}
-
-
-def decode_joint_state(buf: bytes) -> Sample:
-    """
-    Decode a serialized JointState (CDR, as from a raw=True subscription) to a Sample.
-
-    Raises DataError on a truncated or malformed buffer. A message of a shape seen before (same
-    length, and every byte but the stamp and the values the same: a stream's usual case) is read
-    with three unpacks.
-    """
-    if isinstance(buf, bytes):
-        for sh in _STATE_SHAPES.get(len(buf), ()):
-            if buf[12:sh.pos] == sh.head and buf[sh.pos_end:sh.eff] == sh.mid \
-                    and buf[:4] == sh.encapsulation and buf[sh.eff_end:] == sh.tail:
-                sec, nsec = sh.stamp.unpack_from(buf, 4)
-                return Sample(sec * 1_000_000_000 + nsec, list(sh.names),
-                              list(sh.pos_values.unpack_from(buf, sh.pos)),
-                              list(sh.eff_values.unpack_from(buf, sh.eff)))
-    try:
-        e, data, t_ns, names, off = _read_header_names(buf)
-        position, off, pos = _read_doubles_at(e, data, off)
-        velocity, off = _read_doubles(e, data, off)
-        pos_end = off
-        effort, off, eff = _read_doubles_at(e, data, off)
-    except (struct.error, IndexError, UnicodeDecodeError) as exc:
-        raise DataError(f'malformed JointState ({len(buf)} bytes): {exc}') from None
-    if isinstance(buf, bytes) and not velocity:
-        _remember_state_shape(buf, e, names, pos + 4, len(position), pos_end + 4, eff + 4,
-                              len(effort), off + 4)
-    return Sample(t_ns, names, list(position), list(effort))
-
-
-def _read_doubles_at(e: str, data, off: int) -> tuple[tuple, int, int]:
-    """_read_doubles, also returning where the values start (after count and alignment)."""
-    values, end = _read_doubles(e, data, off)
-    return values, end, end - 8 * len(values)
-
-
-def _remember_state_shape(buf: bytes, e: str, names, pos: int, n_pos: int, pos_end: int,
-                          eff: int, n_eff: int, eff_end: int) -> None:
-    """Keep the shape of a well-formed JointState (absolute byte offsets; _StateShape)."""
-    if len(_STATE_SHAPES) > 64:
-        _STATE_SHAPES.clear()
-    shape = _StateShape(bytes(buf[:4]), bytes(buf[12:pos]), bytes(buf[pos_end:eff]),
-                        bytes(buf[eff_end:]), pos, pos_end, eff, eff_end,
-                        struct.Struct(e + 'iI'), struct.Struct(f'{e}{n_pos}d'),
-                        struct.Struct(f'{e}{n_eff}d'), tuple(names))
-    kept = [k for k in _STATE_SHAPES.get(len(buf), ()) if k != shape]
-    _STATE_SHAPES[len(buf)] = [shape] + kept[:_SHAPES_PER_LENGTH - 1]
-
-
-def _header_names(t_ns: int, names: Sequence[str]) -> bytearray:
-    """CDR of the common prefix: encapsulation (little endian), header (empty frame_id), names."""
-    sec, nsec = divmod(int(t_ns), 1_000_000_000)
-    out = bytearray(b'\x00\x01\x00\x00')
-    out += _STAMP.pack(sec, nsec)
-    out += b'\x01\x00\x00\x00\x00\x00\x00\x00'      # frame_id '' (length 1: the NUL) + pad
-    out += _U32.pack(len(names))
-    for name in names:
-        raw = name.encode() + b'\x00'
-        out += b'\x00' * (-(len(out) - 4) % 4)
-        out += _U32.pack(len(raw)) + raw
-    return out
-
-
-def _put_doubles(out: bytearray, values: Sequence[float]) -> None:
-    """Append one sequence<float64>, aligned from the byte after the encapsulation header."""
-    out += b'\x00' * (-(len(out) - 4) % 4)
-    out += _U32.pack(len(values))
-    if len(values):
-        out += b'\x00' * (-(len(out) - 4) % 8)
-        out += struct.pack(f'<{len(values)}d', *values)
-
-
-def encode_joint_state(t_ns: int, names: Sequence[str], position: Sequence[float] = (),
-                       effort: Sequence[float] = ()) -> bytes:
-    """
-    Encode JointState CDR (little endian, empty frame_id and velocity) for Publisher.publish.
-
-    A stream's usual message (the names and value counts of one encoded before) is written into
-    that one's bytes: the stamp and values packed in place.
-    """
-    key = (tuple(names), len(position), len(effort))
-    template = _STATE_ENCODED.get(key)
-    if template is not None:
-        raw, pos, pos_values, eff, eff_values = template
-        out = bytearray(raw)
-        _STAMP.pack_into(out, 4, *divmod(int(t_ns), 1_000_000_000))
-        pos_values.pack_into(out, pos, *position)
-        eff_values.pack_into(out, eff, *effort)
-        return bytes(out)
-    out = _header_names(t_ns, names)
-    at = []
-    for values in (position, (), effort):
-        _put_doubles(out, values)
-        at.append(len(out) - 8 * len(values))
-    if len(_STATE_ENCODED) > 64:
-        _STATE_ENCODED.clear()
-    _STATE_ENCODED[key] = (bytes(out), at[0], struct.Struct(f'<{len(position)}d'), at[2],
-                           struct.Struct(f'<{len(effort)}d'))
-    return bytes(out)
+from piezo_narx_ros.nodes.wire.cdr import (_SHAPES_PER_LENGTH, _STAMP, _U32, _header_names,
+                                           _put_doubles, _read_doubles, _read_header_names,
+                                           ns_to_stamp)
 
 
 # -------------------------------------------------------------- JointTrajectory as CDR bytes
@@ -456,7 +208,6 @@ class _BatchShape:
 # Batch shapes seen, per buffer length: a stream's batches share one (same names, same size).
 # A few per length, so that streams of different shapes that happen to be as long stay fast.
 _SHAPES: dict = {}
-_SHAPES_PER_LENGTH = 4
 # Encoded batches per (names, points, positions, efforts): the template bytes of that shape, its
 # codec_kernels meta (or None), then (offset, point dtype, points) of point 0 and of the run.
 _ENCODED: dict = {}
@@ -472,7 +223,7 @@ _WARM = False
 def _kernels():
     global _KERNELS
     if _KERNELS is None:
-        from piezo_narx_ros.nodes import codec_kernels
+        from piezo_narx_ros.nodes.wire import kernels as codec_kernels
         _KERNELS = codec_kernels
     return _KERNELS
 
