@@ -127,3 +127,55 @@ def test_the_estimator_follows_the_stored_start_policy(tmp_path, records, policy
     live = np.array([v for _, v in out])
     offline = policy_simulate(model, u, y, 40, policy)
     np.testing.assert_allclose(live[40:], offline[40:], rtol=0, atol=1e-12)
+
+
+def _controlled(model, ref, shift, measure=True):
+    """Drive a PositionController on `model` whose plant is the model + a sensor offset."""
+    from piezo_narx_ros.control.controller import PositionController
+    ctl = PositionController(model, mode='inverse', u_min=-100.0, u_max=100.0)
+    plant = model.stepper()
+    u, y, y_model = [], [], []
+    for k, r in enumerate(ref):
+        (t, uk), = ctl.on_reference(k * P, float(r))
+        u.append(uk)
+        y.append(plant.step(uk) + shift)
+        if measure:
+            ctl.on_measurement(t, y[-1])
+        y_model.append(ctl.y_model)
+    return ctl, np.array(u), np.array(y), np.array(y_model)
+
+
+@pytest.mark.parametrize('policy', ['rest', 'offset', 'state'])
+def test_the_controller_follows_the_stored_start_policy(tmp_path, records, policy):
+    r = records[0][0]
+    # One input lag: an inverse with no zeros to go unstable (na=4, nb=3 has one outside).
+    model = load_model(save_model(ARXModel(na=2, nb=1).fit(r.u[:, 0], r.y[:, 0], fs=FS),
+                                  tmp_path / 'c.json',
+                                  start={'policy': policy, 'window_samples': 40}))
+    lo, hi = model.output_range
+    ref = 0.5 * (lo + hi) + 0.3 * (hi - lo) * np.sin(2 * np.pi * 2.0 * np.arange(2000) / FS)
+    shift = 0.05 * (hi - lo)         # the sensor's zero moved since the fit
+    ctl, u, y, y_model = _controlled(model, ref, shift)
+    assert ctl.stats.unreachable == 0
+    assert (ctl.start_policy, ctl.start_window) == (policy, 0 if policy == 'rest' else 40)
+    assert ctl.stats.start == ('rest' if policy == 'rest' else 'measurement')
+    # From the window's last sample on, the controller's model is the offline free run of
+    # what it sent under that policy.
+    offline = policy_simulate(model, u, y, 40, policy)
+    np.testing.assert_allclose(y_model[39:], offline[39:], rtol=0, atol=1e-12)
+    # Only the offset policy sees the sensor's zero: the deflection then follows the reference.
+    # The measured lags of 'state' carry the shift into the model only until it decays.
+    miss = np.sqrt(np.mean((y - ref)[200:] ** 2))
+    assert (miss < 1e-3 * shift) if policy == 'offset' else (miss > 0.9 * shift)
+
+
+def test_a_controller_without_deflections_stays_from_rest_and_says_so(tmp_path, records):
+    from piezo_narx_ros.control.controller import START_PATIENCE, PositionController
+    from piezo_narx_ros.errors import ConfigError
+    model = load_model(_saved(tmp_path, records, 'offset', 40, 'off'))
+    ref = np.full(START_PATIENCE * 40 + 5, 30e-6)
+    ctl, _, _, _ = _controlled(model, ref, 4e-6, measure=False)
+    assert ctl.stats.start == 'rest (no measurement)'
+    assert PositionController(model, mode='inverse', start_policy='rest').stats.start == 'rest'
+    with pytest.raises(ConfigError, match='start_window must be at least'):
+        PositionController(model, mode='inverse', start_window=3)

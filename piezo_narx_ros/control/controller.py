@@ -80,6 +80,8 @@ class ControllerStats:
     model_nonfinite: int = 0     # commands after which the model's output was NaN/inf
     refused_messages: int = 0    # reference messages the node could not read (axis missing...)
     last_refusal: str = ''       # and why the last one was refused
+    start: str = 'rest'          # rest, waiting (for the start window), measurement, or
+    #                              'rest (no measurement)' when the window never came
 
 
 class PositionController:
@@ -97,6 +99,12 @@ class PositionController:
     bounds the loop's: stable for ki/fs < 2 sin(pi / (2 (2 timeout + 1))), 0.149 at 10);
     max_fill, confirm: see StampGate; window: samples in the running tracking error and the
     correlations; rate_tolerance: see RateMonitor.
+    start_policy: how the first measured deflections set the model's state (ident.state.start:
+    rest, offset, state; None: the policy the model file stores, else rest), over the model's
+    stored window of `start_window` samples (None: the file's, else the policy's least). While
+    the window fills the model runs from rest; once every command of it has its measured
+    deflection the model continues from the state they give (stats.start 'measurement'), and
+    without them after START_PATIENCE windows it stays from rest ('rest (no measurement)').
     """
 
     def __init__(self, model, mode: str = 'inverse', fs: float | None = None,
@@ -106,7 +114,7 @@ class PositionController:
                  advance: float | None = None, kp: float = 0.0,
                  ki: float = 100.0, feedback_timeout: int = 10, max_fill: int = 2000,
                  confirm: int = 3, window: int = 2000, rate_tolerance: float = RATE_TOLERANCE,
-                 **solver):
+                 start_policy: str | None = None, start_window: int | None = None, **solver):
         if mode not in MODES + (BASELINE,):
             raise ConfigError(f'mode must be one of {list(MODES)}, got {mode!r}')
         if target is None:
@@ -162,7 +170,9 @@ class PositionController:
         # References kept for matching measurements: 1 s, so a controller running behind (a
         # loaded machine) still matches the deflections that arrive late.
         self._keep = max(4 * self.feedback_timeout + 64, int(self.fs))
+        self.start_policy, self.start_window = _start_settings(model, start_policy, start_window)
         self._reset_state()
+        self._begin_start()
 
     # ------------------------------------------------------------------------------- state
     def _reset_state(self) -> None:
@@ -175,6 +185,56 @@ class PositionController:
         self._limited = 0                     # +1/-1: the last command could not go higher/lower
         self._r_prev: float | None = None     # previous reference (advance compensation)
         self._refs.clear()
+        self._start_log: list | None = None   # (t_ns, u V) sent while the start window fills
+        self._start_meas: dict[int, float] = {}
+
+    def _begin_start(self) -> None:
+        if self.start_policy != 'rest':
+            self._start_log = []
+            self.stats.start = 'waiting'
+
+    def _start_sent(self, t_ns: int, u: float) -> None:
+        log = self._start_log
+        log.append((t_ns, u))
+        if len(log) > START_PATIENCE * self.start_window:
+            self._start_log = None
+            self._start_meas.clear()
+            self.stats.start = 'rest (no measurement)'
+
+    def _start_measured(self, t_ns: int, y: float) -> None:
+        """
+        Keep a deflection of the start; continue from the state of the first whole window.
+
+        The window is the first start_window consecutive commands that all have their
+        measured deflection (usually the first ones: later ones when some were lost).
+        """
+        n, log, meas = self.start_window, self._start_log, self._start_meas
+        meas[t_ns] = y
+        if len(meas) < n:
+            return
+        run = 0
+        for j, (t, _) in enumerate(log):
+            run = run + 1 if t in meas else 0
+            if run >= n:
+                break
+        else:
+            return
+        log = log[j + 1 - n:]
+        from piezo_narx_ros.errors import DataError
+        from piezo_narx_ros.ident.state.start import relags, window_state
+        u_win = np.array([u for _, u in log[:n]])
+        y_win = np.array([meas[t] for t, _ in log[:n]])
+        u_run = np.array([u for _, u in log])
+        self._start_log = None
+        self._start_meas = {}
+        try:
+            state = window_state(self.model, u_win, y_win, self.start_policy)
+        except DataError:
+            self.stats.start = 'rest (no measurement)'
+            return
+        relag = (u_win, y_win) if relags(self.model, self.start_policy) else None
+        self.inverse.start_from(state, u_run, relag)
+        self.stats.start = 'measurement'
 
     def request_reset(self) -> None:
         """
@@ -229,6 +289,8 @@ class PositionController:
         if r is None or not math.isfinite(y):
             self.stats.measurements_rejected += 1
             return
+        if self._start_log is not None:
+            self._start_measured(t_ns, y)
         self.stats.measurements += 1
         e = r - y
         self._err.append(e)
@@ -332,6 +394,8 @@ class PositionController:
             st.model_nonfinite += 1
         st.commands += 1
         out.append((t_ns, u))
+        if self._start_log is not None:
+            self._start_sent(t_ns, u)
 
     def _correction(self, t_ns: int) -> float:
         """PI output, m: P on the latest measured error while it is recent, plus the integral."""
@@ -379,6 +443,29 @@ class PositionController:
             st.not_invertible += 1
         if miss > self.peak_miss:
             self.peak_miss = miss
+
+
+#: Windows' worth of commands the start waits for its measured deflections before it gives up.
+START_PATIENCE = 10
+
+
+def _start_settings(model, policy, window) -> tuple[str, int]:
+    """Return (start policy, window samples): given, else the model file's, else rest."""
+    from piezo_narx_ros.ident.state.start import check_policy, min_window
+    stored = (getattr(model, 'metadata', None) or {}).get('start') or {}
+    policy = check_policy(policy if policy is not None else stored.get('policy', 'rest'),
+                          'start_policy', ConfigError)
+    if policy == 'rest':
+        return policy, 0
+    if window is None:
+        window = stored.get('window_samples') or 0
+    least = min_window(model, policy)
+    if int(window) < least:
+        if window:
+            raise ConfigError(f'start_window must be at least {least} samples for start '
+                              f'policy {policy!r} with this model, got {window}')
+        window = least
+    return policy, int(window)
 
 
 def bridge_gap(ctl, t_ns: int) -> float | None:

@@ -109,6 +109,35 @@ class ModelInverse:
         self._sv[:] = 0.0          # also the remembered slope: a reset run repeats a fresh one
         self.u_prev = float(u_past[-1]) if u_past is not None and len(u_past) else 0.0
         self.y_model = 0.0
+        self.offset = 0.0          # sensor offset of a measured start, m (start_from)
+        self._bind()
+
+    def start_from(self, state, u_run, relag=None) -> None:
+        """
+        Continue from a measured start: `state` at the first of u_run, then u_run stepped.
+
+        state: a ModelState (ident.state.start.window_state); u_run: the commands sent from that
+        sample to the last one, V; relag: (u_win, y_win), the window's commands and measured
+        outputs, whose last samples become the lags once the window is stepped (start policy
+        'state' on a lagged family). The state's offset shifts every output from now on.
+        """
+        stepper = self.model.stepper(state=state)
+        n_win = len(relag[0]) if relag is not None else -1
+        y = 0.0
+        for i, u in enumerate(u_run):
+            y = stepper.step(float(u))
+            if i == n_win - 1:
+                u_win, y_win = relag
+                stepper.offset = 0.0
+                nu, ny = int(getattr(self.model, 'nu', 0)), int(getattr(self.model, 'ny', 0))
+                stepper.reset(u_win[len(u_win) - nu:] if nu else None,
+                              y_win[len(y_win) - ny:] if ny else None)
+        self.offset = float(stepper.offset)
+        stepper.offset = 0.0       # the kernels run without it; solve and commit add it
+        self.stepper = stepper
+        self._sv[:] = 0.0
+        self.u_prev = float(u_run[-1]) if len(u_run) else 0.0
+        self.y_model = float(y)
         self._bind()
 
     def _bind(self) -> None:
@@ -162,8 +191,8 @@ class ModelInverse:
         (call `commit`).
         """
         lo, hi = self.window(dt)
-        u, miss, nev = self._solve(float(target), lo, hi, self.u_prev, 1e-9, self.tol,
-                                   self.max_iter, self.n_grid, *self._args)
+        u, miss, nev = self._solve(float(target) - self.offset, lo, hi, self.u_prev, 1e-9,
+                                   self.tol, self.max_iter, self.n_grid, *self._args)
         limit = REACHED
         if not abs(miss) <= self.reach_tol:
             limit = NOT_INVERTIBLE
@@ -180,8 +209,8 @@ class ModelInverse:
             un = float(u) / u_scale
             if static:
                 return y_scale * hk.peek_static(un, st, s1, s2, radii, n_lags, dh, rho, kap, W1,
-                                                b1, w2, c, w_rest, g, lam, b, y_off)
-        return self.stepper.peek(u)
+                                                b1, w2, c, w_rest, g, lam, b, y_off) + self.offset
+        return self.stepper.peek(u) + self.offset
 
     def estimate_advance(self, freq: float = 5.0, seconds: float = 1.0) -> float:
         """
@@ -220,7 +249,7 @@ class ModelInverse:
         Returns its free-run output y(k) (m), as the model's Stepper.step would (its state arrays
         are the ones advanced; its u_past / y_past copies are not kept up to date).
         """
-        self.y_model = self._advance(float(u))
+        self.y_model = self._advance(float(u)) + self.offset
         self.u_prev = float(u)
         return self.y_model
 
