@@ -1,6 +1,4 @@
-"""
-The one-sample message, sensor_msgs/JointState: as objects, and as CDR bytes for raw subscriptions.
-"""
+"""The one-sample message, sensor_msgs/JointState: objects, and CDR bytes for raw subscriptions."""
 from __future__ import annotations
 
 import struct

@@ -1,6 +1,4 @@
-"""
-The batch message, trajectory_msgs/JointTrajectory: one point per sample, as CDR bytes.
-"""
+"""The batch message, trajectory_msgs/JointTrajectory: one point per sample, as CDR bytes."""
 from __future__ import annotations
 
 import struct
