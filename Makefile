@@ -17,22 +17,28 @@ setup: $(STAMP)
 demo: setup
 	$(VENV)/bin/piezo-narx demo
 
+# The tests that need the machine to themselves (live DDS, timing: conftest.SERIAL_FILES) run
+# alone after the others, which share both cores.
 test: setup
-	$(PY) -m pytest -q test
+	$(PY) -m pytest -q -n 2 -m 'not serial' test
+	$(PY) -m pytest -q -m serial test
 
 # Benchmarks print figures (speed targets are checked here, not in unit tests).
 bench: setup
 	$(PY) -m pip install -q -r bench/requirements.txt
-	$(PY) bench/bench_simulate.py
-	$(PY) bench/bench_plant.py
-	$(PY) bench/bench_grid.py
-	$(PY) bench/bench_scale.py
-	$(PY) bench/bench_sysidentpy.py
-	$(PY) bench/bench_live.py
-	$(PY) bench/bench_recorder.py
-	$(PY) bench/bench_control.py
-	$(PY) bench/bench_export.py
+	mkdir -p bench/out && rm -f bench/out/results.jsonl
+	export PNR_RESULTS=$(CURDIR)/bench/out/results.jsonl; \
+	$(PY) bench/bench_simulate.py && \
+	$(PY) bench/bench_plant.py && \
+	$(PY) bench/bench_grid.py && \
+	$(PY) bench/bench_scale.py && \
+	$(PY) bench/bench_sysidentpy.py && \
+	$(PY) bench/bench_live.py && \
+	$(PY) bench/bench_recorder.py && \
+	$(PY) bench/bench_control.py && \
+	$(PY) bench/bench_export.py && \
 	$(PY) bench/bench_envelope.py --reference
+	$(PY) bench/write_results.py bench/out/results.jsonl
 
 # 10 minutes of command -> simulator -> estimator -> recorder at 2 kHz with scheduled faults.
 soak: setup

@@ -54,6 +54,8 @@ from pathlib import Path
 
 import numpy as np
 
+from headline import headline
+
 from piezo_narx_ros.control.closed_loop import run_loop
 from piezo_narx_ros.control.controller import PositionController
 from piezo_narx_ros.ident.model_io import load_model
@@ -205,6 +207,10 @@ def bench_plant(plant: str, model_paths: dict, seeds, figures: Path | None,
     print(f'  compute per sample (inverse): p50 {c["p50"]:.1f} us, p99 {c["p99"]:.1f} us, '
           f'max {c["max"]:.0f} us over {c["samples"]} samples')
     print(f'  samples with an unreachable target: {limited}', flush=True)
+    r = out['ratios']
+    headline(f'sensorless control, {plant} plant, seeds {list(seeds)}: inverse / linear RMSE '
+             'at 0.1, 1, 10 Hz; inverse_feedback / PI at 10 Hz',
+             ', '.join(f'{v:.3f}' for v in r.values()), '<= 0.1, 0.1, 1/3', 'control.md')
     if figures is not None:
         out['figures'] = write_figures(examples, plant, figures)
     return out

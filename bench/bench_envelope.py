@@ -32,6 +32,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from bench_excitation import score   # {name: (R², RMSE nm)} of the free run from y[:n0]
+from headline import headline
 from piezo_narx_ros.ident.selection.experiment import PRESETS, ExperimentConfig, run_experiment
 from piezo_narx_ros.plant import PiezoCantilever, generate, load_plant_params
 from piezo_narx_ros.record import Record
@@ -120,6 +121,11 @@ def print_table(title, rows, fit_times, labels):
           f'median <= {1e6 * slow_med:.3f} um, worst {1e6 * slow:.3f} um; other moves worst '
           f'{1e6 * rest:.3f} um; fresh multisine R² median {rows["multisine"]["r2_median"]:.6f}'
           f' (worst {rows["multisine"]["r2_worst"]:.6f})', flush=True)
+    headline(f'envelope battery, {title}: runaways; slow full-range RMSE median / worst; other '
+             'moves worst; fresh multisine R² worst',
+             f'{total} of {len(rows) * len(fit_times)}; {1e6 * slow_med:.3f} / {1e6 * slow:.3f} '
+             f'µm; {1e6 * rest:.3f} µm; {rows["multisine"]["r2_worst"]:.6f}',
+             '0; <= 1 / 2 µm; <= 2 µm', 'envelope.md')
 
 
 def main(argv=None):

@@ -42,6 +42,7 @@ import numpy as np
 
 from bench_control import SLEW, TASKS, identify, reference
 from bench_envelope import BATTERY, TEST_SECONDS
+from headline import headline
 from piezo_narx_ros.control.controller import PositionController
 from piezo_narx_ros.export.writer import write_c
 from piezo_narx_ros.ident.arx.model import ARXModel
@@ -337,6 +338,9 @@ def main() -> None:
               f'{r["py_step_ns"] / 1e3:7.3f}us {r["py_step_ns"] / r["c_step_ns"]:6.1f} '
               f'{r["stack_step"]:7d} {r["text"]:7d} {r["rodata"]:8d} '
               f'{r["free_run_max_err_m"]:11.1e}')
+        headline(f'C export {name}: pnr_step per sample (Python Stepper.step); max |C - Python| '
+                 'free run', f'{r["c_step_ns"] / 1e3:.3f} µs ({r["py_step_ns"] / 1e3:.3f} µs); '
+                 f'{r["free_run_max_err_m"]:.1e} m', '<= 1e-12 m', 'export.md')
     print(f'\n{"inverse":28s} {"C/sample":>9s} {"call p50":>9s} {"call p99":>9s} '
           f'{"call max":>9s} {"Py/sample":>9s} {"Py/C":>6s} {"evals":>5s} {"stack B":>7s} '
           f'{"max|C-Py| V":>11s}')

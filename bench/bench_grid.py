@@ -19,6 +19,7 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from bench_simulate import piezo_data  # noqa: E402
+from headline import headline  # noqa: E402
 
 from piezo_narx_ros.record import Record  # noqa: E402
 from piezo_narx_ros.ident.selection.experiment import (ExperimentConfig,  # noqa: E402
@@ -69,6 +70,9 @@ def main(argv=None):
     print(f'candidates: {len(narx)} NARX + {len(arx)} ARX')
     print(f'grid wall time, jobs={args.jobs}: median {statistics.median(walls):.2f} s over '
           f'{len(walls)} run(s) (target <= 20 s)')
+    headline(f'paper grid (16 NARX + 100 ARX + final fit), {args.samples:,} samples, '
+             f'{args.jobs} workers', f'{statistics.median(walls):.2f} s wall (median of '
+             f'{len(walls)})', '<= 20 s', 'identification.md')
     # CPU time is what a busy machine cannot inflate much: wall on an idle 2-core box ~ CPU / 2.
     print(f'CPU time (parent + workers): median {statistics.median(cpus):.2f} s, i.e. '
           f'{statistics.median(cpus) / args.jobs:.2f} s per worker if the cores were free')

@@ -50,6 +50,8 @@ from pathlib import Path
 
 import numpy as np
 
+from headline import headline
+
 NODES = 'piezo_narx_ros.nodes'
 FLOOR_NODES = Path(__file__).resolve().parent / 'floor_nodes.py'
 
@@ -334,6 +336,12 @@ def report(fs: float, seconds: float, r: dict, f: dict | None) -> None:
                   for k in ORDER))
     print('CPU per sample (us): ' + ', '.join(f'{k} {r["cpu_us_per_sample"][k]:.2f}'
                                               for k in ORDER))
+    lat = np.percentile(r['latency_us'], [50, 99]) if len(r['latency_us']) else (math.nan,) * 2
+    cpu = ' / '.join(f'{r["cpu"][k]:.0f}' for k in ORDER)
+    floor = ('; CPU / floor ' + ' / '.join(f'{ratio(r, f, k):.2f}' for k in ORDER)) if f else ''
+    headline(f'command -> simulator -> estimator over DDS, {fs:g} Hz, {seconds:g} s',
+             f'{sum(r["lost"].values())} lost; latency p50 / p99 {lat[0] / 1e3:.2f} / '
+             f'{lat[1] / 1e3:.2f} ms; CPU sim / est / cmd {cpu} %{floor}', '0 lost', 'nodes.md')
     d = r['diag']
     if 'command_node' in d:
         c = d['command_node']

@@ -15,6 +15,7 @@ os.environ.setdefault('NUMBA_NUM_THREADS', '1')
 import numpy as np  # noqa: E402
 
 from piezo_narx_ros.plant import PiezoCantilever, generate, load_plant_params  # noqa: E402
+from headline import headline  # noqa: E402
 
 
 def main():
@@ -56,6 +57,8 @@ def main():
     print(f'step(): {1e6 * step_med:.2f} us/call (median of {args.repeats} x {args.steps}) -> '
           f'{period / step_med:.0f}x real time; run() is '
           f'{step_med / (run_med / u.size):.0f}x faster per sample')
+    headline(f'plant run() / step() at {args.fs:g} Hz', f'{args.seconds / run_med:.0f}x / '
+             f'{period / step_med:.0f}x real time', '>= 100x')
 
 
 if __name__ == '__main__':

@@ -31,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from headline import headline
+
 
 os.environ.setdefault('ROS_DOMAIN_ID', str(101 + os.getpid() % 100))
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
@@ -161,6 +163,9 @@ def main(argv=None) -> int:
                   f'{sum(r["recorded"].values()):>9} {r["lost"]:>5} {r["missing_in_stamps"]:>5} '
                   f'{100 * r["cpu"]:>6.1f} {100 * r["cpu_total"]:>9.1f} {r["bag_mb"]:>6.2f} '
                   f'{r["exit"]}')
+            headline(f'recorder_node, 3 topics at {r["rate"]:.0f} Hz, batch {args.batch}, '
+                     f'{args.seconds:g} s', f'{r["lost"]} lost of {3 * r["sent_per_topic"]:,}, '
+                     f'{100 * r["cpu"]:.0f} % of a core', '0 lost', 'nodes.md')
         o = offline(args.offline_samples, args.repeats, tmp)
         print(f'\noffline ({o["messages"]} JointState messages, median of {args.repeats}):')
         print(f'  BagWriter: {o["write_s"]:.3f} s = {o["write_rate"]:,.0f} msg/s')

@@ -42,6 +42,7 @@ for _name, _value in {'OPENBLAS_NUM_THREADS': '1', 'OMP_NUM_THREADS': '1',
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from bench_simulate import piezo_data  # noqa: E402
+from headline import headline  # noqa: E402
 
 from piezo_narx_ros.record import Record  # noqa: E402
 from piezo_narx_ros.ident.selection.executor import LocalExecutor, RayExecutor  # noqa: E402
@@ -199,6 +200,8 @@ def main(argv=None):
         over = (med[kind] - med['local jobs=2']) / med['local jobs=2']
         print(f'  Ray, 2 CPUs, {what}: {med[kind]:7.2f} s   overhead vs local 2 workers '
               f'{100 * over:+.1f} % (target <= 15 %)')
+        headline(f'paper grid on Ray (2 local CPUs) against the process pool, {what}',
+                 f'{100 * over:+.1f} %', '<= 15 %', 'scaling.md')
     over = (med['ray cold'] + med['ray start'] - med['local jobs=2']) / med['local jobs=2']
     print(f'  local Ray start (ray.init, not in the walls above): {med["ray start"]:.2f} s; '
           f'start + cold search = {med["ray start"] + med["ray cold"]:.2f} s, '

@@ -20,6 +20,8 @@ import time
 import numpy as np
 from scipy import signal
 
+from headline import headline
+
 from piezo_narx_ros.ident.arx.model import ARXModel
 from piezo_narx_ros.ident.validation.metrics import r2
 from piezo_narx_ros.ident.narx.model import NARXNetwork
@@ -69,7 +71,7 @@ def piezo_data(n=50000, seed=0):
                                  f'{type(exc).__name__})')
 
 
-def step_latency(model, u, n_calls):
+def step_latency(model, u, n_calls, name='paper network'):
     """Print p50/p99/max of model.stepper().step(), µs, over n_calls calls."""
     step = model.stepper().step
     for x in u[:1000]:
@@ -83,6 +85,7 @@ def step_latency(model, u, n_calls):
         samples[i] = clock() - t0
     p50, p99 = np.percentile(samples, [50, 99]) / 1e3
     print(f'{n_calls} calls: p50 {p50:.2f} us, p99 {p99:.2f} us, max {samples.max() / 1e3:.1f} us')
+    headline(f'Stepper.step() p50 / p99, {name}', f'{p50:.2f} / {p99:.2f} µs', 'p99 <= 10 µs')
 
 
 def hnarx_section(reps, n_calls, u_long):
@@ -102,12 +105,16 @@ def hnarx_section(reps, n_calls, u_long):
               f'iterations, {m.n_params} parameters); free-run R2 on the second half of the '
               f'protocol {val:.6f}')
     print(f'median fit time {statistics.median(times):.2f} s')
+    headline('HysteresisNARX default fit, 25,000 samples, one core (median of seeds)',
+             f'{statistics.median(times):.2f} s', '', 'envelope.md')
     m.simulate(u_long[:100])
     t_sim = median_time(lambda: m.simulate(u_long), reps)
     print(f'simulate(): {u_long.size} samples in {t_sim * 1e3:.1f} ms -> '
           f'{u_long.size / t_sim / 1e6:.2f} M samples/s')
+    headline('free-run simulate(), HysteresisNARX default', f'{u_long.size / t_sim / 1e6:.2f} M '
+             'samples/s', '>= 1 M/s')
     print('Stepper.step():', end=' ')
-    step_latency(m, u, n_calls)
+    step_latency(m, u, n_calls, 'HysteresisNARX default')
 
 
 def median_time(f, repeats):
@@ -148,6 +155,10 @@ def main(argv=None):
           f'{statistics.median(f[1] for f in fits):.6f} (measured), '
           f"{statistics.median(f[2] for f in fits):.6f} (y_true: the plant's tip deflection "
           f'before sensor filter and noise)')
+    headline('NARX(4,4,10) fit, 25,000 samples, one core (median of seeds)',
+             f'{statistics.median(f[0] for f in fits):.2f} s')
+    headline('NARX(4,4,10) free-run validation R² (plant data, median of seeds)',
+             f'{statistics.median(f[1] for f in fits):.6f}', '>= 0.9999', 'identification.md')
     model = fits[0][3]
 
     print('\n# free-run simulate() throughput, H=10, nu=ny=4 (median of repeats)')
@@ -159,6 +170,9 @@ def main(argv=None):
     arx = ARXModel(4, 4).fit(ue, ye)
     t_arx = median_time(lambda: arx.simulate(u_long), reps)
     print(f'ARX(4,4): {u_long.size / t_arx / 1e6:.2f} M samples/s')
+    headline('free-run simulate(), NARX 10 units / ARX(4,4)',
+             f'{u_long.size / t_sim / 1e6:.2f} / {u_long.size / t_arx / 1e6:.2f} M samples/s',
+             '>= 1 M/s')
 
     print('\n# Stepper.step() per call, including Python call overhead')
     n_calls = 20000 if args.quick else 100000
@@ -180,6 +194,8 @@ def main(argv=None):
             for nb in range(1, 11):
                 ARXModel(na, nb).fit(ue, ye)
         t_arx = time.perf_counter() - t0
+        headline('paper grid, 16 NARX + 100 ARX, 25,000 samples, one core',
+                 f'{t_narx + t_arx:.1f} s')
         print(f'16 NARX {t_narx:.1f} s + 100 ARX {t_arx:.1f} s = {t_narx + t_arx:.1f} s '
               f'on one core '
               f'(about {(t_narx + t_arx) / 2:.1f} s split over 2 cores)')

@@ -26,6 +26,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from bench_simulate import piezo_data  # noqa: E402
+from headline import headline  # noqa: E402
 
 from piezo_narx_ros.ident.validation import metrics  # noqa: E402
 from piezo_narx_ros.ident.narx.model import NARXNetwork  # noqa: E402
@@ -124,6 +125,11 @@ def main(argv=None):
     print(f'SysIdentPy     : fit median {t_theirs:.2f} s ({args.epochs} epochs), free-run '
           f'validation R2 median {statistics.median(t[1] for t in theirs):.6f}')
     print(f'speed ratio (SysIdentPy fit / ours): {t_theirs / t_ours:.1f}x (target >= 10x)')
+    headline(f'NARX(4,4,10) fit against SysIdentPy {sysidentpy.__version__} NARXNN '
+             f'({args.epochs} epochs), {u.size:,} samples',
+             f'ours {t_ours:.2f} s, R² {statistics.median(o[1] for o in ours):.6f}; SysIdentPy '
+             f'{t_theirs:.2f} s, R² {statistics.median(t[1] for t in theirs):.6f}: '
+             f'{t_theirs / t_ours:.1f}x', '>= 10x', 'identification.md')
 
 
 if __name__ == '__main__':
