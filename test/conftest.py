@@ -46,18 +46,15 @@ os.environ.setdefault('MPLBACKEND', 'Agg')
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
 
-# Test files that run alone, after the rest (`make test`): live DDS nodes and their timing, real
-# process signals, Ray clusters, pip and colcon builds. Run beside a CPU-bound test on 2 cores
+# Test files that run alone, after the rest (`make test`): live DDS nodes and their timing, a
+# live recorder's kill, the fake rig's UDP timing. Run beside a CPU-bound test on 2 cores
 # they were slowed past their timing checks (the quick demo lost its latency pairs); the other
 # files run on both cores at once (pytest-xdist).
 SERIAL_FILES = frozenset({
-    'test_bringup.py', 'test_colcon.py', 'test_command_node.py', 'test_controller_node.py',
-    'test_demo.py', 'test_demo_axes.py', 'test_demo_control.py', 'test_driver_node.py',
-    'test_estimator_node.py', 'test_executor.py', 'test_faults_bags.py', 'test_faults_cli.py',
-    'test_faults_nodes.py', 'test_faults_rates.py', 'test_faults_replay.py',
-    'test_faults_trust.py', 'test_ident_search.py', 'test_install.py', 'test_nodes_axes.py',
-    'test_nodes_batch.py', 'test_nodes_common.py', 'test_player_node.py',
-    'test_recorder_node.py', 'test_rig_batch.py', 'test_rig_fake.py', 'test_simulator_node.py',
+    'test_bringup.py', 'test_command_node.py', 'test_controller_node.py', 'test_demo.py',
+    'test_demo_control.py', 'test_driver_node.py', 'test_estimator_node.py', 'test_faults_bags.py',
+    'test_faults_nodes.py', 'test_faults_replay.py', 'test_nodes_axes.py', 'test_nodes_batch.py',
+    'test_nodes_common.py', 'test_player_node.py', 'test_recorder_node.py', 'test_rig_fake.py',
 })
 
 
