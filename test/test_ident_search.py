@@ -263,3 +263,42 @@ def test_a_signal_inside_a_journal_write_comes_after_it(tmp_path, signum):
         signal.signal(signal.SIGTERM, previous)
     assert list(backend.read_logs(0)) == [{'op': 1}]
     assert sorted(p.name for p in tmp_path.iterdir()) == ['j']
+
+
+def test_an_interruption_after_any_journal_write_resumes_to_the_same_model(
+        tmp_path, records, monkeypatch):
+    # Ctrl-C can land between any two writes of the study (asking a batch, fitting it, telling
+    # its results): a resume from each must end on the uninterrupted run's model and trials.
+    from piezo_narx_ros.ident.selection import study as study_module
+    real = study_module.signal_safe_journal
+    writes = {'n': 0, 'stop_after': None}
+
+    def counting(path):
+        backend = real(path)
+        append = backend.append_logs
+
+        def append_logs(logs):
+            append(logs)
+            writes['n'] += 1
+            if writes['n'] == writes['stop_after']:
+                raise KeyboardInterrupt
+        backend.append_logs = append_logs
+        return backend
+    monkeypatch.setattr(study_module, 'signal_safe_journal', counting)
+    est, val = records
+    options = _options(families=('arx',), trials=6, batch=3)
+
+    def picks(result):
+        return (weights_sha256(result.best.model), [t.spec for t in result.trials],
+                [t.scores.get('start') for t in result.trials])
+    with LocalExecutor(1) as ex:
+        whole = picks(run_search(est, val, options, ex, tmp_path / 'whole'))
+    total = writes['n']
+    for stop in range(1, total):
+        out = tmp_path / f'cut{stop}'
+        writes.update(n=0, stop_after=stop)
+        with pytest.raises(KeyboardInterrupt), LocalExecutor(1) as ex:
+            run_search(est, val, options, ex, out)
+        writes['stop_after'] = None
+        with LocalExecutor(1) as ex:
+            assert picks(run_search(est, val, options, ex, out, resume=True)) == whole, stop

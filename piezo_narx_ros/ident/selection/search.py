@@ -619,6 +619,8 @@ def run_search(est: list[Record], val: list[Record], options: SearchOptions,
             for trial_number, params in live:
                 res = results[trial_number]
                 done_params.setdefault(params_key(params), res)
+                if by_number[trial_number].state == optuna.trial.TrialState.COMPLETE:
+                    continue      # told before an interruption inside this loop
                 # A Trial handle on the stored trial (also one a previous process asked): user
                 # attributes can only be set while it runs.
                 handle = optuna.trial.Trial(study, by_number[trial_number]._trial_id)
@@ -669,17 +671,23 @@ def _batch_trials(study, optuna, store: Study, options: SearchOptions, context: 
     Return batch b's (trial number, params): the ones asked before an interruption, or new.
 
     A batch interrupted while it was being asked is failed and asked again: batch b's sampler is
-    seeded from (seed, b) and sees only the complete batches before it, so it asks the same.
+    seeded from (seed, b) and sees only the complete batches before it, so it asks the same. A
+    batch interrupted after it was asked (while fitting, or while its results were told) keeps
+    its trials, the ones told and the ones still running: asking again would let the sampler
+    see the told ones and ask something else (seen under load: another model after resume).
     """
     state = optuna.trial.TrialState
-    running = [t for t in existing if t.state == state.RUNNING]
-    if len(running) == size and len({t.number for t in running}) == size:
-        return [(t.number, dict(t.params)) for t in sorted(running, key=lambda t: t.number)]
-    for t in existing:
-        if t.state in (state.RUNNING, state.WAITING):
-            study.tell(t.number, state=state.FAIL)
-    for t in study.get_trials(deepcopy=False, states=(state.WAITING,)):
+    kept = [t for t in existing if t.state in (state.RUNNING, state.COMPLETE)]
+    if len(kept) == size and len({t.number for t in kept}) == size:
+        return [(t.number, dict(t.params)) for t in sorted(kept, key=lambda t: t.number)]
+    # Every trial not complete here belongs to batch b's interrupted asking, also one asked
+    # before its batch number was written: fail them all, or the sampler would count them.
+    for t in study.get_trials(deepcopy=False, states=(state.RUNNING,)):
         study.tell(t.number, state=state.FAIL)
+    # Enqueued seed-design trials not asked yet: a waiting trial cannot be told, so ask it
+    # (the oldest waiting one comes first) and fail it; the batch enqueues its own again.
+    for _ in study.get_trials(deepcopy=False, states=(state.WAITING,)):
+        study.tell(study.ask(), state=state.FAIL)
     study.sampler = sampler(optuna, options.seed, options.batch, b)
     # The seed design fills the first batches, whatever their size.
     design = seed_design(context, options.families)[b * options.batch:][:size]
@@ -688,7 +696,8 @@ def _batch_trials(study, optuna, store: Study, options: SearchOptions, context: 
     out = []
     for _ in range(size):
         trial = study.ask()
+        params = suggest(trial, context, options.families)
+        # Written last: a trial with its batch number has all its parameters.
         trial.set_user_attr('batch', b)
-        params = (suggest(trial, context, options.families))
         out.append((trial.number, params))
     return out

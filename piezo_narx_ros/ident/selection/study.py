@@ -114,6 +114,8 @@ class Study:
         storage = JournalStorage(signal_safe_journal(str(self.journal)))
         if self.resume:
             study = optuna.load_study(study_name=STUDY_NAME, storage=storage)
+            if FINGERPRINT_KEY not in study.user_attrs and not study.get_trials(deepcopy=False):
+                study.set_user_attr(FINGERPRINT_KEY, fp)    # cut right after it was created
             if study.user_attrs.get(FINGERPRINT_KEY) != fp:
                 raise ConfigError(f'--resume: the study in {self.out} was run on other records '
                                   'or settings; give the same inputs and options, or start '
