@@ -55,6 +55,16 @@ def render(rows: list, when: datetime, machine: str) -> str:
         lines.append(f'| {_cell(r["what"])} | {_cell(r["measured"])} | '
                      f'{_cell(r.get("target", ""))} | {r.get("load", "")} | '
                      f'`bench/{_cell(r["script"])}` | {link} |')
+    lines += [
+        '',
+        'Not in `make bench` (long runs, or data from ../shared): the FSM benchmark',
+        '(`bench/bench_fsm_envelope.py`, [mimo](mimo.md)), Bouc-Wen (`bench/bench_boucwen.py`,',
+        '[identification](identification.md)), the real records and the search on them',
+        '(`bench/bench_real.py`, `bench/bench_search.py`, [real](real.md)), the demo',
+        '(`make demo`, [demo](demo.md)) and the 10-minute soak (`make soak`,',
+        '[reliability](reliability.md)):',
+        'their pages give the figures with their dates.',
+    ]
     return '\n'.join(lines) + '\n'
 
 
