@@ -179,7 +179,8 @@ def stored_start(model, init_samples=None) -> tuple[str | None, int | None]:
     init_samples (given by the user) says how many measured samples are available; the stored
     policy decides how they are used. A model file without a start: (None, init_samples).
     """
-    start = (getattr(model, 'metadata', None) or {}).get('start')
+    from piezo_narx_ros.ident.state.start import model_start
+    start = model_start(model)
     if not start:
         return None, init_samples
     n = start['window_samples'] if init_samples is None else int(init_samples)

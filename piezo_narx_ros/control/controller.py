@@ -208,20 +208,14 @@ class PositionController:
         The window is the first start_window consecutive commands that all have their
         measured deflection (usually the first ones: later ones when some were lost).
         """
+        from piezo_narx_ros.ident.state.start import first_full_window, relags, window_state
         n, log, meas = self.start_window, self._start_log, self._start_meas
         meas[t_ns] = y
-        if len(meas) < n:
+        first = first_full_window((t for t, _ in log), meas, n) if len(meas) >= n else None
+        if first is None:
             return
-        run = 0
-        for j, (t, _) in enumerate(log):
-            run = run + 1 if t in meas else 0
-            if run >= n:
-                break
-        else:
-            return
-        log = log[j + 1 - n:]
+        log = log[first:]
         from piezo_narx_ros.errors import DataError
-        from piezo_narx_ros.ident.state.start import relags, window_state
         u_win = np.array([u for _, u in log[:n]])
         y_win = np.array([meas[t] for t, _ in log[:n]])
         u_run = np.array([u for _, u in log])
@@ -451,8 +445,8 @@ START_PATIENCE = 10
 
 def _start_settings(model, policy, window) -> tuple[str, int]:
     """Return (start policy, window samples): given, else the model file's, else rest."""
-    from piezo_narx_ros.ident.state.start import check_policy, min_window
-    stored = (getattr(model, 'metadata', None) or {}).get('start') or {}
+    from piezo_narx_ros.ident.state.start import check_policy, min_window, model_start
+    stored = model_start(model)
     policy = check_policy(policy if policy is not None else stored.get('policy', 'rest'),
                           'start_policy', ConfigError)
     if policy == 'rest':

@@ -121,17 +121,15 @@ class ModelInverse:
         outputs, whose last samples become the lags once the window is stepped (start policy
         'state' on a lagged family). The state's offset shifts every output from now on.
         """
+        from piezo_narx_ros.ident.state.start import window_lags
         stepper = self.model.stepper(state=state)
         n_win = len(relag[0]) if relag is not None else -1
         y = 0.0
         for i, u in enumerate(u_run):
             y = stepper.step(float(u))
             if i == n_win - 1:
-                u_win, y_win = relag
                 stepper.offset = 0.0
-                nu, ny = int(getattr(self.model, 'nu', 0)), int(getattr(self.model, 'ny', 0))
-                stepper.reset(u_win[len(u_win) - nu:] if nu else None,
-                              y_win[len(y_win) - ny:] if ny else None)
+                stepper.reset(*window_lags(self.model, *relag))
         self.offset = float(stepper.offset)
         stepper.offset = 0.0       # the kernels run without it; solve and commit add it
         self.stepper = stepper

@@ -118,10 +118,10 @@ class FreeRunEstimator:
                               'confirm >= 1 and rate_tolerance in (0, 1)')
         # The model file's start policy (fit --preset search) decides how the measured window
         # is used, and its window how long it is, unless the caller says otherwise.
-        start = (getattr(model, 'metadata', None) or {}).get('start') or {}
+        from piezo_narx_ros.ident.state.start import check_policy, model_start
+        start = model_start(model)
         self.start_policy = start_policy if start_policy is not None else start.get('policy')
         if self.start_policy is not None:
-            from piezo_narx_ros.ident.state.start import check_policy
             check_policy(self.start_policy, 'start_policy', ConfigError)
         if init_window is None:
             init_window = start['window_samples'] / fs if start else 0.5
@@ -622,15 +622,11 @@ class FreeRunEstimator:
         counted as `unestimated`. The state at the window's first command is the model's
         estimate_state of the window; a window no state explains is skipped (wait for the next).
         """
+        from piezo_narx_ros.ident.state.start import first_full_window
         n, pending, meas = self.init_samples, self._pending, self._meas
-        run = 0
-        for j, (t, _, _) in enumerate(pending):
-            run = run + 1 if t in meas else 0
-            if run >= n:
-                break
-        else:
+        start = first_full_window((t for t, _, _ in pending), meas, n)
+        if start is None:
             return False
-        start = j + 1 - n
         u_win = np.array([u for _, u, _ in pending[start:start + n]])
         y_win = np.array([meas[t] for t, _, _ in pending[start:start + n]])
         try:
@@ -667,10 +663,9 @@ class FreeRunEstimator:
 
     def _set_lags(self, u_win, y_win) -> None:
         """Continue from the window's last measured inputs and outputs (start policy 'state')."""
-        n = len(u_win)
+        from piezo_narx_ros.ident.state.start import window_lags
         self._stepper.offset = np.zeros(self.n_out) if self.vector else 0.0
-        self._stepper.reset(u_win[n - self.nu:] if self.nu else None,
-                            y_win[n - self.ny:] if self.ny else None)
+        self._stepper.reset(*window_lags(self.model, u_win, y_win))
 
     def _init_pending_from_rest(self, out: list) -> None:
         pending, self._pending = self._pending, []

@@ -49,6 +49,27 @@ def relags(model, policy: str) -> bool:
     return policy == 'state' and lagged(model)
 
 
+def model_start(model) -> dict:
+    """Return the start the model file stores ({'policy', 'window_samples', ...}; {} if none)."""
+    return (getattr(model, 'metadata', None) or {}).get('start') or {}
+
+
+def window_lags(model, u_win, y_win) -> tuple:
+    """Return (u_past, y_past): the window's last nu inputs and ny outputs (None where 0)."""
+    nu, ny = int(model.nu), int(model.ny)
+    return (u_win[len(u_win) - nu:] if nu else None, y_win[len(y_win) - ny:] if ny else None)
+
+
+def first_full_window(stamps, measured, n: int) -> int | None:
+    """Index of the first of n consecutive `stamps` all in `measured`; None while there is none."""
+    run = 0
+    for j, t in enumerate(stamps):
+        run = run + 1 if t in measured else 0
+        if run >= n:
+            return j + 1 - n
+    return None
+
+
 def min_window(model, policy: str) -> int:
     """Fewest measured samples `policy` needs (0 for rest)."""
     if policy == 'rest':
