@@ -129,6 +129,12 @@ def load_validation(job: FitJob, records: list) -> list:
     return validation
 
 
+def load_job(job: FitJob) -> tuple:
+    """Return (estimation records at the job's rate, validation records or None), warned on."""
+    records = resampled(load_estimation(job, whole=bool(job.validate)), job.resample)
+    return records, (load_validation(job, records) if job.validate else None)
+
+
 def warn_about_estimation(records, config, name: str = '') -> None:
     """
     Warn where the estimation input itself limits the model (after the fit, beside its report).
@@ -216,8 +222,7 @@ def fit_experiment(job: FitJob, executor) -> FitOutcome:
     if (out / 'model.json').exists() and not job.force:
         raise ConfigError(f'--out {out} already holds a model ({out / "model.json"}); choose '
                           'another directory or pass --force to overwrite it')
-    records = resampled(load_estimation(job, whole=bool(job.validate)), job.resample)
-    validation = load_validation(job, records) if job.validate else None
+    records, validation = load_job(job)
     config = with_init_samples(job.config, job.init_samples, records[0].fs)
     with executor:
         result = run_experiment(records, config, executor, validation)
@@ -227,8 +232,8 @@ def fit_experiment(job: FitJob, executor) -> FitOutcome:
     return FitOutcome(result, config, model_path, paths)
 
 
-def search_options(job: FitJob, fs: float, trials=None, budget_s=None, batch=None,
-                   tolerance=None, families=None):
+def search_options(job: FitJob, trials=None, budget_s=None, batch=None, tolerance=None,
+                   families=None):
     """
     Return the SearchOptions of a search job (ConfigError naming the option on a bad value).
 
@@ -265,9 +270,8 @@ def fit_search(job: FitJob, executor, resume: bool = False, announce=None,
     from piezo_narx_ros.ident.selection.experiment import split_records
     from piezo_narx_ros.ident.selection.search import run_search
     from piezo_narx_ros.ident.selection.search_report import write_search
-    records = resampled(load_estimation(job, whole=bool(job.validate)), job.resample)
-    validation = load_validation(job, records) if job.validate else None
-    options = search_options(job, records[0].fs, **search)
+    records, validation = load_job(job)
+    options = search_options(job, **search)
     est, val = (records, validation) if validation else split_records(records, job.config.split)
     if announce is not None:
         announce(options)
