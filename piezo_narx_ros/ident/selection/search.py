@@ -527,8 +527,8 @@ def resolve_families(est: list[Record], families) -> tuple[tuple, list[str]]:
 
 
 def run_search(est: list[Record], val: list[Record], options: SearchOptions,
-               executor: Executor, out, resume: bool = False, force: bool = False,
-               print_fn=None) -> SearchResult:
+               executor: Executor, out, resume: bool = False,
+               force: bool = False) -> SearchResult:
     """
     Search family, structure, seed and start policy; return every trial and the selection.
 
@@ -550,7 +550,7 @@ def run_search(est: list[Record], val: list[Record], options: SearchOptions,
             raise DataError(f'{r.source}: {len(r)} samples, too short for a window of {n} '
                             'measured samples and a scored free run after it')
     context = SpaceContext(getattr(est[0], 'n_in', 1), getattr(est[0], 'n_out', 1))
-    store = Study(out, resume, force, print_fn)
+    store = Study(out, resume, force)
     study = store.open(fingerprint(est, val, options))
     optuna = store.optuna
     t0 = time.perf_counter()

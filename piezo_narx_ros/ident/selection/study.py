@@ -87,12 +87,11 @@ def signal_safe_journal(path: str):
 class Study:
     """The Optuna study of one output folder: journal, trial files, resume."""
 
-    def __init__(self, out: Path, resume: bool, force: bool, print_fn=None):
+    def __init__(self, out: Path, resume: bool, force: bool):
         self.out = Path(out)
         self.journal = self.out / 'study.journal'
         self.trial_dir = self.out / 'trials'
         self.resume, self.force = resume, force
-        self.print = print_fn or (lambda line: None)
 
     def open(self, fp: str):  # noqa: A003 - pairs with the journal's lifetime
         """Create or load the study; refuse a resume of another run or a silent overwrite."""
