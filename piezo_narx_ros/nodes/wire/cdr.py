@@ -9,7 +9,6 @@ from __future__ import annotations
 import struct
 from typing import Sequence
 
-
 from piezo_narx_ros.axis_names import repeated
 from piezo_narx_ros.errors import DataError
 

@@ -10,7 +10,6 @@ from typing import Sequence
 import numpy as np
 
 from piezo_narx_ros.errors import DataError
-
 from piezo_narx_ros.nodes.wire.cdr import (_SHAPES_PER_LENGTH, _STAMP, _U32, _header_names,
                                            _put_doubles, _read_doubles, _read_header_names,
                                            ns_to_stamp)
