@@ -177,5 +177,9 @@ def test_a_controller_without_deflections_stays_from_rest_and_says_so(tmp_path, 
     ctl, _, _, _ = _controlled(model, ref, 4e-6, measure=False)
     assert ctl.stats.start == 'rest (no measurement)'
     assert PositionController(model, mode='inverse', start_policy='rest').stats.start == 'rest'
+    waiting = PositionController(model, mode='inverse')
+    assert waiting.stats.start == 'waiting'
+    waiting.request_reset()         # the actuator is at rest: nothing left to wait for
+    assert waiting.stats.start == 'rest' and waiting._start_log is None
     with pytest.raises(ConfigError, match='start_window must be at least'):
         PositionController(model, mode='inverse', start_window=3)

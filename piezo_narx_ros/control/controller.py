@@ -234,9 +234,11 @@ class PositionController:
         """
         Note that the actuator is at rest now (amplifier at 0 V, e.g. after it was switched off).
 
-        The model restarts from rest and the integrator is cleared (the node's ~/reset).
+        The model restarts from rest and the integrator is cleared (the node's ~/reset); a
+        start still waiting for its window is dropped, since the state is known now.
         """
         self._reset_state()
+        self.stats.start = 'rest'
         self.stats.requested_resets += 1
 
     @property
