@@ -233,7 +233,9 @@ def test_sigint_then_resume_ends_on_the_uninterrupted_model(tmp_path, records):
     assert weights_sha256(load_model(tmp_path / 'cut' / 'model.json')) == \
         weights_sha256(load_model(tmp_path / 'whole' / 'model.json'))
     cut = json.loads((tmp_path / 'cut' / 'candidates.json').read_text())
-    assert cut['search']['taken_over'] >= 3
+    # Three trial models were on disk at the interrupt; the newest trial's scores are written
+    # after its model (study.save_trial), so a cut between the two fits that trial again.
+    assert cut['search']['taken_over'] >= 2
     assert [c['label'] for c in cut['candidates']] == [
         c['label'] for c in json.loads((tmp_path / 'whole' / 'candidates.json').read_text())[
             'candidates']]

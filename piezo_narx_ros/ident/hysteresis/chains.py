@@ -35,10 +35,10 @@ import math
 
 import numpy as np
 from numba import njit
-from scipy.signal import lfilter
 
 from ...errors import DataError, ModelFileError
 from ..data.checks import as_channels, input_vector
+from ..data.filters import lfilter
 from ..narx.kernels import step_rows
 from .model import HysteresisNARX
 from .model_file import LAYOUTS

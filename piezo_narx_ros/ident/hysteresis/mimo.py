@@ -35,10 +35,10 @@ small-amplitude records count as much as large ones (relative error).
 import math
 
 import numpy as np
-from scipy.signal import lfilter
 
 from ...errors import DataError
 from ..data.checks import input_vector
+from ..data.filters import lfilter
 from ..narx.kernels import step_rows
 from .mimo_kernels import blend_weights, features, n_cross, simulate, step, work_size
 
