@@ -38,8 +38,12 @@ def _claim_domain_id() -> str:
     return str(1 + os.getpid() % 100)
 
 
-if 'ROS_DOMAIN_ID' not in os.environ:
+# An xdist worker inherits the domain its controller claimed: it claims one of its own, so two
+# workers' nodes never see each other (a domain the user set is kept).
+if 'ROS_DOMAIN_ID' not in os.environ or (os.environ.get('PYTEST_XDIST_WORKER')
+                                         and os.environ.get('PNR_TEST_DOMAIN_CLAIMED')):
     os.environ['ROS_DOMAIN_ID'] = _claim_domain_id()
+    os.environ['PNR_TEST_DOMAIN_CLAIMED'] = '1'
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ.setdefault('MPLBACKEND', 'Agg')
 # numpy's OpenBLAS spins one thread per core; on a busy 2-core box that made ARX fits 20x slower.
@@ -50,11 +54,13 @@ os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 # live recorder's kill, the fake rig's UDP timing. Run beside a CPU-bound test on 2 cores
 # they were slowed past their timing checks (the quick demo lost its latency pairs); the other
 # files run on both cores at once (pytest-xdist).
+# Each xdist worker has a ROS domain of its own, so process-lifecycle files without timing checks
+# (bringup, the fake rig's CLI) run with the others.
 SERIAL_FILES = frozenset({
-    'test_bringup.py', 'test_command_node.py', 'test_controller_node.py', 'test_demo.py',
-    'test_demo_control.py', 'test_driver_node.py', 'test_estimator_node.py', 'test_faults_bags.py',
-    'test_faults_nodes.py', 'test_faults_replay.py', 'test_nodes_axes.py', 'test_nodes_batch.py',
-    'test_nodes_common.py', 'test_player_node.py', 'test_recorder_node.py', 'test_rig_fake.py',
+    'test_command_node.py', 'test_controller_node.py', 'test_demo.py', 'test_demo_control.py',
+    'test_driver_node.py', 'test_estimator_node.py', 'test_faults_bags.py', 'test_faults_nodes.py',
+    'test_faults_replay.py', 'test_nodes_axes.py', 'test_nodes_batch.py', 'test_nodes_common.py',
+    'test_player_node.py', 'test_recorder_node.py',
 })
 
 

@@ -374,6 +374,17 @@ def test_fit_on_a_running_cluster_by_address(tmp_path):
     It ships this package's code with the job, and gives the local pool's model.
     """
     import re
+    record = hysteretic_record(seed=10)
+    _write_npz(tmp_path / 'r.npz', record)
+    (tmp_path / 'fast.yaml').write_text(json.dumps({'training': FAST_TRAINING,
+                                                    'final_training': {}}))
+    args = ['fit', '--preset', 'paper', str(tmp_path / 'r.npz'), '--config',
+            str(tmp_path / 'fast.yaml'), *FLEET_ARGS]
+    # The local pool's reference fit runs while the cluster comes up (most of that is waiting).
+    local = subprocess.Popen(
+        [sys.executable, '-m', 'piezo_narx_ros.cli.main', *args, '--jobs', '2',
+         '--out', str(tmp_path / 'local')], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True)
     ray_cli = Path(sys.executable).with_name('ray')
     head = subprocess.Popen(
         [str(ray_cli), 'start', '--head', '--block', '--port=0', '--num-cpus=2',
@@ -391,23 +402,17 @@ def test_fit_on_a_running_cluster_by_address(tmp_path):
             found = re.search(r"ray start --address='([^']+)'", line)
             address = found.group(1) if found else None
         assert address, 'ray start --head did not come up:\n' + ''.join(lines[-20:])
-        record = hysteretic_record(seed=10)
-        _write_npz(tmp_path / 'r.npz', record)
-        (tmp_path / 'fast.yaml').write_text(json.dumps({'training': FAST_TRAINING,
-                                                        'final_training': {}}))
-        args = ['fit', '--preset', 'paper',
-                str(tmp_path / 'r.npz'), '--config', str(tmp_path / 'fast.yaml'),
-                *FLEET_ARGS]
         done = subprocess.run(
             [sys.executable, '-m', 'piezo_narx_ros.cli.main', *args, '--executor', 'ray',
              '--ray-address', address, '--out', str(tmp_path / 'cluster')],
             capture_output=True, text=True, timeout=300)
         assert done.returncode == 0, done.stderr
-        local = subprocess.run(
-            [sys.executable, '-m', 'piezo_narx_ros.cli.main', *args, '--jobs', '2',
-             '--out', str(tmp_path / 'local')], capture_output=True, text=True, timeout=300)
-        assert local.returncode == 0, local.stderr
+        _, err = local.communicate(timeout=300)
+        assert local.returncode == 0, err
     finally:
+        if local.poll() is None:
+            local.kill()
+            local.wait()
         _stop_group(head)
         # `ray start` notes its address for later `ray.init()` calls; the cluster is gone.
         note = Path('/tmp/ray/ray_current_cluster')

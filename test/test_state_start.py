@@ -40,6 +40,31 @@ def test_state_policy_of_a_lagged_model_is_the_paper_start_at_the_window_end(rec
     np.testing.assert_array_equal(rest, m.simulate(u))
 
 
+def _with_error(model, rmse_m):
+    """Give the model its own free-run error (m) in its metrics, as `fit` leaves it."""
+    model.metadata = {'metrics': {'validation': {'simulation': {'rmse': rmse_m}}}}
+    return model
+
+
+def test_a_lagged_run_on_track_through_the_window_keeps_the_papers_start(records):
+    r = records[1][0]
+    m = ARXModel(na=4, nb=3).fit(r.u[:, 0], r.y[:, 0], fs=FS)
+    u, y, n = r.u[:, 0], r.y[:, 0], 300
+    paper = m.simulate(u, y[:m.n0])
+    scale = float(np.sqrt(np.mean((y[m.n0:] - paper[m.n0:]) ** 2)))
+    _with_error(m, scale)
+    np.testing.assert_array_equal(policy_simulate(m, u, y, n, 'state')[n:], paper[n:])
+    # The same window opening with a 20-um glitch: the run from it misses the window, and the
+    # start is taken at the window's end.
+    bad = y.copy()
+    bad[:m.n0] += 20e-6
+    end = m.simulate(u[n - m.n0:], y[n - m.n0:n])
+    np.testing.assert_array_equal(policy_simulate(m, u, bad, n, 'state')[n:], end[m.n0:])
+    # A model that carries no error of its own cannot judge the run: the window's end.
+    m.metadata = {}
+    np.testing.assert_array_equal(policy_simulate(m, u, y, n, 'state')[n:], end[m.n0:])
+
+
 def test_offset_policy_recovers_a_moved_sensor_zero(records):
     r = records[1][0]
     m = ARXModel(na=4, nb=3).fit(r.u[:, 0], r.y[:, 0], fs=FS)

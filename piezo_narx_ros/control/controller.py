@@ -208,7 +208,7 @@ class PositionController:
         The window is the first start_window consecutive commands that all have their
         measured deflection (usually the first ones: later ones when some were lost).
         """
-        from piezo_narx_ros.ident.state.start import first_full_window, relags, window_state
+        from piezo_narx_ros.ident.state.start import first_full_window, relag_window, window_state
         n, log, meas = self.start_window, self._start_log, self._start_meas
         meas[t_ns] = y
         first = first_full_window((t for t, _ in log), meas, n) if len(meas) >= n else None
@@ -226,8 +226,8 @@ class PositionController:
         except DataError:
             self.stats.start = 'rest (no measurement)'
             return
-        relag = (u_win, y_win) if relags(self.model, self.start_policy) else None
-        self.inverse.start_from(state, u_run, relag)
+        self.inverse.start_from(state, u_run,
+                                relag_window(self.model, self.start_policy, u_win, y_win))
         self.stats.start = 'measurement'
 
     def request_reset(self) -> None:

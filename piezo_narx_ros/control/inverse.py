@@ -117,9 +117,10 @@ class ModelInverse:
         Continue from a measured start: `state` at the first of u_run, then u_run stepped.
 
         state: a ModelState (ident.state.start.window_state); u_run: the commands sent from that
-        sample to the last one, V; relag: (u_win, y_win), the window's commands and measured
-        outputs, whose last samples become the lags once the window is stepped (start policy
-        'state' on a lagged family). The state's offset shifts every output from now on.
+        sample to the last one, V; relag: (u, y), measured commands and outputs from that sample
+        on, whose last samples become the lags once they are stepped (start policy 'state' on a
+        lagged family: ident.state.start.relag_window). The state's offset shifts every output
+        from now on.
         """
         from piezo_narx_ros.ident.state.start import window_lags
         stepper = self.model.stepper(state=state)

@@ -638,10 +638,10 @@ class FreeRunEstimator:
                                      self.init_past)
         except DataError:
             return False
-        from piezo_narx_ros.ident.state.start import relags
-        # A lagged family started by its policy from the measured lags: set at the window's end.
-        self._relag = ((u_win, y_win) if self.start_policy is not None
-                       and relags(self.model, self.start_policy) else None)
+        from piezo_narx_ros.ident.state.start import relag_window
+        # A lagged family started by its policy from the measured lags: set once they are stepped.
+        self._relag = (relag_window(self.model, self.start_policy, u_win, y_win)
+                       if self.start_policy is not None else None)
         self.stats.unestimated += start
         del pending[:start]
         self._stepper = self.model.stepper(state=state)
@@ -662,7 +662,7 @@ class FreeRunEstimator:
                 self._set_lags(*relag)
 
     def _set_lags(self, u_win, y_win) -> None:
-        """Continue from the window's last measured inputs and outputs (start policy 'state')."""
+        """Continue from the measured samples' last inputs and outputs (policy 'state')."""
         from piezo_narx_ros.ident.state.start import window_lags
         self._stepper.offset = np.zeros(self.n_out) if self.vector else 0.0
         self._stepper.reset(*window_lags(self.model, u_win, y_win))

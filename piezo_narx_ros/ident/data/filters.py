@@ -3,7 +3,7 @@
 
 def lfilter(b, a, x, axis=-1, zi=None):
     """
-    Return scipy.signal.lfilter(b, a, x, axis, zi): the same call, imported on first use.
+    Filter x by b / a along `axis` as scipy.signal.lfilter does (imported on first use).
 
     Importing scipy.signal costs about 0.85 s (scipy.stats comes with it); every `evaluate`,
     `fit` and node start paid it at import time for a filter a model runs only when fitted.
