@@ -9,7 +9,8 @@ from piezo_narx_ros.ident.model_io import weights_sha256
 from piezo_narx_ros.ident.selection.executor import Executor, LocalExecutor
 from piezo_narx_ros.ident.selection.search import (SEARCH_FAMILIES, SPACE, SearchOptions,
                                                    SpaceContext, pareto_front, run_search,
-                                                   seed_design, spec_from_params, trial_task)
+                                                   seed_design, space, spec_from_params,
+                                                   trial_task)
 from piezo_narx_ros.ident.state.start import START_POLICIES
 from piezo_narx_ros.plant.piezo import PiezoCantilever
 from piezo_narx_ros.plant.signals import generate
@@ -53,6 +54,16 @@ def test_space_seed_design_and_specs_agree():
             spec.build({})
     for name, dist in SPACE['hysteresis_narx'].items():
         assert dist[0] in ('int', 'cat'), name
+    # Several estimation records of one axis: the hysteresis family also chooses its zeros, and
+    # the seed design keeps the presets' per-record zeros.
+    several = SpaceContext(1, 1, 3)
+    assert 'hnarx_offsets' in space(several)['hysteresis_narx']
+    assert 'hnarx_offsets' not in space(SpaceContext(1, 1, 1))['hysteresis_narx']
+    for params in seed_design(several, ('hysteresis_narx',)):
+        assert params['hnarx_offsets'] == 'per_record'
+        assert dict(spec_from_params(params)[0].options)['record_offsets'] == 'yes'
+    shared = {**seed_design(several, ('hysteresis_narx',))[0], 'hnarx_offsets': 'shared'}
+    assert dict(spec_from_params(shared)[0].options)['record_offsets'] == 'no'
 
 
 def test_pareto_front_keeps_the_undominated_points():

@@ -12,6 +12,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from piezo_narx_ros.errors import ConfigError
 from piezo_narx_ros.estimator.free_run import FreeRunEstimator
 from piezo_narx_ros.estimator.health import EstimatorHealth
 from piezo_narx_ros.ident.hysteresis import kernels as hk
@@ -347,6 +348,26 @@ def test_records_of_sessions_with_different_sensor_zeros_fit_together():
     assert got == pytest.approx(4e-6, abs=0.05e-6)
     for u in (a.u, b.u):
         assert np.max(np.abs(moved.simulate(u) - same.simulate(u))) < 0.05e-6
+
+
+def test_records_of_one_session_can_share_one_sensor_zero(tmp_path):
+    from piezo_narx_ros.ident.model_io import save_model
+    a = record(generate('protocol', FS, 3.0, 100.0, seed=1), seed=1)
+    b = record(generate('protocol', FS, 3.0, 100.0, seed=2), seed=2)
+
+    def fit(offsets):
+        m = HysteresisNARX(hidden=4, n_plays=6, max_iter=8, seed=0, record_offsets=offsets)
+        return m.fit([a.u, b.u], [a.y, b.y + 4e-6], fs=FS)
+    own, shared, auto = fit('yes'), fit('no'), fit('auto')
+    assert len(own.training_info_['record_offsets_m']) == 2
+    assert shared.training_info_['record_offsets_m'] == []
+    assert auto.training_info_['record_offsets_m'] == own.training_info_['record_offsets_m']
+    # A fit told so says it in its file's training options; the default leaves them as they were.
+    doc = json.loads(save_model(shared, tmp_path / 's.json').read_text())
+    assert doc['training']['options']['record_offsets'] == 'no'
+    assert 'record_offsets' not in auto.params_dict()
+    with pytest.raises(ConfigError, match='record_offsets'):
+        HysteresisNARX(record_offsets='maybe')
 
 
 def test_selection_judges_state_windows_with_the_candidates_own_error(hnarx, monkeypatch):

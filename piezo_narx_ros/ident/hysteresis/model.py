@@ -67,8 +67,10 @@ class HysteresisNARX(HysteresisFile, DynamicModel):
     amplifier's slew limit); na, nb : output dynamics orders; creep_taus : creep time constants, s;
     seed : initial hidden-layer seed. Training: max_iter LM iterations, val_fraction of each
     record held out for early stopping (0: none), max_fail, hessian_stride (see
-    hysteresis.training). Several records each get their own output offset after the first's
-    (sensor zeros differ between sessions; training_info_['record_offsets_m']). start: how each
+    hysteresis.training). record_offsets: several records each get their own output offset
+    after the first's (sensor zeros differ between sessions; training_info_['record_offsets_m']):
+    'yes', 'no' (one zero for every record: records of one session), or 'auto' ('yes' for
+    several records; the structure search tries both). start: how each
     estimation record starts: 'rest', or 'estimate' (a record that does not start at rest: after
     a fit from rest, each record's starting memory is estimated from its first seconds, prepended
     as an input history and the fit continued); 'auto': 'estimate' when a record's first input is
@@ -122,18 +124,20 @@ class HysteresisNARX(HysteresisFile, DynamicModel):
         'amplifier': Options(('auto', 'no', 'yes')),
         'past': Options(PASTS),
         'creep': Options(('excited', 'free')),
+        'record_offsets': Options(('auto', 'yes', 'no')),
     }
 
     def __init__(self, hidden=10, n_plays=12, n_duhem=1, n_lags=3, na=3, nb=3,
                  creep_taus=DEFAULT_CREEP_TAUS, seed=0, max_iter=60, val_fraction=0.0,
                  max_fail=8, hessian_stride=2, start='auto', monotone='auto', mimo_order=28,
-                 amplifier='auto', past='any', creep='excited'):
+                 amplifier='auto', past='any', creep='excited', record_offsets='auto'):
         values = check_parameters(type(self), {
             'hidden': hidden, 'n_plays': n_plays, 'n_duhem': n_duhem, 'n_lags': n_lags,
             'na': na, 'nb': nb, 'creep_taus': creep_taus, 'seed': seed, 'max_iter': max_iter,
             'val_fraction': val_fraction, 'max_fail': max_fail, 'hessian_stride': hessian_stride,
             'start': start, 'monotone': monotone, 'mimo_order': mimo_order,
-            'amplifier': amplifier, 'past': past, 'creep': creep})
+            'amplifier': amplifier, 'past': past, 'creep': creep,
+            'record_offsets': record_offsets})
         for name, value in values.items():
             setattr(self, name, value)
         self.theta_ = None
@@ -175,11 +179,13 @@ class HysteresisNARX(HysteresisFile, DynamicModel):
     def params_dict(self):
         """Return the constructor arguments (for model files and reports)."""
         # mimo_order only shapes a several-axes model, amplifier a model that uses it, past a
-        # fit told how its records' pasts ended: other files stay as they were.
+        # fit told how its records' pasts ended, record_offsets a fit told whether its records
+        # share a zero: other files stay as they were.
         return {name: getattr(self, name) for name in self._parameter_constraints
                 if (name != 'mimo_order' or self.mimo_ is not None)
                 and (name != 'amplifier' or self.amplifier_)
-                and (name != 'past' or self.past != 'any')}
+                and (name != 'past' or self.past != 'any')
+                and (name != 'record_offsets' or self.record_offsets != 'auto')}
 
     # ------------------------------------------------------------------ fitting
     def fit(self, u, y, fs=None):
@@ -229,7 +235,7 @@ class HysteresisNARX(HysteresisFile, DynamicModel):
                 self.nb, self.seed, self.max_iter, self.val_fraction, self.max_fail,
                 self.hessian_stride,
                 theta0=None if theta0 is None else self._signed(theta0, sign),
-                skip=skip, record_offsets=len(us) > 1,
+                skip=skip, record_offsets=len(us) > 1 and self.record_offsets != 'no',
                 monotone=monotone, amplifier=self.amplifier_, creep_fixed=held,
                 creep_nonneg=self.creep == 'excited')
             info['record_offsets'] = [sign * o for o in info['record_offsets']]

@@ -8,7 +8,8 @@ of over hand-picked grids. `run_search` is that search, an Optuna study over
   forms: a record of several axes gives each family's several-axes model; the hysteresis family
   then also chooses between one joint model and one chain per axis where inputs and outputs pair);
 * each family's structure (`SPACE`): lags, hidden units, play operators, Duhem states, drive
-  increments, creep, output dynamics, training length, and the network seed;
+  increments, creep, output dynamics, training length, the network seed, and with several
+  estimation records whether each has a sensor zero of its own (`OFFSETS_SPACE`);
 * the start policy (ident/start.py): every fitted model is scored under each policy and keeps the
   best, so the policy costs no fit.
 
@@ -74,6 +75,9 @@ SPACE = {
         'hnarx_order': ('int', 1, 5), 'hnarx_creep': ('cat', ('none', 'excited', 'free')),
         'hnarx_seed': ('int', 0, 4), 'hnarx_iter': ('cat', (30, 60, 120))},
 }
+#: Several estimation records (one axis): whether the hysteresis family gives each record its
+#: own sensor zero (HysteresisNARX record_offsets 'yes') or one zero for all ('no').
+OFFSETS_SPACE = {'hnarx_offsets': ('cat', ('per_record', 'shared'))}
 #: Several axes: the hysteresis family's form, and the joint form's dynamics order.
 MIMO_SPACE = {'hnarx_structure': ('cat', ('joint', 'chains')),
               'hnarx_mimo_order': ('int', 8, 40)}
@@ -168,15 +172,21 @@ class SearchOptions:
 
 @dataclass(frozen=True)
 class SpaceContext:
-    """What the space depends on: the records' channels."""
+    """What the space depends on: the records' channels and the number of estimation records."""
 
     n_in: int = 1
     n_out: int = 1
+    n_records: int = 1
 
     @property
     def one_axis(self) -> bool:
         """Return True for one input and one output."""
         return self.n_in == 1 and self.n_out == 1
+
+    @property
+    def offsets(self) -> bool:
+        """Return True when the hysteresis family chooses per-record or shared sensor zeros."""
+        return self.one_axis and self.n_records > 1
 
     @property
     def square(self) -> bool:
@@ -190,6 +200,8 @@ def space(context: SpaceContext, families=SEARCH_FAMILIES) -> dict:
     if 'hysteresis_narx' in out and not context.one_axis:
         out['hysteresis_narx'].update(MIMO_SPACE if context.square
                                       else {'hnarx_mimo_order': MIMO_SPACE['hnarx_mimo_order']})
+    if 'hysteresis_narx' in out and context.offsets:
+        out['hysteresis_narx'].update(OFFSETS_SPACE)
     return out
 
 
@@ -203,6 +215,8 @@ def seed_design(context: SpaceContext, families=SEARCH_FAMILIES) -> list[dict]:
         if (not context.one_axis and params.get('hnarx_structure') == 'chains'
                 and not context.square):
             continue
+        if context.offsets and params['family'] == 'hysteresis_narx':
+            params = {**params, 'hnarx_offsets': 'per_record'}   # the presets' fit
         out.append(dict(params))
     return out
 
@@ -252,6 +266,8 @@ def spec_from_params(params: dict) -> tuple[CandidateSpec, dict]:
         options['creep_taus'] = ()
     else:
         options.update(creep=creep, creep_taus=DEFAULT_CREEP_TAUS)
+    if 'hnarx_offsets' in params:
+        options['record_offsets'] = 'yes' if params['hnarx_offsets'] == 'per_record' else 'no'
     structure = params.get('hnarx_structure')
     hidden, seed = 10, 0
     if structure == 'joint':
@@ -549,7 +565,7 @@ def run_search(est: list[Record], val: list[Record], options: SearchOptions,
         if len(r) < n + 2:
             raise DataError(f'{r.source}: {len(r)} samples, too short for a window of {n} '
                             'measured samples and a scored free run after it')
-    context = SpaceContext(getattr(est[0], 'n_in', 1), getattr(est[0], 'n_out', 1))
+    context = SpaceContext(getattr(est[0], 'n_in', 1), getattr(est[0], 'n_out', 1), len(est))
     store = Study(out, resume, force)
     study = store.open(fingerprint(est, val, options))
     optuna = store.optuna
