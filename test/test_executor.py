@@ -109,13 +109,15 @@ def test_ray_structure_search_equals_local_bit_for_bit(ray_executor, tmp_path):
     rec = hysteretic_record(n=3000, seed=5)
     est, val = [rec.segment(0, 2000)], [rec.segment(2000, 3000)]
     picks = []
-    for name, executor in (('local', LocalExecutor(jobs=2)), ('ray', ray_executor)):
+    local = LocalExecutor(jobs=2)
+    for name, executor in (('local', local), ('ray', ray_executor)):
         options = SearchOptions(trials=2, batch=2, budget_s=None, init_samples=100,
                                 families=('arx', 'hysteresis_narx'), progress=False)
         res = run_search(est, val, options, executor, tmp_path / name)
         picks.append((res.numbers[res.selected], weights_sha256(res.best.model),
                       [t.spec for t in res.trials],
                       [t.scores['start']['error'] for t in res.trials]))
+    local.close()
     assert picks[0] == picks[1]
 
 
@@ -123,11 +125,34 @@ def _executors(ray_executor):
     return [LocalExecutor(jobs=2), ray_executor]
 
 
+def worker_pid(payload, data):
+    """Return the worker process's pid (after a pause, so that both workers take tasks)."""
+    time.sleep(0.2)
+    return os.getpid()
+
+
+def test_the_local_pool_is_kept_between_calls_with_the_same_data():
+    data, other = {0: 'records'}, {0: 'other records'}
+    tasks = [(0, i) for i in range(4)]
+    with LocalExecutor(jobs=2) as ex:
+        first = set(ex.map(worker_pid, tasks, data))
+        again = set(ex.map(worker_pid, tasks, data))
+        assert len(first) == 2 and again == first          # the same two workers
+        fresh = set(ex.map(worker_pid, tasks, other))
+        assert not fresh & first                           # other data: other workers
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and any(_alive(p) for p in fresh | first):
+        time.sleep(0.1)
+    assert not [p for p in fresh | first if _alive(p)], 'the pool outlived close()'
+
+
 def test_a_task_that_raises_fills_its_slot_and_the_rest_complete(ray_executor):
     tasks = [(0, 'ok'), (0, 'bad'), (0, 'fine')]
     for executor in (LocalExecutor(jobs=1), *_executors(ray_executor)):
         seen = []
         results = executor.map(boom, tasks, {0: None}, lambda i, r: seen.append(i))
+        if executor is not ray_executor:
+            executor.close()
         assert results[0] == 2 and results[2] == 4, executor.name
         assert isinstance(results[1], TaskFailure)
         assert results[1].message == 'RuntimeError: candidate exploded'
@@ -141,6 +166,8 @@ def test_a_dead_worker_is_retried_then_reported(ray_executor, tmp_path):
         tasks = [(0, ('once', str(d / 'a'))), (0, ('always', str(d / 'b'))),
                  (0, ('fine', str(d / 'c')))]
         results = executor.map(die_once, tasks, {0: None})
+        if executor is not ray_executor:
+            executor.close()
         assert results[0] == 'once' and results[2] == 'fine', executor.name   # retried
         assert isinstance(results[1], TaskFailure), executor.name
         assert 'died' in results[1].message or 'Crashed' in results[1].message
