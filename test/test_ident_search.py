@@ -225,7 +225,9 @@ def test_sigint_then_resume_ends_on_the_uninterrupted_model(tmp_path, records):
                 '--validate', str(paths[1]), '--out', str(out), '--families', 'arx',
                 '--trials', '16', '--batch', '2', '--init-samples', '200', '--jobs', '1',
                 '--no-report', '--quiet', *extra]
-    proc = subprocess.Popen(argv(tmp_path / 'cut'), env=env, stderr=subprocess.PIPE, text=True)
+    # SIGINT as a terminal leaves it (a suite started in the background inherits it ignored).
+    proc = subprocess.Popen(argv(tmp_path / 'cut'), env=env, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     trials = tmp_path / 'cut' / 'trials'
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and len(list(trials.glob('*.model.json'))) < 3:
@@ -260,7 +262,10 @@ def test_a_signal_inside_a_journal_write_comes_after_it(tmp_path, signum):
     import signal
     from piezo_narx_ros.ident.selection.study import signal_safe_journal
     sig = getattr(signal, signum)
-    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    # Both as a terminal's Python has them (a suite started in the background inherits SIGINT
+    # ignored, and an ignored signal stays ignored through the write).
+    previous = {s: signal.signal(s, signal.default_int_handler)
+                for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         backend = signal_safe_journal(str(tmp_path / 'j'))
         release = backend._lock.release
@@ -273,7 +278,8 @@ def test_a_signal_inside_a_journal_write_comes_after_it(tmp_path, signum):
         with pytest.raises(KeyboardInterrupt):
             backend.append_logs([{'op': 1}])
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
     assert list(backend.read_logs(0)) == [{'op': 1}]
     assert sorted(p.name for p in tmp_path.iterdir()) == ['j']
 
