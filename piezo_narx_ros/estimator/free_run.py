@@ -640,8 +640,7 @@ class FreeRunEstimator:
             return False
         from piezo_narx_ros.ident.state.start import relag_window
         # A lagged family started by its policy from the measured lags: set once they are stepped.
-        self._relag = (relag_window(self.model, self.start_policy, u_win, y_win)
-                       if self.start_policy is not None else None)
+        self._relag = relag_window(self.model, self.start_policy, u_win, y_win)
         self.stats.unestimated += start
         del pending[:start]
         self._stepper = self.model.stepper(state=state)

@@ -153,23 +153,23 @@ class LocalExecutor(Executor):
         if kept is not None:
             kept[0].shutdown(wait=True, cancel_futures=True)
 
-    def _drop(self, pool) -> None:
-        """Forget `pool` if it is the kept one (broken or interrupted), without waiting."""
+    def _drop(self, pool, wait: bool = False) -> None:
+        """Stop `pool` (broken or interrupted) and forget it if it is the kept one."""
         if self._kept is not None and self._kept[0] is pool:
             self._kept = None
-        pool.shutdown(wait=False, cancel_futures=True)
+        pool.shutdown(wait=wait, cancel_futures=True)
 
     def _pool(self, data, n_tasks: int, jobs: int):
         """Return (pool, started, kept): the kept pool for the same data, else a new one."""
-        kept = self._kept
-        if jobs == self.jobs and n_tasks <= self.SLOTS:
+        keep = jobs == self.jobs and n_tasks <= self.SLOTS
+        if keep:
+            kept = self._kept
             if kept is not None and kept[1] is data:
                 for i in range(n_tasks):
                     kept[2][i] = 0
                 return kept[0], kept[2], True
             self.close()
         ctx = mp.get_context('spawn')   # not fork: a parent holding torch/OpenMP threads can hang
-        keep = jobs == self.jobs and n_tasks <= self.SLOTS
         started = ctx.Array('b', self.SLOTS if keep else n_tasks, lock=False)
         pool = cf.ProcessPoolExecutor(max_workers=jobs if keep else min(jobs, n_tasks),
                                       mp_context=ctx, initializer=_init_worker,
@@ -220,10 +220,8 @@ class LocalExecutor(Executor):
         except BaseException:
             self._drop(pool)
             raise
-        if broken and kept:
-            self._kept = None
         if broken or not kept:
-            pool.shutdown(wait=True)
+            self._drop(pool, wait=True)
         # A pool that broke before any task started (workers cannot start) marks them all, so
         # the retries end this too.
         suspects = [i for i in broken if started[i]] or broken
