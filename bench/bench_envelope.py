@@ -7,7 +7,9 @@ different Preisach variant, config/plant_preisach.yaml) and each seed s:
 * identification record: 25 s of the identification protocol at 2 kHz (`generate('protocol')`,
   signal seed s), answered by the plant with sensor-noise seed s;
 * `run_experiment` with each preset (`paper`, `envelope`; network seeds start at s), on that one
-  record (50/50 split), as `piezo-narx fit --preset NAME` does; the fit's wall time is recorded;
+  record (50/50 split), as `piezo-narx fit --preset NAME` does, or the structure search
+  (`search`, the default of `fit`: `run_search` with sampler seed s, its default trials and
+  budget, the second half validating); the fit's wall time is recorded;
 * the selected model's free run (`simulate(u, y[:n0])`) on the battery of the envelope issue: the
   plant starting at rest, 10 s each, noise seeds 1000*s + i: a fresh multisine +-100 V (phases
   seeded by s); sines at 0.1, 0.5 and 2 Hz with +-100 V and +-50 V; a 0.5 Hz +-100 V triangle; an
@@ -20,13 +22,14 @@ demo setup (paper preset identified on a 25 s multisine) for comparison. `--json
 every number. Results: docs/envelope.md.
 
 Run: python bench/bench_envelope.py [--seeds 0 1 2 3 4] [--plants default preisach]
-     [--presets paper envelope] [--reference] [--jobs 2] [--json out.json]
+     [--presets paper envelope search] [--reference] [--jobs 2] [--json out.json]
      [--hnarx '{"monotone": "no"}']
 """
 import argparse
 import json
 import statistics
 import sys
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -79,17 +82,32 @@ def preset_config(preset, seed, jobs, hnarx=None):
     return replace(ExperimentConfig(), **settings, seed=seed, jobs=jobs, progress=False)
 
 
+def search(record, seed, jobs):
+    """Run the structure search on one record as `fit` does: (selected model, its label)."""
+    from piezo_narx_ros.ident.selection.executor import make_executor
+    from piezo_narx_ros.ident.selection.experiment import split_records
+    from piezo_narx_ros.ident.selection.search import SearchOptions, run_search
+    est, val = split_records([record], SearchOptions.split)
+    with tempfile.TemporaryDirectory() as out, make_executor('local', jobs) as executor:
+        result = run_search(est, val, SearchOptions(seed=seed, progress=False), executor, out)
+    return result.best.model, result.best.spec.label
+
+
 def identify(params, seed, preset, jobs, signal='protocol', hnarx=None):
     """
     Identify one preset on one 25 s record: (selected model, fit wall time s, label).
 
-    hnarx: HysteresisNARX options over the preset's (e.g. {'monotone': 'no'}).
+    preset: a PRESETS name or 'search'; hnarx: HysteresisNARX options over the preset's (e.g.
+    {'monotone': 'no'}; not with 'search').
     """
     u = generate(signal, FS, 25.0, 100.0, seed=seed)
     y = PiezoCantilever(params, FS, seed=seed).run(u).y
-    cfg = preset_config(preset, seed, jobs, hnarx)
+    record = Record(u=u, y=y, fs=FS, source=f'{signal} seed {seed}')
     t0 = time.perf_counter()
-    result = run_experiment([Record(u=u, y=y, fs=FS, source=f'{signal} seed {seed}')], cfg)
+    if preset == 'search':
+        model, label = search(record, seed, jobs)
+        return model, time.perf_counter() - t0, label
+    result = run_experiment([record], preset_config(preset, seed, jobs, hnarx))
     return result.best.model, time.perf_counter() - t0, result.best.spec.label
 
 
@@ -132,7 +150,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     ap.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2, 3, 4])
     ap.add_argument('--plants', nargs='+', choices=tuple(PLANTS), default=list(PLANTS))
-    ap.add_argument('--presets', nargs='+', choices=tuple(PRESETS), default=list(PRESETS))
+    ap.add_argument('--presets', nargs='+', choices=(*PRESETS, 'search'),
+                    default=list(PRESETS))
     ap.add_argument('--reference', action='store_true',
                     help="also today's demo setup: paper preset identified on a multisine")
     ap.add_argument('--jobs', type=int, default=2)

@@ -151,3 +151,84 @@ def test_vector_inverse_status_stays_ok_when_commands_follow_the_gain(arx2):
     k = np.arange(600)
     _track(ctl, np.column_stack([10e-6 * np.sin(k / 15.0), 5e-6 * np.cos(k / 9.0)]))
     assert ctl.status()[0] == OK and ctl.watch.signs.tolist() == [1.0, 1.0]
+
+
+def _controlled_axes(model, ref, shift, measure=True):
+    """Drive an AxesController on `model` whose plant is the model + a sensor offset per axis."""
+    ctl = AxesController(model, mode='inverse')
+    plant = model.stepper()
+    u, y, y_model = [], [], []
+    for k, r in enumerate(ref):
+        (t, uk), = ctl.on_reference(T0 + k * 500_000, r)
+        u.append(uk)
+        y.append(np.asarray(plant.step(uk)) + shift)
+        if measure:
+            ctl.on_measurement(t, y[-1])
+        y_model.append(ctl.inverse.y_model.copy())
+    return ctl, np.array(u), np.array(y), np.array(y_model)
+
+
+@pytest.mark.parametrize('policy', ['rest', 'offset', 'state'])
+def test_the_vector_inverse_follows_the_stored_start_policy(tmp_path, arx2, policy):
+    from piezo_narx_ros.ident.model_io import load_model, save_model
+    from piezo_narx_ros.ident.state.start import policy_simulate
+    model = load_model(save_model(arx2, tmp_path / 'a.json',
+                                  start={'policy': policy, 'window_samples': 40}))
+    n = 1500
+    t = np.arange(n) / FS
+    ref = np.column_stack([8e-6 * np.sin(2 * np.pi * 2.0 * t), 4e-6 * np.cos(2 * np.pi * t)])
+    shift = np.array([1.5e-6, -1e-6])         # each sensor's zero moved since the fit
+    ctl, u, y, y_model = _controlled_axes(model, ref, shift)
+    assert (ctl.start_policy, ctl.start_window) == (policy, 0 if policy == 'rest' else 40)
+    assert ctl.stats.start == ('rest' if policy == 'rest' else 'measurement')
+    assert ctl.stats.unreachable == 0
+    # From the window's last sample on, the controller's model is the offline free run of
+    # what it sent under that policy.
+    offline = policy_simulate(model, u, y, 40, policy)
+    np.testing.assert_allclose(y_model[39:], offline[39:], rtol=0, atol=1e-15)
+    # Only the offset policy sees the moved zeros: the deflection then follows the reference.
+    miss = np.sqrt(np.mean((y - ref)[300:] ** 2, axis=0))
+    if policy == 'offset':
+        assert (miss < 1e-3 * np.abs(shift)).all()
+    else:
+        assert (miss > 0.5 * np.abs(shift)).all()
+    assert ctl.status()[2]['start'] == ctl.stats.start
+
+
+def test_axes_without_deflections_stay_from_rest_and_a_reset_stops_the_wait(tmp_path, arx2):
+    from piezo_narx_ros.control.start import START_PATIENCE
+    from piezo_narx_ros.ident.model_io import load_model, save_model
+    model = load_model(save_model(arx2, tmp_path / 'a.json',
+                                  start={'policy': 'offset', 'window_samples': 40}))
+    ref = np.full((START_PATIENCE * 40 + 5, 2), 3e-6)
+    ctl, _, _, _ = _controlled_axes(model, ref, np.array([1e-6, 1e-6]), measure=False)
+    assert ctl.stats.start == 'rest (no measurement)'
+    assert ctl.status()[0] == OK                  # a word in the counters, not a counter
+    waiting = AxesController(model)
+    assert waiting.stats.start == 'waiting'
+    waiting.on_measurement(T0, [np.nan, 0.0])
+    assert waiting.stats.measurements_rejected == 1
+    waiting.request_reset()
+    assert waiting.stats.start == 'rest' and not waiting._start.waiting
+    assert AxesController(model, start_policy='rest').stats.start == 'rest'
+    with pytest.raises(ConfigError, match='start_window must be at least'):
+        AxesController(model, start_window=3)
+
+
+def test_each_chain_starts_from_its_decoupled_window(tmp_path, chains2):
+    from piezo_narx_ros.ident.model_io import load_model, save_model
+    model = load_model(save_model(chains2, tmp_path / 'c.json',
+                                  start={'policy': 'offset', 'window_samples': 40}))
+    n = 600
+    t = np.arange(n) / FS
+    ref = np.column_stack([10e-6 * np.sin(2 * np.pi * t), 5e-6 * np.sin(2 * np.pi * 0.5 * t)])
+    shift = np.array([1e-6, 2e-6])
+    ctl, u, y, _ = _controlled_axes(model, ref, shift)
+    assert [c.start_policy for c in ctl.chains.axes] == ['offset', 'offset']
+    assert ctl.stats.start == 'measurement'
+    # The chains' offsets are the decoupled shift (z = M^-1 y): the tracking error after the
+    # window is far below the shift.
+    offsets = np.array([c.inverse.offset for c in ctl.chains.axes])
+    np.testing.assert_allclose(model.coupling_ @ offsets, shift, rtol=0.05)
+    miss = np.sqrt(np.mean((y - ref)[300:] ** 2, axis=0))
+    assert (miss < 0.2 * np.abs(shift)).all()

@@ -195,7 +195,8 @@ def test_the_controller_follows_the_stored_start_policy(tmp_path, records, polic
 
 
 def test_a_controller_without_deflections_stays_from_rest_and_says_so(tmp_path, records):
-    from piezo_narx_ros.control.controller import START_PATIENCE, PositionController
+    from piezo_narx_ros.control.controller import PositionController
+    from piezo_narx_ros.control.start import START_PATIENCE
     from piezo_narx_ros.errors import ConfigError
     model = load_model(_saved(tmp_path, records, 'offset', 40, 'off'))
     ref = np.full(START_PATIENCE * 40 + 5, 30e-6)
@@ -205,6 +206,6 @@ def test_a_controller_without_deflections_stays_from_rest_and_says_so(tmp_path, 
     waiting = PositionController(model, mode='inverse')
     assert waiting.stats.start == 'waiting'
     waiting.request_reset()         # the actuator is at rest: nothing left to wait for
-    assert waiting.stats.start == 'rest' and waiting._start_log is None
+    assert waiting.stats.start == 'rest' and not waiting._start.waiting
     with pytest.raises(ConfigError, match='start_window must be at least'):
         PositionController(model, mode='inverse', start_window=3)

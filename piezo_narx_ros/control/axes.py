@@ -36,6 +36,8 @@ from piezo_narx_ros.command.stamps import (RATE_TOLERANCE, SAMPLE, RateMonitor, 
 from piezo_narx_ros.control.controller import PositionController, bridge_gap
 from piezo_narx_ros.control.health import (ANTI_PHASE, MIN_JUDGED, ControllerHealth,
                                            nonfinite_line)
+from piezo_narx_ros.control.start import (NO_MEASUREMENT, MeasuredStart, measured_start,
+                                          start_settings)
 from piezo_narx_ros.counters import ERROR, OK
 from piezo_narx_ros.errors import ConfigError, DataError
 
@@ -124,6 +126,30 @@ class VectorInverse:
         """Restart at rest: the model's free run from rest, every input at 0 V."""
         self._stepper = self.model.stepper()
         self.u_prev = np.clip(np.zeros(self.n_in), self.u_min, self.u_max)
+        self.y_model = np.zeros(self.n_out)   # the model's output for the last command, m
+
+    def start_from(self, state, u_run, relag=None) -> None:
+        """
+        Continue from a measured start: `state` at the first row of u_run, then u_run stepped.
+
+        state: a ModelState (ident.state.start.window_state); u_run (n, n_in) V: the commands
+        sent from that sample to the last one; relag: (u, y) rows whose last samples become the
+        lags once they are stepped (control.start.Start). The state's offsets stay in the
+        model's outputs from now on.
+        """
+        from piezo_narx_ros.ident.state.start import window_lags
+        stepper = self.model.stepper(state=state)
+        n_win = len(relag[0]) if relag is not None else -1
+        y = self.y_model
+        for i, u in enumerate(u_run):
+            y = stepper.step(u)
+            if i == n_win - 1:
+                stepper.offset = np.zeros(self.n_out)
+                stepper.reset(*window_lags(self.model, *relag))
+        self._stepper = stepper
+        if len(u_run):
+            self.u_prev = np.asarray(u_run[-1], dtype=np.float64).reshape(self.n_in).copy()
+        self.y_model = np.array(y, dtype=np.float64).reshape(self.n_out)
 
     def _peek(self, u: np.ndarray) -> np.ndarray:
         return np.array(self._stepper.peek(u), dtype=np.float64).reshape(self.n_out)
@@ -180,7 +206,8 @@ class VectorInverse:
         """Send u (n_in,) V: the model's free run advances with it; returns the model output."""
         u = np.asarray(u, dtype=np.float64).reshape(self.n_in)
         self.u_prev = u.copy()
-        return np.array(self._stepper.step(u), dtype=np.float64).reshape(self.n_out)
+        self.y_model = np.array(self._stepper.step(u), dtype=np.float64).reshape(self.n_out)
+        return self.y_model
 
 
 @dataclass
@@ -203,7 +230,13 @@ class AxesStats:
     measurements_rejected: int = 0  # deflections without every axis (chains: the rest pass on)
     model_nonfinite: int = 0        # commands after which the model's output was NaN/inf
     refused_messages: int = 0       # reference messages the node could not read (axis missing)
+    measurements: int = 0           # deflection vectors the vector inverse took
     last_refusal: str = ''          # and why the last one was refused
+    start: str = 'rest'             # rest, waiting, measurement or 'rest (no measurement)'
+
+
+#: AxesStats fields that are words, not counters.
+_WORDS = ('last_refusal', 'start')
 
 
 class AxesController:
@@ -213,12 +246,17 @@ class AxesController:
     mode: 'inverse' or 'linear'; u_min/u_max: V (one, or one per input); slew_rate: V/s;
     y_min/y_max: accepted references per output, m (None: the model's trained output ranges
     widened by range_margin of their span); max_fill, confirm: see StampGate.
+    start_policy, start_window: as PositionController's (None: the model file's start): while
+    the window fills the model runs from rest, then it continues from the state the measured
+    deflection vectors give (stats.start); a model of one chain per axis gives each chain the
+    same policy and window over its decoupled motion.
     """
 
     def __init__(self, model, mode: str = 'inverse', fs: float | None = None, u_min=-200.0,
                  u_max=200.0, slew_rate: float = math.inf, y_min=None, y_max=None,
                  range_margin: float = 0.05, max_fill: int = 2000, confirm: int = 3,
-                 rate_tolerance: float = RATE_TOLERANCE, **chain_options):
+                 rate_tolerance: float = RATE_TOLERANCE, start_policy: str | None = None,
+                 start_window: int | None = None, **chain_options):
         chains = getattr(model, 'chains_', None) is not None and mode in CHAIN_MODES
         if mode not in AXES_MODES and not chains:
             extra = (f'; {list(CHAIN_MODES)} with a model of one chain per axis'
@@ -230,7 +268,10 @@ class AxesController:
             raise ConfigError(f'{", ".join(sorted(chain_options))}: only for a model of one '
                               'chain per axis')
         self.mode = mode
+        self.start_policy, self.start_window = start_settings(model, start_policy, start_window)
         self.inverse = VectorInverse(model, u_min, u_max, slew_rate, fs)
+        if chains:
+            chain_options.update(start_policy=self.start_policy, start_window=self.start_window)
         self.chains = ChainAxes(model, mode, self.inverse, range_margin, max_fill, confirm,
                                 rate_tolerance, **chain_options) if chains else None
         self.model = model
@@ -260,6 +301,13 @@ class AxesController:
         self._last_values: dict = {}
         self.watch = AxisWatch(self.n_out, self.y_max - self.y_min,
                                None if self.chains else _gain_signs(model, self.fs))
+        self._begin_start()
+
+    def _begin_start(self) -> None:
+        """Wait for the start window (the vector inverse; the chains wait each on their own)."""
+        policy = 'rest' if self.chains else self.start_policy
+        self._start = MeasuredStart(self.model, policy, self.start_window)
+        self.stats.start = 'waiting' if self.start_policy != 'rest' else 'rest'
 
     @property
     def holding(self) -> int:
@@ -273,6 +321,8 @@ class AxesController:
         self.inverse.reset()
         self.gate.reset()
         self._last_t = None
+        self._start.stop()
+        self.stats.start = 'rest'
 
     def warm_up(self) -> None:
         """Load the compiled solvers now, not on the first reference, and go back to rest."""
@@ -281,9 +331,24 @@ class AxesController:
             inv.reset()
 
     def on_measurement(self, t_ns: int, y) -> None:
-        """Take a measured deflection vector (stamp of its command, (n_out,) m): chains only."""
+        """
+        Take a measured deflection vector (stamp of its command, (n_out,) m).
+
+        The chains' start and feedback, or the vector inverse's start window; a vector with a
+        NaN/inf axis or of another length is counted in measurements_rejected.
+        """
         if self.chains:
             self.chains.on_measurement(t_ns, y)
+            self.stats.start = self.chains.start_word()
+            return
+        y = np.asarray(y, dtype=np.float64)
+        if y.shape != (self.n_out,) or not np.isfinite(y).all():
+            self.stats.measurements_rejected += 1
+            return
+        self.stats.measurements += 1
+        if self._start.waiting:
+            self.stats.start = measured_start(self._start, self.inverse, t_ns, y,
+                                              self.stats.start)
 
     def status(self) -> tuple[int, str, dict]:
         """
@@ -297,7 +362,7 @@ class AxesController:
         values = dict(vars(self.stats))
         values['u_last'] = [round(float(v), 6) for v in self.inverse.u_prev]
         grew = {k: v - self._last_values.get(k, 0) for k, v in vars(self.stats).items()
-                if k != 'last_refusal'}
+                if k not in _WORDS}
         self._last_values = dict(vars(self.stats))
         if self.rate.off:
             return 2, self.rate.describe('reference') + ': no commands sent', values
@@ -392,6 +457,8 @@ class AxesController:
         if r is not None:
             self.watch.add(r, u)
         out.append((t_ns, u))
+        if self._start.waiting and not self._start.sent(t_ns, u.copy()):
+            st.start = NO_MEASUREMENT
 
     def _command(self, r: np.ndarray, dt: float | None) -> np.ndarray:
         inv = self.inverse
@@ -520,6 +587,13 @@ class ChainAxes:
         """Every chain restarts from rest."""
         for c in self.axes:
             c.request_reset()
+
+    def start_word(self) -> str:
+        """Return the chains' start: their common word, else each chain's, by axis name."""
+        words = [c.stats.start for c in self.axes]
+        if len(set(words)) == 1:
+            return words[0]
+        return ', '.join(f'{n}: {w}' for n, w in zip(self.names, words))
 
     @staticmethod
     def _join(outs: list) -> list:

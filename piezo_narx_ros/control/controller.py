@@ -47,6 +47,8 @@ import numpy as np
 from piezo_narx_ros.command.stamps import RATE_TOLERANCE, SAMPLE, RateMonitor, StampGate
 from piezo_narx_ros.control.gain_check import check_static_gain
 from piezo_narx_ros.control.inverse import REACHED, SLEW, TARGETS, VOLTAGE, ModelInverse
+from piezo_narx_ros.control.start import (NO_MEASUREMENT, MeasuredStart, measured_start,
+                                          start_settings)
 from piezo_narx_ros.errors import ConfigError
 
 MODES = ('linear', 'inverse', 'inverse_feedback')
@@ -170,7 +172,7 @@ class PositionController:
         # References kept for matching measurements: 1 s, so a controller running behind (a
         # loaded machine) still matches the deflections that arrive late.
         self._keep = max(4 * self.feedback_timeout + 64, int(self.fs))
-        self.start_policy, self.start_window = _start_settings(model, start_policy, start_window)
+        self.start_policy, self.start_window = start_settings(model, start_policy, start_window)
         self._reset_state()
         self._begin_start()
 
@@ -185,50 +187,12 @@ class PositionController:
         self._limited = 0                     # +1/-1: the last command could not go higher/lower
         self._r_prev: float | None = None     # previous reference (advance compensation)
         self._refs.clear()
-        self._start_log: list | None = None   # (t_ns, u V) sent while the start window fills
-        self._start_meas: dict[int, float] = {}
+        self._start = MeasuredStart(self.model, 'rest', 0)    # not waiting (see _begin_start)
 
     def _begin_start(self) -> None:
         if self.start_policy != 'rest':
-            self._start_log = []
+            self._start = MeasuredStart(self.model, self.start_policy, self.start_window)
             self.stats.start = 'waiting'
-
-    def _start_sent(self, t_ns: int, u: float) -> None:
-        log = self._start_log
-        log.append((t_ns, u))
-        if len(log) > START_PATIENCE * self.start_window:
-            self._start_log = None
-            self._start_meas.clear()
-            self.stats.start = 'rest (no measurement)'
-
-    def _start_measured(self, t_ns: int, y: float) -> None:
-        """
-        Keep a deflection of the start; continue from the state of the first whole window.
-
-        The window is the first start_window consecutive commands that all have their
-        measured deflection (usually the first ones: later ones when some were lost).
-        """
-        from piezo_narx_ros.ident.state.start import first_full_window, relag_window, window_state
-        n, log, meas = self.start_window, self._start_log, self._start_meas
-        meas[t_ns] = y
-        first = first_full_window((t for t, _ in log), meas, n) if len(meas) >= n else None
-        if first is None:
-            return
-        log = log[first:]
-        from piezo_narx_ros.errors import DataError
-        u_win = np.array([u for _, u in log[:n]])
-        y_win = np.array([meas[t] for t, _ in log[:n]])
-        u_run = np.array([u for _, u in log])
-        self._start_log = None
-        self._start_meas = {}
-        try:
-            state = window_state(self.model, u_win, y_win, self.start_policy)
-        except DataError:
-            self.stats.start = 'rest (no measurement)'
-            return
-        self.inverse.start_from(state, u_run,
-                                relag_window(self.model, self.start_policy, u_win, y_win))
-        self.stats.start = 'measurement'
 
     def request_reset(self) -> None:
         """
@@ -285,8 +249,9 @@ class PositionController:
         if r is None or not math.isfinite(y):
             self.stats.measurements_rejected += 1
             return
-        if self._start_log is not None:
-            self._start_measured(t_ns, y)
+        if self._start.waiting:
+            self.stats.start = measured_start(self._start, self.inverse, t_ns, y,
+                                              self.stats.start)
         self.stats.measurements += 1
         e = r - y
         self._err.append(e)
@@ -390,8 +355,8 @@ class PositionController:
             st.model_nonfinite += 1
         st.commands += 1
         out.append((t_ns, u))
-        if self._start_log is not None:
-            self._start_sent(t_ns, u)
+        if self._start.waiting and not self._start.sent(t_ns, u):
+            self.stats.start = NO_MEASUREMENT
 
     def _correction(self, t_ns: int) -> float:
         """PI output, m: P on the latest measured error while it is recent, plus the integral."""
@@ -439,29 +404,6 @@ class PositionController:
             st.not_invertible += 1
         if miss > self.peak_miss:
             self.peak_miss = miss
-
-
-#: Windows' worth of commands the start waits for its measured deflections before it gives up.
-START_PATIENCE = 10
-
-
-def _start_settings(model, policy, window) -> tuple[str, int]:
-    """Return (start policy, window samples): given, else the model file's, else rest."""
-    from piezo_narx_ros.ident.state.start import check_policy, min_window, model_start
-    stored = model_start(model)
-    policy = check_policy(policy if policy is not None else stored.get('policy', 'rest'),
-                          'start_policy', ConfigError)
-    if policy == 'rest':
-        return policy, 0
-    if window is None:
-        window = stored.get('window_samples') or 0
-    least = min_window(model, policy)
-    if int(window) < least:
-        if window:
-            raise ConfigError(f'start_window must be at least {least} samples for start '
-                              f'policy {policy!r} with this model, got {window}')
-        window = least
-    return policy, int(window)
 
 
 def bridge_gap(ctl, t_ns: int) -> float | None:

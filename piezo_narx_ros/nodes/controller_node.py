@@ -144,8 +144,7 @@ class ControllerNode(PiezoNode):
             f'target {c.inverse.target}, advance {c.advance:.3f} samples, static gain '
             f'{c.gain * 1e6:.4g} um/V, references [{c.y_min * 1e6:.1f}, {c.y_max * 1e6:.1f}] '
             f'um, commands [{u_limits["u_min"]:g}, {u_limits["u_max"]:g}] V, start '
-            + (c.start_policy if c.start_policy == 'rest' else
-               f'{c.start_policy} from the first {c.start_window} measured deflections'))
+            + start_words(c))
         for note in c.notes:
             self.get_logger().warning(note)
 
@@ -179,7 +178,9 @@ class ControllerNode(PiezoNode):
         self.ctl = AxesController(
             self.model, mode=p['mode'], fs=p['fs'] or None, **u_limits,
             slew_rate=p['slew_rate'] or math.inf, range_margin=p['range_margin'],
-            max_fill=p['max_fill'], rate_tolerance=p['rate_tolerance'], **limits, **chain)
+            max_fill=p['max_fill'], rate_tolerance=p['rate_tolerance'],
+            start_policy=None if p['start'] == 'auto' and p['use_deflection'] else 'rest',
+            **limits, **chain)
         self.ctl.warm_up()       # compile/load the solvers before the first sample
         self.axis = p['axis']
         self._names = list(self.model.inputs)        # commands: the model's inputs
@@ -190,7 +191,8 @@ class ControllerNode(PiezoNode):
                'vector inverse' if p['mode'] != 'linear' else 'static line per axis')
         self.get_logger().info(
             f"{p['mode']} of {self._ref_names} with {type(self.model).__name__} "
-            f"({p['model']}, {how}) at {self.ctl.fs:g} Hz, commands on {self._names}")
+            f"({p['model']}, {how}) at {self.ctl.fs:g} Hz, commands on {self._names}, start "
+            + start_words(self.ctl))
 
     def _wire(self, p) -> None:
         """Create the publisher, subscriptions, timers, services and diagnostics."""
@@ -336,6 +338,13 @@ class ControllerNode(PiezoNode):
                 return DIAG_WARN, (f"waiting for {self.params['wait_for_subscribers']} "
                                    'voltage_command subscriber(s)'), values
         return bytes([level]), msg, values
+
+
+def start_words(ctl) -> str:
+    """How a controller's model starts, for the log: its policy and window."""
+    if ctl.start_policy == 'rest':
+        return 'rest'
+    return f'{ctl.start_policy} from the first {ctl.start_window} measured deflections'
 
 
 main = main_for(ControllerNode)

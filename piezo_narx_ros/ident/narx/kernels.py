@@ -554,9 +554,10 @@ class VectorStepper:
 
     @property
     def state(self):
-        """Return the current ModelState (past input rows V and output rows m, the offset)."""
+        """Return the current ModelState (past input and output rows, offsets (n_out,) m)."""
         from ..state.estimate import ModelState
-        return ModelState(np.r_[self._ubuf[1:].ravel(), self._ybuf.ravel()], self.offset)
+        offset = np.broadcast_to(np.asarray(self.offset, dtype=np.float64), (self.n_out,))
+        return ModelState(np.r_[self._ubuf[1:].ravel(), self._ybuf.ravel()], offset.copy())
 
     @property
     def kernel_state(self):
