@@ -321,3 +321,62 @@ def test_an_interruption_after_any_journal_write_resumes_to_the_same_model(
         writes['stop_after'] = None
         with LocalExecutor(1) as ex:
             assert picks(run_search(est, val, options, ex, out, resume=True)) == whole, stop
+
+
+def test_the_committee_is_the_mean_of_the_pick_and_the_next_best_of_its_family(
+        tmp_path, records):
+    from piezo_narx_ros.ident.model_io import load_model
+    from piezo_narx_ros.ident.selection.search import trial_error
+    from piezo_narx_ros.ident.selection.search_report import write_search
+    est, val = records
+    with LocalExecutor(2) as ex:
+        res = run_search(est, val, _options(trials=4, batch=4, committee=2), ex, tmp_path / 'c')
+        alone = run_search(est, val, _options(trials=4, batch=4, committee=1), ex,
+                           tmp_path / 'a')
+        linear = run_search(est, val, _options(trials=2, batch=2, families=('arx',)), ex,
+                            tmp_path / 'l')
+    pick = res.trials[res.selected]
+    assert pick.spec.kind == 'hysteresis_narx' and len(res.members) == 2
+    assert res.members[0] == res.selected
+    other = res.trials[res.members[1]]
+    family = [i for i, t in enumerate(res.trials)
+              if t.spec.kind == pick.spec.kind and i != res.selected]
+    assert res.members[1] == min(family, key=lambda i: trial_error(res.trials[i]))
+    # The committee's free run is the mean of its members', and it is scored like a trial.
+    u = val[0].u[:, 0]
+    np.testing.assert_allclose(res.best.model.simulate(u),
+                               0.5 * (pick.model.simulate(u) + other.model.simulate(u)),
+                               rtol=0, atol=1e-15)
+    assert trial_error(res.best) <= max(trial_error(pick), trial_error(other))
+    assert res.best.scores['start']['policy'] in START_POLICIES
+    assert 'mean of it and the 1 next best' in res.why
+    assert res.to_dict()['selection']['committee'] == [res.numbers[i] for i in res.members]
+    model_path, _ = write_search(tmp_path / 'out', res, est, val, report=False)
+    saved = load_model(model_path)
+    assert saved.kind == 'ensemble' and len(saved.members) == 2
+    assert saved.metadata['start']['policy'] == res.best.scores['start']['policy']
+    # One model asked for, or a family without random starts: the pick itself.
+    assert alone.committee is None and alone.best is alone.trials[alone.selected]
+    assert weights_sha256(alone.best.model) == weights_sha256(pick.model)
+    assert linear.committee is None and linear.best.spec.kind == 'arx'
+
+
+def test_the_committee_is_refused_when_it_scores_worse_than_its_worst_member():
+    from piezo_narx_ros.ident.selection.committee import form_committee
+    from piezo_narx_ros.ident.selection.experiment import CandidateResult, CandidateSpec
+
+    class One:           # a fitted one-axis model as form_committee and an ensemble see it
+        n_in = n_out = 1
+        output_2d_, fs, input_range, output_range = False, FS, None, None
+        state_from_input, inputs, outputs = True, ('x',), ('x',)
+    trials = [CandidateResult(CandidateSpec('hysteresis_narx', 0, 3, 4, seed=s), model=One())
+              for s in range(3)]
+    scored = []
+
+    def score(model, spec):
+        scored.append(len(model.members))
+        return CandidateResult(spec=spec, n_params=3), 0.5
+    got, members, why = form_committee(trials, [0.1, 0.3, 0.2], [0, 1, 2], 0, 2, score)
+    assert (got, members, scored) == (None, [], [2]) and 'worse than its worst member' in why
+    assert form_committee(trials, [0.1, 0.3, 0.2], [0, 1, 2], 0, 3,
+                          lambda m, s: (CandidateResult(spec=s, n_params=9), 0.25))[1] == [0, 2, 1]

@@ -8,7 +8,7 @@ from piezo_narx_ros.cli.main import main
 from piezo_narx_ros.errors import DataError, ModelFileError
 from piezo_narx_ros.estimator.free_run import FreeRunEstimator
 from piezo_narx_ros.ident.arx.model import ARXModel
-from piezo_narx_ros.ident.model_io import load_model, save_model
+from piezo_narx_ros.ident.model_io import load_model, save_model, weights_sha256
 from piezo_narx_ros.ident.state.start import check_window, policy_simulate, window_state
 from piezo_narx_ros.plant.piezo import PiezoCantilever
 from piezo_narx_ros.plant.signals import generate
@@ -209,3 +209,24 @@ def test_a_controller_without_deflections_stays_from_rest_and_says_so(tmp_path, 
     assert waiting.stats.start == 'rest' and not waiting._start.waiting
     with pytest.raises(ConfigError, match='start_window must be at least'):
         PositionController(model, mode='inverse', start_window=3)
+
+
+def test_a_committee_is_controlled_through_its_first_member_and_its_start(tmp_path, records):
+    from piezo_narx_ros.control.controller import PositionController
+    from piezo_narx_ros.ident.ensemble.model import EnsembleModel
+    r = records[0][0]
+    lead, other = (ARXModel(na=2, nb=1).fit(r.u[:n, 0], r.y[:n, 0], fs=FS)
+                   for n in (2000, 1500))
+    committee = load_model(save_model(EnsembleModel([lead, other]), tmp_path / 'e.json',
+                                      start={'policy': 'offset', 'window_samples': 40}))
+    ctl = PositionController(committee, mode='inverse', u_min=-100.0, u_max=100.0)
+    assert ctl.model.kind == 'arx' and 'committee of 2' in ctl.model_note
+    assert weights_sha256(ctl.model) == weights_sha256(lead)
+    assert (ctl.start_policy, ctl.start_window) == ('offset', 40)
+    lo, hi = lead.output_range
+    ref = 0.5 * (lo + hi) + 0.3 * (hi - lo) * np.sin(2 * np.pi * 2.0 * np.arange(800) / FS)
+    plant = lead.stepper()
+    for k, rk in enumerate(ref):
+        (t, uk), = ctl.on_reference(k * P, float(rk))
+        ctl.on_measurement(t, plant.step(uk) + 2e-6)
+    assert ctl.stats.start == 'measurement' and ctl.inverse.offset == pytest.approx(2e-6)

@@ -92,6 +92,10 @@ def add_parser(subparsers):
     search.add_argument('--tolerance', type=float, metavar='FRACTION',
                         help='the fewest parameters win within this relative error of the best '
                              f'(default {SearchOptions.tolerance:g})')
+    search.add_argument('--committee', type=int, metavar='K',
+                        help='the model is the mean of the pick and the K - 1 next best trials '
+                             'of its family (one-axis networks; K steps a sample live; 1: the '
+                             f'pick alone; default {SearchOptions.committee})')
     search.add_argument('--families', metavar='LIST',
                         help=f'families searched, comma-separated (default '
                              f'{",".join(SEARCH_FAMILIES)})')
@@ -206,7 +210,8 @@ def _run_search(args, job, executor) -> int:
     try:
         outcome = fit_search(job, executor, resume=args.resume, announce=announce,
                              trials=args.trials, budget_s=args.budget_s, batch=args.batch,
-                             tolerance=args.tolerance, families=args.families)
+                             tolerance=args.tolerance, committee=args.committee,
+                             families=args.families)
     except KeyboardInterrupt:
         print(f'piezo-narx: the search is stored in {job.out}: continue it with the same '
               'command and --resume', file=sys.stderr)

@@ -119,6 +119,7 @@ class PositionController:
                  start_policy: str | None = None, start_window: int | None = None, **solver):
         if mode not in MODES + (BASELINE,):
             raise ConfigError(f'mode must be one of {list(MODES)}, got {mode!r}')
+        model, lead = lead_member(model)
         if target is None:
             target = 'quasi_static' if getattr(model, 'kind', None) == 'hysteresis_narx' \
                 else 'output'
@@ -142,6 +143,7 @@ class PositionController:
                               f'{self.gain_check.problems[0]}; use mode inverse with a '
                               'hysteresis_narx model, or refit')
         self.notes = []                 # standing problems, a WARN on every diagnostics tick
+        self.model_note = lead          # what is inverted, when not the model itself (a log line)
         kind = getattr(model, 'kind', None)
         if mode in ('inverse', 'inverse_feedback') and kind in ('arx', 'narx'):
             self.notes.append(
@@ -404,6 +406,23 @@ class PositionController:
             st.not_invertible += 1
         if miss > self.peak_miss:
             self.peak_miss = miss
+
+
+def lead_member(model) -> tuple:
+    """
+    Return (the model to invert, a note): a committee's first member (the search's pick).
+
+    A committee (ident/ensemble: the mean of several networks) has no inverse of its own; its
+    first member does, and follows the committee's start policy. Any other model: (model, '').
+    """
+    if getattr(model, 'kind', None) != 'ensemble':
+        return model, ''
+    lead = model.members[0]
+    meta = dict(getattr(model, 'metadata', None) or {})
+    lead.metadata = {**meta, **(getattr(lead, 'metadata', None) or {}),
+                     'start': meta.get('start') or {}}
+    return lead, (f'the model is a committee of {len(model.members)}: the controller inverts its '
+                  "first member (the search's pick); estimator_node runs the whole committee")
 
 
 def bridge_gap(ctl, t_ns: int) -> float | None:

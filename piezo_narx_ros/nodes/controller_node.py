@@ -145,6 +145,8 @@ class ControllerNode(PiezoNode):
             f'{c.gain * 1e6:.4g} um/V, references [{c.y_min * 1e6:.1f}, {c.y_max * 1e6:.1f}] '
             f'um, commands [{u_limits["u_min"]:g}, {u_limits["u_max"]:g}] V, start '
             + start_words(c))
+        if c.model_note:
+            self.get_logger().info(c.model_note)
         for note in c.notes:
             self.get_logger().warning(note)
 

@@ -233,7 +233,7 @@ def fit_experiment(job: FitJob, executor) -> FitOutcome:
 
 
 def search_options(job: FitJob, trials=None, budget_s=None, batch=None, tolerance=None,
-                   families=None):
+                   committee=None, families=None):
     """
     Return the SearchOptions of a search job (ConfigError naming the option on a bad value).
 
@@ -243,7 +243,7 @@ def search_options(job: FitJob, trials=None, budget_s=None, batch=None, toleranc
     settings, config = job.settings, job.config
     budget = SearchOptions.budget_s if budget_s is None else (budget_s or None)
     families = (tuple(f.strip() for f in families.split(',')) if families else None)
-    given = {'trials': trials, 'batch': batch, 'tolerance': tolerance}
+    given = {'trials': trials, 'batch': batch, 'tolerance': tolerance, 'committee': committee}
     options = SearchOptions(
         budget_s=budget, seed=int(settings['seed']), families=families,
         init_seconds=float(settings['init_seconds']), init_samples=job.init_samples,
@@ -263,7 +263,8 @@ def fit_search(job: FitJob, executor, resume: bool = False, announce=None,
     """
     Run the structure search: load, warn, search, save the selected model, report.
 
-    search: search_options' keywords (trials, budget_s, batch, tolerance, families).
+    search: search_options' keywords (trials, budget_s, batch, tolerance, committee,
+    families).
     announce(options): called once the options are known, before the first trial.
     KeyboardInterrupt passes through with the study stored in job.out (continue: resume=True).
     """

@@ -116,10 +116,12 @@ class SearchOptions:
     init_seconds: measured samples at each validation record's start, s, that its start policy
     may use (init_samples overrides it in samples); past: how the records' pasts ended
     (ident.state.PASTS); tolerance: relative error above the best within which the fewest
-    parameters win; families: the families searched (None: every family, the paper's network
-    only where the estimation input closes minor loops: `resolve_families`); split: estimation
-    fraction of each record when there are no validation records; max_lag,
-    max_outside_fraction, noise_model, noise_order: the correlation tests reported beside.
+    parameters win; committee: models averaged, the pick and the next best of its family
+    (ident/selection/committee.py; 1: the pick alone); families: the families searched (None:
+    every family, the paper's network only where the estimation input closes minor loops:
+    `resolve_families`); split: estimation fraction of each record when there are no validation
+    records; max_lag, max_outside_fraction, noise_model, noise_order: the correlation tests
+    reported beside.
     """
 
     trials: int = 32
@@ -130,6 +132,7 @@ class SearchOptions:
     init_samples: int | None = None
     past: str = 'any'
     tolerance: float = 0.02
+    committee: int = 3
     families: tuple | None = None
     split: float = 0.5
     max_lag: int = 20
@@ -143,6 +146,7 @@ class SearchOptions:
         'seed': Interval(int, 0, 2 ** 31 - 1), 'batch': Interval(int, 1, 1024),
         'init_seconds': Interval(float, 0.0, 600.0), 'init_samples': Interval(int, 0, 10 ** 9),
         'past': Options(PASTS), 'tolerance': Interval(float, 0.0, 1.0),
+        'committee': Interval(int, 1, 16),
         'split': Interval(float, 0.1, 0.9), 'max_lag': Interval(int, 1, 10000),
         'max_outside_fraction': Interval(float, 0.0, 0.99),
         'noise_order': Interval(int, 0, 200), 'noise_model': Options(('ar', 'none'))}
@@ -449,11 +453,13 @@ class SearchResult:
     fs: float = 0.0
     n_estimation: int = 0
     n_validation: int = 0
+    committee: CandidateResult | None = None   # the mean of `members` (committee.py), if kept
+    members: list = field(default_factory=list)   # its trials (indices), the pick first
 
     @property
     def best(self) -> CandidateResult:
-        """Return the selected trial."""
-        return self.trials[self.selected]
+        """Return the model the search gives: the committee when kept, else the selected trial."""
+        return self.committee if self.committee is not None else self.trials[self.selected]
 
     def family_table(self) -> list[dict]:
         """Per family: its best trial (lowest error) and how many trials it had."""
@@ -488,7 +494,10 @@ class SearchResult:
                          'n_estimation': self.n_estimation, 'n_validation': self.n_validation},
                 'selection': {'trial': self.numbers[self.selected],
                               'label': self.best.spec.label, 'why': self.why,
-                              'validated': self.best.validated},
+                              'validated': self.best.validated,
+                              'committee': [self.numbers[i] for i in self.members],
+                              'error': trial_error(self.best),
+                              'n_params': self.best.n_params},
                 'candidates': [{'trial': n, 'error': trial_error(t), **t.to_dict()}
                                for n, t in zip(self.numbers, self.trials)]}
 
@@ -655,7 +664,11 @@ def run_search(est: list[Record], val: list[Record], options: SearchOptions,
     ok_points = [i for i, t in enumerate(trials) if t.error is None]
     front = [ok_points[i] for i in pareto_front([points[i] for i in ok_points])]
     selected, why = select_simplest(trials, options.tolerance)
+    committee, members, said = _committee(trials, selected, options, est, val, n)
+    if said:
+        why = f'{why}; {said}'
     return SearchResult(trials=trials, numbers=order, selected=selected, why=why, front=front,
+                        committee=committee, members=members,
                         options=options, window=n,
                         wall_seconds=before_s + time.perf_counter() - t0,
                         taken_over=taken_over, stopped=stopped, notes=notes,
@@ -663,6 +676,22 @@ def run_search(est: list[Record], val: list[Record], options: SearchOptions,
                         validation_sources=[r.source for r in val],
                         n_estimation=sum(len(r) for r in est),
                         n_validation=sum(len(r) for r in val))
+
+
+def _committee(trials: list[CandidateResult], pick: int, options: SearchOptions,
+               est: list[Record], val: list[Record], n: int) -> tuple:
+    """Form the committee of the pick (committee.form_committee), scored as a trial is."""
+    from piezo_narx_ros.ident.selection.committee import form_committee
+    from piezo_narx_ros.ident.selection.experiment import score_candidate
+    errors = [trial_error(t) for t in trials]
+    usable = [i for i, t in enumerate(trials) if t.error is None and errors[i] < DIVERGED]
+
+    def score(model, spec):
+        res = score_candidate(CandidateResult(spec=spec), model, est, val,
+                              _experiment_config(options, {}))
+        res.scores['start'] = start_scores(model, val, n, options.past)
+        return res, trial_error(res)
+    return form_committee(trials, errors, usable, pick, options.committee, score)
 
 
 def _as_result(params: dict, outcome) -> CandidateResult:

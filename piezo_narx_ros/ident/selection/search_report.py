@@ -60,7 +60,9 @@ def plot_pareto(result: SearchResult):
         ax.step(*zip(*front), where='post', color='k', lw=1, label='Pareto front')
     best = result.best
     ax.scatter([best.n_params], [trial_error(best)], s=160, facecolors='none',
-               edgecolors='r', lw=2, label=f'selected: {best.spec.label}')
+               edgecolors='r', lw=2,
+               label=f'selected: mean of {len(result.members)} trials' if result.members
+               else f'selected: {best.spec.label}')
     ax.set_xscale('log')
     ax.set_yscale('log')
     ax.set_xlabel('parameters')
@@ -95,6 +97,7 @@ def write_search(out, result: SearchResult, records: list, validation: list,
     metrics = {**best.scores, 'selected_by': 'search',
                'noise_model': result.options.noise_model,
                'search': {'why': result.why, 'trial': result.numbers[result.selected],
+                          'committee': [result.numbers[i] for i in result.members],
                           'trials': len(result.trials), 'tolerance': result.options.tolerance}}
     model_path = save_model(best.model, out / 'model.json', data=info, metrics=metrics,
                             tests={**best.tests, 'validated': best.validated}, start=start)

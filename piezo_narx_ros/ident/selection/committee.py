@@ -1,0 +1,81 @@
+"""
+The search's committee: the mean of the pick and the next best trials of its family.
+
+A search scores tens of networks on one or two validation records and picks the best of them; the
+best score of many is partly luck (the winner's curse), and a network's random start decides as
+much as its structure. On the simulators' battery of moves (docs/envelope.md) the single pick of
+the search was worse than the envelope preset's on every plant (fresh multisine R² worst 0.99975
+against 0.99993), and the mean of the pick and the two next best trials of its family was better
+than either on each of the four searches checked (0.99990-0.99996). The validation records
+cannot show that gain (the committee scores about as the pick does there), so the committee is
+the model unless it scores worse than its worst member on them: an average worse than each of
+its parts means the members disagree where it matters (a member off on some record).
+
+Only families whose fits start from random weights (the paper's NARX, the hysteresis-operator
+NARX) and one-axis models: an ARX fit is a least-squares solution with nothing to average, and
+a model of several axes must keep its one-model stepper cost (the FSM's 3 x 3 per-sample
+target). The live cost is K steps a sample instead of one.
+"""
+from __future__ import annotations
+
+from piezo_narx_ros.errors import PiezoNarxError
+from piezo_narx_ros.ident.selection.experiment import CandidateResult, CandidateSpec
+
+#: Families whose trials differ by their random start: the committee averages them.
+COMMITTEE_FAMILIES = ('narx', 'hysteresis_narx')
+
+
+def members(trials: list[CandidateResult], errors: list[float], usable, pick: int,
+            size: int) -> list[int]:
+    """Return the pick and the size - 1 usable trials of its family with the lowest errors."""
+    kind = trials[pick].spec.kind
+    others = sorted((i for i in usable if i != pick and trials[i].model is not None
+                     and trials[i].spec.kind == kind), key=lambda i: (errors[i], i))
+    return [pick] + others[:max(0, size - 1)]
+
+
+def eligible(trial: CandidateResult, size: int) -> str | None:
+    """Return why a pick gets no committee (None: it does)."""
+    model = trial.model
+    if size < 2:
+        return 'one model asked for (committee 1)'
+    if trial.spec.kind not in COMMITTEE_FAMILIES:
+        return f'a {trial.spec.kind} fit has no random start to average'
+    if int(getattr(model, 'n_in', 1)) != 1 or int(getattr(model, 'n_out', 1)) != 1:
+        return 'a model of several axes keeps the cost of one stepper'
+    return None
+
+
+def form_committee(trials: list[CandidateResult], errors: list[float], usable, pick: int,
+                   size: int, score) -> tuple[CandidateResult | None, list[int], str]:
+    """
+    Return (the committee's result or None, its member indices, a sentence for the report).
+
+    errors: each trial's search error; usable: the indices of trials fitted and scored;
+    score(model, spec) -> (CandidateResult, error) of that model scored as every trial is. The
+    committee is returned only when it is at least as good as its worst member on the
+    validation records.
+    """
+    if eligible(trials[pick], size) is not None:
+        return None, [], ''
+    chosen = members(trials, errors, usable, pick, size)
+    kind = trials[pick].spec.kind
+    if len(chosen) < 2:
+        return None, [], f'no committee: no other {kind} trial was fitted'
+    from piezo_narx_ros.ident.ensemble.model import EnsembleModel
+    spec = CandidateSpec('ensemble', nu=max(trials[i].spec.nu for i in chosen),
+                         ny=max(trials[i].spec.ny for i in chosen),
+                         options=tuple(trials[i].spec.label for i in chosen))
+    try:
+        res, err = score(EnsembleModel([trials[i].model for i in chosen]), spec)
+    except PiezoNarxError as exc:
+        return None, [], f'no committee: {exc}'
+    worst = max(errors[i] for i in chosen)
+    if res.error is not None or not err <= worst:
+        got = res.error or f'validation error {err:.4g}'
+        return None, [], (f'no committee: the mean of {len(chosen)} scored {got}, worse than '
+                          f'its worst member ({worst:.4g})')
+    return res, chosen, (f'the model is the mean of it and the {len(chosen) - 1} next best '
+                         f'{kind} trial(s): validation error {err:.4g} (its members '
+                         f'{min(errors[i] for i in chosen):.4g}-{worst:.4g}), '
+                         f'{res.n_params} parameters')
