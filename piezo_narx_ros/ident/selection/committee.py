@@ -6,7 +6,7 @@ best score of many is partly luck (the winner's curse), and a network's random s
 much as its structure. On the simulators' battery of moves (docs/envelope.md) the single pick of
 the search was worse than the envelope preset's on every plant (fresh multisine R² worst 0.99975
 against 0.99993), and the mean of the pick and the two next best trials of its family was better
-than either on each of the four searches checked (0.99990-0.99996). The validation records
+than the pick on each of the four searches checked (0.99990-0.99996). The validation records
 cannot show that gain (the committee scores about as the pick does there), so the committee is
 the model unless it scores worse than its worst member on them: an average worse than each of
 its parts means the members disagree where it matters (a member off on some record).
