@@ -75,7 +75,10 @@ class HysteresisStepper:
         The same numbers as n step() calls, in one compiled call. A non-finite input raises
         DataError before any step: the state stays untouched.
         """
-        u = finite_inputs(u)
+        return self.step_many_checked(finite_inputs(u))
+
+    def step_many_checked(self, u: np.ndarray) -> np.ndarray:
+        """step_many of inputs already checked: u a contiguous finite (n,) float64 array, V."""
         yn = np.empty(u.size)
         hk.step_many(u / self._u_scale, yn, self._st, *self._args)
         y = yn * self._y_scale + self.offset

@@ -199,7 +199,10 @@ class Stepper:
         stream). A non-finite input raises DataError before any step: the histories stay
         untouched.
         """
-        u = finite_inputs(u)
+        return self.step_many_checked(finite_inputs(u))
+
+    def step_many_checked(self, u: np.ndarray) -> np.ndarray:
+        """step_many of inputs already checked: u a contiguous finite (n,) float64 array, V."""
         y = np.empty(u.size)
         type(self)._step_many(u, y, self._ubuf, self._ybuf, *self._params)
         y += self.offset
