@@ -330,9 +330,10 @@ def test_the_committee_is_the_mean_of_the_pick_and_the_next_best_of_its_family(
     from piezo_narx_ros.ident.selection.search_report import write_search
     est, val = records
     with LocalExecutor(2) as ex:
-        res = run_search(est, val, _options(trials=4, batch=4, committee=2), ex, tmp_path / 'c')
-        alone = run_search(est, val, _options(trials=4, batch=4, committee=1), ex,
-                           tmp_path / 'a')
+        # A wide tolerance: the committee is kept on any CPU (its bits may differ between them).
+        wide = {'trials': 4, 'batch': 4, 'tolerance': 0.5, 'families': ('hysteresis_narx',)}
+        res = run_search(est, val, _options(**wide, committee=2), ex, tmp_path / 'c')
+        alone = run_search(est, val, _options(**wide, committee=1), ex, tmp_path / 'a')
         linear = run_search(est, val, _options(trials=2, batch=2, families=('arx',)), ex,
                             tmp_path / 'l')
     pick = res.trials[res.selected]
@@ -347,7 +348,7 @@ def test_the_committee_is_the_mean_of_the_pick_and_the_next_best_of_its_family(
     np.testing.assert_allclose(res.best.model.simulate(u),
                                0.5 * (pick.model.simulate(u) + other.model.simulate(u)),
                                rtol=0, atol=1e-15)
-    assert trial_error(res.best) <= max(trial_error(pick), trial_error(other))
+    assert trial_error(res.best) <= 1.5 * trial_error(pick)
     assert res.best.scores['start']['policy'] in START_POLICIES
     assert 'mean of it and the 1 next best' in res.why
     assert res.to_dict()['selection']['committee'] == [res.numbers[i] for i in res.members]
@@ -361,7 +362,7 @@ def test_the_committee_is_the_mean_of_the_pick_and_the_next_best_of_its_family(
     assert linear.committee is None and linear.best.spec.kind == 'arx'
 
 
-def test_the_committee_is_refused_when_it_scores_worse_than_its_worst_member():
+def test_the_committee_is_refused_when_it_scores_worse_than_the_pick():
     from piezo_narx_ros.ident.selection.committee import form_committee
     from piezo_narx_ros.ident.selection.experiment import CandidateResult, CandidateSpec
 
@@ -376,7 +377,11 @@ def test_the_committee_is_refused_when_it_scores_worse_than_its_worst_member():
     def score(model, spec):
         scored.append(len(model.members))
         return CandidateResult(spec=spec, n_params=3), 0.5
-    got, members, why = form_committee(trials, [0.1, 0.3, 0.2], [0, 1, 2], 0, 2, score)
-    assert (got, members, scored) == (None, [], [2]) and 'worse than its worst member' in why
-    assert form_committee(trials, [0.1, 0.3, 0.2], [0, 1, 2], 0, 3,
-                          lambda m, s: (CandidateResult(spec=s, n_params=9), 0.25))[1] == [0, 2, 1]
+    got, members, why = form_committee(trials, [0.1, 0.3, 0.2], [0, 1, 2], 0, 2, 0.02, score)
+    assert (got, members, scored) == (None, [], [2]) and 'the pick alone is the model' in why
+    # Within the tolerance of the pick it is kept, its members the pick and the next best.
+    kept = form_committee(trials, [0.1, 0.3, 0.2], [0, 1, 2], 0, 3, 0.02,
+                          lambda m, s: (CandidateResult(spec=s, n_params=9), 0.101))
+    assert kept[0] is not None and kept[1] == [0, 2, 1] and 'within 2 % of the pick' in kept[2]
+    assert form_committee(trials, [0.1, 0.3, 0.2], [0, 1, 2], 0, 3, 0.02,
+                          lambda m, s: (CandidateResult(spec=s, n_params=9), 0.103))[0] is None

@@ -94,8 +94,9 @@ def add_parser(subparsers):
                              f'(default {SearchOptions.tolerance:g})')
     search.add_argument('--committee', type=int, metavar='K',
                         help='the model is the mean of the pick and the K - 1 next best trials '
-                             'of its family (one-axis networks; K steps a sample live; 1: the '
-                             f'pick alone; default {SearchOptions.committee})')
+                             'of its family where it scores within --tolerance of the pick '
+                             '(one-axis networks; K steps a sample live; 1: the pick alone; '
+                             f'default {SearchOptions.committee})')
     search.add_argument('--families', metavar='LIST',
                         help=f'families searched, comma-separated (default '
                              f'{",".join(SEARCH_FAMILIES)})')

@@ -6,10 +6,12 @@ best score of many is partly luck (the winner's curse), and a network's random s
 much as its structure. On the simulators' battery of moves (docs/envelope.md) the single pick of
 the search was worse than the envelope preset's on every plant (fresh multisine R² worst 0.99975
 against 0.99993), and the mean of the pick and the two next best trials of its family was better
-than the pick on each of the four searches checked (0.99990-0.99996). The validation records
-cannot show that gain (the committee scores about as the pick does there), so the committee is
-the model unless it scores worse than its worst member on them: an average worse than each of
-its parts means the members disagree where it matters (a member off on some record).
+than the pick on each of the four searches checked (0.99990-0.99996). There the committee also
+scored better on the validation half (error 0.0087-0.0123 against the pick's 0.0104-0.0130). On
+the Bouc-Wen benchmark the mean of three paper networks scored 0.0253 against its pick's 0.0145
+(its third member 0.041) and more than doubled the test error (7.6e-6 -> 1.8e-5 m). So the
+committee is the model only where it scores within the search's tolerance of the pick on the
+validation records: the band in which two models count as equally good.
 
 Only families whose fits start from random weights (the paper's NARX, the hysteresis-operator
 NARX) and one-axis models: an ARX fit is a least-squares solution with nothing to average, and
@@ -47,14 +49,13 @@ def eligible(trial: CandidateResult, size: int) -> str | None:
 
 
 def form_committee(trials: list[CandidateResult], errors: list[float], usable, pick: int,
-                   size: int, score) -> tuple[CandidateResult | None, list[int], str]:
+                   size: int, tolerance: float, score) -> tuple[CandidateResult | None, list, str]:
     """
     Return (the committee's result or None, its member indices, a sentence for the report).
 
     errors: each trial's search error; usable: the indices of trials fitted and scored;
     score(model, spec) -> (CandidateResult, error) of that model scored as every trial is. The
-    committee is returned only when it is at least as good as its worst member on the
-    validation records.
+    committee is returned only when its error is within `tolerance` (relative) of the pick's.
     """
     if eligible(trials[pick], size) is not None:
         return None, [], ''
@@ -70,12 +71,12 @@ def form_committee(trials: list[CandidateResult], errors: list[float], usable, p
         res, err = score(EnsembleModel([trials[i].model for i in chosen]), spec)
     except PiezoNarxError as exc:
         return None, [], f'no committee: {exc}'
-    worst = max(errors[i] for i in chosen)
-    if res.error is not None or not err <= worst:
+    limit = errors[pick] * (1.0 + tolerance)
+    what = (f'the mean of it and the {len(chosen) - 1} next best {kind} trial(s) (members '
+            f'{min(errors[i] for i in chosen):.4g}-{max(errors[i] for i in chosen):.4g})')
+    if res.error is not None or not err <= limit:
         got = res.error or f'validation error {err:.4g}'
-        return None, [], (f'no committee: the mean of {len(chosen)} scored {got}, worse than '
-                          f'its worst member ({worst:.4g})')
-    return res, chosen, (f'the model is the mean of it and the {len(chosen) - 1} next best '
-                         f'{kind} trial(s): validation error {err:.4g} (its members '
-                         f'{min(errors[i] for i in chosen):.4g}-{worst:.4g}), '
-                         f'{res.n_params} parameters')
+        return None, [], (f'{what} scored {got}, more than {100 * tolerance:g} % above the '
+                          'pick: the pick alone is the model')
+    return res, chosen, (f'the model is {what}: validation error {err:.4g}, within '
+                         f'{100 * tolerance:g} % of the pick, {res.n_params} parameters')

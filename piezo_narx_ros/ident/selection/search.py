@@ -691,7 +691,8 @@ def _committee(trials: list[CandidateResult], pick: int, options: SearchOptions,
                               _experiment_config(options, {}))
         res.scores['start'] = start_scores(model, val, n, options.past)
         return res, trial_error(res)
-    return form_committee(trials, errors, usable, pick, options.committee, score)
+    return form_committee(trials, errors, usable, pick, options.committee, options.tolerance,
+                          score)
 
 
 def _as_result(params: dict, outcome) -> CandidateResult:
