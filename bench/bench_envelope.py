@@ -22,7 +22,7 @@ demo setup (paper preset identified on a 25 s multisine) for comparison. `--json
 every number. Results: docs/envelope.md.
 
 Run: python bench/bench_envelope.py [--seeds 0 1 2 3 4] [--plants default preisach]
-     [--presets paper envelope search] [--reference] [--jobs 2] [--json out.json]
+     [--presets paper envelope search] [--committee K] [--reference] [--jobs 2] [--json out.json]
      [--hnarx '{"monotone": "no"}']
 """
 import argparse
@@ -82,30 +82,32 @@ def preset_config(preset, seed, jobs, hnarx=None):
     return replace(ExperimentConfig(), **settings, seed=seed, jobs=jobs, progress=False)
 
 
-def search(record, seed, jobs):
+def search(record, seed, jobs, committee=None):
     """Run the structure search on one record as `fit` does: (selected model, its label)."""
     from piezo_narx_ros.ident.selection.executor import make_executor
     from piezo_narx_ros.ident.selection.experiment import split_records
     from piezo_narx_ros.ident.selection.search import SearchOptions, run_search
     est, val = split_records([record], SearchOptions.split)
     with tempfile.TemporaryDirectory() as out, make_executor('local', jobs) as executor:
-        result = run_search(est, val, SearchOptions(seed=seed, progress=False), executor, out)
+        options = SearchOptions(seed=seed, progress=False,
+                                **({'committee': committee} if committee else {}))
+        result = run_search(est, val, options, executor, out)
     return result.best.model, result.best.spec.label
 
 
-def identify(params, seed, preset, jobs, signal='protocol', hnarx=None):
+def identify(params, seed, preset, jobs, signal='protocol', hnarx=None, committee=None):
     """
     Identify one preset on one 25 s record: (selected model, fit wall time s, label).
 
     preset: a PRESETS name or 'search'; hnarx: HysteresisNARX options over the preset's (e.g.
-    {'monotone': 'no'}; not with 'search').
+    {'monotone': 'no'}; not with 'search'); committee: the search's (None: its default).
     """
     u = generate(signal, FS, 25.0, 100.0, seed=seed)
     y = PiezoCantilever(params, FS, seed=seed).run(u).y
     record = Record(u=u, y=y, fs=FS, source=f'{signal} seed {seed}')
     t0 = time.perf_counter()
     if preset == 'search':
-        model, label = search(record, seed, jobs)
+        model, label = search(record, seed, jobs, committee)
         return model, time.perf_counter() - t0, label
     result = run_experiment([record], preset_config(preset, seed, jobs, hnarx))
     return result.best.model, time.perf_counter() - t0, result.best.spec.label
@@ -158,6 +160,8 @@ def main(argv=None):
     ap.add_argument('--json', help='write every figure to this file')
     ap.add_argument('--hnarx', type=json.loads, default={}, metavar='JSON',
                     help='HysteresisNARX options over the preset\'s, e.g. \'{"monotone": "no"}\'')
+    ap.add_argument('--committee', type=int, default=None, metavar='K',
+                    help="the search's committee size (default: SearchOptions')")
     args = ap.parse_args(argv)
     setups = [(p, 'protocol') for p in args.presets]
     if args.reference:
@@ -173,7 +177,7 @@ def main(argv=None):
             runs, times, labels = [], [], []
             for seed in args.seeds:
                 model, seconds, label = identify(params, seed, preset, args.jobs, signal,
-                                                 args.hnarx)
+                                                 args.hnarx, args.committee)
                 runs.append(score(model, battery(params, seed)))
                 times.append(seconds)
                 labels.append(label)
