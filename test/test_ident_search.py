@@ -368,6 +368,7 @@ def test_the_committee_is_refused_when_it_scores_worse_than_the_pick():
 
     class One:           # a fitted one-axis model as form_committee and an ensemble see it
         n_in = n_out = 1
+        nu, ny = 0, 3
         output_2d_, fs, input_range, output_range = False, FS, None, None
         state_from_input, inputs, outputs = True, ('x',), ('x',)
     trials = [CandidateResult(CandidateSpec('hysteresis_narx', 0, 3, 4, seed=s), model=One())

@@ -137,19 +137,11 @@ class VectorInverse:
         lags once they are stepped (control.start.Start). The state's offsets stay in the
         model's outputs from now on.
         """
-        from piezo_narx_ros.ident.state.start import window_lags
-        stepper = self.model.stepper(state=state)
-        n_win = len(relag[0]) if relag is not None else -1
-        y = self.y_model
-        for i, u in enumerate(u_run):
-            y = stepper.step(u)
-            if i == n_win - 1:
-                stepper.offset = np.zeros(self.n_out)
-                stepper.reset(*window_lags(self.model, *relag))
-        self._stepper = stepper
-        if len(u_run):
+        from piezo_narx_ros.ident.state.start import replay_start
+        self._stepper, y = replay_start(self.model, state, u_run, relag)
+        if y is not None:
             self.u_prev = np.asarray(u_run[-1], dtype=np.float64).reshape(self.n_in).copy()
-        self.y_model = np.array(y, dtype=np.float64).reshape(self.n_out)
+            self.y_model = np.array(y, dtype=np.float64).reshape(self.n_out)
 
     def _peek(self, u: np.ndarray) -> np.ndarray:
         return np.array(self._stepper.peek(u), dtype=np.float64).reshape(self.n_out)

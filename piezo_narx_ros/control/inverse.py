@@ -122,21 +122,14 @@ class ModelInverse:
         lagged family: ident.state.start.relag_window). The state's offset shifts every output
         from now on.
         """
-        from piezo_narx_ros.ident.state.start import window_lags
-        stepper = self.model.stepper(state=state)
-        n_win = len(relag[0]) if relag is not None else -1
-        y = 0.0
-        for i, u in enumerate(u_run):
-            y = stepper.step(float(u))
-            if i == n_win - 1:
-                stepper.offset = 0.0
-                stepper.reset(*window_lags(self.model, *relag))
+        from piezo_narx_ros.ident.state.start import replay_start
+        stepper, y = replay_start(self.model, state, u_run, relag)
         self.offset = float(stepper.offset)
         stepper.offset = 0.0       # the kernels run without it; solve and commit add it
         self.stepper = stepper
         self._sv[:] = 0.0
         self.u_prev = float(u_run[-1]) if len(u_run) else 0.0
-        self.y_model = float(y)
+        self.y_model = float(y) if y is not None else 0.0
         self._bind()
 
     def _bind(self) -> None:

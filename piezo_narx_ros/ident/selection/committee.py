@@ -21,7 +21,7 @@ target). The live cost is K steps a sample instead of one.
 from __future__ import annotations
 
 from piezo_narx_ros.errors import PiezoNarxError
-from piezo_narx_ros.ident.selection.experiment import CandidateResult, CandidateSpec
+from piezo_narx_ros.ident.selection.experiment import CandidateResult, ensemble_of
 
 #: Families whose trials differ by their random start: the committee averages them.
 COMMITTEE_FAMILIES = ('narx', 'hysteresis_narx')
@@ -36,16 +36,11 @@ def members(trials: list[CandidateResult], errors: list[float], usable, pick: in
     return [pick] + others[:max(0, size - 1)]
 
 
-def eligible(trial: CandidateResult, size: int) -> str | None:
-    """Return why a pick gets no committee (None: it does)."""
+def eligible(trial: CandidateResult, size: int) -> bool:
+    """Return True when a pick gets a committee: one-axis, of COMMITTEE_FAMILIES, size >= 2."""
     model = trial.model
-    if size < 2:
-        return 'one model asked for (committee 1)'
-    if trial.spec.kind not in COMMITTEE_FAMILIES:
-        return f'a {trial.spec.kind} fit has no random start to average'
-    if int(getattr(model, 'n_in', 1)) != 1 or int(getattr(model, 'n_out', 1)) != 1:
-        return 'a model of several axes keeps the cost of one stepper'
-    return None
+    return (size >= 2 and trial.spec.kind in COMMITTEE_FAMILIES
+            and int(getattr(model, 'n_in', 1)) == 1 and int(getattr(model, 'n_out', 1)) == 1)
 
 
 def form_committee(trials: list[CandidateResult], errors: list[float], usable, pick: int,
@@ -57,18 +52,14 @@ def form_committee(trials: list[CandidateResult], errors: list[float], usable, p
     score(model, spec) -> (CandidateResult, error) of that model scored as every trial is. The
     committee is returned only when its error is within `tolerance` (relative) of the pick's.
     """
-    if eligible(trials[pick], size) is not None:
+    if not eligible(trials[pick], size):
         return None, [], ''
     chosen = members(trials, errors, usable, pick, size)
     kind = trials[pick].spec.kind
     if len(chosen) < 2:
         return None, [], f'no committee: no other {kind} trial was fitted'
-    from piezo_narx_ros.ident.ensemble.model import EnsembleModel
-    spec = CandidateSpec('ensemble', nu=max(trials[i].spec.nu for i in chosen),
-                         ny=max(trials[i].spec.ny for i in chosen),
-                         options=tuple(trials[i].spec.label for i in chosen))
     try:
-        res, err = score(EnsembleModel([trials[i].model for i in chosen]), spec)
+        res, err = score(*ensemble_of([trials[i] for i in chosen]))
     except PiezoNarxError as exc:
         return None, [], f'no committee: {exc}'
     limit = errors[pick] * (1.0 + tolerance)

@@ -556,6 +556,14 @@ def select(candidates: list[CandidateResult], rule: str = 'tests') -> tuple[int,
     return best, False
 
 
+def ensemble_of(members: list[CandidateResult]) -> tuple:
+    """Return (the EnsembleModel of fitted candidates, its spec naming them in order)."""
+    from ..ensemble.model import EnsembleModel
+    model = EnsembleModel([c.model for c in members])
+    return model, CandidateSpec('ensemble', nu=model.nu, ny=model.ny,
+                                options=tuple(c.spec.label for c in members))
+
+
 def consider_ensemble(candidates: list[CandidateResult], chosen: tuple, data: tuple,
                       config: ExperimentConfig) -> tuple:
     """
@@ -569,10 +577,7 @@ def consider_ensemble(candidates: list[CandidateResult], chosen: tuple, data: tu
                     key=lambda c: -c.free_run_r2())[:config.ensemble]
     if config.ensemble < 2 or len(ranked) < 2:
         return chosen
-    from ..ensemble.model import EnsembleModel
-    model = EnsembleModel([c.model for c in ranked])
-    spec = CandidateSpec('ensemble', nu=model.nu, ny=model.ny,
-                         options=tuple(c.spec.label for c in ranked))
+    model, spec = ensemble_of(ranked)
     res = CandidateResult(spec=spec)
     try:
         score_candidate(res, model, data[0], data[1], config)

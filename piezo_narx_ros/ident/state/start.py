@@ -82,6 +82,26 @@ def relag_window(model, policy: str, u_win, y_win) -> tuple | None:
     return u_win, y_win
 
 
+def replay_start(model, state, u_run, relag=None) -> tuple:
+    """
+    Return (stepper, last output): the model from `state` stepped through the commands u_run.
+
+    u_run (n,) or (n, n_in) V: the commands sent from the state's sample on; relag: (u, y), the
+    measured samples whose last lags replace the state once they are stepped (`relag_window`;
+    the offset is dropped then: the lags carry it). The last output is None when u_run is
+    empty. How a controller continues once its start window is whole.
+    """
+    stepper = model.stepper(state=state)
+    n_win = len(relag[0]) if relag is not None else -1
+    y = None
+    for i, u in enumerate(u_run):
+        y = stepper.step(u)
+        if i == n_win - 1:
+            stepper.offset = np.zeros(model.n_out) if model.n_out > 1 else 0.0
+            stepper.reset(*window_lags(model, *relag))
+    return stepper, y
+
+
 def window_lags(model, u_win, y_win) -> tuple:
     """Return (u_past, y_past): the window's last nu inputs and ny outputs (None where 0)."""
     nu, ny = int(model.nu), int(model.ny)
