@@ -37,7 +37,7 @@ bench: setup
 	$(PY) bench/bench_recorder.py && \
 	$(PY) bench/bench_control.py && \
 	$(PY) bench/bench_export.py && \
-	$(PY) bench/bench_envelope.py --reference
+	$(PY) bench/bench_envelope.py --presets paper envelope search --reference
 	$(PY) bench/write_results.py bench/out/results.jsonl
 
 # 10 minutes of command -> simulator -> estimator -> recorder at 2 kHz with scheduled faults.
