@@ -8,9 +8,9 @@ from piezo_narx_ros.errors import ConfigError, DataError
 from piezo_narx_ros.ident.model_io import weights_sha256
 from piezo_narx_ros.ident.selection.executor import Executor, LocalExecutor
 from piezo_narx_ros.ident.selection.search import (SEARCH_FAMILIES, SPACE, SearchOptions,
-                                                   SpaceContext, pareto_front, run_search,
-                                                   seed_design, space, spec_from_params,
-                                                   trial_task)
+                                                   SpaceContext, increment_free, pareto_front,
+                                                   run_search, seed_design, space,
+                                                   spec_from_params, trial_task)
 from piezo_narx_ros.ident.state.start import START_POLICIES
 from piezo_narx_ros.plant.piezo import PiezoCantilever
 from piezo_narx_ros.plant.signals import generate
@@ -64,6 +64,26 @@ def test_space_seed_design_and_specs_agree():
         assert dict(spec_from_params(params)[0].options)['record_offsets'] == 'yes'
     shared = {**seed_design(several, ('hysteresis_narx',))[0], 'hnarx_offsets': 'shared'}
     assert dict(spec_from_params(shared)[0].options)['record_offsets'] == 'no'
+
+
+def test_networks_without_increments_only_on_a_slow_input():
+    fast = [_record('multisine', 1.0, 3)]
+    slow = [Record(u=80.0 * np.sin(2 * np.pi * 0.5 * np.arange(4000) / FS), y=np.zeros(4000),
+                   fs=FS, source='slow')]
+    free, note = increment_free(fast)
+    assert not free and 'drive increments only' in note and 'moves fast' in note
+    assert increment_free(slow) == (True, '')
+    two_axes = Record(u=np.column_stack([fast[0].u, fast[0].u]),
+                      y=np.column_stack([fast[0].y, fast[0].y]), fs=FS, source='xy')
+    assert increment_free([two_axes])[0]     # several axes: not measured, left in
+    kept, dropped = SpaceContext(), SpaceContext(without_increments=False)
+    assert 0 in space(kept)['hysteresis_narx']['hnarx_lags'][1]
+    lags = space(dropped)['hysteresis_narx']['hnarx_lags'][1]
+    assert 0 not in lags and set(lags) == set(SPACE['hysteresis_narx']['hnarx_lags'][1]) - {0}
+    assert any(p.get('hnarx_lags') == 0 for p in seed_design(kept))
+    design = seed_design(dropped)
+    assert design and all(p.get('hnarx_lags') != 0 for p in design)
+    assert len(design) == len(seed_design(kept)) - 1
 
 
 def test_pareto_front_keeps_the_undominated_points():
