@@ -76,6 +76,48 @@ def test_poll_lists_is_poll_as_lists(slew):
     assert b.poll_lists(now) == ([], [])
 
 
+@pytest.mark.parametrize('loop', [True, False])
+def test_take_run_is_poll_where_it_answers(loop):
+    def streamer(slew=math.inf):
+        return CommandStreamer(np.arange(60.0).reshape(30, 2), fs=1000.0, loop=loop,
+                               slew_rate=slew, max_burst=8, lead=np.full((4, 2), -3.0))
+    a, b = streamer(), streamer()
+    a.start(7 * NS, 0)
+    b.start(7 * NS, 0)
+    rng = np.random.default_rng(2)
+    now, taken, refused = 0, 0, 0
+    for k in range(400):
+        now += int(rng.choice([0, 5, 5, 5, 6, 9])) * 1_000_000
+        if k in (100, 250):
+            a.hold()
+            b.hold()
+        if k in (120, 270):
+            a.resume()
+            b.resume()
+        t, v = a.poll(now)
+        got = b.take_run(now, 5)
+        if got is None:
+            refused += 1
+            got = b.poll(now)
+        else:
+            taken += 1
+            assert len(t) == 5
+        assert np.array_equal(got[0], t) and np.array_equal(got[1], v)
+        for name in ('position', 'published', 'late_polls', 'max_batch', 'holding', 'finished'):
+            assert getattr(a, name) == getattr(b, name), name
+        assert np.array_equal(a._last, b._last)
+    if loop:     # the holds, the wraps, the late and early polls
+        assert taken > 50 and refused > 50
+    else:        # the last run goes through poll, which says the signal finished
+        assert taken >= 1 and a.finished and b.finished
+    assert a.published == b.published > 0
+    c = streamer(slew=2000.0)
+    c.start(0, 0)
+    assert c.take_run(5 * 1_000_000 - 1, 5) is None     # a slew limit: poll's general case
+    c.stop()
+    assert c.take_run(10 ** 9, 5) is None
+
+
 def test_due_count_follows_monotonic_time():
     c = SampleClock(1000.0, 0, mono0_ns=10 * NS)
     assert c.due_count(10 * NS - 1) == 0

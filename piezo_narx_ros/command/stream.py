@@ -206,6 +206,38 @@ class CommandStreamer:
         self.max_batch = max(self.max_batch, 1)
         return [stamp], [row.tolist()]
 
+    def take_run(self, now_mono_ns: int, n: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """
+        Return what poll() returns when exactly n samples are due, in one slice of the signal.
+
+        None otherwise (not running, holding, a slew limit, the preamble, the loop's wrap, the
+        end of a signal that does not loop, more or fewer than n due): then poll() returns them.
+        A batched stream's usual wake (one message's samples) without poll()'s general case.
+        The volts are a view of the clamped signal, never written.
+        """
+        clock = self.clock
+        if clock is None or self.holding or self.max_step != math.inf or n > self.max_burst:
+            return None
+        start = self.position - self.lead.shape[0]
+        size = self.signal.shape[0]
+        if start < 0 or clock.due_count(now_mono_ns) - self._k != n:
+            return None
+        if self.loop:
+            start %= size
+        if start + n >= size:       # the wrap, or the end (finished: poll says so)
+            return None
+        stamps = clock.stamps_ns(self._k, n)
+        volts = self.signal[start:start + n]
+        self._last = volts[-1]
+        self._k += n
+        self.position += n
+        self.published += n
+        if n > 1:
+            self.late_polls += 1
+        if n > self.max_batch:
+            self.max_batch = n
+        return stamps, volts
+
     def _due(self, now_mono_ns: int) -> int:
         """Count the samples a poll at now returns: due, not returned yet, at most max_burst."""
         n = self.clock.due_count(now_mono_ns) - self._k
