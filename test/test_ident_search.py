@@ -86,6 +86,26 @@ def test_networks_without_increments_only_on_a_slow_input():
     assert len(design) == len(seed_design(kept)) - 1
 
 
+def test_rest_stands_only_beyond_the_tolerance_of_a_start_that_reads_the_window(monkeypatch):
+    from piezo_narx_ros.ident.selection import search
+    errors = {'rest': 0.0100, 'offset': 0.0101, 'state': 0.0110}
+
+    def policy_error(model, records, n, policy, past):
+        return {'r2_worst': 1 - errors[policy] ** 2, 'error': errors[policy], 'records': []}
+
+    monkeypatch.setattr(search, '_policy_error', policy_error)
+    monkeypatch.setattr(search, 'check_window', lambda *a: None)
+    monkeypatch.setattr(search, 'lagged', lambda model: False)
+    rec = Record(u=np.zeros(400), y=np.zeros(400), fs=FS, source='v')
+    assert search.start_scores(None, [rec], 100)['policy'] == 'rest'    # no tolerance
+    got = search.start_scores(None, [rec], 100, tolerance=0.02)
+    assert got['policy'] == 'offset' and got['error'] == errors['offset']
+    errors['offset'] = 0.0103                  # 3 % above rest: rest stands
+    assert search.start_scores(None, [rec], 100, tolerance=0.02)['policy'] == 'rest'
+    errors['state'] = 0.0099                   # the best anyway
+    assert search.start_scores(None, [rec], 100, tolerance=0.02)['policy'] == 'state'
+
+
 def test_pareto_front_keeps_the_undominated_points():
     points = [(0.1, 10), (0.05, 100), (0.2, 5), (0.1, 20), (0.05, 100), (0.3, 200)]
     assert pareto_front(points) == [0, 1, 2]

@@ -134,6 +134,16 @@ def test_evaluate_follows_the_stored_start_policy(tmp_path, records, capsys):
     assert done.value.code == 2
     err = capsys.readouterr().err
     assert err.count('\n') == 1 and "'state' needs at least 10 measured samples" in err
+    from_rest = set()
+    for policy in ('rest', 'offset', 'state'):     # nothing measured: from rest, as the help says
+        with pytest.raises(SystemExit) as done:
+            main(['evaluate', str(tmp_path / f'{policy}.json'), str(data), '--json',
+                  '--init-samples', '0'])
+        assert done.value.code == 0
+        doc = json.loads(capsys.readouterr().out)
+        assert doc['n'] == len(r)
+        from_rest.add(doc['simulation']['rmse'])
+    assert len(from_rest) == 1
 
 
 @pytest.mark.parametrize('policy', ['rest', 'offset', 'state'])

@@ -209,6 +209,8 @@ def evaluate(model, records, max_lag=20, max_outside_fraction=0.05, residuals='s
     from piezo_narx_ros.ident.data.records import check_scorable
     from piezo_narx_ros.ident.data.saturation import saturation_warnings
 
+    if init_samples == 0:
+        policy = None   # nothing measured: a free run from rest, whatever start the model stores
     if init_samples is not None:
         from piezo_narx_ros.ident.state.estimate import MIN_WINDOW
         need = max(MIN_WINDOW, int(model.n0))

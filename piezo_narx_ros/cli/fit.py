@@ -90,8 +90,9 @@ def add_parser(subparsers):
                              'selected model for any number of workers '
                              f'(default {SearchOptions.batch})')
     search.add_argument('--tolerance', type=float, metavar='FRACTION',
-                        help='the fewest parameters win within this relative error of the best '
-                             f'(default {SearchOptions.tolerance:g})')
+                        help='the fewest parameters win within this relative error of the best, '
+                             'and a start that reads the measured window wins over rest within '
+                             f'it (default {SearchOptions.tolerance:g})')
     search.add_argument('--committee', type=int, metavar='K',
                         help='the model is the mean of the pick and the K - 1 next best trials '
                              'of its family where it scores within --tolerance of the pick '
