@@ -201,7 +201,12 @@ def test_every_policy_is_scored_and_the_best_kept(records):
     eligible = [p for p in pol if p == 'state' or all(
         pol[p]['windows'][w] <= pol['state']['windows'][w] for w in pol[p]['windows'])]
     assert start['policy'] in eligible
-    assert start['error'] == min(pol[p]['error'] for p in eligible)
+    best = min(eligible, key=lambda p: pol[p]['error'])
+    if best == 'rest' and start['policy'] != 'rest':    # a window start within the tolerance
+        assert start['error'] <= pol['rest']['error'] * (1 + options.tolerance)
+        assert start['error'] == min(pol[p]['error'] for p in eligible if p != 'rest')
+    else:
+        assert start['error'] == pol[best]['error']
 
 
 def test_the_papers_network_is_searched_only_where_the_input_closes_minor_loops(records):
