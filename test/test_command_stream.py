@@ -45,6 +45,21 @@ def test_polls_read_the_signal_as_indexed_across_the_wrap():
     assert u.shape[0] > 100 and np.array_equal(u, want)
 
 
+def _hold_or_resume(k, holds, resumes, *streamers):
+    """Hold the streamers at the k in `holds`, resume them at the k in `resumes`."""
+    for s in streamers:
+        if k in holds:
+            s.hold()
+        if k in resumes:
+            s.resume()
+
+
+def _assert_same_counters(a, b):
+    for name in ('position', 'published', 'late_polls', 'max_batch', 'holding', 'finished'):
+        assert getattr(a, name) == getattr(b, name), name
+    assert np.array_equal(a._last, b._last)
+
+
 @pytest.mark.parametrize('slew', [math.inf, 2000.0])
 def test_poll_lists_is_poll_as_lists(slew):
     def streamer():
@@ -57,20 +72,13 @@ def test_poll_lists_is_poll_as_lists(slew):
     now, calls = 0, []
     for k in range(300):
         now += int(rng.choice([0, 1, 1, 1, 2, 9])) * 1_000_000
-        if k in (100, 150):
-            a.hold()
-            b.hold()
-        if k in (120, 170):
-            a.resume()
-            b.resume()
+        _hold_or_resume(k, (100, 150), (120, 170), a, b)
         t, v = a.poll(now)
         got = b.poll_lists(now)
         assert got == (t.tolist(), v.tolist())
         calls.append(len(got[0]))
     assert calls.count(1) > 100 and max(calls) == 5
-    for name in ('position', 'published', 'late_polls', 'max_batch', 'holding'):
-        assert getattr(a, name) == getattr(b, name), name
-    assert np.array_equal(a._last, b._last)
+    _assert_same_counters(a, b)
     a.stop()
     b.stop()
     assert b.poll_lists(now) == ([], [])
@@ -88,12 +96,7 @@ def test_take_run_is_poll_where_it_answers(loop):
     now, taken, refused = 0, 0, 0
     for k in range(400):
         now += int(rng.choice([0, 5, 5, 5, 6, 9])) * 1_000_000
-        if k in (100, 250):
-            a.hold()
-            b.hold()
-        if k in (120, 270):
-            a.resume()
-            b.resume()
+        _hold_or_resume(k, (100, 250), (120, 270), a, b)
         t, v = a.poll(now)
         got = b.take_run(now, 5)
         if got is None:
@@ -103,9 +106,7 @@ def test_take_run_is_poll_where_it_answers(loop):
             taken += 1
             assert len(t) == 5
         assert np.array_equal(got[0], t) and np.array_equal(got[1], v)
-        for name in ('position', 'published', 'late_polls', 'max_batch', 'holding', 'finished'):
-            assert getattr(a, name) == getattr(b, name), name
-        assert np.array_equal(a._last, b._last)
+        _assert_same_counters(a, b)
     if loop:     # the holds, the wraps, the late and early polls
         assert taken > 50 and refused > 50
     else:        # the last run goes through poll, which says the signal finished

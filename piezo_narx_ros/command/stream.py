@@ -229,13 +229,7 @@ class CommandStreamer:
         stamps = clock.stamps_ns(self._k, n)
         volts = self.signal[start:start + n]
         self._last = volts[-1]
-        self._k += n
-        self.position += n
-        self.published += n
-        if n > 1:
-            self.late_polls += 1
-        if n > self.max_batch:
-            self.max_batch = n
+        self._count(n)
         return stamps, volts
 
     def _due(self, now_mono_ns: int) -> int:
@@ -263,13 +257,18 @@ class CommandStreamer:
             if n and pos[0] < m:            # the preamble first, once
                 volts[pos < m] = self.lead[pos[pos < m]]
         volts = self._slew(volts)
+        self._count(n)
+        return stamps, volts
+
+    def _count(self, n: int) -> None:
+        """Count n samples of the signal returned by a poll (take_run's and _take's)."""
         self._k += n
         self.position += n
         self.published += n
         if n > 1:
             self.late_polls += 1
-        self.max_batch = max(self.max_batch, n)
-        return stamps, volts
+        if n > self.max_batch:
+            self.max_batch = n
 
     def _slew(self, u: np.ndarray) -> np.ndarray:
         if not math.isfinite(self.max_step) or u.shape[0] == 0:

@@ -188,10 +188,7 @@ class CommandNode(PiezoNode):
         period = p['publish_period'] or 1.0 / fs
         self._period_ns = int(p['publish_period'] * 1e9)
         self._next_wake = 0      # monotonic ns; used when run_node paces the node (pace())
-        # pace()'s batched wake: the message field, and from the due time of a message's first
-        # sample to that of its last, ns.
-        self._field = 'position' if self.position else 'effort'
-        self._last_of_batch_ns = math.ceil((b - 1) * 1e9 / fs)
+        self._field = 'position' if self.position else 'effort'     # of a batch message
         self.timer = self.create_timer(period, self.on_tick)
         self.diagnostics = Diagnostics(self, self.status, task='command stream')
         unit = 'm' if self.position else 'V'
@@ -257,18 +254,14 @@ class CommandNode(PiezoNode):
 
     def pace(self) -> float:
         """Publish what is due; return the wait until the next sample (or the next batch), s."""
-        s = self.streamer
-        if self.batch > 1 and not self._held_t.size:
-            # The steady stream's wake: one message's samples due, none held (on_tick's result
-            # for them, without its general case).
-            got = s.take_run(time.monotonic_ns(), self.batch)
-            if got is not None:
-                self.pub.publish(encode_joint_trajectory(got[0], self.axes,
-                                                         **{self._field: got[1]}))
-                self._next_wake = max(s.clock.due_ns(s._k) + self._last_of_batch_ns,
-                                      self._next_wake + self._period_ns)
-                return min(max(self._next_wake - time.monotonic_ns(), 0) * 1e-9, 0.1)
-        self.on_tick()
+        # The steady batched stream's wake: one message's samples due, none held, published
+        # as on_tick would, without its general case.
+        got = (self.streamer.take_run(time.monotonic_ns(), self.batch)
+               if self.batch > 1 and not self._held_t.size else None)
+        if got is not None:
+            self.pub.publish(encode_joint_trajectory(got[0], self.axes, **{self._field: got[1]}))
+        else:
+            self.on_tick()
         now = time.monotonic_ns()
         due = self.streamer.next_due_ns()
         if due is None:      # paused, waiting for listeners or finished: look again soon
@@ -335,10 +328,9 @@ class CommandNode(PiezoNode):
         """Publish the held samples `batch` at a time (and the rest too when `flush`)."""
         n, t, v = self.batch, self._held_t, self._held_v
         full = t.size if flush else t.size - t.size % n
-        field = 'position' if self.position else 'effort'
         for k in range(0, full, n):
             self.pub.publish(encode_joint_trajectory(t[k:k + n], self.axes,
-                                                     **{field: v[k:k + n]}))
+                                                     **{self._field: v[k:k + n]}))
         self._held_t, self._held_v = t[full:], v[full:]
 
     def status(self):
