@@ -17,8 +17,10 @@ message pair, p50 / p99 / mean, in microseconds:
 The once-a-second work (the estimator's diagnostics status(), which hands the held deflection
 batches over; the floor's held.take()) runs every fs / batch pairs, timed apart. The two nodes
 alternate in blocks of `--block` pairs so that a change of the machine's load moves both alike.
-`--profile` adds cProfile's top entries for the estimator's hot pairs. Prints figures; checks
-only that the stream stayed clean (nothing withheld or refused).
+`--against FILE` adds the node running another free_run.py's FreeRunEstimator, in turn with the
+others (an A/B of the estimator's logic in one process). `--profile` adds cProfile's top entries
+for the estimator's hot pairs. Prints figures; checks only that the stream stayed clean (nothing
+withheld or refused).
 
     python bench/bench_callbacks.py [--pairs 3000] [--fs 20000] [--batch 20] [--profile]
 """
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import importlib.util
 import os
 import pstats
 import sys
@@ -93,24 +96,44 @@ def messages(model, fs: float, batch: int, pairs: int):
     return out
 
 
-def build(fs: float, batch: int, model_path: Path):
-    """Return (estimator_node, FloorEstimator), publishers stubbed, as bench_live starts them."""
+def estimator(fs: float, batch: int, model_path: Path, namespace: str, against=None):
+    """
+    Return estimator_node as bench_live starts it, its publisher stubbed.
+
+    against: a free_run.py whose FreeRunEstimator the node runs instead of the package's.
+    """
+    from rclpy.parameter import Parameter
+    from piezo_narx_ros.nodes import estimator_node
+    own = estimator_node.FreeRunEstimator
+    if against is not None:
+        spec = importlib.util.spec_from_file_location('free_run_against', against)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = module      # dataclasses look their module up there
+        spec.loader.exec_module(module)
+        estimator_node.FreeRunEstimator = module.FreeRunEstimator
+    try:
+        node = estimator_node.EstimatorNode(parameter_overrides=[
+            Parameter('model', value=str(model_path)), Parameter('fs', value=float(fs)),
+            Parameter('init', value='rest'), Parameter('batch', value=batch)],
+            namespace=namespace)
+    finally:
+        estimator_node.FreeRunEstimator = own
+    node.pub = StubPublisher(node.pub)
+    # Live, the command stream has one writer and deflection one publisher: the node asks DDS.
+    node.sub_cmd.get_publisher_count = lambda: 1
+    node.sub_meas.get_publisher_count = lambda: 1
+    return node
+
+
+def floor_estimator(fs: float, batch: int):
+    """Return bench/floor_nodes.py's FloorEstimator, its publisher stubbed."""
     from rclpy.parameter import Parameter
     from floor_nodes import FloorEstimator
-    from piezo_narx_ros.nodes.estimator_node import EstimatorNode
-    est = EstimatorNode(parameter_overrides=[
-        Parameter('model', value=str(model_path)), Parameter('fs', value=float(fs)),
-        Parameter('init', value='rest'), Parameter('batch', value=batch)],
-        namespace='/bench_cb')
     floor = FloorEstimator(parameter_overrides=[
         Parameter('fs', value=float(fs)), Parameter('batch', value=batch)],
         namespace='/floor_cb')
-    for node in (est, floor):
-        node.pub = StubPublisher(node.pub)
-    # Live, the command stream has one writer and deflection one publisher: the node asks DDS.
-    est.sub_cmd.get_publisher_count = lambda: 1
-    est.sub_meas.get_publisher_count = lambda: 1
-    return est, floor
+    floor.pub = StubPublisher(floor.pub)
+    return floor
 
 
 class Runner:
@@ -176,6 +199,9 @@ def main(argv=None) -> int:
                     help='buffers touched (one cold mode each), MiB')
     ap.add_argument('--profile', action='store_true', help="cProfile the estimator's hot pairs")
     ap.add_argument('--modes', default='hot,cold', help='hot, cold or both')
+    ap.add_argument('--against', default=None, metavar='FREE_RUN_PY',
+                    help='also time the node running the FreeRunEstimator of this file, in turn '
+                    'with the others (e.g. git show main:piezo_narx_ros/estimator/free_run.py)')
     args = ap.parse_args(argv)
 
     import rclpy
@@ -188,7 +214,8 @@ def main(argv=None) -> int:
     rclpy.init()
     with tempfile.TemporaryDirectory() as tmp:
         path = save_model(model, Path(tmp) / 'toy.json')
-        est, floor = build(args.fs, args.batch, path)
+        est = estimator(args.fs, args.batch, path, '/bench_cb')
+        floor = floor_estimator(args.fs, args.batch)
         n_modes = len(args.modes.split(',')) + args.evict_mib.count(',') + args.profile
         msgs = messages(model, args.fs, args.batch, tick_every + 10 + n_modes * args.pairs)
         runners = [
@@ -196,6 +223,12 @@ def main(argv=None) -> int:
                    est.status, msgs, tick_every),
             Runner('floor stand-in', floor.on_batch, floor.on_measurement_batch,
                    floor.held.take, msgs, tick_every)]
+        nodes = [est, floor]
+        if args.against:
+            other = estimator(args.fs, args.batch, path, '/bench_cb_against', args.against)
+            runners.append(Runner('estimator_node, against', other.on_command_batch,
+                                  other.on_measurement_batch, other.status, msgs, tick_every))
+            nodes.append(other)
         for r in runners:          # warm up: numba loads, codec shapes, the first tick
             r.run(tick_every + 10)
         modes = {}
@@ -223,8 +256,10 @@ def main(argv=None) -> int:
         for mode in modes:
             for r in runners:
                 print(f'{r.name + ", " + mode:<36} {figures(r.pairs[mode])}')
-            ratio = np.median(runners[0].pairs[mode]) / np.median(runners[1].pairs[mode])
-            print(f'{"  ratio of p50s, " + mode:<36} {ratio:7.2f}')
+            for r in runners[::2]:
+                ratio = np.median(r.pairs[mode]) / np.median(runners[1].pairs[mode])
+                label = '  p50 / floor p50, ' + r.name.split(', ')[-1]
+                print(f'{label:<36} {ratio:7.2f}')
         print('once a second (us)')
         for mode in modes:
             for r in runners:
@@ -239,7 +274,7 @@ def main(argv=None) -> int:
             prof.disable()
             print(f'\ncProfile, estimator_node, {args.pairs} hot pairs (tottime):')
             pstats.Stats(prof, stream=sys.stdout).sort_stats('tottime').print_stats(25)
-        for node in (est, floor):
+        for node in nodes:
             node.destroy_node()
     rclpy.try_shutdown()
     return 0
