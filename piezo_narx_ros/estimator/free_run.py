@@ -188,6 +188,7 @@ class FreeRunEstimator:
         # A caller that holds measurements back while `steady` (estimator_node decodes them in
         # bulk) sets this: called before anything that may depend on them (see `steady`).
         self.handover = None
+        self._checked_of = self._checked = None     # _step_checked's Stepper and its method
         self.restart()
 
     # -------------------------------------------------------------------------------- state
@@ -417,8 +418,9 @@ class FreeRunEstimator:
                 self.excursion = _running_largest(self.excursion, beyond)
                 st.nonfinite_estimates += int(np.count_nonzero(
                     ~np.isfinite(y.reshape(n, -1)).all(axis=1)))
-        measured = self._meas.get_many(tl)
-        if _any_value(measured):
+        # Stamps in order: none measured yet is the steady stream's usual case (one comparison).
+        measured = self._meas.get_many(tl) if self._meas.holds_from(tl[0]) else None
+        if measured is not None and _any_value(measured):
             self._record_errors([(m, e) for m, e in zip(measured, yl) if m is not None])
             self._est.update((s, e) for s, m, e in zip(tl, measured, yl) if m is None)
         else:
@@ -430,7 +432,10 @@ class FreeRunEstimator:
     def _step_checked(self, v: np.ndarray) -> np.ndarray:
         """Step a one-input batch already checked (finite, contiguous float64), V -> m."""
         stepper = self._stepper
-        return getattr(stepper, 'step_many_checked', stepper.step_many)(v)
+        if stepper is not self._checked_of:     # looked up once per Stepper, not per batch
+            self._checked_of = stepper
+            self._checked = getattr(stepper, 'step_many_checked', stepper.step_many)
+        return self._checked(v)
 
     def as_arrays(self, estimates: list) -> tuple[np.ndarray, np.ndarray]:
         """[(t_ns, y_hat), ...] -> (stamps (n,) int64, y_hat (n,) or (n, n_out) float64)."""
