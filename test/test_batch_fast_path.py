@@ -90,6 +90,36 @@ def test_pass_run_observed_is_pass_run_then_observe_run():
     assert pairs[1][1].episodes >= 1      # the other rate was seen
 
 
+def test_pass_run_checked_is_the_command_checks_then_pass_run_observed():
+    # The commands' checks folded into the stamp kernel's call: the same verdicts and state as
+    # the Python checks (finite, within the accepted range) before pass_run_observed.
+    from piezo_narx_ros.command.stamps import (StampGate, checked_run_bounds, pass_run_checked,
+                                               pass_run_observed)
+    rng = np.random.default_rng(5)
+    pairs = [(StampGate(PERIOD, 100), RateMonitor(PERIOD, 0.01, 50)) for _ in range(2)]
+    bounds = checked_run_bounds(pairs[1][1], (-200.0, 200.0), (-150.0, 150.0))
+    for g, _ in pairs:
+        g.push(T0)
+    for _ in range(400):
+        m = int(rng.integers(0, 25))
+        steps = rng.choice([PERIOD, PERIOD, PERIOD, 3 * PERIOD], m)
+        (g1, r1), (g2, r2) = pairs
+        stamps = (g1.last + np.cumsum(steps)).astype(np.int64)
+        v = rng.uniform(-140.0, 140.0, m)
+        if m and rng.random() < 0.5:
+            v[int(rng.integers(0, m))] = rng.choice([np.nan, np.inf, -np.inf, 200.0, -200.0,
+                                                     200.5, 160.0, -150.0, -151.0])
+        clean = m > 0 and bool(np.isfinite(v).all()) and -200.0 <= v.min() <= v.max() <= 200.0
+        want = pass_run_observed(g1, r1, stamps) if clean else None
+        got = pass_run_checked(g2, r2, stamps, v, bounds)
+        assert (got is None) == (want is None) and g1.last == g2.last
+        if want is not None:
+            inside = bool(((v >= -150.0) & (v <= 150.0)).all())
+            assert got[0].tolist() == want[0].tolist() and got[1:] == (want[1], inside)
+        assert (r1._st == r2._st).all() and (r1._ring == r2._ring).all()
+        assert r1._received == r2._received and r1._last == r2._last
+
+
 def _command_stream(rng, n):
     """Stamps and volts of a stream with every kind of trouble in some of its stretches."""
     t = T0 + np.arange(n, dtype=np.int64) * PERIOD

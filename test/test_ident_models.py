@@ -171,6 +171,19 @@ def test_step_many_gives_the_numbers_of_single_steps_and_refuses_before_stepping
     assert np.isfinite(m.stepper().step_many([1.7e308, 1.7e308])).shape == (2,)
 
 
+@pytest.mark.parametrize('nu, ny, hidden', [(0, 1, 3), (4, 4, 10), (2, 6, 17)])
+def test_narx_batches_give_the_free_runs_bits(nu, ny, hidden):
+    # step_many's kernel sums input by input across the units (narx_run): the same bits as the
+    # unit-by-unit evaluation of simulate and step, and the same histories after it.
+    m = random_network(nu, ny, hidden, seed=nu + ny)
+    u = np.random.default_rng(1).uniform(-2.0, 4.0, 500)
+    one, many = m.stepper(), m.stepper()
+    got = np.concatenate([many.step_many(u[k:k + 20]) for k in range(0, u.size, 20)])
+    assert np.array_equal(got, m.simulate(u))
+    assert np.array_equal(got, [one.step(x) for x in u])
+    assert np.array_equal(many.y_past, one.y_past) and np.array_equal(many.u_past, one.u_past)
+
+
 # ---------------------------------------------------------------- NARX: free-run kernels
 def random_network(nu=3, ny=2, hidden=6, seed=0):
     rng = np.random.default_rng(seed)

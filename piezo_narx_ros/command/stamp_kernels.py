@@ -108,3 +108,27 @@ def pass_and_observe(t_ns, last, grid_tolerance, received, period, tolerance, mi
         if off_out[i]:
             n_off += 1
     return n_off
+
+
+@njit(cache=True)
+def check_pass_and_observe(t_ns, v, bounds, last, received, min_steps, single_writer, ring, st,
+                           fst, off_out):
+    """
+    pass_and_observe for a batch of commands v (n,) V that must each be finite and accepted.
+
+    bounds (7,) float64: accepted lowest and highest command, trained lowest and highest (V),
+    then the grid tolerance, the period (ns) and the rate tolerance. Returns (-2, False) when a
+    command is NaN, infinite or not accepted, (-1, False) when a stamp is off the grid (nothing
+    changed either way), else (how many samples are off rate, whether every command is within
+    the trained range): a batch's input, stamp and rate checks in one compiled call.
+    """
+    inside = True
+    for i in range(v.shape[0]):
+        x = v[i]
+        if not (np.isfinite(x) and bounds[0] <= x <= bounds[1]):
+            return -2, False
+        if not bounds[2] <= x <= bounds[3]:
+            inside = False
+    n_off = pass_and_observe(t_ns, last, bounds[4], received, bounds[5], bounds[6], min_steps,
+                             single_writer, ring, st, fst, off_out)
+    return n_off, inside and n_off >= 0

@@ -194,6 +194,11 @@ def _load_kernels() -> None:
                             np.zeros((RATE_MIN_STEPS + 1, 3), dtype=np.int64),
                             np.zeros(sk.N_INT_STATE, dtype=np.int64), np.zeros(2),
                             np.zeros(1, dtype=np.bool_))
+        bounds = np.array([-1.0, 1.0, -1.0, 1.0, GRID_TOLERANCE, 1.0, 0.01])
+        sk.check_pass_and_observe(t, np.zeros(1), bounds, 0, 0, RATE_MIN_STEPS, False,
+                                  np.zeros((RATE_MIN_STEPS + 1, 3), dtype=np.int64),
+                                  np.zeros(sk.N_INT_STATE, dtype=np.int64), np.zeros(2),
+                                  np.zeros(1, dtype=np.bool_))
         _KERNELS_LOADED = True
 
 
@@ -337,6 +342,40 @@ def pass_run_observed(gate: StampGate, rate: RateMonitor, t_ns: np.ndarray):
     gate.last = rate._last = int(t_ns[-1])
     rate._received = 0
     return offs, n_off
+
+
+def checked_run_bounds(rate: RateMonitor, accepted: tuple, trained: tuple) -> np.ndarray:
+    """
+    Return pass_run_checked's bounds: (lo, hi) accepted and (lo, hi) trained commands, V.
+
+    With the grid tolerance and `rate`'s period and tolerance, which never change.
+    """
+    return np.array([*accepted, *trained, GRID_TOLERANCE, rate.period_ns, rate.tolerance],
+                    dtype=np.float64)
+
+
+def pass_run_checked(gate: StampGate, rate: RateMonitor, t_ns: np.ndarray, v: np.ndarray,
+                     bounds: np.ndarray):
+    """
+    Return pass_run_observed(gate, rate, t_ns) of a batch whose commands must pass too.
+
+    v: (n,) float64 V, C-contiguous, one per stamp; bounds: checked_run_bounds. None when a
+    command is NaN, infinite or outside the accepted range, or the stamps do not pass (nothing
+    changed); else (off (n,) bool, how many are off, whether every command lies within the
+    trained range): the Python checks of a batch's commands (a list, its min, max and sum)
+    folded into the stamp and rate kernel's one call.
+    """
+    if gate._held or gate.last is None or t_ns.shape[0] == 0:
+        return None
+    offs = np.empty(t_ns.shape[0], dtype=np.bool_)
+    n_off, inside = sk.check_pass_and_observe(t_ns, v, bounds, gate.last, rate._received,
+                                              RATE_MIN_STEPS, rate.single_writer, rate._ring,
+                                              rate._st, rate._fst, offs)
+    if n_off < 0:
+        return None
+    gate.last = rate._last = int(t_ns[-1])
+    rate._received = 0
+    return offs, n_off, inside
 
 
 def model_rate(model, fs: float | None = None) -> float:

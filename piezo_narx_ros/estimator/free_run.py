@@ -35,7 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from piezo_narx_ros.command.stamps import (GRID_TOLERANCE, RATE_TOLERANCE, SAMPLE, RateMonitor,
-                                           StampGate, model_rate, pass_run_observed)
+                                           StampGate, checked_run_bounds, model_rate,
+                                           pass_run_checked, pass_run_observed)
 from piezo_narx_ros.errors import ConfigError, DataError
 from piezo_narx_ros.estimator.memory import memory_bracket
 from piezo_narx_ros.estimator.stamp_table import StampTable
@@ -177,6 +178,9 @@ class FreeRunEstimator:
         self.excursion = 0.0      # largest distance beyond the range (m) since take_excursion()
         self.gate = StampGate(self.period_ns, self.max_fill, confirm)
         self.rate = RateMonitor(self.period_ns, rate_tolerance, max(self.window, 8))
+        # One input: a batch's command checks run in the stamp kernel's call (on_commands).
+        self._u_bounds = None if self.vector else checked_run_bounds(
+            self.rate, (self.u_min, self.u_max), (self.u_lo, self.u_hi))
         # u/t history kept for re-anchoring (only then), and the stamp tables' horizon
         self._hist = max(self.n0, 1) + 64 + self.reanchor_every + self.init_samples
         self._err = deque(maxlen=self.window)
@@ -184,6 +188,7 @@ class FreeRunEstimator:
         # A caller that holds measurements back while `steady` (estimator_node decodes them in
         # bulk) sets this: called before anything that may depend on them (see `steady`).
         self.handover = None
+        self._checked_of = self._checked = None     # _step_checked's Stepper and its method
         self.restart()
 
     # -------------------------------------------------------------------------------- state
@@ -323,23 +328,24 @@ class FreeRunEstimator:
         sample through on_command().
         """
         t = np.ascontiguousarray(t_ns, dtype=np.int64).ravel()
+        fast = self._stepper is not None and self._memory is None and not self.reanchor_every
+        passed = None
         if self.vector:     # rows of a copy: the Stepper and the history keep them
             v = np.array(u, dtype=np.float64).reshape(t.shape[0], self.n_in)
             ul = list(v)
-            clean = bool(((v >= self.u_min) & (v <= self.u_max)).all())   # NaN: False
+            if fast and bool(((v >= self.u_min) & (v <= self.u_max)).all()):   # NaN: False
+                passed = pass_run_observed(self.gate, self.rate, t)    # stamp and rate checks
+                if passed is not None:
+                    passed += (False,)   # within the trained range: checked per row
         else:
             v = np.ascontiguousarray(u, dtype=np.float64).ravel()   # the kernel's layout
             if t.shape != v.shape:
                 raise DataError(f'{t.shape[0]} stamps for {v.shape[0]} commands')
-            ul = v.tolist()
-            lo, hi = (min(ul), max(ul)) if ul else (math.nan, math.nan)
-            clean = math.isfinite(sum(ul)) and self.u_min <= lo and hi <= self.u_max
-        passed = None
-        if clean and self._stepper is not None and self._memory is None \
-                and not self.reanchor_every:
-            passed = pass_run_observed(self.gate, self.rate, t)    # stamp and rate checks
+            if fast:     # commands finite and accepted, then the stamp and rate checks
+                passed = pass_run_checked(self.gate, self.rate, t, v, self._u_bounds)
+            ul = None if passed is not None else v.tolist()
         if passed is not None:
-            return self._run_batch(t, ul, v, *passed, None if self.vector else (lo, hi))
+            return self._run_batch(t, v, *passed)
         self._hand_over()
         out = [e for ti, vi in zip(t.tolist(), ul) for e in self.on_command(ti, vi)]
         return self.as_arrays(out)
@@ -373,28 +379,34 @@ class FreeRunEstimator:
         self._meas.extend(tl, yl, increasing)
         return self.as_arrays([])
 
-    def _run_batch(self, t: np.ndarray, ul: list, v: np.ndarray, off: np.ndarray,
-                   withheld: int, span: tuple | None) -> tuple[np.ndarray, np.ndarray]:
+    def _run_batch(self, t: np.ndarray, v: np.ndarray, off: np.ndarray, withheld: int,
+                   inside: bool) -> tuple[np.ndarray, np.ndarray]:
         """
         Run the batch fast path of on_commands (its conditions hold: see there).
 
         The stamps passed the gate and the rate check: off (n,) bool and withheld, their verdict;
-        span: (lowest, highest) command of a one-input batch, V (None for several inputs).
+        inside: every command lies within the trained input range (False: look row by row).
         """
         st = self.stats
-        n = len(ul)
+        n = t.shape[0]
         st.commands += n
-        if span is None or span[0] < self.u_lo or span[1] > self.u_hi:
+        if not inside:
             # Estimated, but the model extrapolates there (finite here: no NaN to follow).
             beyond = _rows_beyond(v, self.u_lo, self.u_hi)
             if beyond.size:
                 st.input_out_of_range += beyond.size
                 self.u_excursion = max(self.u_excursion, float(beyond.max()))
         tl = t.tolist()
-        self._last_t, self._last_u = tl[-1], ul[-1]
+        self._last_t = tl[-1]
         # The inputs were checked finite and within [u_min, u_max] in on_commands.
-        y = self._step_checked(v) if span is not None else self._stepper.step_many(v)
-        yl = list(y) if self.vector else y.tolist()
+        if self.vector:
+            self._last_u = v[-1]
+            y = self._stepper.step_many(v)
+            yl = list(y)
+        else:
+            self._last_u = float(v[-1])
+            y = self._step_checked(v)
+            yl = y.tolist()
         st.rate_withheld += withheld
         st.estimates += n - withheld
         self.out_of_range_now = not _within(yl[-1], self.y_lo, self.y_hi)
@@ -406,8 +418,9 @@ class FreeRunEstimator:
                 self.excursion = _running_largest(self.excursion, beyond)
                 st.nonfinite_estimates += int(np.count_nonzero(
                     ~np.isfinite(y.reshape(n, -1)).all(axis=1)))
-        measured = self._meas.get_many(tl)
-        if _any_value(measured):
+        # Stamps in order: none measured yet is the steady stream's usual case (one comparison).
+        measured = self._meas.get_many(tl) if self._meas.holds_from(tl[0]) else None
+        if measured is not None and _any_value(measured):
             self._record_errors([(m, e) for m, e in zip(measured, yl) if m is not None])
             self._est.update((s, e) for s, m, e in zip(tl, measured, yl) if m is None)
         else:
@@ -419,7 +432,10 @@ class FreeRunEstimator:
     def _step_checked(self, v: np.ndarray) -> np.ndarray:
         """Step a one-input batch already checked (finite, contiguous float64), V -> m."""
         stepper = self._stepper
-        return getattr(stepper, 'step_many_checked', stepper.step_many)(v)
+        if stepper is not self._checked_of:     # looked up once per Stepper, not per batch
+            self._checked_of = stepper
+            self._checked = getattr(stepper, 'step_many_checked', stepper.step_many)
+        return self._checked(v)
 
     def as_arrays(self, estimates: list) -> tuple[np.ndarray, np.ndarray]:
         """[(t_ns, y_hat), ...] -> (stamps (n,) int64, y_hat (n,) or (n, n_out) float64)."""

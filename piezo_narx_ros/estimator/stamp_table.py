@@ -113,6 +113,10 @@ class StampTable:
                     return v
         return self._other.pop(t, default) if self._other else default
 
+    def holds_from(self, t: int) -> bool:
+        """Tell whether a stamp at or after t may be held (False: none is, get_many is Nones)."""
+        return bool(self._other) or bool(self._t) and self._t[-1] >= t
+
     def get_many(self, stamps: list) -> list:
         """Return [value or None] of each stamp of `stamps`."""
         ts = self._t
