@@ -331,7 +331,7 @@ def pass_run_observed(gate: StampGate, rate: RateMonitor, t_ns: np.ndarray):
     else (the `off` verdict after each sample (n,) bool, how many are off): a batch path's
     stamp and rate checks at the price of one.
     """
-    if gate._held or gate.last is None or t_ns.shape[0] == 0:
+    if not _run_may_pass(gate, t_ns):
         return None
     offs = np.empty(t_ns.shape[0], dtype=np.bool_)
     n_off = sk.pass_and_observe(t_ns, gate.last, GRID_TOLERANCE, rate._received,
@@ -339,9 +339,19 @@ def pass_run_observed(gate: StampGate, rate: RateMonitor, t_ns: np.ndarray):
                                 rate.single_writer, rate._ring, rate._st, rate._fst, offs)
     if n_off < 0:
         return None
+    _run_passed(gate, rate, t_ns)
+    return offs, n_off
+
+
+def _run_may_pass(gate: StampGate, t_ns: np.ndarray) -> bool:
+    """Tell whether a batch can take the compiled path (nothing held, a last stamp, samples)."""
+    return not (gate._held or gate.last is None or t_ns.shape[0] == 0)
+
+
+def _run_passed(gate: StampGate, rate: RateMonitor, t_ns: np.ndarray) -> None:
+    """Commit a batch the compiled checks passed: its last stamp in the gate and the monitor."""
     gate.last = rate._last = int(t_ns[-1])
     rate._received = 0
-    return offs, n_off
 
 
 def checked_run_bounds(rate: RateMonitor, accepted: tuple, trained: tuple) -> np.ndarray:
@@ -365,7 +375,7 @@ def pass_run_checked(gate: StampGate, rate: RateMonitor, t_ns: np.ndarray, v: np
     trained range): the Python checks of a batch's commands (a list, its min, max and sum)
     folded into the stamp and rate kernel's one call.
     """
-    if gate._held or gate.last is None or t_ns.shape[0] == 0:
+    if not _run_may_pass(gate, t_ns):
         return None
     offs = np.empty(t_ns.shape[0], dtype=np.bool_)
     n_off, inside = sk.check_pass_and_observe(t_ns, v, bounds, gate.last, rate._received,
@@ -373,8 +383,7 @@ def pass_run_checked(gate: StampGate, rate: RateMonitor, t_ns: np.ndarray, v: np
                                               rate._st, rate._fst, offs)
     if n_off < 0:
         return None
-    gate.last = rate._last = int(t_ns[-1])
-    rate._received = 0
+    _run_passed(gate, rate, t_ns)
     return offs, n_off, inside
 
 

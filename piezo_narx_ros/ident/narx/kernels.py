@@ -71,13 +71,6 @@ def narx_step(u_k, ubuf, ybuf, Wu, Wy, b1, w2, b2):
 
 
 @njit(cache=True)
-def narx_step_many(u, y, ubuf, ybuf, Wu, Wy, b1, w2, b2):
-    """Run narx_step for each u[k] (V) in order, y[k] (m) filled: one compiled call per batch."""
-    for k in range(u.size):
-        y[k] = narx_step(u[k], ubuf, ybuf, Wu, Wy, b1, w2, b2)
-
-
-@njit(cache=True)
 def narx_run(u, y, state, rows, nu1, b2, offset):
     """
     Run narx_step for each u[k] (V) in order; y[k] = its output + offset (m). One call a batch.
@@ -297,9 +290,7 @@ def finite_inputs(u) -> np.ndarray:
 
 
 class NARXStepper(Stepper):
-    """Stepper of a NARXNetwork (see Stepper)."""
-
-    _step_many = staticmethod(narx_step_many)
+    """Stepper of a NARXNetwork (see Stepper; its batches run narx_run, not _step_many)."""
 
     def __init__(self, params, nu, ny, u_past=None, y_past=None):
         super().__init__(params, nu, ny, u_past, y_past)

@@ -10,8 +10,9 @@ of over hand-picked grids. `run_search` is that search, an Optuna study over
 * each family's structure (`SPACE`): lags, hidden units, play operators, Duhem states, drive
   increments, creep, output dynamics, training length, the network seed, and with several
   estimation records whether each has a sensor zero of its own (`OFFSETS_SPACE`);
-* the start policy (ident/state/start.py): every fitted model is scored under each policy and
-  keeps the best that reads the window (`start_scores`), so the policy costs no fit.
+* the start policy (ident/state/start.py): every fitted model is scored under each policy, so
+  the policy costs no fit, and keeps `state` (a lagged family `offset` where that never loses to
+  its measured lags; `start_scores` says why not the best score).
 
 Every trial is fitted on the estimation records only and scored the way the model will be used:
 a free run of each validation record after its first `init_samples` measured samples, the worst
