@@ -40,6 +40,7 @@ from piezo_narx_ros.command.stamps import (GRID_TOLERANCE, RATE_TOLERANCE, SAMPL
 from piezo_narx_ros.errors import ConfigError, DataError
 from piezo_narx_ros.estimator.memory import memory_bracket
 from piezo_narx_ros.estimator.stamp_table import StampTable
+from piezo_narx_ros.estimator.window import FullWindow
 from piezo_narx_ros.ident.state.estimate import MIN_WINDOW
 
 INIT_MODES = ('auto', 'rest', 'measurement')
@@ -207,6 +208,7 @@ class FreeRunEstimator:
         self._decided = self.init_mode != 'auto'
         self._stepper = None
         self._pending: list[tuple[int, float, bool]] = []   # commands while the state waits
+        self._window = FullWindow(self.init_samples)         # their first all measured
         self._last_t: int | None = None
         self._last_u = np.zeros(self.n_in) if self.vector else 0.0
         self._t_hist = deque(maxlen=self._hist)
@@ -541,7 +543,8 @@ class FreeRunEstimator:
         if y_hat is not None:
             self._record_error(y, y_hat)
         self._meas[t_ns] = y
-        if self._stepper is None and self._pending and self._try_init_from_measurement():
+        if self._stepper is None and self._pending and \
+                self._try_init_from_measurement(self._window.measurement(t_ns)):
             self._flush_init(out)
         return out
 
@@ -577,7 +580,8 @@ class FreeRunEstimator:
                 self._start_from_rest(u, 'rest')
             else:
                 self._pending.append((t_ns, u, filled))
-                if not self._try_init_from_measurement() and \
+                start = self._window.command(t_ns, t_ns in self._meas)
+                if not self._try_init_from_measurement(start) and \
                         len(self._pending) >= self.init_timeout_samples:
                     self._init_pending_from_rest(out)
                 else:
@@ -636,30 +640,37 @@ class FreeRunEstimator:
         self._err.extend([m - e for m, e in pairs])
         self._ymeas.extend([m for m, _ in pairs])
 
-    def _try_init_from_measurement(self) -> bool:
+    def _try_init_from_measurement(self, start: int | None) -> bool:
         """
         Initialise at the first init_samples consecutive pending commands with a measurement.
 
-        Usually the first ones; later ones when the first measurements were lost, e.g. while the
-        deflection subscription was still being matched. Earlier commands get no estimate and are
-        counted as `unestimated`. The state at the window's first command is the model's
-        estimate_state of the window; a window no state explains is skipped (wait for the next).
+        start: that window's first index in the pending commands (FullWindow), None while there
+        is none. Usually the first ones; later ones when the first measurements were lost, e.g.
+        while the deflection subscription was still being matched. Earlier commands get no
+        estimate and are counted as `unestimated`. The state at the window's first command is
+        the model's estimate_state of the window; a window no state explains is skipped (the
+        next one is after it).
         """
-        from piezo_narx_ros.ident.state.start import first_full_window
         n, pending, meas = self.init_samples, self._pending, self._meas
-        start = first_full_window((t for t, _, _ in pending), meas, n)
-        if start is None:
-            return False
-        u_win = np.array([u for _, u, _ in pending[start:start + n]])
-        y_win = np.array([meas[t] for t, _, _ in pending[start:start + n]])
-        try:
-            if self.start_policy is None:
-                state = self.model.estimate_state(u_win, y_win, past=self.init_past)
-            else:
-                from piezo_narx_ros.ident.state.start import window_state
-                state = window_state(self.model, u_win, y_win, self.start_policy,
-                                     self.init_past)
-        except DataError:
+        while start is not None:
+            y_win = meas.get_many([t for t, _, _ in pending[start:start + n]])
+            if any(y is None for y in y_win):   # forgotten since (a late hole filled): skip
+                start = self._window.skip(start)
+                continue
+            u_win = np.array([u for _, u, _ in pending[start:start + n]])
+            y_win = np.array(y_win)
+            try:
+                if self.start_policy is None:
+                    state = self.model.estimate_state(u_win, y_win, past=self.init_past)
+                else:
+                    from piezo_narx_ros.ident.state.start import window_state
+                    state = window_state(self.model, u_win, y_win, self.start_policy,
+                                         self.init_past)
+            except DataError:
+                start = self._window.skip(start)
+                continue
+            break
+        else:
             return False
         from piezo_narx_ros.ident.state.start import relag_window
         # A lagged family started by its policy from the measured lags: set once they are stepped.
@@ -777,3 +788,35 @@ def _padded(rows, margin: float, n: int) -> tuple:
         return np.full(n, -math.inf), np.full(n, math.inf)
     pad = margin * (rows[:, 1] - rows[:, 0])
     return rows[:, 0] - pad, rows[:, 1] + pad
+
+
+def warm_up(est: FreeRunEstimator, batch: int = 20) -> None:
+    """
+    Compile and load everything `est` runs on a stream, by running it on one: est is used up.
+
+    Pass a throwaway estimator built like the one that will serve. A sine across the model's
+    input range at est.fs, with the model's own free run as its measurement: one command and
+    one measurement at a time through the initial window (from measurement when est waits for
+    one), then batches of `batch`. Without it the first window's state estimate compiled its
+    kernels on the live stream (0.5 s on a cold cache) while the commands queued.
+    """
+    n = est.init_samples + 4 * batch
+    shape = (n, est.n_in) if est.vector else (n,)
+    lo = np.maximum(np.broadcast_to(est.u_lo, shape[1:]), est.u_min)
+    hi = np.minimum(np.broadcast_to(est.u_hi, shape[1:]), est.u_max)
+    lo, hi = np.where(np.isfinite(lo), lo, -1.0), np.where(np.isfinite(hi), hi, 1.0)
+    phase = np.sin(2.0 * np.pi * 5.0 * np.arange(n) / est.fs)
+    u = (0.5 * (lo + hi) + 0.4 * (hi - lo) * (phase[:, None] if est.vector else phase))
+    u = u.reshape(shape)
+    with np.errstate(all='ignore'):
+        y = np.asarray(est.model.simulate(u), dtype=np.float64)
+    t = np.int64(10**18) + np.round(np.arange(n) * est.period_ns).astype(np.int64)
+    est.start(True)
+    k = est.init_samples + batch
+    for i in range(k):
+        est.on_measurement(int(t[i]), y[i] if est.vector else float(y[i]))
+        est.on_command(int(t[i]), u[i] if est.vector else float(u[i]))
+    for i in range(k, n, batch):
+        est.on_commands(t[i:i + batch], u[i:i + batch])
+        est.on_measurements(t[i:i + batch], y[i:i + batch])
+    est.running_error()

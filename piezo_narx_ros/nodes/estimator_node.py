@@ -11,12 +11,11 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 from std_srvs.srv import Trigger
 
 from piezo_narx_ros.command.stamps import RATE_TOLERANCE
 from piezo_narx_ros.errors import ConfigError
-from piezo_narx_ros.estimator.free_run import INIT_MODES, FreeRunEstimator
+from piezo_narx_ros.estimator.free_run import INIT_MODES, FreeRunEstimator, warm_up
 from piezo_narx_ros.estimator.health import EstimatorHealth
 from piezo_narx_ros.ident.state.estimate import PASTS
 from piezo_narx_ros.nodes.wire.batching import BATCH_PARAM, HeldBatches, batch_topic, sample_type
@@ -78,15 +77,16 @@ class EstimatorNode(PiezoNode):
         from piezo_narx_ros.ident.validation.usable import load_runnable
         p = self.params
         self.model = load_runnable(p['model'])
-        self.est = FreeRunEstimator(
-            self.model, fs=p['fs'] or None, init=p['init'], u_min=p['u_min'], u_max=p['u_max'],
-            max_fill=p['max_fill'], range_margin=p['range_margin'], window=p['window'],
-            reanchor_every=p['reanchor_every'], init_timeout=p['init_timeout'],
-            init_window=p['init_window'] if p['init_window'] >= 0 else None,
-            init_past=p['init_past'],
-            rate_tolerance=p['rate_tolerance'])
-        # Compile/load the kernel before the first sample.
-        self.est.model.stepper().step(np.zeros(self.est.n_in) if self.est.vector else 0.0)
+        config = {
+            'fs': p['fs'] or None, 'init': p['init'], 'u_min': p['u_min'], 'u_max': p['u_max'],
+            'max_fill': p['max_fill'], 'range_margin': p['range_margin'],
+            'window': p['window'], 'reanchor_every': p['reanchor_every'],
+            'init_timeout': p['init_timeout'],
+            'init_window': p['init_window'] if p['init_window'] >= 0 else None,
+            'init_past': p['init_past'], 'rate_tolerance': p['rate_tolerance']}
+        # Compile/load every kernel before the first sample, on an estimator thrown away.
+        warm_up(FreeRunEstimator(self.model, **config), batch=max(2, p['batch']))
+        self.est = FreeRunEstimator(self.model, **config)
         self.axis = p['axis']
         # Axis names on the topics: a model of several axes is mapped by its own names (the
         # command's for its inputs, the deflection's for its outputs); one axis by `axis`.
