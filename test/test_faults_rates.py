@@ -144,6 +144,26 @@ def test_rate_monitor_window_and_arrivals():
         RateMonitor(P, window=2)
 
 
+@pytest.mark.parametrize('writers', [1, 2])
+def test_observe_next_is_received_then_observe(writers):
+    """The estimator's one call a clean command: the same verdicts and ratios as the two."""
+    rng = np.random.default_rng(writers)
+    two, one = RateMonitor(P, window=50), RateMonitor(P, window=50)
+    two.single_writer = one.single_writer = writers == 1
+    # On the grid with jitter, a faster stretch (every other stamp refused by no one) and a gap.
+    steps = np.concatenate([rng.uniform(0.9, 1.1, 200), np.full(100, 0.8), [7.0],
+                            rng.uniform(0.9, 1.1, 100)])
+    t = (np.cumsum(steps) * P).astype(np.int64).tolist()
+    verdicts = []
+    for s in t:
+        two.received(s)
+        verdicts.append((two.observe(s), one.observe_next(s)))
+    assert [a for a, _ in verdicts] == [b for _, b in verdicts]
+    assert any(a for a, _ in verdicts) and not all(a for a, _ in verdicts)
+    assert two.episodes == one.episodes
+    assert (two.ratio, two.arrival_ratio) == (one.ratio, one.arrival_ratio)
+
+
 # ------------------------------------------------------------------ item 3: slew per stamp time
 def test_controller_slew_limit_is_per_second_of_stamp_time():
     """

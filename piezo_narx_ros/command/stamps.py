@@ -184,21 +184,23 @@ def _load_kernels() -> None:
         t = np.zeros(1, dtype=np.int64)
         sk.observe_run(t, 0, 1, 1.0, 0.01, RATE_MIN_STEPS, False,
                        np.zeros((RATE_MIN_STEPS + 1, 3), dtype=np.int64),
-                       np.zeros(sk.N_INT_STATE, dtype=np.int64), np.zeros(2),
+                       np.zeros(sk.N_INT_STATE, dtype=np.int64), np.zeros(sk.N_FLOAT_STATE),
                        np.zeros(1, dtype=np.bool_))
         sk.on_grid_run(t, 0, 1.0, GRID_TOLERANCE)
-        sk.observe_one(0, 0, 1.0, 0.01, RATE_MIN_STEPS, False,
-                       np.zeros((RATE_MIN_STEPS + 1, 3), dtype=np.int64),
-                       np.zeros(sk.N_INT_STATE, dtype=np.int64), np.zeros(2))
+        settings = np.zeros(sk.N_FLOAT_STATE)
+        settings[sk.F_PERIOD], settings[sk.F_TOLERANCE] = 1.0, 0.01
+        st = np.zeros(sk.N_INT_STATE, dtype=np.int64)
+        st[sk.I_MIN_STEPS] = RATE_MIN_STEPS
+        sk.observe_one(0, 0, np.zeros((RATE_MIN_STEPS + 1, 3), dtype=np.int64), st, settings)
         sk.pass_and_observe(t, 0, GRID_TOLERANCE, 0, 1.0, 0.01, RATE_MIN_STEPS, False,
                             np.zeros((RATE_MIN_STEPS + 1, 3), dtype=np.int64),
-                            np.zeros(sk.N_INT_STATE, dtype=np.int64), np.zeros(2),
+                            np.zeros(sk.N_INT_STATE, dtype=np.int64), np.zeros(sk.N_FLOAT_STATE),
                             np.zeros(1, dtype=np.bool_))
         bounds = np.array([-1.0, 1.0, -1.0, 1.0, GRID_TOLERANCE, 1.0, 0.01])
         sk.check_pass_and_observe(t, np.zeros(1), bounds, 0, 0, RATE_MIN_STEPS, False,
                                   np.zeros((RATE_MIN_STEPS + 1, 3), dtype=np.int64),
-                                  np.zeros(sk.N_INT_STATE, dtype=np.int64), np.zeros(2),
-                                  np.zeros(1, dtype=np.bool_))
+                                  np.zeros(sk.N_INT_STATE, dtype=np.int64),
+                                  np.zeros(sk.N_FLOAT_STATE), np.zeros(1, dtype=np.bool_))
         _KERNELS_LOADED = True
 
 
@@ -217,7 +219,7 @@ class RateMonitor:
     samples. It clears once the window agrees again.
     """
 
-    __slots__ = ('period_ns', 'tolerance', 'window', 'single_writer', '_ring', '_st', '_fst',
+    __slots__ = ('period_ns', 'tolerance', 'window', '_ring', '_st', '_fst',
                  '_received', '_near', '_last')
 
     def __init__(self, period_ns: float, tolerance: float = RATE_TOLERANCE, window: int = 2000):
@@ -232,12 +234,26 @@ class RateMonitor:
         # for a sample or a batch alike.
         self._st = np.zeros(sk.N_INT_STATE, dtype=np.int64)
         # stream period / node period over the window; commands received per node period
-        self._fst = np.full(2, np.nan)
-        # Set by a node that knows one publisher feeds the stream: more commands than grid points
-        # are then a faster stream, not a second writer.
+        self._fst = np.full(sk.N_FLOAT_STATE, np.nan)
+        # The settings beside the state: observe_one reads them there (fewer arguments).
+        self._st[sk.I_MIN_STEPS] = RATE_MIN_STEPS
+        self._fst[sk.F_PERIOD], self._fst[sk.F_TOLERANCE] = self.period_ns, self.tolerance
         self.single_writer = False
         self.reset()
         _load_kernels()
+
+    @property
+    def single_writer(self) -> bool:
+        """
+        Whether one publisher feeds the stream, set by a node that knows it.
+
+        More commands than grid points are then a faster stream, not a second writer.
+        """
+        return bool(self._st[sk.I_SINGLE])
+
+    @single_writer.setter
+    def single_writer(self, value: bool) -> None:
+        self._st[sk.I_SINGLE] = 1 if value else 0
 
     @property
     def off(self) -> bool:
@@ -289,8 +305,15 @@ class RateMonitor:
     def observe(self, t_ns: int) -> bool:
         """One sample the gate accepted (stamp ns); returns `off`."""
         got, self._received, self._last = self._received, 0, t_ns
-        return sk.observe_one(t_ns, got, self.period_ns, self.tolerance, RATE_MIN_STEPS,
-                              self.single_writer, self._ring, self._st, self._fst)
+        return sk.observe_one(t_ns, got, self._ring, self._st, self._fst)
+
+    def observe_next(self, t_ns: int) -> bool:
+        """received(t_ns) then observe(t_ns), for a command the gate accepts; returns `off`."""
+        last, got = self._last, self._received
+        if last is None or self._near[0] <= t_ns - last <= self._near[1]:
+            got += 1
+        self._received, self._last = 0, t_ns
+        return sk.observe_one(t_ns, got, self._ring, self._st, self._fst)
 
     def observe_run(self, t_ns: np.ndarray) -> np.ndarray:
         """

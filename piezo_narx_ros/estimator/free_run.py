@@ -297,7 +297,6 @@ class FreeRunEstimator:
             u = np.array(u, dtype=np.float64).reshape(self.n_in)   # kept: a copy
         self._hand_over()
         self.stats.commands += 1
-        self.rate.received(t_ns)
         if not self._decided:
             self._decided = True
             self._wait = self.init_mode == 'measurement'
@@ -312,9 +311,10 @@ class FreeRunEstimator:
             # gate.push, _apply, _accept, _advance and _step do with it, without their checks.
             gate.last = self._last_t = t_ns
             self._last_u = u
-            self.rate.observe(t_ns)
-            self._emit(t_ns, self._stepper.step(u), out)
+            off = self.rate.observe_next(t_ns)       # received, then accepted
+            self._emit(t_ns, self._stepper.step(u), out, off)
             return out
+        self.rate.received(t_ns)
         self._apply(gate.push(t_ns, u), out)
         return out
 
@@ -595,7 +595,7 @@ class FreeRunEstimator:
 
     def _step(self, t_ns: int, u: float, out: list) -> None:
         """Estimate one command with the running Stepper; the memory brackets follow it."""
-        self._emit(t_ns, self._stepper.step(u), out)
+        self._emit(t_ns, self._stepper.step(u), out, self.rate.off)
         if self._memory is not None:
             st = self.stats
             st.state_spread_m = self._memory.step(u)
@@ -610,13 +610,16 @@ class FreeRunEstimator:
         if self.bracket:
             self._memory = memory_bracket(self.model, u0)
 
-    def _emit(self, t_ns: int, y_hat: float, out: list) -> None:
-        if self.rate.off:                  # the model's state still follows the commands
+    def _emit(self, t_ns: int, y_hat: float, out: list, off: bool) -> None:
+        """Publish y_hat (m) unless the stream is `off` rate; range checks; pair or keep it."""
+        if off:                            # the model's state still follows the commands
             self.stats.rate_withheld += 1
         else:
             out.append((t_ns, y_hat))
             self.stats.estimates += 1
-        oor = not _within(y_hat, self.y_lo, self.y_hi)
+        # A float compared inline (NaN: out of range): _within's call cost 10 % of a sample.
+        oor = not (self.y_lo <= y_hat <= self.y_hi if type(y_hat) is float
+                   else _within(y_hat, self.y_lo, self.y_hi))
         self.out_of_range_now = oor
         if oor:
             self.stats.out_of_range += 1

@@ -105,6 +105,31 @@ def narx_run(u, y, state, rows, nu1, b2, offset):
 
 
 @njit(cache=True)
+def narx_next(u_k, state, rows, nu1, b2):
+    """
+    narx_run for one input u_k (V): returns y(k) (m, without offset), state advanced in place.
+
+    Each unit's sum in _narx_eval's order: the same bits as narx_step, in five arguments
+    instead of eight (numba checks each on every call: 0.8 against 1.35 us a step).
+    """
+    n_x = state.size
+    for i in range(nu1 - 1):
+        state[i] = state[i + 1]
+    state[nu1 - 1] = u_k
+    out = b2
+    for h in range(rows.shape[1]):
+        z = rows[n_x, h]
+        for i in range(n_x):         # u(k-nu) .. u(k), then y(k-ny) .. y(k-1)
+            z += rows[i, h] * state[i]
+        out += rows[n_x + 1, h] / (1.0 + np.exp(-z))
+    if n_x > nu1:
+        for j in range(nu1, n_x - 1):
+            state[j] = state[j + 1]
+        state[n_x - 1] = out
+    return out
+
+
+@njit(cache=True)
 def narx_peek(u_k, ubuf, ybuf, scratch, Wu, Wy, b1, w2, b2):
     """
     Return y(k) (m) that narx_step would return for u_k (V), leaving ubuf and ybuf untouched.
@@ -313,9 +338,8 @@ class NARXStepper(Stepper):
 
         A non-finite u_k raises DataError and leaves the histories untouched.
         """
-        u = _finite_input(u_k)
-        Wu, Wy, b1, w2, b2 = self._params
-        return narx_step(u, self._ubuf, self._ybuf, Wu, Wy, b1, w2, b2) + self.offset
+        return narx_next(_finite_input(u_k), self._state, self._rows, self.nu + 1,
+                         self._b2) + self.offset
 
     def peek(self, u_k):
         """Return the output step(u_k) would return (m), without changing the histories."""
