@@ -82,32 +82,39 @@ def preset_config(preset, seed, jobs, hnarx=None):
     return replace(ExperimentConfig(), **settings, seed=seed, jobs=jobs, progress=False)
 
 
-def search(record, seed, jobs, committee=None):
-    """Run the structure search on one record as `fit` does: (selected model, its label)."""
+def search(record, seed, jobs, committee=None, overrides=None):
+    """
+    Run the structure search on one record as `fit` does: (selected model, its label).
+
+    overrides: SearchOptions fields over the defaults (e.g. {'tolerance': 0.0}).
+    """
     from piezo_narx_ros.ident.selection.executor import make_executor
     from piezo_narx_ros.ident.selection.experiment import split_records
     from piezo_narx_ros.ident.selection.search import SearchOptions, run_search
     est, val = split_records([record], SearchOptions.split)
     with tempfile.TemporaryDirectory() as out, make_executor('local', jobs) as executor:
         options = SearchOptions(seed=seed, progress=False,
-                                **({'committee': committee} if committee else {}))
+                                **({'committee': committee} if committee else {}),
+                                **(overrides or {}))
         result = run_search(est, val, options, executor, out)
     return result.best.model, result.best.spec.label
 
 
-def identify(params, seed, preset, jobs, signal='protocol', hnarx=None, committee=None):
+def identify(params, seed, preset, jobs, signal='protocol', hnarx=None, committee=None,
+             search_options=None):
     """
     Identify one preset on one 25 s record: (selected model, fit wall time s, label).
 
     preset: a PRESETS name or 'search'; hnarx: HysteresisNARX options over the preset's (e.g.
-    {'monotone': 'no'}; not with 'search'); committee: the search's (None: its default).
+    {'monotone': 'no'}; not with 'search'); committee: the search's (None: its default);
+    search_options: other SearchOptions fields over the search's defaults.
     """
     u = generate(signal, FS, 25.0, 100.0, seed=seed)
     y = PiezoCantilever(params, FS, seed=seed).run(u).y
     record = Record(u=u, y=y, fs=FS, source=f'{signal} seed {seed}')
     t0 = time.perf_counter()
     if preset == 'search':
-        model, label = search(record, seed, jobs, committee)
+        model, label = search(record, seed, jobs, committee, search_options)
         return model, time.perf_counter() - t0, label
     result = run_experiment([record], preset_config(preset, seed, jobs, hnarx))
     return result.best.model, time.perf_counter() - t0, result.best.spec.label
@@ -162,6 +169,8 @@ def main(argv=None):
                     help='HysteresisNARX options over the preset\'s, e.g. \'{"monotone": "no"}\'')
     ap.add_argument('--committee', type=int, default=None, metavar='K',
                     help="the search's committee size (default: SearchOptions')")
+    ap.add_argument('--search-options', type=json.loads, default={}, metavar='JSON',
+                    help='SearchOptions fields over the defaults, e.g. \'{"tolerance": 0}\'')
     args = ap.parse_args(argv)
     setups = [(p, 'protocol') for p in args.presets]
     if args.reference:
@@ -177,7 +186,8 @@ def main(argv=None):
             runs, times, labels = [], [], []
             for seed in args.seeds:
                 model, seconds, label = identify(params, seed, preset, args.jobs, signal,
-                                                 args.hnarx, args.committee)
+                                                 args.hnarx, args.committee,
+                                                 args.search_options)
                 runs.append(score(model, battery(params, seed)))
                 times.append(seconds)
                 labels.append(label)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from piezo_narx_ros.errors import ConfigError, DataError
+from piezo_narx_ros.ident.state.window import FullWindow
 
 #: Windows' worth of commands the start waits for its measured deflections before it gives up.
 START_PATIENCE = 10
@@ -62,6 +63,10 @@ class MeasuredStart:
         self.model, self.policy, self.window = model, policy, int(window)
         self._log: list | None = [] if policy != 'rest' else None   # (t_ns, u V) sent
         self._meas: dict = {}                                       # t_ns -> y m
+        # The window's first index in the log, found as commands and deflections come (a
+        # rescan of the log on each deflection cost O(window) a sample while some were lost).
+        self._full = FullWindow(max(1, self.window))
+        self._first: int | None = None
 
     @property
     def waiting(self) -> bool:
@@ -76,6 +81,9 @@ class MeasuredStart:
     def sent(self, t_ns: int, u) -> bool:
         """Keep a command (stamp ns, V); return False when the wait gave up (START_PATIENCE)."""
         self._log.append((t_ns, u))
+        first = self._full.command(t_ns, t_ns in self._meas)
+        if first is not None and self._first is None:     # its deflection came first
+            self._first = first
         if len(self._log) > START_PATIENCE * self.window:
             self.stop()
             return False
@@ -89,10 +97,12 @@ class MeasuredStart:
         deflection (usually the first ones: later ones when some were lost). DataError when no
         state explains it (the wait is over then too).
         """
-        from piezo_narx_ros.ident.state.start import first_full_window, relag_window, window_state
+        from piezo_narx_ros.ident.state.start import relag_window, window_state
         n, log, meas = self.window, self._log, self._meas
         meas[t_ns] = y
-        first = first_full_window((t for t, _ in log), meas, n) if len(meas) >= n else None
+        first = self._full.measurement(t_ns)
+        if self._first is not None:
+            first = self._first
         if first is None:
             return None
         log = log[first:]

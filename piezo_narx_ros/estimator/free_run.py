@@ -40,7 +40,7 @@ from piezo_narx_ros.command.stamps import (GRID_TOLERANCE, RATE_TOLERANCE, SAMPL
 from piezo_narx_ros.errors import ConfigError, DataError
 from piezo_narx_ros.estimator.memory import memory_bracket
 from piezo_narx_ros.estimator.stamp_table import StampTable
-from piezo_narx_ros.estimator.window import FullWindow
+from piezo_narx_ros.ident.state.window import FullWindow
 from piezo_narx_ros.ident.state.estimate import MIN_WINDOW
 
 INIT_MODES = ('auto', 'rest', 'measurement')

@@ -1,11 +1,11 @@
 """
 The first run of n consecutive commands that all have their measurement, kept as they arrive.
 
-The estimator initialises from that window (`ident.state.start.first_full_window` answers the
-same question for a finished list). Scanning the waiting commands again on every command and
-every measurement cost O(n) each, O(n²) over the window: at 2 kHz and a 0.5 s window the
-estimator took 0.8 s of CPU for 0.5 s of stream and fell behind the stream it had to follow
-(20 kHz: 10 000 samples, 100 times worse). Here each command and each measurement costs
+The estimator and the controller start from that window (`first_full_window` in start.py
+answers the same question for a finished list). Scanning the waiting commands again on every
+command and every measurement cost O(n) each, O(n²) over the window: at 2 kHz and a 0.5 s
+window the estimator took 0.8 s of CPU for 0.5 s of stream and fell behind the stream it had to
+follow (20 kHz: 10 000 samples, 100 times worse). Here each command and each measurement costs
 O(log holes), holes being the commands whose measurement has not (yet) come.
 """
 from __future__ import annotations

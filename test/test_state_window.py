@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from piezo_narx_ros.estimator.window import FullWindow
+from piezo_narx_ros.ident.state.window import FullWindow
 from piezo_narx_ros.ident.state.start import first_full_window
 
 
@@ -69,3 +69,22 @@ def test_warm_up_runs_the_estimator_through_its_measured_start_and_both_paths(fa
     assert est.stats.estimates == est.stats.commands == est.init_samples + 32
     rmse, r2, n = est.running_error()
     assert n > 0 and r2 > 0.999     # measured: the model's own free run, estimated again
+
+
+def test_a_controller_start_waits_past_lost_deflections_to_the_first_full_window():
+    from piezo_narx_ros.control.start import MeasuredStart
+    from piezo_narx_ros.estimator.toy import toy_narx
+    model = toy_narx(fs=2000.0)
+    u = np.random.default_rng(0).uniform(-100.0, 100.0, 60)
+    y = model.simulate(u)
+    start = MeasuredStart(model, 'state', 20)
+    lost, got = {5, 30}, None
+    for k in range(60):
+        assert start.sent(k, u[k])
+        if k not in lost:
+            got = start.measured(k, y[k])
+            if got is not None:
+                break
+    # Commands 6 .. 25 are the first 20 in a row with their deflection: the window ends at 25.
+    assert k == 25 and not start.waiting
+    assert np.array_equal(got.u_run, u[6:26])
