@@ -14,7 +14,7 @@ import math
 from std_srvs.srv import Trigger
 
 from piezo_narx_ros.command.stamps import RATE_TOLERANCE
-from piezo_narx_ros.errors import ConfigError
+from piezo_narx_ros.errors import ConfigError, PiezoNarxError
 from piezo_narx_ros.estimator.free_run import INIT_MODES, FreeRunEstimator, warm_up
 from piezo_narx_ros.estimator.health import EstimatorHealth
 from piezo_narx_ros.ident.state.estimate import PASTS
@@ -85,7 +85,10 @@ class EstimatorNode(PiezoNode):
             'init_window': p['init_window'] if p['init_window'] >= 0 else None,
             'init_past': p['init_past'], 'rate_tolerance': p['rate_tolerance']}
         # Compile/load every kernel before the first sample, on an estimator thrown away.
-        warm_up(FreeRunEstimator(self.model, **config), batch=max(2, p['batch']))
+        try:
+            warm_up(FreeRunEstimator(self.model, **config), batch=max(2, p['batch']))
+        except PiezoNarxError as exc:    # the live stream compiles what is left: slower start
+            self.get_logger().warning(f'warm-up on a synthetic stream failed: {exc}')
         self.est = FreeRunEstimator(self.model, **config)
         self.axis = p['axis']
         # Axis names on the topics: a model of several axes is mapped by its own names (the
