@@ -84,12 +84,12 @@ class EstimatorNode(PiezoNode):
             'init_timeout': p['init_timeout'],
             'init_window': p['init_window'] if p['init_window'] >= 0 else None,
             'init_past': p['init_past'], 'rate_tolerance': p['rate_tolerance']}
+        self.est = FreeRunEstimator(self.model, **config)    # a setting refused: one line
         # Compile/load every kernel before the first sample, on an estimator thrown away.
         try:
             warm_up(FreeRunEstimator(self.model, **config), batch=max(2, p['batch']))
         except PiezoNarxError as exc:    # the live stream compiles what is left: slower start
             self.get_logger().warning(f'warm-up on a synthetic stream failed: {exc}')
-        self.est = FreeRunEstimator(self.model, **config)
         self.axis = p['axis']
         # Axis names on the topics: a model of several axes is mapped by its own names (the
         # command's for its inputs, the deflection's for its outputs); one axis by `axis`.
