@@ -97,7 +97,7 @@ def test_pass_run_checked_is_the_command_checks_then_pass_run_observed():
                                                pass_run_observed)
     rng = np.random.default_rng(5)
     pairs = [(StampGate(PERIOD, 100), RateMonitor(PERIOD, 0.01, 50)) for _ in range(2)]
-    bounds = checked_run_bounds(pairs[1][1], (-200.0, 200.0), (-150.0, 150.0))
+    bounds = checked_run_bounds((-200.0, 200.0), (-150.0, 150.0))
     for g, _ in pairs:
         g.push(T0)
     for _ in range(400):

@@ -58,7 +58,8 @@ def test_window_size_must_be_positive():
 
 @pytest.mark.parametrize('family', ['toy', 'arx2'])
 def test_warm_up_runs_the_estimator_through_its_measured_start_and_both_paths(family, request):
-    from piezo_narx_ros.estimator.free_run import FreeRunEstimator, warm_up
+    from piezo_narx_ros.estimator.free_run import FreeRunEstimator
+    from piezo_narx_ros.estimator.warm_up import warm_up
     from piezo_narx_ros.estimator.toy import toy_narx
     model = toy_narx(fs=2000.0) if family == 'toy' else request.getfixturevalue('arx2')
     est = FreeRunEstimator(model, fs=2000.0, init='measurement', init_window=0.05)

@@ -10,7 +10,7 @@ from numba import njit
 
 # Layout of the int64 state vector: cumulative steps, commands received, accepted samples seen
 # (head), last stamp (ns), whether there is one, the verdict (0/1), episodes off rate; then the
-# monitor's settings observe_one reads: min_steps, single_writer (0/1).
+# monitor's settings the kernels read there: min_steps, single_writer (0/1).
 I_N, I_COUNT, I_HEAD, I_LAST, I_HAS_LAST, I_OFF, I_EPISODES, I_MIN_STEPS, I_SINGLE = range(9)
 N_INT_STATE = 9
 # Layout of the float64 state: stream period / node period, arrivals per node period; then the
@@ -20,17 +20,20 @@ N_FLOAT_STATE = 4
 
 
 @njit(cache=True)
-def observe_run(t_ns, received, each, period, tolerance, min_steps, single_writer, ring, st,
-                fst, off_out):
+def observe_run(t_ns, received, each, ring, st, fst, off_out):
     """
     Accept the samples t_ns (n,) int64 ns in order; off_out (n,) gets the verdict after each.
 
     received: commands received before the first sample, each: before each sample besides
     (RateMonitor.observe_run: the batch's own commands, 1), added to the count first, as
     RateMonitor.received() calls are. ring (window, 3) int64: stamp, cumulative steps, count at
-    each accepted sample; st, fst: the state vectors above, updated in place. The window is the
-    last `window` accepted samples; the verdict needs min_steps periods of stamps.
+    each accepted sample; st, fst: the state vectors above, updated in place, and the monitor's
+    settings (period, tolerance, min_steps, single_writer) read from them: numba checks every
+    argument on every call (nine took 1.3 us a sample, a quarter of the estimator's). The window
+    is the last `window` accepted samples; the verdict needs min_steps periods of stamps.
     """
+    period, tolerance = fst[F_PERIOD], fst[F_TOLERANCE]
+    min_steps, single_writer = st[I_MIN_STEPS], st[I_SINGLE] != 0
     w = ring.shape[0]
     st[I_COUNT] += received
     for i in range(t_ns.shape[0]):
@@ -72,15 +75,12 @@ def observe_one(t, received, ring, st, fst):
     """
     observe_run for one sample t (int ns), its received count before it: returns the verdict.
 
-    In one compiled call without the one-element arrays a caller would fill (RateMonitor.observe);
-    the settings come from st and fst: five arguments, each of which numba checks on every call
-    (the nine of observe_run's took 1.3 us a sample, a quarter of the estimator's).
+    In one compiled call without the one-element arrays a caller would fill (RateMonitor.observe).
     """
     t_ns = np.empty(1, dtype=np.int64)
     t_ns[0] = t
     off = np.empty(1, dtype=np.bool_)
-    return observe_run(t_ns, received, 0, fst[F_PERIOD], fst[F_TOLERANCE], st[I_MIN_STEPS],
-                       st[I_SINGLE] != 0, ring, st, fst, off)
+    return observe_run(t_ns, received, 0, ring, st, fst, off)
 
 
 @njit(cache=True)
@@ -96,18 +96,16 @@ def on_grid_run(t_ns, last, period, tolerance):
 
 
 @njit(cache=True)
-def pass_and_observe(t_ns, last, grid_tolerance, received, period, tolerance, min_steps,
-                     single_writer, ring, st, fst, off_out):
+def pass_and_observe(t_ns, last, grid_tolerance, received, ring, st, fst, off_out):
     """
     on_grid_run, then, when the batch passes, observe_run (each = 1): one call for both.
 
     Returns -1 when a stamp is off the grid (nothing changed), else how many samples are off
     rate (off_out filled as observe_run fills it).
     """
-    if not on_grid_run(t_ns, last, period, grid_tolerance):
+    if not on_grid_run(t_ns, last, fst[F_PERIOD], grid_tolerance):
         return -1
-    observe_run(t_ns, received, 1, period, tolerance, min_steps, single_writer, ring, st, fst,
-                off_out)
+    observe_run(t_ns, received, 1, ring, st, fst, off_out)
     n_off = 0
     for i in range(off_out.shape[0]):
         if off_out[i]:
@@ -116,13 +114,12 @@ def pass_and_observe(t_ns, last, grid_tolerance, received, period, tolerance, mi
 
 
 @njit(cache=True)
-def check_pass_and_observe(t_ns, v, bounds, last, received, min_steps, single_writer, ring, st,
-                           fst, off_out):
+def check_pass_and_observe(t_ns, v, bounds, last, received, ring, st, fst, off_out):
     """
     pass_and_observe for a batch of commands v (n,) V that must each be finite and accepted.
 
-    bounds (7,) float64: accepted lowest and highest command, trained lowest and highest (V),
-    then the grid tolerance, the period (ns) and the rate tolerance. Returns (-2, False) when a
+    bounds (5,) float64: accepted lowest and highest command, trained lowest and highest (V),
+    then the grid tolerance. Returns (-2, False) when a
     command is NaN, infinite or not accepted, (-1, False) when a stamp is off the grid (nothing
     changed either way), else (how many samples are off rate, whether every command is within
     the trained range): a batch's input, stamp and rate checks in one compiled call.
@@ -134,6 +131,5 @@ def check_pass_and_observe(t_ns, v, bounds, last, received, min_steps, single_wr
             return -2, False
         if not bounds[2] <= x <= bounds[3]:
             inside = False
-    n_off = pass_and_observe(t_ns, last, bounds[4], received, bounds[5], bounds[6], min_steps,
-                             single_writer, ring, st, fst, off_out)
+    n_off = pass_and_observe(t_ns, last, bounds[4], received, ring, st, fst, off_out)
     return n_off, inside and n_off >= 0

@@ -182,25 +182,18 @@ def _load_kernels() -> None:
     global _KERNELS_LOADED
     if not _KERNELS_LOADED:
         t = np.zeros(1, dtype=np.int64)
-        sk.observe_run(t, 0, 1, 1.0, 0.01, RATE_MIN_STEPS, False,
-                       np.zeros((RATE_MIN_STEPS + 1, 3), dtype=np.int64),
-                       np.zeros(sk.N_INT_STATE, dtype=np.int64), np.zeros(sk.N_FLOAT_STATE),
-                       np.zeros(1, dtype=np.bool_))
-        sk.on_grid_run(t, 0, 1.0, GRID_TOLERANCE)
-        settings = np.zeros(sk.N_FLOAT_STATE)
-        settings[sk.F_PERIOD], settings[sk.F_TOLERANCE] = 1.0, 0.01
+        ring = np.zeros((RATE_MIN_STEPS + 1, 3), dtype=np.int64)
         st = np.zeros(sk.N_INT_STATE, dtype=np.int64)
         st[sk.I_MIN_STEPS] = RATE_MIN_STEPS
-        sk.observe_one(0, 0, np.zeros((RATE_MIN_STEPS + 1, 3), dtype=np.int64), st, settings)
-        sk.pass_and_observe(t, 0, GRID_TOLERANCE, 0, 1.0, 0.01, RATE_MIN_STEPS, False,
-                            np.zeros((RATE_MIN_STEPS + 1, 3), dtype=np.int64),
-                            np.zeros(sk.N_INT_STATE, dtype=np.int64), np.zeros(sk.N_FLOAT_STATE),
-                            np.zeros(1, dtype=np.bool_))
-        bounds = np.array([-1.0, 1.0, -1.0, 1.0, GRID_TOLERANCE, 1.0, 0.01])
-        sk.check_pass_and_observe(t, np.zeros(1), bounds, 0, 0, RATE_MIN_STEPS, False,
-                                  np.zeros((RATE_MIN_STEPS + 1, 3), dtype=np.int64),
-                                  np.zeros(sk.N_INT_STATE, dtype=np.int64),
-                                  np.zeros(sk.N_FLOAT_STATE), np.zeros(1, dtype=np.bool_))
+        fst = np.zeros(sk.N_FLOAT_STATE)
+        fst[sk.F_PERIOD], fst[sk.F_TOLERANCE] = 1.0, 0.01
+        off = np.zeros(1, dtype=np.bool_)
+        sk.observe_run(t, 0, 1, ring, st, fst, off)
+        sk.on_grid_run(t, 0, 1.0, GRID_TOLERANCE)
+        sk.observe_one(0, 0, ring, st, fst)
+        sk.pass_and_observe(t, 0, GRID_TOLERANCE, 0, ring, st, fst, off)
+        bounds = np.array([-1.0, 1.0, -1.0, 1.0, GRID_TOLERANCE])
+        sk.check_pass_and_observe(t, np.zeros(1), bounds, 0, 0, ring, st, fst, off)
         _KERNELS_LOADED = True
 
 
@@ -235,7 +228,7 @@ class RateMonitor:
         self._st = np.zeros(sk.N_INT_STATE, dtype=np.int64)
         # stream period / node period over the window; commands received per node period
         self._fst = np.full(sk.N_FLOAT_STATE, np.nan)
-        # The settings beside the state: observe_one reads them there (fewer arguments).
+        # The settings beside the state: the kernels read them there (fewer arguments).
         self._st[sk.I_MIN_STEPS] = RATE_MIN_STEPS
         self._fst[sk.F_PERIOD], self._fst[sk.F_TOLERANCE] = self.period_ns, self.tolerance
         self.single_writer = False
@@ -327,8 +320,7 @@ class RateMonitor:
         if not t.shape[0]:
             return offs
         got, self._received, self._last = self._received, 0, int(t[-1])
-        sk.observe_run(t, got, 1, self.period_ns, self.tolerance, RATE_MIN_STEPS,
-                       self.single_writer, self._ring, self._st, self._fst, offs)
+        sk.observe_run(t, got, 1, self._ring, self._st, self._fst, offs)
         return offs
 
     def describe(self, what: str = 'stream') -> str:
@@ -357,9 +349,8 @@ def pass_run_observed(gate: StampGate, rate: RateMonitor, t_ns: np.ndarray):
     if not _run_may_pass(gate, t_ns):
         return None
     offs = np.empty(t_ns.shape[0], dtype=np.bool_)
-    n_off = sk.pass_and_observe(t_ns, gate.last, GRID_TOLERANCE, rate._received,
-                                rate.period_ns, rate.tolerance, RATE_MIN_STEPS,
-                                rate.single_writer, rate._ring, rate._st, rate._fst, offs)
+    n_off = sk.pass_and_observe(t_ns, gate.last, GRID_TOLERANCE, rate._received, rate._ring,
+                                rate._st, rate._fst, offs)
     if n_off < 0:
         return None
     _run_passed(gate, rate, t_ns)
@@ -377,14 +368,13 @@ def _run_passed(gate: StampGate, rate: RateMonitor, t_ns: np.ndarray) -> None:
     rate._received = 0
 
 
-def checked_run_bounds(rate: RateMonitor, accepted: tuple, trained: tuple) -> np.ndarray:
+def checked_run_bounds(accepted: tuple, trained: tuple) -> np.ndarray:
     """
     Return pass_run_checked's bounds: (lo, hi) accepted and (lo, hi) trained commands, V.
 
-    With the grid tolerance and `rate`'s period and tolerance, which never change.
+    With the grid tolerance (the rate's settings are in its monitor's state arrays).
     """
-    return np.array([*accepted, *trained, GRID_TOLERANCE, rate.period_ns, rate.tolerance],
-                    dtype=np.float64)
+    return np.array([*accepted, *trained, GRID_TOLERANCE], dtype=np.float64)
 
 
 def pass_run_checked(gate: StampGate, rate: RateMonitor, t_ns: np.ndarray, v: np.ndarray,
@@ -402,8 +392,7 @@ def pass_run_checked(gate: StampGate, rate: RateMonitor, t_ns: np.ndarray, v: np
         return None
     offs = np.empty(t_ns.shape[0], dtype=np.bool_)
     n_off, inside = sk.check_pass_and_observe(t_ns, v, bounds, gate.last, rate._received,
-                                              RATE_MIN_STEPS, rate.single_writer, rate._ring,
-                                              rate._st, rate._fst, offs)
+                                              rate._ring, rate._st, rate._fst, offs)
     if n_off < 0:
         return None
     _run_passed(gate, rate, t_ns)

@@ -181,7 +181,7 @@ class FreeRunEstimator:
         self.rate = RateMonitor(self.period_ns, rate_tolerance, max(self.window, 8))
         # One input: a batch's command checks run in the stamp kernel's call (on_commands).
         self._u_bounds = None if self.vector else checked_run_bounds(
-            self.rate, (self.u_min, self.u_max), (self.u_lo, self.u_hi))
+            (self.u_min, self.u_max), (self.u_lo, self.u_hi))
         # u/t history kept for re-anchoring (only then), and the stamp tables' horizon
         self._hist = max(self.n0, 1) + 64 + self.reanchor_every + self.init_samples
         self._err = deque(maxlen=self.window)
@@ -791,35 +791,3 @@ def _padded(rows, margin: float, n: int) -> tuple:
         return np.full(n, -math.inf), np.full(n, math.inf)
     pad = margin * (rows[:, 1] - rows[:, 0])
     return rows[:, 0] - pad, rows[:, 1] + pad
-
-
-def warm_up(est: FreeRunEstimator, batch: int = 20) -> None:
-    """
-    Compile and load everything `est` runs on a stream, by running it on one: est is used up.
-
-    Pass a throwaway estimator built like the one that will serve. A sine across the model's
-    input range at est.fs, with the model's own free run as its measurement: one command and
-    one measurement at a time through the initial window (from measurement when est waits for
-    one), then batches of `batch`. Without it the first window's state estimate compiled its
-    kernels on the live stream (0.5 s on a cold cache) while the commands queued.
-    """
-    n = est.init_samples + 4 * batch
-    shape = (n, est.n_in) if est.vector else (n,)
-    lo = np.maximum(np.broadcast_to(est.u_lo, shape[1:]), est.u_min)
-    hi = np.minimum(np.broadcast_to(est.u_hi, shape[1:]), est.u_max)
-    lo, hi = np.where(np.isfinite(lo), lo, -1.0), np.where(np.isfinite(hi), hi, 1.0)
-    phase = np.sin(2.0 * np.pi * 5.0 * np.arange(n) / est.fs)
-    u = (0.5 * (lo + hi) + 0.4 * (hi - lo) * (phase[:, None] if est.vector else phase))
-    u = u.reshape(shape)
-    with np.errstate(all='ignore'):
-        y = np.asarray(est.model.simulate(u), dtype=np.float64)
-    t = np.int64(10**18) + np.round(np.arange(n) * est.period_ns).astype(np.int64)
-    est.start(True)
-    k = est.init_samples + batch
-    for i in range(k):
-        est.on_measurement(int(t[i]), y[i] if est.vector else float(y[i]))
-        est.on_command(int(t[i]), u[i] if est.vector else float(u[i]))
-    for i in range(k, n, batch):
-        est.on_commands(t[i:i + batch], u[i:i + batch])
-        est.on_measurements(t[i:i + batch], y[i:i + batch])
-    est.running_error()

@@ -15,8 +15,9 @@ from std_srvs.srv import Trigger
 
 from piezo_narx_ros.command.stamps import RATE_TOLERANCE
 from piezo_narx_ros.errors import ConfigError, PiezoNarxError
-from piezo_narx_ros.estimator.free_run import INIT_MODES, FreeRunEstimator, warm_up
+from piezo_narx_ros.estimator.free_run import INIT_MODES, FreeRunEstimator
 from piezo_narx_ros.estimator.health import EstimatorHealth
+from piezo_narx_ros.estimator.warm_up import warm_up
 from piezo_narx_ros.ident.state.estimate import PASTS
 from piezo_narx_ros.nodes.wire.batching import BATCH_PARAM, HeldBatches, batch_topic, sample_type
 from piezo_narx_ros.nodes.wire import (decode_joint_state, decode_joint_trajectory,
