@@ -258,6 +258,51 @@ def test_a_teardown_that_hangs_ends_the_process_with_every_stack():
     assert 'in destroy_node' in done.stderr and 'in _teardown' in done.stderr, done.stderr
 
 
+def test_a_start_up_that_hangs_in_dds_ends_the_process_with_every_stack():
+    """
+    run_node, as a process: rclpy's Node() never returns (as Fast DDS's create_service once did).
+
+    Past STARTUP_S (1 s here) the watchdog prints every thread's stack, naming the hanging call,
+    and exits 1: a supervisor can restart a node that exits, not one that hangs.
+    """
+    done = run_node_script(
+        'Stuck', ['def __init__(self, **kwargs):',
+                  '    super().__init__(**kwargs)'],
+        imports=('import threading\nimport rclpy.node\nfrom piezo_narx_ros.nodes import runtime\n'
+                 'runtime.STARTUP_S = 1.0\n'
+                 'def hang_in_dds(self, *args, **kwargs):\n'
+                 '    threading.Event().wait()\n'
+                 'rclpy.node.Node.__init__ = hang_in_dds\n'), timeout=30)
+    assert done.returncode == 1, done.stderr
+    assert 'Timeout (0:00:01)!' in done.stderr, done.stderr
+    assert 'in hang_in_dds' in done.stderr and 'in __init__' in done.stderr, done.stderr
+
+
+def test_a_refused_node_made_no_parameter_services_and_an_accepted_one_did():
+    """PiezoNode makes rclpy's parameter services only once its parameters are accepted."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from piezo_narx_ros.errors import ConfigError
+    from piezo_narx_ros.nodes.command_node import CommandNode
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        refused = CommandNode.__new__(CommandNode)
+        with pytest.raises(ConfigError, match='fs must be'):
+            refused.__init__(context=ctx, parameter_overrides=[Parameter('fs', value=-5.0)],
+                             namespace='/refused')
+        accepted = CommandNode(context=ctx, parameter_overrides=[Parameter('fs', value=1000.0)],
+                               namespace='/accepted')
+        names = {node: {s.srv_name for s in node.services} for node in (refused, accepted)}
+        assert not any(n.endswith('/set_parameters') for n in names[refused]), names
+        assert any(n.endswith('/set_parameters') for n in names[accepted]), names
+        accepted.destroy_node()
+        refused.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)
+
+
 def test_fastdds_profile_is_set_only_where_the_user_did_not_configure_fast_dds(tmp_path):
     """fastdds_profile: config/fastdds.xml unless an env variable or a cwd file says otherwise."""
     import xml.etree.ElementTree as ET

@@ -16,6 +16,7 @@ from typing import Callable, Sequence
 import rclpy
 import rclpy.task
 from rclpy.node import Node
+from rclpy.parameter_service import ParameterService
 from rclpy.qos import QoSProfile
 from sensor_msgs.msg import JointState
 
@@ -41,6 +42,13 @@ DRAIN_QUIET_S = 0.2
 #: process hung there ignores SIGTERM and SIGINT: their handlers only set a flag that nothing
 #: reads any more. faulthandler's watchdog thread needs no GIL and prints every thread's stack.
 TEARDOWN_S = 20.0
+
+#: rclpy's Node() and its parameter services create a node's first DDS entities. One of twelve
+#: nodes started at once on one domain hung there for good (Fast DDS, in create_service; CI
+#: 2026-12-03). In a node process each of these steps is bounded: past STARTUP_S the process
+#: prints every thread's stack and exits 1, which a supervisor can restart; a hung one it cannot.
+STARTUP_S = 60.0
+_bound_startup = False    # set by run_node: a node made inside a test process is never ended
 
 
 #: Environment and files by which a user configures Fast DDS; any of them: fastdds_profile
@@ -132,6 +140,8 @@ def run_node(node_cls: Callable[..., Node], args: list[str] | None = None,
     started = None     # the node object, constructed or not (see _teardown)
     ex = None
     fastdds_profile()
+    global _bound_startup
+    _bound_startup = True
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
         started = node_cls.__new__(node_cls)
@@ -180,6 +190,11 @@ def _bounded(seconds: float):
         yield
     finally:
         faulthandler.cancel_dump_traceback_later()
+
+
+def _startup_step():
+    """Bound a DDS start-up step by STARTUP_S in a node process (run_node), else nothing."""
+    return _bounded(STARTUP_S) if _bound_startup else contextlib.nullcontext()
 
 
 def _teardown(ex, node, started=None) -> None:
@@ -289,13 +304,20 @@ class PiezoNode(Node):
 
     def __init__(self, **kwargs):
         kwargs.setdefault('namespace', DEFAULT_NAMESPACE)
-        super().__init__(self.NODE_NAME, **kwargs)
+        # The parameter services (12 DDS endpoints) are made once the parameters are accepted:
+        # a node that refuses its parameters creates a third of the entities, and is gone sooner.
+        services = kwargs.pop('start_parameter_services', True)
+        with _startup_step():
+            super().__init__(self.NODE_NAME, start_parameter_services=False, **kwargs)
         self._finished = None     # run_node's future: finish() completes it
         self.qos_watch = QosWatch(self)
         self.publish_failures = PublishFailures(self.get_logger())
         self.params = declare_parameters(self, self.PARAMS)
         # Before the node opens anything: a refused recorder left an empty bag behind.
         refuse_retired(self)
+        if services:
+            with _startup_step():
+                self._parameter_service = ParameterService(self)   # rclpy's own attribute
 
     def finish(self) -> None:
         """
