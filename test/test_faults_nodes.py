@@ -279,7 +279,7 @@ def test_a_start_up_that_hangs_in_dds_ends_the_process_with_every_stack():
 
 
 def test_a_refused_node_made_no_parameter_services_and_an_accepted_one_did():
-    """PiezoNode makes rclpy's parameter services only once its parameters are accepted."""
+    """A node makes rclpy's parameter services only once its parameters are accepted."""
     import rclpy
     from rclpy.parameter import Parameter
 
